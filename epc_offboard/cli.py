@@ -1,0 +1,107 @@
+"""The `epc-offboard` command line (CONTRACTS.md): run, sim, bench, db.
+
+Exit codes: 0 success, 2 bad usage or invalid config, 1 runtime failure. Each subcommand's
+implementation lives in its own module and is imported only when used, so `epc-offboard --help`
+stays fast and a broken optional piece cannot stop the others.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Callable, Sequence
+from typing import cast
+
+EXIT_OK = 0
+EXIT_RUNTIME = 1
+EXIT_USAGE = 2
+
+
+# subcommand -> "module:function(args) -> exit code"
+_COMMANDS = {
+    "run": "epc_offboard.service:run_service_command",
+    "sim": "epc_offboard.sim:run_sim_command",
+    "bench": "epc_offboard.bench:run_bench_command",
+    "db": "epc_offboard.store:run_db_command",
+}
+
+
+class UsageError(ValueError):
+    """Bad usage or invalid configuration: reported with exit code 2."""
+
+
+def parse_wind(text: str) -> tuple[float, float]:
+    """Parse ``SPEED_M_S,DIR_DEG`` (CONTRACTS.md) into (speed_m_s, dir_deg)."""
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"--wind expects SPEED_M_S,DIR_DEG, got {text!r}")
+    try:
+        speed, direction = float(parts[0]), float(parts[1])
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--wind expects two numbers, got {text!r}") from exc
+    if not (speed >= 0.0 and abs(direction) < float("inf")):
+        raise argparse.ArgumentTypeError(f"--wind speed must be >= 0 and finite, got {text!r}")
+    return speed, direction
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="epc-offboard",
+        description="MAVLink offboard flight controller running Experience-driven Predictive "
+        "Control (EPC) with LWPR model learning.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="run the offboard service (daemon)")
+    run.add_argument("--config", required=True, help="service config TOML")
+
+    sim = sub.add_parser("sim", help="fly the bundled SITL with the service and report")
+    sim.add_argument("--scenario", default="hover", help="hover, circle, zigzag, figure8")
+    sim.add_argument("--controller", choices=["epc", "pd", "mpc"], default="epc")
+    sim.add_argument("--adaptation", choices=["lwpr", "kf", "none"], default="lwpr")
+    sim.add_argument("--vehicles", type=int, default=1)
+    mode = sim.add_mutually_exclusive_group()
+    mode.add_argument("--lockstep", dest="lockstep", action="store_true", default=True)
+    mode.add_argument("--realtime", dest="lockstep", action="store_false")
+    sim.add_argument("--wind", type=parse_wind, default=None, metavar="SPEED_M_S,DIR_DEG")
+    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--duration", type=float, default=None, metavar="S")
+    sim.add_argument("--no-share", action="store_true")
+    sim.add_argument("--out", default="out", metavar="DIR")
+    sim.add_argument("--json", default=None, metavar="FILE")
+
+    bench = sub.add_parser("bench", help="compute benchmark: EPC vs OSQP vs DAQP")
+    bench.add_argument("--horizon", type=int, default=20)
+    bench.add_argument("--steps", type=int, default=2000)
+    bench.add_argument("--json", default=None, metavar="FILE")
+
+    db = sub.add_parser("db", help="the controller library on disk")
+    db.add_argument("action", choices=["info", "export", "import", "merge"])
+    db.add_argument("paths", nargs="*")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    module_name, func_name = _COMMANDS[args.command].split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name != module_name:
+            raise
+        print(f"epc-offboard: `{args.command}` is not implemented yet", file=sys.stderr)
+        return EXIT_RUNTIME
+    command = cast(Callable[[argparse.Namespace], int], getattr(module, func_name))
+    try:
+        return command(args)
+    except UsageError as exc:
+        print(f"epc-offboard: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return EXIT_RUNTIME
+
+
+if __name__ == "__main__":
+    sys.exit(main())
