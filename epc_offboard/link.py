@@ -1,0 +1,238 @@
+"""MAVLink 2 over UDP for asyncio: pymavlink's sans-IO codec driven by a DatagramProtocol.
+
+No blocking ``recv_match`` anywhere: datagrams arrive on the event loop, are fed to
+``MAVLink.parse_buffer`` and handed to a callback as decoded messages. Bad bytes never raise:
+the codec runs with ``robust_parsing`` so corrupt frames, bad CRCs and bad signatures come back
+as ``BAD_DATA`` and are counted here, by reason.
+
+Connection URLs (as MAVSDK and mavutil spell them):
+
+* ``udpin://HOST:PORT``  — bind HOST:PORT, reply to whoever last sent us a valid message
+  (the usual companion-computer setup: PX4 sends to us on 14540);
+* ``udpout://HOST:PORT`` — send to HOST:PORT from an ephemeral port (we speak first).
+
+Serial links are not supported by this asyncio link yet: a clear ConfigError says so.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import struct
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO, Literal
+from urllib.parse import urlsplit
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.configio import ConfigError
+
+log = logging.getLogger(__name__)
+
+MessageHandler = Callable[[Any], None]
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    mode: Literal["udpin", "udpout"]
+    host: str
+    port: int
+
+
+def parse_url(url: str) -> Endpoint:
+    """Parse ``udpin://HOST:PORT`` or ``udpout://HOST:PORT``; anything else is a ConfigError."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("udpin", "udpout"):
+        hint = " (serial links are not supported yet)" if parts.scheme in ("serial", "") else ""
+        raise ConfigError(f"connection url {url!r}: scheme must be udpin:// or udpout://{hint}")
+    try:
+        port = parts.port
+    except ValueError as exc:
+        raise ConfigError(f"connection url {url!r}: bad port") from exc
+    if not parts.hostname or port is None:
+        raise ConfigError(f"connection url {url!r}: expected {parts.scheme}://HOST:PORT")
+    mode: Literal["udpin", "udpout"] = "udpin" if parts.scheme == "udpin" else "udpout"
+    return Endpoint(mode, parts.hostname, port)
+
+
+def load_signing_key(path: str | Path) -> bytes:
+    """Read a MAVLink 2 signing key: exactly 32 raw bytes, or 64 hex characters."""
+    data = Path(path).read_bytes()
+    if len(data) == 32:
+        return data
+    text = data.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    raise ConfigError(f"{path}: signing key must be 32 raw bytes or 64 hex characters")
+
+
+class TlogWriter:
+    """A MAVLink telemetry log (.tlog): each frame prefixed by a big-endian uint64 of unix us.
+
+    This is the format QGroundControl writes and MAVExplorer/mavlogdump read.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        # Lives as long as the session, closed by close(): no context manager fits.
+        self._fh: BinaryIO | None = Path(path).open("ab")  # noqa: SIM115
+
+    def write(self, frame: bytes, unix_time_s: float | None = None) -> None:
+        if self._fh is None:
+            return
+        t_us = int((time.time() if unix_time_s is None else unix_time_s) * 1e6)
+        self._fh.write(struct.pack(">Q", t_us) + frame)
+
+    def flush(self) -> None:
+        if self._fh is not None:
+            self._fh.flush()
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+class _Protocol(asyncio.DatagramProtocol):
+    def __init__(self, link: MavlinkLink) -> None:
+        self._link = link
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        self._link._on_datagram(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable when the peer is not up yet: expected, not fatal.
+        self._link.counters["socket_errors"] += 1
+        log.debug("udp error: %s", exc)
+
+
+class MavlinkLink:
+    """One MAVLink 2 connection over UDP.
+
+    ``on_message`` is called on the event loop for every valid message that passed the
+    system-id filter (``accept_system_ids``; None accepts all). ``counters`` counts what was
+    received, sent and rejected, by reason.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        system_id: int,
+        component_id: int,
+        on_message: MessageHandler,
+        accept_system_ids: frozenset[int] | None = None,
+        signing_key: bytes | None = None,
+        tlog: TlogWriter | None = None,
+    ) -> None:
+        self.endpoint = parse_url(url)
+        self._on_message = on_message
+        self._accept = accept_system_ids
+        self._tlog = tlog
+        self._transport: asyncio.DatagramTransport | None = None
+        self._peer: tuple[str, int] | None = (
+            (self.endpoint.host, self.endpoint.port) if self.endpoint.mode == "udpout" else None
+        )
+        self.counters: Counter[str] = Counter()
+        self.mav = mavlink.MAVLink(_SendFile(self), srcSystem=system_id, srcComponent=component_id)
+        self.mav.robust_parsing = True
+        if signing_key is not None:
+            self.mav.signing.secret_key = signing_key
+            self.mav.signing.link_id = 0
+            # MAVLink signing timestamps count 10 us units since 2015-01-01.
+            self.mav.signing.timestamp = int((time.time() - 1420070400) * 1e5)
+            self.mav.signing.sign_outgoing = True
+            self.mav.signing.allow_unsigned_callback = lambda _mav, _msg_id: False
+
+    @property
+    def peer(self) -> tuple[str, int] | None:
+        return self._peer
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        if self._transport is None:
+            raise RuntimeError("link is not open")
+        addr: tuple[str, int] = self._transport.get_extra_info("sockname")[:2]
+        return addr
+
+    async def open(self) -> None:
+        loop = asyncio.get_running_loop()
+        if self.endpoint.mode == "udpin":
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _Protocol(self), local_addr=(self.endpoint.host, self.endpoint.port)
+            )
+        else:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _Protocol(self), local_addr=("0.0.0.0", 0)
+            )
+        self._transport = transport
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+        if self._tlog is not None:
+            self._tlog.flush()
+
+    def send(self, msg: Any) -> bool:
+        """Encode and send ``msg``; False (and counted) when there is no peer or socket yet."""
+        if self._transport is None or self._peer is None:
+            self.counters["send_no_peer"] += 1
+            return False
+        self.mav.send(msg)
+        return True
+
+    def _write_frame(self, frame: bytes) -> None:
+        if self._transport is None or self._peer is None:
+            return
+        self._transport.sendto(frame, self._peer)
+        self.counters["sent"] += 1
+        if self._tlog is not None:
+            self._tlog.write(frame)
+
+    def _on_datagram(self, data: bytes, addr: tuple[Any, int]) -> None:
+        self.counters["datagrams"] += 1
+        try:
+            msgs = self.mav.parse_buffer(data) or []
+        except Exception as exc:  # the codec must never take the loop down
+            self.counters["bad_data"] += 1
+            log.debug("unparseable datagram from %s: %s", addr, exc)
+            return
+        for msg in msgs:
+            self._dispatch(msg, addr)
+
+    def _dispatch(self, msg: Any, addr: tuple[Any, int]) -> None:
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            reason = str(getattr(msg, "reason", ""))
+            key = "bad_signature" if "signature" in reason.lower() else "bad_data"
+            self.counters[key] += 1
+            return
+        if mtype == "UNKNOWN" or mtype.startswith("UNKNOWN_"):
+            self.counters["unknown_message"] += 1
+            return
+        if self._accept is not None and msg.get_srcSystem() not in self._accept:
+            self.counters["wrong_system"] += 1
+            return
+        self.counters["received"] += 1
+        if self.endpoint.mode == "udpin":
+            self._peer = (str(addr[0]), int(addr[1]))
+        if self._tlog is not None:
+            self._tlog.write(bytes(msg.get_msgbuf()))
+        self._on_message(msg)
+
+
+class _SendFile:
+    """The file-like pymavlink writes packed frames to."""
+
+    def __init__(self, link: MavlinkLink) -> None:
+        self._link = link
+
+    def write(self, frame: bytes) -> None:
+        self._link._write_frame(bytes(frame))

@@ -1,0 +1,160 @@
+"""The asyncio MAVLink link over real UDP on loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.configio import ConfigError
+from epc_offboard.link import MavlinkLink, TlogWriter, load_signing_key, parse_url
+
+KEY = bytes(range(32))
+
+
+def heartbeat(link: MavlinkLink):
+    return link.mav.heartbeat_encode(
+        mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+    )
+
+
+async def pair(*, server_key=None, client_key=None, accept=None, tlog=None):
+    got_server: list = []
+    got_client: list = []
+    server = MavlinkLink(
+        "udpin://127.0.0.1:0",
+        system_id=255,
+        component_id=191,
+        on_message=got_server.append,
+        accept_system_ids=accept,
+        signing_key=server_key,
+        tlog=tlog,
+    )
+    await server.open()
+    port = server.local_address[1]
+    client = MavlinkLink(
+        f"udpout://127.0.0.1:{port}",
+        system_id=1,
+        component_id=1,
+        on_message=got_client.append,
+        signing_key=client_key,
+    )
+    await client.open()
+    return server, client, got_server, got_client
+
+
+async def settle(cond, timeout_s=2.0):
+    async with asyncio.timeout(timeout_s):
+        while not cond():  # noqa: ASYNC110 - polling a plain predicate in a test
+            await asyncio.sleep(0.005)
+
+
+def test_parse_url():
+    assert parse_url("udpin://0.0.0.0:14540").port == 14540
+    assert parse_url("udpout://127.0.0.1:14580").mode == "udpout"
+    with pytest.raises(ConfigError, match="serial links are not supported"):
+        parse_url("serial:///dev/ttyACM0")
+    with pytest.raises(ConfigError, match="HOST:PORT"):
+        parse_url("udpin://:14540")
+
+
+async def _round_trip():
+    server, client, got_server, got_client = await pair()
+    assert client.send(heartbeat(client))
+    await settle(lambda: got_server)
+    assert got_server[0].get_type() == "HEARTBEAT"
+    assert got_server[0].get_srcSystem() == 1
+    # udpin replies to whoever spoke last
+    assert server.send(heartbeat(server))
+    await settle(lambda: got_client)
+    assert got_client[0].get_srcSystem() == 255
+    server.close()
+    client.close()
+
+
+def test_round_trip_both_ways():
+    asyncio.run(_round_trip())
+
+
+async def _garbage():
+    server, client, got_server, _ = await pair(accept=frozenset({1}))
+    port = server.local_address[1]
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    good = heartbeat(client).pack(client.mav)
+    corrupt = bytearray(good)
+    corrupt[-1] ^= 0xFF  # bad CRC
+    for dgram in (b"\xfd\x09garbage", bytes(corrupt), b"", good[:5]):
+        raw.sendto(dgram, ("127.0.0.1", port))
+    other = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
+    raw.sendto(heartbeat(client).pack(other), ("127.0.0.1", port))
+    client.send(heartbeat(client))
+    await settle(lambda: got_server)
+    await asyncio.sleep(0.05)
+    assert [m.get_srcSystem() for m in got_server] == [1]
+    assert server.counters["bad_data"] >= 1
+    assert server.counters["wrong_system"] == 1
+    raw.close()
+    server.close()
+    client.close()
+
+
+def test_garbage_and_foreign_systems_are_counted_not_delivered():
+    asyncio.run(_garbage())
+
+
+async def _signing():
+    server, client, got_server, _ = await pair(server_key=KEY, client_key=None)
+    client.send(heartbeat(client))  # unsigned
+    await settle(lambda: server.counters["bad_signature"] + server.counters["bad_data"] >= 1)
+    assert got_server == []
+    server.close()
+    client.close()
+    server, client, got_server, got_client = await pair(server_key=KEY, client_key=KEY)
+    client.send(heartbeat(client))
+    await settle(lambda: got_server)
+    server.send(heartbeat(server))
+    await settle(lambda: got_client)
+    assert got_client[0].get_signed()
+    server.close()
+    client.close()
+
+
+def test_signing_rejects_unsigned_and_accepts_signed():
+    asyncio.run(_signing())
+
+
+def test_signing_key_file(tmp_path):
+    raw = tmp_path / "raw.key"
+    raw.write_bytes(KEY)
+    hexkey = tmp_path / "hex.key"
+    hexkey.write_text(KEY.hex() + "\n")
+    assert load_signing_key(raw) == KEY == load_signing_key(hexkey)
+    bad = tmp_path / "bad.key"
+    bad.write_bytes(b"short")
+    with pytest.raises(ConfigError, match="32 raw bytes"):
+        load_signing_key(bad)
+
+
+async def _tlog(path):
+    tlog = TlogWriter(path)
+    server, client, got_server, _ = await pair(tlog=tlog)
+    for _ in range(3):
+        client.send(heartbeat(client))
+    await settle(lambda: len(got_server) == 3)
+    server.send(heartbeat(server))
+    server.close()
+    tlog.close()
+    client.close()
+
+
+def test_tlog_is_readable_by_mavutil(tmp_path):
+    path = tmp_path / "session.tlog"
+    asyncio.run(_tlog(path))
+    log = mavutil.mavlink_connection(str(path))
+    systems = []
+    while (m := log.recv_match(type="HEARTBEAT")) is not None:
+        systems.append(m.get_srcSystem())
+    assert systems == [1, 1, 1, 255]
