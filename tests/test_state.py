@@ -1,0 +1,143 @@
+"""State decoding: validation, rejection by reason, ODOMETRY frames, forward prediction."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard import frames
+from epc_offboard.state import (
+    PX4_AUTO_SUB_LOITER,
+    PX4_MAIN_MODE_AUTO,
+    StateTracker,
+    px4_custom_mode,
+    px4_modes,
+)
+
+MAV = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+OTHER = mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
+
+
+def decode(msg, mav=MAV):
+    """Pack and decode, so the tracker sees exactly what the wire gives."""
+    rx = mavlink.MAVLink(None)
+    return rx.decode(bytearray(msg.pack(mav)))
+
+
+def att_q(t_ms, q, rates=(0.0, 0.0, 0.0), mav=MAV):
+    return decode(mav.attitude_quaternion_encode(t_ms, *q, *rates), mav)
+
+
+def lpos(t_ms, pos, vel, mav=MAV):
+    return decode(mav.local_position_ned_encode(t_ms, *pos, *vel), mav)
+
+
+def test_px4_mode_encoding_matches_px4():
+    # DESIGN.md: Hold = AUTO.LOITER = 0x03040000
+    assert px4_custom_mode(PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER) == 0x03040000
+    assert px4_modes(0x03040000) == (4, 3)
+    assert px4_modes(px4_custom_mode(6)) == (6, 0)
+
+
+def test_snapshot_needs_both_samples_and_predicts_position_forward():
+    tr = StateTracker(system_id=1)
+    assert tr.snapshot() is None
+    q = frames.euler_to_quat(0.1, -0.2, 0.3)
+    assert tr.handle(att_q(1000, q, (0.1, 0.2, 0.3)))
+    assert tr.snapshot() is None
+    assert tr.handle(lpos(1000, (1.0, 2.0, -3.0), (1.0, 0.0, -0.5)))
+    s = tr.snapshot(1.05)
+    assert s is not None
+    np.testing.assert_allclose(s.pos_ned_m, [1.05, 2.0, -3.025], atol=1e-6)
+    np.testing.assert_allclose(s.euler_rad, (0.1, -0.2, 0.3), atol=1e-6)
+    assert s.position_age_s == pytest.approx(0.05)
+    # prediction is capped at max_predict_s
+    s = tr.snapshot(2.0)
+    assert s is not None
+    np.testing.assert_allclose(s.pos_ned_m[0], 1.0 + tr.limits.max_predict_s, atol=1e-6)
+    assert tr.age_s(2.0, vehicle_clock=True) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(
+    ("msg", "reason"),
+    [
+        (lpos(10, (math.nan, 0.0, 0.0), (0.0, 0.0, 0.0)), "rejected_nan"),
+        (lpos(10, (0.0, 0.0, 0.0), (0.0, math.inf, 0.0)), "rejected_nan"),
+        (lpos(10, (2e4, 0.0, 0.0), (0.0, 0.0, 0.0)), "rejected_range"),
+        (lpos(10, (0.0, 0.0, 0.0), (300.0, 0.0, 0.0)), "rejected_range"),
+        (att_q(10, (0.5, 0.0, 0.0, 0.0)), "rejected_quaternion"),
+        (att_q(10, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, math.nan)), "rejected_nan"),
+        (att_q(10, (1.0, 0.0, 0.0, 0.0), (99.0, 0.0, 0.0)), "rejected_range"),
+    ],
+)
+def test_bad_samples_are_rejected_and_keep_the_good_state(msg, reason):
+    tr = StateTracker(system_id=1)
+    tr.handle(att_q(5, (1.0, 0.0, 0.0, 0.0)))
+    tr.handle(lpos(5, (1.0, 1.0, -1.0), (0.0, 0.0, 0.0)))
+    before = tr.snapshot()
+    assert not tr.handle(msg)
+    assert tr.counters[reason] == 1
+    after = tr.snapshot()
+    assert before is not None
+    assert after is not None
+    np.testing.assert_array_equal(after.pos_ned_m, before.pos_ned_m)
+    np.testing.assert_array_equal(after.q_ned_frd, before.q_ned_frd)
+
+
+def test_out_of_order_and_foreign_samples_are_ignored():
+    tr = StateTracker(system_id=1)
+    assert tr.handle(lpos(100, (1.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    assert not tr.handle(lpos(50, (5.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    assert tr.counters["rejected_out_of_order"] == 1
+    assert not tr.handle(lpos(200, (9.0, 0.0, 0.0), (0.0, 0.0, 0.0), mav=OTHER))
+    assert tr.vehicle_time_s == pytest.approx(0.1)
+
+
+def test_odometry_body_velocity_is_rotated_to_ned():
+    tr = StateTracker(system_id=1)
+    yaw = math.pi / 2  # facing east: body forward = NED east
+    q = frames.euler_to_quat(0.0, 0.0, yaw)
+    msg = MAV.odometry_encode(
+        2_000_000,
+        mavlink.MAV_FRAME_LOCAL_NED,
+        mavlink.MAV_FRAME_BODY_FRD,
+        1.0,
+        2.0,
+        -3.0,
+        list(q),
+        2.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.1,
+        [math.nan] * 21,
+        [math.nan] * 21,
+        0,
+        0,
+        0,
+    )
+    assert tr.handle(decode(msg))
+    s = tr.snapshot()
+    assert s is not None
+    np.testing.assert_allclose(s.vel_ned_m_s, [0.0, 2.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(s.rate_frd_rad_s, [0.0, 0.0, 0.1], atol=1e-6)
+    assert s.time_s == pytest.approx(2.0)
+
+
+def test_heartbeat_decodes_armed_and_mode():
+    tr = StateTracker(system_id=1)
+    hb = MAV.heartbeat_encode(
+        mavlink.MAV_TYPE_QUADROTOR,
+        mavlink.MAV_AUTOPILOT_PX4,
+        mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+        px4_custom_mode(6),
+        mavlink.MAV_STATE_ACTIVE,
+    )
+    tr.handle(decode(hb))
+    assert tr.heartbeat is not None
+    assert tr.heartbeat.armed
+    assert tr.heartbeat.offboard
