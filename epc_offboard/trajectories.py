@@ -1,0 +1,220 @@
+"""Reference trajectories for the position loop (pure numerics, NED, SI units).
+
+Every trajectory is a smooth function of time giving position, velocity and acceleration,
+anchored at a point (usually where the vehicle was when control began): the path starts
+*at* the anchor with zero velocity, and a C2 time warp ramps the progress speed from 0 to 1
+over ``ramp_s`` so the controller is never handed a step in position, velocity or
+acceleration.
+
+Shapes (horizontal plane; altitude is the anchor's):
+
+* ``hover``    — stay at the anchor;
+* ``line``     — to ``anchor + (dx_m, dy_m, dz_m)`` and back, at ``speed_m_s``;
+* ``circle``   — radius ``radius_m``, period ``period_s``, centre ``radius_m`` north of the anchor;
+* ``figure8``  — lemniscate of Gerono: x = A sin(wt), y = A/2 sin(2wt) (A = ``size_m``);
+* ``zigzag``   — y sweeps ±``amplitude_m`` with a trapezoidal speed profile peaking at
+  ``peak_speed_m_s`` (the thesis's experiment: up to 3.75 m/s), optionally advancing north at
+  ``forward_speed_m_s``;
+* ``waypoints``— straight segments through a list of (north, east, down) offsets, each with a
+  trapezoidal speed profile (stop at each waypoint).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from epc_offboard.frames import FloatArray
+
+Shape = Literal["hover", "line", "circle", "figure8", "zigzag", "waypoints"]
+
+
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    shape: Shape = "hover"
+    ramp_s: float = 2.0  # progress speed ramps 0 -> 1 over this time
+    radius_m: float = 2.0  # circle
+    period_s: float = 10.0  # circle, figure8
+    size_m: float = 3.0  # figure8 half-width
+    amplitude_m: float = 3.0  # zigzag
+    peak_speed_m_s: float = 3.75  # zigzag
+    accel_m_s2: float = 6.0  # zigzag and waypoint speed profiles
+    forward_speed_m_s: float = 0.0  # zigzag
+    speed_m_s: float = 1.0  # line and waypoints cruise speed
+    dx_m: float = 4.0  # line
+    dy_m: float = 0.0
+    dz_m: float = 0.0
+    waypoints_ned_m: tuple[tuple[float, float, float], ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        positive = ("ramp_s", "radius_m", "period_s", "size_m", "amplitude_m",
+                    "peak_speed_m_s", "accel_m_s2", "speed_m_s")  # fmt: skip
+        for name in positive:
+            if getattr(self, name) <= 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.shape == "waypoints" and len(self.waypoints_ned_m) < 1:
+            raise ValueError("waypoints_ned_m needs at least one waypoint for shape 'waypoints'")
+
+
+@dataclass(frozen=True)
+class RefSample:
+    pos_ned_m: FloatArray
+    vel_ned_m_s: FloatArray
+    acc_ned_m_s2: FloatArray
+
+
+# A path in its own progress variable s (seconds of "full speed" travel): p(s), p'(s), p''(s).
+PathFn = Callable[[float], tuple[FloatArray, FloatArray, FloatArray]]
+
+
+def _warp(t_s: float, ramp_s: float) -> tuple[float, float, float]:
+    """C2 time warp: s(t), s'(t), s''(t) with s' rising 0 -> 1 over ramp_s as (1 - cos)/2."""
+    if t_s <= 0.0:
+        return 0.0, 0.0, 0.0
+    if t_s >= ramp_s:
+        return ramp_s / 2 + (t_s - ramp_s), 1.0, 0.0
+    w = math.pi / ramp_s
+    s = t_s / 2 - math.sin(w * t_s) / (2 * w)
+    return s, (1 - math.cos(w * t_s)) / 2, w * math.sin(w * t_s) / 2
+
+
+def _trapezoid(
+    distance_m: float, v_max: float, a_max: float
+) -> Callable[[float], tuple[float, float, float]]:
+    """Rest-to-rest profile along a distance: returns f(t) -> (x, v, a), held at the end."""
+    if distance_m <= 0.0:
+        return lambda _t: (0.0, 0.0, 0.0)
+    t_acc = v_max / a_max
+    if a_max * t_acc * t_acc >= distance_m:  # triangular: never reaches v_max
+        t_acc = math.sqrt(distance_m / a_max)
+        v_max = a_max * t_acc
+    t_cruise = (distance_m - a_max * t_acc * t_acc) / v_max
+    t_total = 2 * t_acc + t_cruise
+
+    def f(t: float) -> tuple[float, float, float]:
+        if t <= 0.0:
+            return 0.0, 0.0, 0.0
+        if t < t_acc:
+            return 0.5 * a_max * t * t, a_max * t, a_max
+        if t < t_acc + t_cruise:
+            return 0.5 * a_max * t_acc * t_acc + v_max * (t - t_acc), v_max, 0.0
+        if t < t_total:
+            tr = t_total - t
+            return distance_m - 0.5 * a_max * tr * tr, a_max * tr, -a_max
+        return distance_m, 0.0, 0.0
+
+    f.duration_s = t_total  # type: ignore[attr-defined]
+    return f
+
+
+def _segments(points: Sequence[FloatArray], v_max: float, a_max: float) -> PathFn:
+    """Rest-to-rest straight segments through ``points`` (the first is the start)."""
+    legs = []
+    t0 = 0.0
+    for a, b in itertools.pairwise(points):
+        d = b - a
+        length = float(np.linalg.norm(d))
+        prof = _trapezoid(length, v_max, a_max)
+        unit = d / length if length > 0 else np.zeros(3)
+        legs.append((t0, a, unit, prof))
+        t0 += getattr(prof, "duration_s", 0.0)
+
+    def path(s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        if not legs:
+            return points[0].copy(), np.zeros(3), np.zeros(3)
+        leg = legs[0]
+        for cand in legs:
+            if s >= cand[0]:
+                leg = cand
+        start_s, a, unit, prof = leg
+        x, v, acc = prof(s - start_s)
+        return a + unit * x, unit * v, unit * acc
+
+    return path
+
+
+def make_path(cfg: TrajectoryConfig) -> PathFn:
+    """The path of ``cfg.shape`` relative to the anchor (offset zero at s = 0)."""
+    zero = np.zeros(3)
+    if cfg.shape == "hover":
+        return lambda _s: (zero.copy(), zero.copy(), zero.copy())
+    if cfg.shape == "circle":
+        r, w = cfg.radius_m, 2 * math.pi / cfg.period_s
+
+        def circle(s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+            # centre r north of the anchor; start at the anchor heading east
+            c, si = math.cos(w * s), math.sin(w * s)
+            return (
+                np.array([r - r * c, r * si, 0.0]),
+                np.array([r * w * si, r * w * c, 0.0]),
+                np.array([r * w * w * c, -r * w * w * si, 0.0]),
+            )
+
+        return circle
+    if cfg.shape == "figure8":
+        a, w = cfg.size_m, 2 * math.pi / cfg.period_s
+
+        def figure8(s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+            return (
+                np.array([a * math.sin(w * s), a / 2 * math.sin(2 * w * s), 0.0]),
+                np.array([a * w * math.cos(w * s), a * w * math.cos(2 * w * s), 0.0]),
+                np.array([-a * w * w * math.sin(w * s), -2 * a * w * w * math.sin(2 * w * s), 0.0]),
+            )
+
+        return figure8
+    if cfg.shape == "zigzag":
+        amp = cfg.amplitude_m
+        sweep = _trapezoid(2 * amp, cfg.peak_speed_m_s, cfg.accel_m_s2)
+        first = _trapezoid(amp, cfg.peak_speed_m_s, cfg.accel_m_s2)
+        t_first = float(getattr(first, "duration_s"))  # noqa: B009 - set dynamically
+        t_sweep = float(getattr(sweep, "duration_s"))  # noqa: B009
+        vf = cfg.forward_speed_m_s
+
+        def zigzag(s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+            if s < t_first:  # anchor -> +amp
+                y, vy, ay = first(s)
+            else:
+                k, tau = divmod(s - t_first, t_sweep)
+                y, vy, ay = sweep(tau)
+                sign = -1.0 if int(k) % 2 == 0 else 1.0  # +amp -> -amp, then back
+                y, vy, ay = amp + sign * y if sign < 0 else -amp + y, sign * vy, sign * ay
+            return np.array([vf * s, y, 0.0]), np.array([vf, vy, 0.0]), np.array([0.0, ay, 0.0])
+
+        return zigzag
+    if cfg.shape == "line":
+        end = np.array([cfg.dx_m, cfg.dy_m, cfg.dz_m])
+        return _segments([zero, end, zero], cfg.speed_m_s, cfg.accel_m_s2)
+    pts = [zero] + [np.array(w, dtype=np.float64) for w in cfg.waypoints_ned_m]
+    return _segments(pts, cfg.speed_m_s, cfg.accel_m_s2)
+
+
+@dataclass
+class Trajectory:
+    """A path anchored in NED at ``anchor_ned_m`` starting at time ``start_s``."""
+
+    config: TrajectoryConfig
+    anchor_ned_m: FloatArray
+    start_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        self._path = make_path(self.config)
+        self.anchor_ned_m = np.asarray(self.anchor_ned_m, dtype=np.float64).copy()
+
+    def sample(self, t_s: float) -> RefSample:
+        s, ds, dds = _warp(t_s - self.start_s, self.config.ramp_s)
+        p, dp, ddp = self._path(s)
+        return RefSample(self.anchor_ned_m + p, dp * ds, ddp * ds * ds + dp * dds)
+
+    def horizon(self, t0_s: float, dt_s: float, steps: int) -> FloatArray:
+        """References for x[1..N] of the position model: (steps, 6) rows [p_ned, v_ned]."""
+        out = np.empty((steps, 6))
+        for k in range(steps):
+            r = self.sample(t0_s + (k + 1) * dt_s)
+            out[k, :3] = r.pos_ned_m
+            out[k, 3:] = r.vel_ned_m_s
+        return out

@@ -1,0 +1,91 @@
+"""Trajectories: start at the anchor at rest, derivatives consistent, shapes as specified."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from epc_offboard.trajectories import Trajectory, TrajectoryConfig
+
+ANCHOR = np.array([1.0, -2.0, -2.5])
+SHAPES = {
+    "hover": TrajectoryConfig(shape="hover"),
+    "line": TrajectoryConfig(shape="line", dx_m=3.0, dy_m=1.0, speed_m_s=1.5),
+    "circle": TrajectoryConfig(shape="circle", radius_m=2.0, period_s=8.0),
+    "figure8": TrajectoryConfig(shape="figure8", size_m=3.0, period_s=12.0),
+    "zigzag": TrajectoryConfig(
+        shape="zigzag", amplitude_m=3.0, peak_speed_m_s=3.75, forward_speed_m_s=0.5
+    ),
+    "waypoints": TrajectoryConfig(
+        shape="waypoints", waypoints_ned_m=((2.0, 0.0, 0.0), (2.0, 2.0, -1.0))
+    ),
+}
+
+
+@pytest.mark.parametrize("name", SHAPES)
+def test_starts_at_anchor_at_rest(name):
+    tr = Trajectory(SHAPES[name], ANCHOR, start_s=5.0)
+    for t in (0.0, 5.0):
+        r = tr.sample(t)
+        np.testing.assert_allclose(r.pos_ned_m, ANCHOR, atol=1e-12)
+        np.testing.assert_allclose(r.vel_ned_m_s, 0.0, atol=1e-12)
+        np.testing.assert_allclose(r.acc_ned_m_s2, 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", SHAPES)
+def test_velocity_and_acceleration_are_the_derivatives(name):
+    tr = Trajectory(SHAPES[name], ANCHOR)
+    h = 1e-5
+    for t in np.linspace(0.3, 20.0, 37):
+        r, rp, rm = tr.sample(t), tr.sample(t + h), tr.sample(t - h)
+        np.testing.assert_allclose(
+            (rp.pos_ned_m - rm.pos_ned_m) / (2 * h), r.vel_ned_m_s, atol=1e-4
+        )
+        # trapezoidal profiles have acceleration steps: compare away from the corners
+        fd_acc = (rp.vel_ned_m_s - rm.vel_ned_m_s) / (2 * h)
+        if np.linalg.norm(fd_acc - r.acc_ned_m_s2) > 1e-3:
+            assert name in ("zigzag", "line", "waypoints")
+            assert (
+                np.linalg.norm(tr.sample(t + 1e-3).acc_ned_m_s2 - tr.sample(t - 1e-3).acc_ned_m_s2)
+                > 0.5
+            )
+
+
+def test_circle_has_radius_and_speed_after_ramp():
+    cfg = SHAPES["circle"]
+    tr = Trajectory(cfg, ANCHOR)
+    centre = ANCHOR + np.array([cfg.radius_m, 0.0, 0.0])
+    speed = 2 * math.pi * cfg.radius_m / cfg.period_s
+    for t in np.linspace(cfg.ramp_s, 30.0, 50):
+        r = tr.sample(t)
+        assert np.linalg.norm(r.pos_ned_m - centre) == pytest.approx(cfg.radius_m)
+        assert np.linalg.norm(r.vel_ned_m_s) == pytest.approx(speed)
+        assert r.pos_ned_m[2] == pytest.approx(ANCHOR[2])
+
+
+def test_zigzag_peaks_at_its_speed_and_stays_in_amplitude():
+    cfg = SHAPES["zigzag"]
+    tr = Trajectory(cfg, ANCHOR)
+    ts = np.arange(0.0, 30.0, 0.005)
+    vy = np.array([tr.sample(t).vel_ned_m_s[1] for t in ts])
+    y = np.array([tr.sample(t).pos_ned_m[1] for t in ts]) - ANCHOR[1]
+    assert np.max(np.abs(vy)) == pytest.approx(cfg.peak_speed_m_s)
+    assert vy.min() < -3.7
+    assert np.max(np.abs(y)) == pytest.approx(cfg.amplitude_m, abs=1e-6)
+
+
+def test_horizon_rows_are_future_samples():
+    tr = Trajectory(SHAPES["figure8"], ANCHOR)
+    refs = tr.horizon(3.0, 0.05, 20)
+    assert refs.shape == (20, 6)
+    np.testing.assert_allclose(refs[4, :3], tr.sample(3.25).pos_ned_m)
+    np.testing.assert_allclose(refs[19, 3:], tr.sample(4.0).vel_ned_m_s)
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="radius_m"):
+        TrajectoryConfig(shape="circle", radius_m=0.0)
+    with pytest.raises(ValueError, match="waypoints_ned_m"):
+        TrajectoryConfig(shape="waypoints")
