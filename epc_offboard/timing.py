@@ -1,0 +1,80 @@
+"""Per-loop timing statistics: rate, period jitter, deadline misses, compute time.
+
+Pure bookkeeping over a bounded window, so a long flight keeps constant memory.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LoopReport:
+    rate_hz: float
+    deadline_misses: int
+    period_jitter_p99_ms: float
+    compute_us_median: float
+    compute_us_p99: float
+    ticks: int
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {
+            "rate_hz": self.rate_hz,
+            "deadline_misses": self.deadline_misses,
+            "period_jitter_p99_ms": self.period_jitter_p99_ms,
+            "compute_us_median": self.compute_us_median,
+            "compute_us_p99": self.compute_us_p99,
+        }
+
+
+@dataclass
+class LoopTiming:
+    """Record each tick's start time (loop clock, s) and compute duration (wall, s).
+
+    A deadline miss is a tick whose compute took longer than the period, or that started more
+    than one period late.
+    """
+
+    period_s: float
+    window: int = 20_000
+    ticks: int = 0
+    deadline_misses: int = 0
+    _starts: deque[float] = field(default_factory=deque)
+    _compute: deque[float] = field(default_factory=deque)
+    _first_start_s: float = math.nan
+    _last_start_s: float = math.nan
+
+    def record(self, start_s: float, compute_s: float, scheduled_s: float | None = None) -> None:
+        self.ticks += 1
+        if math.isnan(self._first_start_s):
+            self._first_start_s = start_s
+        self._last_start_s = start_s
+        late = 0.0 if scheduled_s is None else start_s - scheduled_s
+        if compute_s > self.period_s or late > self.period_s:
+            self.deadline_misses += 1
+        self._starts.append(start_s)
+        self._compute.append(compute_s)
+        if len(self._starts) > self.window:
+            self._starts.popleft()
+            self._compute.popleft()
+
+    def report(self) -> LoopReport:
+        if self.ticks < 2:
+            return LoopReport(0.0, self.deadline_misses, 0.0, 0.0, 0.0, self.ticks)
+        span = self._last_start_s - self._first_start_s
+        rate = (self.ticks - 1) / span if span > 0 else 0.0
+        periods = np.diff(np.fromiter(self._starts, dtype=np.float64))
+        jitter = np.abs(periods - self.period_s)
+        compute_us = np.fromiter(self._compute, dtype=np.float64) * 1e6
+        return LoopReport(
+            rate_hz=rate,
+            deadline_misses=self.deadline_misses,
+            period_jitter_p99_ms=float(np.percentile(jitter, 99)) * 1e3,
+            compute_us_median=float(np.median(compute_us)),
+            compute_us_p99=float(np.percentile(compute_us, 99)),
+            ticks=self.ticks,
+        )
