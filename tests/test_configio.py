@@ -79,3 +79,16 @@ def test_bad_configs_name_key_and_file(tmp_path, text, message):
 def test_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(Vehicle, tmp_path / "nope.toml")
+
+
+def test_dump_toml_round_trips():
+    import tomllib
+
+    from epc_offboard.configio import dump_toml
+
+    data = {
+        "a": 1, "b": 2.5, "c": "x\"y", "d": True, "e": [1.0, 2.0], "f": float("inf"),
+        "t": {"u": {"v": [[1, 2], [3, 4]]}, "w": "z"},
+        "waypoints": {"pts": [[0.0, 1.0, -2.0]]},
+    }  # fmt: skip
+    assert tomllib.loads(dump_toml(data)) == data
