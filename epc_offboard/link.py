@@ -130,6 +130,7 @@ class MavlinkLink:
         accept_system_ids: frozenset[int] | None = None,
         signing_key: bytes | None = None,
         tlog: TlogWriter | None = None,
+        peer_timeout_s: float = 3.0,
     ) -> None:
         self.endpoint = parse_url(url)
         self._on_message = on_message
@@ -139,6 +140,8 @@ class MavlinkLink:
         self._peer: tuple[str, int] | None = (
             (self.endpoint.host, self.endpoint.port) if self.endpoint.mode == "udpout" else None
         )
+        self._peer_timeout_s = peer_timeout_s
+        self._peer_heard = -float("inf")
         self.counters: Counter[str] = Counter()
         self.mav = mavlink.MAVLink(_SendFile(self), srcSystem=system_id, srcComponent=component_id)
         self.mav.robust_parsing = True
@@ -222,7 +225,19 @@ class MavlinkLink:
             return
         self.counters["received"] += 1
         if self.endpoint.mode == "udpin":
-            self._peer = (str(addr[0]), int(addr[1]))
+            # The peer is the first address that spoke; it only moves once it has been silent
+            # for peer_timeout_s (the autopilot restarted on another port). A second sender
+            # cannot redirect our setpoints while the vehicle is talking to us.
+            sender = (str(addr[0]), int(addr[1]))
+            now = time.monotonic()
+            if sender == self._peer:
+                self._peer_heard = now
+            elif self._peer is None or now - self._peer_heard > self._peer_timeout_s:
+                if self._peer is not None:
+                    log.warning("MAVLink peer moved from %s:%d to %s:%d", *self._peer, *sender)
+                self._peer, self._peer_heard = sender, now
+            else:
+                self.counters["other_sender"] += 1
         if self._tlog is not None:
             self._tlog.write(bytes(msg.get_msgbuf()))
         self._on_message(msg)

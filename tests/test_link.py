@@ -158,3 +158,27 @@ def test_tlog_is_readable_by_mavutil(tmp_path):
     while (m := log.recv_match(type="HEARTBEAT")) is not None:
         systems.append(m.get_srcSystem())
     assert systems == [1, 1, 1, 255]
+
+
+async def _hijack():
+    server, client, got_server, got_client = await pair()
+    client.send(heartbeat(client))
+    await settle(lambda: got_server)
+    intruder = MavlinkLink(
+        f"udpout://127.0.0.1:{server.local_address[1]}",
+        system_id=1,
+        component_id=1,
+        on_message=lambda _m: None,
+    )
+    await intruder.open()
+    intruder.send(heartbeat(intruder))
+    await settle(lambda: server.counters["other_sender"] == 1)
+    server.send(heartbeat(server))
+    await settle(lambda: got_client)  # the reply still goes to the first peer
+    assert server.peer == ("127.0.0.1", client.local_address[1])
+    for link in (server, client, intruder):
+        link.close()
+
+
+def test_second_sender_cannot_redirect_the_link():
+    asyncio.run(_hijack())
