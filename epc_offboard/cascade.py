@@ -1,0 +1,377 @@
+"""The control cascade: what one tick of the position loop and of the attitude loop compute.
+
+Pure numerics (no asyncio, no MAVLink): the service hands in a VehicleState and references
+and gets back setpoints.
+
+Position loop (100 Hz), :meth:`Cascade.position_tick`:
+
+1. learn: the acceleration disturbance measured over the last prediction step,
+   ``d = (v_k - v_{k-n}) / dt - mean(a_achieved)``, where ``a_achieved`` is what the measured
+   attitude and the commanded thrust produce — so attitude-loop lag is not mistaken for wind;
+   the estimator (LWPR on velocity, a Kalman observer, or none) is updated with it;
+2. predict: ``d_hat`` = the estimator's low-pass-filtered estimate at the current velocity;
+3. model: x = [p_ned, v_ned], u = a_ned, ``x[k+1] = A x[k] + B u[k] + c~`` with
+   ``c~ = c + B d_hat`` (thesis 3.1.1: the perturbation enters the affine model), and
+   ``u_p = -d_hat`` the input that cancels it;
+4. control: EPC (or PD / MPC-every-tick) over the reference horizon -> ``a_cmd``;
+5. map: ``a_cmd`` -> roll, pitch, yaw, thrust (thesis eq. 3.13, exact inverse, NED).
+
+Attitude loop (200 Hz), :meth:`Cascade.attitude_tick`: EPC on x = [roll, pitch, yaw, p, q, r]
+with body-rate commands as input and a first-order rate response (the autopilot's rate loop),
+reference = the position loop's attitude with zero rates -> body rates + thrust.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from epc_offboard import frames
+from epc_offboard.baselines import MpcController, PdController
+from epc_offboard.decision import Controller, Decision
+from epc_offboard.epc import ExperienceController, LibraryEntry
+from epc_offboard.frames import FloatArray
+from epc_offboard.models import (
+    AttitudeThrust,
+    accel_to_attitude,
+    acceleration_box,
+    attitude_model,
+    attitude_to_accel,
+    position_model,
+)
+from epc_offboard.perturbation import EstimatorConfig, make_estimator
+from epc_offboard.qp import MpcProblem
+from epc_offboard.state import VehicleState
+from epc_offboard.store import LibraryStore, StoredController
+
+log = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class PositionControlConfig:
+    controller: Literal["epc", "pd", "mpc"] = "epc"
+    horizon: int = 20
+    dt_s: float = 0.05  # prediction step, separate from the loop period
+    q_pos: Vec3 = (20.0, 20.0, 30.0)
+    q_vel: Vec3 = (3.0, 3.0, 3.0)
+    r_acc: Vec3 = (0.3, 0.3, 0.3)
+    max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
+    geofence_min_ned_m: Vec3 | None = None  # optional position box
+    geofence_max_ned_m: Vec3 | None = None
+    max_tilt_deg: float = 35.0
+    hover_thrust_norm: float = 0.5  # PX4's MPC_THR_HOVER
+    min_thrust_norm: float = 0.08
+    max_thrust_norm: float = 0.95
+    yaw_deg: float = 0.0  # heading held while tracking
+    library_size: int = 400
+    pd_kp: Vec3 = (6.0, 6.0, 8.0)
+    pd_kd: Vec3 = (4.5, 4.5, 5.0)
+
+    def __post_init__(self) -> None:
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if self.dt_s <= 0.0:
+            raise ValueError(f"dt_s must be > 0, got {self.dt_s}")
+        if any(v <= 0.0 for v in self.max_vel_m_s):
+            raise ValueError(f"max_vel_m_s must be > 0, got {self.max_vel_m_s}")
+        if not 0.0 < self.min_thrust_norm < self.hover_thrust_norm < self.max_thrust_norm <= 1.0:
+            raise ValueError("need 0 < min_thrust_norm < hover_thrust_norm < max_thrust_norm <= 1")
+        if self.library_size < 1:
+            raise ValueError(f"library_size must be >= 1, got {self.library_size}")
+
+
+@dataclass(frozen=True)
+class AttitudeControlConfig:
+    mode: Literal["epc", "autopilot"] = "epc"  # autopilot: quaternion + thrust to its own loop
+    horizon: int = 10
+    dt_s: float = 0.01
+    rate_time_constant_s: float = 0.03  # the autopilot's rate loop, first order
+    q_angle: Vec3 = (60.0, 60.0, 20.0)
+    q_rate: Vec3 = (0.3, 0.3, 0.3)
+    r_rate: Vec3 = (0.02, 0.02, 0.05)
+    max_rate_rad_s: Vec3 = (4.0, 4.0, 2.0)
+    fallback_gain_1_s: float = 6.0  # P on angle error when the attitude EPC cannot answer
+    library_size: int = 200
+
+    def __post_init__(self) -> None:
+        if self.horizon < 1 or self.dt_s <= 0.0 or self.rate_time_constant_s <= 0.0:
+            raise ValueError("horizon >= 1, dt_s > 0 and rate_time_constant_s > 0 are required")
+        if any(v <= 0.0 for v in self.max_rate_rad_s):
+            raise ValueError(f"max_rate_rad_s must be > 0, got {self.max_rate_rad_s}")
+
+
+@dataclass(frozen=True)
+class PositionOutput:
+    """The position loop's answer: the attitude + thrust the vehicle should have."""
+
+    q_target: FloatArray  # [w, x, y, z] body FRD -> NED
+    euler_target_rad: Vec3  # roll, pitch, yaw
+    thrust_norm: float
+    acc_cmd_ned_m_s2: FloatArray
+    p_hat_ned_m_s2: FloatArray  # the acceleration disturbance estimate used
+    source: str
+    compute_us: float
+    ref_pos_ned_m: FloatArray
+
+
+@dataclass(frozen=True)
+class AttitudeOutput:
+    rates_frd_rad_s: FloatArray | None  # None: let the autopilot track q_target itself
+    thrust_norm: float
+    source: str
+
+
+def _stats(ctrl: Controller | None) -> dict[str, Any]:
+    if isinstance(ctrl, ExperienceController):
+        s = ctrl.stats
+        return {
+            "size": int(s.size),
+            "hits": int(s.hits),
+            "misses": int(s.misses),
+            "qp_solves": int(s.qp_solves),
+            "intermediate": int(s.intermediate),
+            "fallback": int(s.fallback),
+            "received_shared": int(getattr(s, "received_shared", 0)),
+        }
+    return {}
+
+
+@dataclass
+class _Observation:
+    t_s: float
+    vel_ned_m_s: FloatArray
+    acc_achieved_ned_m_s2: FloatArray
+
+
+@dataclass
+class Cascade:
+    """Both loops' numerics for one vehicle, built from the service config."""
+
+    position_cfg: PositionControlConfig
+    attitude_cfg: AttitudeControlConfig
+    estimator_cfg: EstimatorConfig
+    _history: deque[_Observation] = field(default_factory=lambda: deque(maxlen=64))
+    _hold_pos: FloatArray | None = None
+    _last_thrust_norm: float = math.nan
+
+    def __post_init__(self) -> None:
+        pc, ac = self.position_cfg, self.attitude_cfg
+        self.position_dt_s = pc.dt_s
+        self.position_horizon = pc.horizon
+        self.pos_model = position_model(pc.dt_s)
+        box = acceleration_box(
+            math.radians(pc.max_tilt_deg), pc.min_thrust_norm, pc.max_thrust_norm, pc.hover_thrust_norm
+        )
+        self.acc_min, self.acc_max = box.u_min, box.u_max
+        inf3 = np.full(3, math.inf)
+        vmax = np.array(pc.max_vel_m_s, dtype=np.float64)
+        pmin = inf3 * -1 if pc.geofence_min_ned_m is None else np.array(pc.geofence_min_ned_m)
+        pmax = inf3 if pc.geofence_max_ned_m is None else np.array(pc.geofence_max_ned_m)
+        self.pos_problem = MpcProblem(
+            self.pos_model,
+            horizon=pc.horizon,
+            Q=np.concatenate([pc.q_pos, pc.q_vel]),
+            R=np.array(pc.r_acc, dtype=np.float64),
+            x_min=np.concatenate([pmin, -vmax]),
+            x_max=np.concatenate([pmax, vmax]),
+            u_min=box.u_min,
+            u_max=box.u_max,
+        )
+        self.position: Controller
+        if pc.controller == "epc":
+            self.position = ExperienceController(self.pos_problem, max_size=pc.library_size)
+        elif pc.controller == "mpc":
+            self.position = MpcController(self.pos_problem)
+        else:
+            self.position = PdController(self.pos_problem, kp=pc.pd_kp, kd=pc.pd_kd)
+        att_model = attitude_model(ac.dt_s, ac.rate_time_constant_s)
+        rmax = np.array(ac.max_rate_rad_s, dtype=np.float64)
+        self.att_problem = MpcProblem(
+            att_model,
+            horizon=ac.horizon,
+            Q=np.concatenate([ac.q_angle, ac.q_rate]),
+            R=np.array(ac.r_rate, dtype=np.float64),
+            u_min=-rmax,
+            u_max=rmax,
+        )
+        self.attitude = ExperienceController(self.att_problem, max_size=ac.library_size)
+        self.estimator = make_estimator(self.estimator_cfg, dt_s=pc.dt_s)
+        self._estimator_key = f"estimator.{self.estimator_cfg.kind}"
+        self._b_vel = self.pos_model.B  # (6, 3): how an acceleration enters one prediction step
+
+    # -- position loop ------------------------------------------------------------------
+
+    def hold_position(self, pos_ned_m: FloatArray) -> None:
+        self._hold_pos = np.asarray(pos_ned_m, dtype=np.float64).copy()
+
+    def hold_refs(self, state: VehicleState) -> FloatArray:
+        """References that hold the hold point (or the current position) at rest."""
+        if self._hold_pos is None:
+            self._hold_pos = state.pos_ned_m.copy()
+        row = np.concatenate([self._hold_pos, np.zeros(3)])
+        out: FloatArray = np.tile(row, (self.position_horizon, 1))
+        return out
+
+    def _observe(self, state: VehicleState) -> None:
+        """Feed the estimator the disturbance measured over the last prediction step."""
+        if not math.isnan(self._last_thrust_norm):
+            roll, pitch, yaw = state.euler_rad
+            achieved = attitude_to_accel(
+                AttitudeThrust(roll, pitch, yaw, self._last_thrust_norm),
+                self.position_cfg.hover_thrust_norm,
+            )
+            self._history.append(_Observation(state.time_s, state.vel_ned_m_s.copy(), achieved))
+        if len(self._history) < 2:
+            return
+        newest = self._history[-1]
+        oldest = None
+        for obs in self._history:  # the oldest sample still within one prediction step
+            if newest.t_s - obs.t_s <= self.position_dt_s + 1e-9:
+                oldest = obs
+                break
+        if oldest is None or newest.t_s - oldest.t_s < 0.5 * self.position_dt_s:
+            return
+        span = newest.t_s - oldest.t_s
+        window = [o.acc_achieved_ned_m_s2 for o in self._history if oldest.t_s <= o.t_s < newest.t_s]
+        d_meas = (newest.vel_ned_m_s - oldest.vel_ned_m_s) / span - np.mean(window, axis=0)
+        self.estimator.observe(oldest.vel_ned_m_s, d_meas)
+
+    def position_tick(self, state: VehicleState, refs: FloatArray) -> PositionOutput:
+        """One position-loop tick; ``refs`` (N, 6) rows [p_ned, v_ned] for x[1..N]."""
+        t0 = time.perf_counter()
+        self._observe(state)
+        d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), self.acc_min, self.acc_max)
+        x0 = np.concatenate([state.pos_ned_m, state.vel_ned_m_s])
+        # PD takes its acceleration feedforward from the reference horizon itself
+        decision: Decision = self.position.step(x0, refs, perturbation=self._b_vel @ d_hat)
+        acc = np.clip(decision.u, self.acc_min, self.acc_max)
+        out = self._attitude_target(acc, d_hat, decision.source, refs, t0)
+        self._last_thrust_norm = out.thrust_norm
+        return out
+
+    def _attitude_target(
+        self, acc: FloatArray, d_hat: FloatArray, source: str, refs: FloatArray, t0: float
+    ) -> PositionOutput:
+        pc = self.position_cfg
+        att = accel_to_attitude(acc, math.radians(pc.yaw_deg), pc.hover_thrust_norm)
+        thrust = min(max(att.thrust_norm, pc.min_thrust_norm), pc.max_thrust_norm)
+        return PositionOutput(
+            q_target=frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad),
+            euler_target_rad=(att.roll_rad, att.pitch_rad, att.yaw_rad),
+            thrust_norm=thrust,
+            acc_cmd_ned_m_s2=acc,
+            p_hat_ned_m_s2=d_hat,
+            source=source,
+            compute_us=(time.perf_counter() - t0) * 1e6,
+            ref_pos_ned_m=refs[0, :3].copy(),
+        )
+
+    def hover(self, state: VehicleState) -> PositionOutput:
+        """The safe command when the position loop cannot answer: level, hover thrust."""
+        pc = self.position_cfg
+        yaw = state.yaw_rad
+        self._last_thrust_norm = pc.hover_thrust_norm
+        return PositionOutput(
+            q_target=frames.euler_to_quat(0.0, 0.0, yaw),
+            euler_target_rad=(0.0, 0.0, yaw),
+            thrust_norm=pc.hover_thrust_norm,
+            acc_cmd_ned_m_s2=np.zeros(3),
+            p_hat_ned_m_s2=np.zeros(3),
+            source="fallback",
+            compute_us=0.0,
+            ref_pos_ned_m=state.pos_ned_m.copy(),
+        )
+
+    # -- attitude loop ------------------------------------------------------------------
+
+    def _attitude_refs(self, state: VehicleState, target: PositionOutput) -> tuple[FloatArray, FloatArray]:
+        roll, pitch, yaw = state.euler_rad
+        troll, tpitch, tyaw = target.euler_target_rad
+        # take the short way round in yaw: the reference is expressed next to the current yaw
+        tyaw = yaw + frames.wrap_pi(tyaw - yaw)
+        x0 = np.array([roll, pitch, yaw, *state.rate_frd_rad_s])
+        row = np.array([troll, tpitch, tyaw, 0.0, 0.0, 0.0])
+        return x0, np.tile(row, (self.attitude_cfg.horizon, 1))
+
+    def attitude_tick(self, state: VehicleState, target: PositionOutput) -> AttitudeOutput:
+        x0, refs = self._attitude_refs(state, target)
+        d = self.attitude.step(x0, refs)
+        return AttitudeOutput(np.asarray(d.u, dtype=np.float64), target.thrust_norm, d.source)
+
+    def attitude_fallback(self, state: VehicleState, target: PositionOutput) -> AttitudeOutput:
+        x0, refs = self._attitude_refs(state, target)
+        rmax = np.array(self.attitude_cfg.max_rate_rad_s)
+        rates = np.clip(self.attitude_cfg.fallback_gain_1_s * (refs[0, :3] - x0[:3]), -rmax, rmax)
+        return AttitudeOutput(rates, target.thrust_norm, "fallback")
+
+    # -- experience on disk ---------------------------------------------------------------
+
+    def _epcs(self) -> list[tuple[str, ExperienceController]]:
+        out = [("attitude", self.attitude)]
+        if isinstance(self.position, ExperienceController):
+            out.insert(0, ("position", self.position))
+        return out
+
+    def save_to(self, store: LibraryStore) -> None:
+        """Write every controller (with importance, uses and transitions) and the estimator."""
+        for _name, ctrl in self._epcs():
+            sig = ctrl.problem.signature()
+            ctrl.pop_new_entries()
+            entries = ctrl.export_library()
+            store.save_controllers(sig, [_stored(e) for e in entries])
+            sets = [e.active_set for e in entries]
+            store.save_transitions(
+                sig, {(sets[a], sets[b]): n for (a, b), n in ctrl.export_transitions().items()}
+            )
+        store.save_model(self._estimator_key, self.pos_problem.signature(), self.estimator.to_bytes())
+
+    def load_from(self, store: LibraryStore) -> dict[str, int]:
+        """Load the prior library (thesis M_prior) and estimator; returns counts per part.
+
+        Every stored controller is re-validated against this problem; one that fails is
+        skipped with a log line, never applied (and, as always, only KKT-checked use).
+        """
+        loaded: dict[str, int] = {}
+        for name, ctrl in self._epcs():
+            sig = ctrl.problem.signature()
+            stored = store.load_controllers(sig)[: ctrl.max_size]
+            entries = [LibraryEntry(e.active_set, e.importance, e.uses) for e in stored]
+            index = {e.active_set: i for i, e in enumerate(entries)}
+            transitions = {
+                (index[a], index[b]): n
+                for (a, b), n in store.load_transitions(sig).items()
+                if a in index and b in index and n >= 1
+            }
+            try:
+                loaded[name] = ctrl.import_entries(entries, "prior", transitions=transitions)
+            except ValueError as exc:
+                log.warning("stored %s library: %s; importing entry by entry", name, exc)
+                loaded[name] = 0
+                for e in entries:
+                    try:
+                        loaded[name] += ctrl.import_entries([e], "prior")
+                    except ValueError as exc_one:
+                        log.warning("stored %s controller %s skipped: %s", name, e.active_set, exc_one)
+        blob = store.load_model(self._estimator_key, self.pos_problem.signature())
+        if blob is not None:
+            try:
+                self.estimator.load_bytes(blob)
+                loaded["estimator"] = 1
+            except ValueError as exc:
+                log.warning("stored estimator ignored: %s", exc)
+        return loaded
+
+    def library_stats(self) -> dict[str, Any]:
+        return {"position": _stats(self.position), "attitude": _stats(self.attitude)}
+
+
+def _stored(e: LibraryEntry) -> StoredController:
+    return StoredController(tuple(int(i) for i in e.active_set), float(e.importance), int(e.uses))

@@ -1,0 +1,518 @@
+"""The offboard service: `epc-offboard run --config FILE`.
+
+One asyncio TaskGroup with named tasks:
+
+* ``supervisor``     — the offboard state machine, message-rate requests, commands, mission end;
+* ``position-loop``  — 100 Hz: state -> reference horizon -> Cascade.position_tick (EPC + LWPR);
+* ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
+  or the autopilot's own attitude loop fed quaternion + thrust (``attitude.mode = "autopilot"``);
+* ``library-saver``  — new controllers and learned models to SQLite, off the event loop;
+* ``systemd``        — READY=1 once state flows, WATCHDOG=1 only while the control loop ticks.
+
+MAVLink arrives through callbacks of the link's DatagramProtocol (no task, no blocking read).
+The numerics live in ``cascade.py``; this module never does linear algebra.
+
+The control loops never die: an exception in a tick is logged (rate-limited), counted, and
+the tick degrades to the cascade's safe hover command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import csv
+import json
+import logging
+import math
+import signal
+import sys
+import time
+from collections import Counter
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, TextIO
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.cascade import AttitudeOutput, Cascade, PositionOutput
+from epc_offboard.clock import Clock, VehicleClock, WallClock
+from epc_offboard.config import ServiceConfig, load_service_config
+from epc_offboard.configio import ConfigError
+from epc_offboard.link import MavlinkLink, TlogWriter, load_signing_key
+from epc_offboard.logsetup import setup_logging
+from epc_offboard.offboard import Action, Inputs, OffboardStateMachine, Outputs, Phase
+from epc_offboard.state import (
+    PX4_AUTO_SUB_LAND,
+    PX4_AUTO_SUB_LOITER,
+    PX4_MAIN_MODE_AUTO,
+    PX4_MAIN_MODE_OFFBOARD,
+    StateTracker,
+    VehicleState,
+)
+from epc_offboard.store import LibraryStore
+from epc_offboard.timing import LoopTiming
+from epc_offboard.trajectories import Trajectory
+
+log = logging.getLogger("epc_offboard.service")
+
+# SET_ATTITUDE_TARGET type_mask bits (MAVLink ATTITUDE_TARGET_TYPEMASK)
+_IGNORE_RATES = 1 | 2 | 4
+_IGNORE_ATTITUDE = 128
+
+_MSG_ATTITUDE_QUATERNION = 31
+_MSG_LOCAL_POSITION_NED = 32
+
+
+class _Stop(Exception):  # noqa: N818 - control flow, not an error
+    """Raised inside the TaskGroup to end the service cleanly."""
+
+
+class Service:
+    def __init__(self, cfg: ServiceConfig, config_path: str | None = None) -> None:
+        self.cfg = cfg
+        self.config_path = config_path
+        self.clock: Clock = VehicleClock() if cfg.loops.clock == "vehicle" else WallClock()
+        self.tracker = StateTracker(system_id=cfg.link.target_system, limits=cfg.state_limits)
+        self.sm = OffboardStateMachine(cfg.offboard)
+        self.cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator)
+        self.counters: Counter[str] = Counter()
+        self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
+        self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
+        self.outputs = Outputs(Phase.WAIT_HEARTBEAT, False, (), "starting")
+        self.trajectory: Trajectory | None = None
+        self._position_out: PositionOutput | None = None
+        self._stopping = asyncio.Event()
+        self._exit_code = 0
+        self._last_rx_wall = -math.inf
+        self._rates_requested_at = -math.inf
+        self._ready_sent = False
+        self._control_alive_wall = -math.inf
+        self._mission_done = False
+        # Local NED z of the ground at home: taken from the first state seen while disarmed
+        # (PX4's local origin is usually, not always, on the ground at power-up).
+        self._home_down_m = 0.0
+        self._home_known = False
+        self._land_sent_at = -math.inf
+        self._last_error_log = -math.inf
+        self._flight_log: TextIO | None = None
+        self._flight_writer: Any = None
+        tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
+        key = load_signing_key(cfg.link.signing_key_file) if cfg.link.signing_key_file else None
+        self.link = MavlinkLink(
+            cfg.link.url,
+            system_id=cfg.link.system_id,
+            component_id=cfg.link.component_id,
+            on_message=self._on_message,
+            accept_system_ids=frozenset({cfg.link.target_system}),
+            signing_key=key,
+            tlog=tlog,
+        )
+        self.store: LibraryStore | None = None
+        from sdnotify import SystemdNotifier
+
+        self._notifier = SystemdNotifier()
+
+    # -- messages ---------------------------------------------------------------------
+
+    def _on_message(self, msg: Any) -> None:
+        self._last_rx_wall = time.monotonic()
+        if self.tracker.handle(msg, received_s=self.clock.now_s()) and isinstance(
+            self.clock, VehicleClock
+        ):
+            self.clock.advance(self.tracker.vehicle_time_s)
+        if msg.get_type() == "HEARTBEAT" and isinstance(self.clock, VehicleClock):
+            # In lockstep the heartbeat's age is measured in vehicle time as well.
+            hb = self.tracker.heartbeat
+            if hb is not None:
+                self.tracker.heartbeat = replace(hb, received_s=self.clock.now_s())
+        elif msg.get_type() == "COMMAND_ACK":
+            self.counters[f"ack_{msg.command}_{msg.result}"] += 1
+            if msg.result != mavlink.MAV_RESULT_ACCEPTED and msg.result != 5:  # 5: in progress
+                log.info("command %d answered with result %d", msg.command, msg.result)
+
+    def _command(self, command: int, *params: float) -> None:
+        p = list(params) + [0.0] * (7 - len(params))
+        self.link.send(
+            self.link.mav.command_long_encode(
+                self.cfg.link.target_system, self.cfg.link.target_component, command, 0, *p
+            )
+        )
+        self.counters["commands_sent"] += 1
+
+    def _do_action(self, action: Action) -> None:
+        log.info("action: %s", action.value)
+        if action == Action.ARM:
+            self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+        elif action == Action.TAKEOFF:
+            # NaN altitude: the autopilot's own default takeoff altitude (PX4: MIS_TAKEOFF_ALT)
+            self._command(mavlink.MAV_CMD_NAV_TAKEOFF, *([math.nan] * 7))
+        elif action == Action.REQUEST_OFFBOARD:
+            self._set_mode(PX4_MAIN_MODE_OFFBOARD, 0)
+        elif action == Action.REQUEST_HOLD:
+            self._set_mode(PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER)
+
+    def _set_mode(self, main_mode: int, sub_mode: int) -> None:
+        self._command(
+            mavlink.MAV_CMD_DO_SET_MODE,
+            float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
+            float(main_mode),
+            float(sub_mode),
+        )
+
+    def _request_rates(self) -> None:
+        for msg_id, rate in (
+            (_MSG_ATTITUDE_QUATERNION, self.cfg.loops.attitude_rate_hz),
+            (_MSG_LOCAL_POSITION_NED, self.cfg.loops.position_rate_hz),
+        ):
+            self._command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), 1e6 / rate)
+
+    # -- tasks ------------------------------------------------------------------------
+
+    async def _supervisor(self) -> None:
+        period = 1.0 / self.cfg.loops.supervisor_rate_hz
+        while True:
+            now = self.clock.now_s()
+            silent = time.monotonic() - self._last_rx_wall > self.cfg.offboard.heartbeat_timeout_s
+            hb = None if silent else self.tracker.heartbeat
+            age = self.tracker.age_s(now, vehicle_clock=self.clock.vehicle_time)
+            state = self.tracker.snapshot()
+            if not self._home_known and state is not None and hb is not None and not hb.armed:
+                self._home_down_m = float(state.pos_ned_m[2])
+                self._home_known = True
+            alt = (
+                None
+                if state is None
+                else -float(state.pos_ned_m[2]) - self._home_down_m
+            )
+            if self._mission_done:
+                self._finish_mission(hb)
+                out = Outputs(self.sm.phase, True, (), "mission complete: landing")
+            else:
+                out = self.sm.step(Inputs(now, hb, age, alt))
+                for action in out.actions:
+                    self._do_action(action)
+            if out.phase != self.outputs.phase:
+                log.info(
+                    "phase %s -> %s (%s)", self.outputs.phase.value, out.phase.value, out.reason
+                )
+                self._notifier.notify(f"STATUS={out.phase.value}: {out.reason}")
+            self.outputs = out
+            if hb is not None and age > self.cfg.offboard.max_state_age_s:
+                wall = time.monotonic()
+                if wall - self._rates_requested_at > self.cfg.offboard.retry_period_s:
+                    self._rates_requested_at = wall
+                    self._request_rates()
+            if not self._ready_sent and age <= self.cfg.offboard.max_state_age_s:
+                self._ready_sent = True
+                self._notifier.notify("READY=1")
+                log.info("link up and state flowing: ready")
+            if out.phase == Phase.OFFBOARD and self.trajectory is None and state is not None:
+                self._start_trajectory(state)
+            self._check_mission_end(now)
+            await self._wait(now + period)
+
+    def _start_trajectory(self, state: VehicleState) -> None:
+        anchor = state.pos_ned_m.copy()
+        if self.cfg.trajectory_altitude_m is not None:
+            anchor[2] = -(self.cfg.trajectory_altitude_m + self._home_down_m)
+        self.trajectory = Trajectory(self.cfg.trajectory, anchor, start_s=self.clock.now_s())
+        self.cascade.hold_position(anchor)
+        log.info("trajectory %s started at %s", self.cfg.trajectory.shape, anchor.round(3).tolist())
+
+    def _check_mission_end(self, now: float) -> None:
+        dur = self.cfg.mission.duration_s
+        if self.trajectory is None or self._mission_done or dur <= 0:
+            return
+        if now - self.trajectory.start_s >= dur:
+            self._mission_done = True
+            log.info("mission complete after %.1f s", dur)
+
+    def _finish_mission(self, hb: Any) -> None:
+        wall = time.monotonic()
+        if hb is None:
+            return
+        landing = hb.main_mode == PX4_MAIN_MODE_AUTO and hb.sub_mode == PX4_AUTO_SUB_LAND
+        if not self.cfg.mission.land_at_end or not hb.armed:
+            self._stopping.set()
+            return
+        if not landing and wall - self._land_sent_at > self.cfg.offboard.retry_period_s:
+            self._land_sent_at = wall
+            self._command(mavlink.MAV_CMD_NAV_LAND, *([math.nan] * 7))
+
+    async def _wait(self, t_s: float) -> None:
+        """Wait for loop time t_s; in lockstep never longer than a wall-clock second."""
+        try:
+            async with asyncio.timeout(1.0):
+                await self.clock.wait_until(t_s)
+        except TimeoutError:
+            self.counters["clock_wait_timeouts"] += 1
+        if self._stopping.is_set():
+            raise _Stop
+
+    async def _position_loop(self) -> None:
+        period = 1.0 / self.cfg.loops.position_rate_hz
+        t_next = self.clock.now_s()
+        while True:
+            await self._wait(t_next)
+            start = self.clock.now_s()
+            wall0 = time.perf_counter()
+            state = self.tracker.snapshot()
+            if self.outputs.stream_setpoints and state is not None:
+                self._position_out = self._position_tick(state, start)
+                self._control_alive_wall = time.monotonic()
+            self.position_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
+            t_next = _next_tick(t_next, period, self.clock.now_s(), self.counters, "position")
+
+    def _position_tick(self, state: VehicleState, t_s: float) -> PositionOutput:
+        try:
+            if self.trajectory is None:
+                refs = self.cascade.hold_refs(state)
+            else:
+                refs = self.trajectory.horizon(
+                    t_s, self.cascade.position_dt_s, self.cascade.position_horizon
+                )
+            out = self.cascade.position_tick(state, refs)
+        except Exception as exc:  # degrade, never die
+            self._loop_error("position", exc)
+            out = self.cascade.hover(state)
+        self._log_tick(state, t_s, out)
+        return out
+
+    async def _attitude_loop(self) -> None:
+        period = 1.0 / self.cfg.loops.attitude_rate_hz
+        t_next = self.clock.now_s()
+        while True:
+            await self._wait(t_next)
+            start = self.clock.now_s()
+            wall0 = time.perf_counter()
+            state = self.tracker.snapshot()
+            if self.outputs.stream_setpoints and state is not None:
+                target = self._position_out or self.cascade.hover(state)
+                self._send_setpoint(state, target)
+            self.attitude_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
+            t_next = _next_tick(t_next, period, self.clock.now_s(), self.counters, "attitude")
+
+    def _send_setpoint(self, state: VehicleState, target: PositionOutput) -> None:
+        if self.cfg.attitude.mode == "autopilot":
+            out = AttitudeOutput(None, target.thrust_norm, "delegated")
+        else:
+            try:
+                out = self.cascade.attitude_tick(state, target)
+            except Exception as exc:
+                self._loop_error("attitude", exc)
+                out = self.cascade.attitude_fallback(state, target)
+        q = [float(v) for v in target.q_target]
+        if out.rates_frd_rad_s is None:
+            rates, mask = [0.0, 0.0, 0.0], _IGNORE_RATES
+        else:
+            rates, mask = [float(v) for v in out.rates_frd_rad_s], _IGNORE_ATTITUDE
+        # time_boot_ms = the vehicle time of the state used: the lockstep SITL's "answered" mark
+        stamp_ms = round(state.time_s * 1000.0) & 0xFFFFFFFF
+        self.link.send(
+            self.link.mav.set_attitude_target_encode(
+                stamp_ms,
+                self.cfg.link.target_system,
+                self.cfg.link.target_component,
+                mask,
+                q,
+                *rates,
+                min(max(float(out.thrust_norm), 0.0), 1.0),
+            )
+        )
+
+    def _loop_error(self, loop: str, exc: Exception) -> None:
+        self.counters[f"{loop}_loop_errors"] += 1
+        wall = time.monotonic()
+        if wall - self._last_error_log > 1.0:
+            self._last_error_log = wall
+            log.error(
+                "%s loop degraded to hover after %s: %s (%d so far)",
+                loop,
+                type(exc).__name__,
+                exc,
+                self.counters[f"{loop}_loop_errors"],
+            )
+
+    async def _saver(self) -> None:
+        while True:
+            await asyncio.sleep(self.cfg.store.save_period_s)
+            await asyncio.to_thread(self._save_library)
+
+    def _save_library(self) -> None:
+        if self.store is None:
+            return
+        try:
+            self.cascade.save_to(self.store)
+        except Exception as exc:  # a full disk must not stop the flight
+            self.counters["store_errors"] += 1
+            log.error("saving the library failed: %s", exc)
+
+    async def _systemd(self) -> None:
+        while True:
+            await asyncio.sleep(self.cfg.loops.watchdog_period_s)
+            streaming = self.outputs.stream_setpoints
+            # Ping only if the control loop itself ticked recently (a stalled loop stops them),
+            # or if there is nothing to control yet.
+            alive = (
+                time.monotonic() - self._control_alive_wall < 2 * self.cfg.loops.watchdog_period_s
+            )
+            if alive or not streaming:
+                self._notifier.notify("WATCHDOG=1")
+
+    # -- lifecycle --------------------------------------------------------------------
+
+    def _open_store(self) -> None:
+        if not self.cfg.store.path:
+            return
+        self.store = LibraryStore.open(self.cfg.store.path)
+        loaded = self.cascade.load_from(self.store)
+        log.info("library %s: loaded %s", self.cfg.store.path, loaded)
+
+    def _open_flight_log(self) -> None:
+        if not self.cfg.log.flight_log_path:
+            return
+        path = Path(self.cfg.log.flight_log_path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._flight_log = path.open("w", newline="")
+        self._flight_writer = csv.writer(self._flight_log)
+        self._flight_writer.writerow(_FLIGHT_LOG_COLUMNS)
+
+    def _log_tick(self, state: VehicleState, t_s: float, out: PositionOutput) -> None:
+        if self._flight_writer is None:
+            return
+        ref = self.trajectory.sample(t_s) if self.trajectory is not None else None
+        ref_pos = ref.pos_ned_m if ref is not None else out.ref_pos_ned_m
+        ref_vel = ref.vel_ned_m_s if ref is not None else [0.0, 0.0, 0.0]
+        self._flight_writer.writerow(
+            [f"{t_s:.4f}", f"{state.time_s:.4f}", self.outputs.phase.value]
+            + [f"{v:.5f}" for v in (*state.pos_ned_m, *state.vel_ned_m_s, *ref_pos, *ref_vel)]
+            + [f"{v:.5f}" for v in (*out.acc_cmd_ned_m_s2, *out.p_hat_ned_m_s2, out.thrust_norm)]
+            + [out.source, f"{out.compute_us:.1f}"]
+        )
+
+    def request_stop(self) -> None:
+        self._stopping.set()
+
+    def _reload(self) -> None:
+        if self.config_path is None:
+            return
+        try:
+            new = load_service_config(self.config_path)
+        except ConfigError as exc:
+            log.error("SIGHUP: config not reloaded: %s", exc)
+            return
+        self.cfg = replace(
+            self.cfg, trajectory=new.trajectory, mission=new.mission, offboard=new.offboard
+        )
+        self.sm.config = new.offboard
+        if self.trajectory is not None:
+            self.trajectory = Trajectory(
+                new.trajectory, self.trajectory.anchor_ned_m, self.clock.now_s()
+            )
+        logging.getLogger().setLevel(new.log.level.upper())
+        log.info("SIGHUP: trajectory, mission and offboard settings reloaded")
+
+    async def run(self) -> int:
+        self._open_store()
+        self._open_flight_log()
+        await self.link.open()
+        loop = asyncio.get_running_loop()
+        loop.add_signal_handler(signal.SIGTERM, self.request_stop)
+        loop.add_signal_handler(signal.SIGINT, self.request_stop)
+        loop.add_signal_handler(signal.SIGHUP, self._reload)
+        log.info(
+            "epc-offboard running: %s, target system %d",
+            self.cfg.link.url,
+            self.cfg.link.target_system,
+        )
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(self._supervisor(), name="supervisor")
+                tg.create_task(self._position_loop(), name="position-loop")
+                tg.create_task(self._attitude_loop(), name="attitude-loop")
+                tg.create_task(self._saver(), name="library-saver")
+                tg.create_task(self._systemd(), name="systemd")
+                tg.create_task(self._stop_watch(), name="stop")
+        except* _Stop:
+            pass
+        finally:
+            await self._shutdown()
+        return self._exit_code
+
+    async def _stop_watch(self) -> None:
+        await self._stopping.wait()
+        raise _Stop
+
+    async def _shutdown(self) -> None:
+        self._notifier.notify("STOPPING=1")
+        if self.outputs.phase == Phase.OFFBOARD and not self._mission_done:
+            # leave the vehicle holding, not waiting for our setpoints to time out
+            self._set_mode(PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER)
+        self._save_library()
+        if self.store is not None:
+            self.store.close()
+        if self._flight_log is not None:
+            self._flight_log.close()
+        self._write_stats()
+        self.link.close()
+        log.info("stopped: %s", dict(self.counters))
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "phase": self.outputs.phase.value,
+            "library": self.cascade.library_stats(),
+            "loops": {
+                "position": self.position_timing.report().as_dict(),
+                "attitude": self.attitude_timing.report().as_dict(),
+            },
+            "counters": dict(self.counters),
+            "link": dict(self.link.counters),
+            "state": dict(self.tracker.counters),
+        }
+
+    def _write_stats(self) -> None:
+        if not self.cfg.log.stats_path:
+            return
+        path = Path(self.cfg.log.stats_path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.stats(), indent=2))
+
+
+_FLIGHT_LOG_COLUMNS = [
+    "t_s", "vehicle_t_s", "phase",
+    "pos_n_m", "pos_e_m", "pos_d_m", "vel_n_m_s", "vel_e_m_s", "vel_d_m_s",
+    "ref_pos_n_m", "ref_pos_e_m", "ref_pos_d_m", "ref_vel_n_m_s", "ref_vel_e_m_s", "ref_vel_d_m_s",
+    "acc_cmd_n_m_s2", "acc_cmd_e_m_s2", "acc_cmd_d_m_s2",
+    "p_hat_n_m_s2", "p_hat_e_m_s2", "p_hat_d_m_s2", "thrust_norm",
+    "source", "compute_us",
+]  # fmt: skip
+
+
+def _next_tick(
+    t_next: float, period: float, now: float, counters: Counter[str], name: str
+) -> float:
+    t_next += period
+    if now - t_next > period:  # fell behind by more than a tick: skip, don't burst
+        skipped = int((now - t_next) / period)
+        counters[f"{name}_ticks_skipped"] += skipped
+        t_next += skipped * period
+    return t_next
+
+
+def run_service_command(args: argparse.Namespace) -> int:
+    from epc_offboard.cli import UsageError
+
+    try:
+        cfg = load_service_config(args.config)
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from exc
+    setup_logging(cfg.log)
+    try:
+        service = Service(cfg, args.config)
+    except (ConfigError, OSError) as exc:
+        raise UsageError(str(exc)) from exc
+    try:
+        return asyncio.run(service.run())
+    except OSError as exc:
+        print(f"epc-offboard: {exc}", file=sys.stderr)
+        return 1

@@ -1,0 +1,435 @@
+"""`epc-offboard sim`: the bundled SITL(s) and the service as real processes, a scenario, a report.
+
+For each vehicle k (1..N) it starts ``epc-sitl --instance k-1`` and ``epc-offboard run`` on
+loopback UDP, lets the service arm, take off, enter offboard, fly the scenario and land, then
+reads the SITL's ground truth and the service's flight log and stats and writes, to ``--out``:
+``report.json`` (CONTRACTS.md shape), ``flight.png``, and per vehicle the flight log, the
+.tlog, the ground truth and both processes' logs.
+
+Tracking error is measured on ground truth (the SITL's true position, not the noisy estimate),
+against the reference the service was tracking at that vehicle time, over the part of the
+flight after ``settle_s``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from epc_offboard.configio import ConfigError, dump_toml, from_dict, merge_dicts
+from epc_offboard.frames import FloatArray
+from epc_offboard.trajectories import TrajectoryConfig
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+SCENARIO_DIR = CONFIG_DIR / "scenarios"
+SITL_SERVICE_CONFIG = CONFIG_DIR / "sitl.toml"
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    description: str = ""
+    duration_s: float = 20.0  # flight under offboard control, from the trajectory's start
+    settle_s: float = 3.0  # metrics ignore the first settle_s of the trajectory
+    altitude_m: float = 2.5  # the trajectory's altitude above home
+    wind_speed_m_s: float = 0.0
+    wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (CONTRACTS.md)
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    service: dict[str, Any] = field(default_factory=dict)  # overrides of config/sitl.toml
+
+    def __post_init__(self) -> None:
+        if self.duration_s <= 0.0:
+            raise ValueError(f"duration_s must be > 0, got {self.duration_s}")
+        if not 0.0 <= self.settle_s < self.duration_s:
+            raise ValueError("settle_s must be in [0, duration_s)")
+
+
+def load_scenario(name: str) -> ScenarioConfig:
+    path = Path(name) if name.endswith(".toml") else SCENARIO_DIR / f"{name}.toml"
+    if not path.exists():
+        known = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+        raise ConfigError(f"unknown scenario {name!r} (known: {', '.join(known)})")
+    with path.open("rb") as fh:
+        try:
+            raw = tomllib.load(fh)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    return from_dict(ScenarioConfig, raw, source=str(path))
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class VehicleRun:
+    vehicle_id: int
+    out_dir: Path
+    sitl: subprocess.Popen[bytes] | None = None
+    service: subprocess.Popen[bytes] | None = None
+
+    @property
+    def groundtruth(self) -> Path:
+        return self.out_dir / "groundtruth.csv"
+
+    @property
+    def flight_log(self) -> Path:
+        return self.out_dir / "flight.csv"
+
+    @property
+    def stats(self) -> Path:
+        return self.out_dir / "stats.json"
+
+
+def service_config_for(
+    args: argparse.Namespace,
+    scenario: ScenarioConfig,
+    vehicle_id: int,
+    port: int,
+    run_dir: Path,
+    library_path: Path,
+) -> dict[str, Any]:
+    """The service config of one vehicle: config/sitl.toml + scenario + command-line flags."""
+    with SITL_SERVICE_CONFIG.open("rb") as fh:
+        base = tomllib.load(fh)
+    traj = {k: v for k, v in vars(scenario.trajectory).items()}
+    traj["waypoints_ned_m"] = [list(w) for w in scenario.trajectory.waypoints_ned_m]
+    flags: dict[str, Any] = {
+        "link": {"url": f"udpin://127.0.0.1:{port}", "target_system": vehicle_id},
+        "loops": {"clock": "vehicle" if args.lockstep else "wall"},
+        "position": {"controller": args.controller},
+        "estimator": {"kind": args.adaptation},
+        "trajectory": traj,
+        "trajectory_altitude_m": scenario.altitude_m,
+        "mission": {"duration_s": scenario.duration_s, "land_at_end": True},
+        "store": {"path": str(library_path)},
+        "log": {
+            "flight_log_path": str(run_dir / "flight.csv"),
+            "tlog_path": str(run_dir / "session.tlog"),
+            "stats_path": str(run_dir / "stats.json"),
+        },
+    }
+    return merge_dicts(merge_dicts(base, scenario.service), flags)
+
+
+def _start(cmd: list[str], log_path: Path) -> subprocess.Popen[bytes]:
+    log_fh = log_path.open("wb")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen(cmd, stdout=log_fh, stderr=subprocess.STDOUT, env=env)
+
+
+def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 5.0) -> None:
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _last_time_s(path: Path) -> float:
+    """The t_s of the last complete line of a growing CSV (0 when none yet)."""
+    try:
+        with path.open("rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 4096))
+            lines = fh.read().decode(errors="replace").splitlines()
+    except OSError:
+        return 0.0
+    for line in reversed(lines[:-1] if lines and not lines[-1].endswith("\n") else lines):
+        head = line.split(",", 1)[0]
+        try:
+            return float(head)
+        except ValueError:
+            continue
+    return 0.0
+
+
+def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> list[VehicleRun]:
+    """Start every SITL and service, wait for the services to finish, stop the SITLs."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    runs = []
+    wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
+    for k in range(1, args.vehicles + 1):
+        run_dir = out_dir / f"vehicle{k}"
+        run_dir.mkdir(parents=True, exist_ok=True)
+        run = VehicleRun(k, run_dir)
+        offboard_port = _free_udp_port()
+        listen_port = _free_udp_port()
+        library = out_dir / f"library-{k}.sqlite"
+        cfg = service_config_for(args, scenario, k, offboard_port, run_dir, library)
+        (run_dir / "service.toml").write_text(dump_toml(cfg))
+        sitl_cmd = [
+            sys.executable, "-m", "sitl.main", "--instance", str(k - 1),
+            "--listen-port", str(listen_port), "--offboard-port", str(offboard_port),
+            "--gcs-port", "0", "--groundtruth", str(run.groundtruth),
+            "--seed", str(args.seed + k - 1), "--wind", f"{wind[0]},{wind[1]}",
+        ]  # fmt: skip
+        if args.lockstep:
+            sitl_cmd.append("--lockstep")
+        run.service = _start(
+            [
+                sys.executable,
+                "-m",
+                "epc_offboard.cli",
+                "run",
+                "--config",
+                str(run_dir / "service.toml"),
+            ],
+            run_dir / "service.log",
+        )
+        run.sitl = _start(sitl_cmd, run_dir / "sitl.log")
+        runs.append(run)
+
+    expected_s = scenario.duration_s + 20.0  # takeoff, offboard entry, landing
+    deadline = time.monotonic() + max(120.0, 20.0 * expected_s)
+    try:
+        with Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            TextColumn("{task.completed:.0f}/{task.total:.0f} s vehicle time"),
+            TimeElapsedColumn(),
+            transient=False,
+            disable=not sys.stderr.isatty(),
+        ) as progress:
+            task = progress.add_task(f"{args.scenario}", total=expected_s)
+            while any(r.service is not None and r.service.poll() is None for r in runs):
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the flight did not finish in time (see the vehicle logs)")
+                if any(r.sitl is not None and r.sitl.poll() is not None for r in runs):
+                    raise RuntimeError("a SITL process exited early (see sitl.log)")
+                t = min(_last_time_s(r.groundtruth) for r in runs)
+                progress.update(task, completed=min(t, expected_s))
+                time.sleep(0.2)
+            progress.update(task, completed=expected_s)
+    finally:
+        for r in runs:
+            _stop(r.service)
+            _stop(r.sitl)
+    for r in runs:
+        if r.service is not None and r.service.returncode != 0:
+            raise RuntimeError(
+                f"vehicle {r.vehicle_id}: service exited with {r.service.returncode} "
+                f"(see {r.out_dir / 'service.log'})"
+            )
+    return runs
+
+
+# -- the report ---------------------------------------------------------------------------
+
+
+def _read_csv(path: Path) -> dict[str, np.ndarray]:
+    with path.open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    if len(rows) < 2:
+        raise RuntimeError(f"{path}: no data")
+    header, body = rows[0], rows[1:]
+    body = [r for r in body if len(r) == len(header)]
+    out: dict[str, np.ndarray] = {}
+    for i, name in enumerate(header):
+        col = [r[i] for r in body]
+        try:
+            out[name] = np.array([float(v) for v in col])
+        except ValueError:
+            out[name] = np.array(col)
+    return out
+
+
+@dataclass(frozen=True)
+class VehicleResult:
+    vehicle_id: int
+    report: dict[str, Any]
+    t_s: FloatArray
+    pos_ned_m: FloatArray
+    ref_ned_m: FloatArray
+    vel_ned_m_s: FloatArray
+    error_m: FloatArray
+    sources: np.ndarray
+
+
+def analyse(run: VehicleRun, scenario: ScenarioConfig, vel_bounds_m_s: FloatArray) -> VehicleResult:
+    flight = _read_csv(run.flight_log)
+    truth = _read_csv(run.groundtruth)
+    stats = json.loads(run.stats.read_text()) if run.stats.exists() else {}
+    tracking = flight["phase"] == "offboard"
+    t_vehicle = flight["vehicle_t_s"]
+    if not np.any(tracking):
+        raise RuntimeError(f"vehicle {run.vehicle_id}: never flew in offboard (see service.log)")
+    start = float(t_vehicle[tracking][0])
+    use = tracking & (t_vehicle >= start + scenario.settle_s)
+    tt = truth["t_s"]
+    pos = np.column_stack([np.interp(t_vehicle, tt, truth[f"pos_{a}_m"]) for a in "ned"])
+    vel = np.column_stack([np.interp(t_vehicle, tt, truth[f"vel_{a}_m_s"]) for a in "ned"])
+    ref = np.column_stack([flight[f"ref_pos_{a}_m"] for a in "ned"])
+    err = np.linalg.norm(pos - ref, axis=1)
+    # velocity bound checks on every ground-truth sample after settling, not only at log ticks
+    truth_use = (tt >= start + scenario.settle_s) & (tt <= float(t_vehicle[tracking][-1]))
+    tvel = np.column_stack([truth[f"vel_{a}_m_s"][truth_use] for a in "ned"])
+    violations = int(np.sum(np.any(np.abs(tvel) > vel_bounds_m_s + 1e-9, axis=1)))
+    lib = stats.get("library", {}).get("position", {})
+    hits, misses = int(lib.get("hits", 0)), int(lib.get("misses", 0))
+    report = {
+        "id": run.vehicle_id,
+        "tracking": {
+            "rmse_m": float(np.sqrt(np.mean(err[use] ** 2))) if np.any(use) else math.nan,
+            "max_error_m": float(np.max(err[use])) if np.any(use) else math.nan,
+        },
+        "max_speed_m_s": float(np.max(np.linalg.norm(tvel, axis=1))) if len(tvel) else 0.0,
+        "max_abs_vel_m_s": [float(v) for v in np.max(np.abs(tvel), axis=0)]
+        if len(tvel)
+        else [0.0] * 3,
+        "constraint_violations": violations,
+        "library": {
+            "size": int(lib.get("size", 0)),
+            "hits": hits,
+            "misses": misses,
+            "hit_rate": hits / (hits + misses) if hits + misses else 0.0,
+            "qp_solves": int(lib.get("qp_solves", 0)),
+            "received_shared": int(lib.get("received_shared", 0)),
+        },
+        "loops": stats.get("loops", {}),
+    }
+    return VehicleResult(
+        run.vehicle_id, report, t_vehicle - start, pos, ref, vel, err, flight["source"]
+    )
+
+
+def write_figure(
+    results: list[VehicleResult], vel_bounds_m_s: FloatArray, path: Path, title: str
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    ax_path, ax_err, ax_vel, ax_lib = axes.ravel()
+    for r in results:
+        label = f"vehicle {r.vehicle_id}"
+        ax_path.plot(
+            r.ref_ned_m[:, 1], r.ref_ned_m[:, 0], "k--", lw=1, label=f"reference {r.vehicle_id}"
+        )
+        ax_path.plot(r.pos_ned_m[:, 1], r.pos_ned_m[:, 0], lw=1.5, label=f"flown {r.vehicle_id}")
+        ax_err.plot(r.t_s, r.error_m * 100.0, lw=1, label=label)
+        for i, axis in enumerate("NE"):
+            ax_vel.plot(r.t_s, r.vel_ned_m_s[:, i], lw=1, label=f"v_{axis} {label}")
+        hits = np.cumsum(r.sources == "hit")
+        solved = np.cumsum(np.isin(r.sources, ["solved", "intermediate", "fallback"]))
+        ax_lib.plot(r.t_s, hits, label=f"hits {label}")
+        ax_lib.plot(r.t_s, solved, label=f"misses {label}")
+    ax_path.set(xlabel="east [m]", ylabel="north [m]", title="path (top view)", aspect="equal")
+    ax_err.set(
+        xlabel="time since offboard [s]",
+        ylabel="|error| [cm]",
+        title="tracking error (ground truth)",
+    )
+    for b in (vel_bounds_m_s[0], -vel_bounds_m_s[0]):
+        ax_vel.axhline(b, color="r", ls=":", lw=1)
+    ax_vel.set(xlabel="time since offboard [s]", ylabel="[m/s]", title="velocity vs bounds")
+    ax_lib.set(
+        xlabel="time since offboard [s]",
+        ylabel="ticks",
+        title="EPC library: cumulative hits and misses",
+    )
+    for ax in axes.ravel():
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def print_table(report: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"{report['scenario']}: {report['controller']} + {report['adaptation']}")
+    for col in ("vehicle", "RMSE [cm]", "max err [cm]", "max speed", "violations",
+                "hit rate", "QP solves", "pos loop Hz", "pos p99 us", "att loop Hz"):  # fmt: skip
+        table.add_column(col, justify="right")
+    for v in report["vehicles"]:
+        loops = v.get("loops", {})
+        pos, att = loops.get("position", {}), loops.get("attitude", {})
+        table.add_row(
+            str(v["id"]),
+            f"{v['tracking']['rmse_m'] * 100:.2f}",
+            f"{v['tracking']['max_error_m'] * 100:.2f}",
+            f"{v['max_speed_m_s']:.2f}",
+            str(v["constraint_violations"]),
+            f"{v['library']['hit_rate'] * 100:.1f} %",
+            str(v["library"]["qp_solves"]),
+            f"{pos.get('rate_hz', 0.0):.1f}",
+            f"{pos.get('compute_us_p99', 0.0):.0f}",
+            f"{att.get('rate_hz', 0.0):.1f}",
+        )
+    Console(stderr=False).print(table)
+
+
+def run_sim_command(args: argparse.Namespace) -> int:
+    from epc_offboard.cli import EXIT_OK, EXIT_RUNTIME, UsageError
+
+    if args.vehicles < 1:
+        raise UsageError("--vehicles must be >= 1")
+    try:
+        scenario = load_scenario(args.scenario)
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from exc
+    if args.duration is not None:
+        if args.duration <= scenario.settle_s:
+            raise UsageError(
+                f"--duration must exceed the scenario's settle time {scenario.settle_s} s"
+            )
+        scenario = ScenarioConfig(**{**vars(scenario), "duration_s": args.duration})
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        runs = fly(args, scenario, out_dir)
+        cfg_text = (runs[0].out_dir / "service.toml").read_text()
+        bounds = np.array(tomllib.loads(cfg_text)["position"]["max_vel_m_s"], dtype=np.float64)
+        results = [analyse(r, scenario, bounds) for r in runs]
+    except RuntimeError as exc:
+        print(f"epc-offboard sim: {exc}", file=sys.stderr)
+        return EXIT_RUNTIME
+    wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
+    report = {
+        "scenario": args.scenario,
+        "controller": args.controller,
+        "adaptation": args.adaptation,
+        "wind": {"speed_m_s": wind[0], "dir_deg": wind[1]},
+        "duration_s": scenario.duration_s,
+        "seed": args.seed,
+        "lockstep": bool(args.lockstep),
+        "vehicles": [r.report for r in results],
+    }
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2))
+    write_figure(
+        results,
+        bounds,
+        out_dir / "flight.png",
+        f"{args.scenario}: {args.controller} + {args.adaptation}",
+    )
+    print_table(report)
+    print(f"report: {out_dir / 'report.json'}  figure: {out_dir / 'flight.png'}")
+    return EXIT_OK
