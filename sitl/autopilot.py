@@ -131,12 +131,15 @@ def quat_from_rotation(R: FloatArray) -> FloatArray:
 
 
 def attitude_from_thrust(thrust_dir_ned: FloatArray, yaw_rad: float) -> FloatArray:
-    """Quaternion whose body -z axis points along ``thrust_dir_ned`` (unit) with heading yaw."""
+    """Quaternion whose body -z axis points along ``thrust_dir_ned`` (unit), Z-Y-X yaw exact.
+
+    As PX4's bodyzToAttitude: body x is kept in the vertical plane of the heading.
+    """
     z_b = -thrust_dir_ned
-    x_c = np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0])
-    y_b = cross3(z_b, x_c)
-    y_b /= np.linalg.norm(y_b)
-    x_b = cross3(y_b, z_b)
+    y_c = np.array([-math.sin(yaw_rad), math.cos(yaw_rad), 0.0])
+    x_b = cross3(y_c, z_b)
+    x_b /= np.linalg.norm(x_b)
+    y_b = cross3(z_b, x_b)
     return quat_from_rotation(np.column_stack([x_b, y_b, z_b]))
 
 
