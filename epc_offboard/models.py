@@ -96,7 +96,8 @@ class LinearModel:
 
     def cancelling_input(self, perturbation: npt.ArrayLike) -> FloatArray:
         """Least-squares input ``u_p = -pinv(B) p^`` that cancels a perturbation."""
-        out: FloatArray = -np.linalg.pinv(self.B) @ np.asarray(perturbation, dtype=np.float64)
+        pinv = np.asarray(np.linalg.pinv(self.B), dtype=np.float64)
+        out: FloatArray = -pinv @ np.asarray(perturbation, dtype=np.float64)
         return out
 
     def with_offset(self, c: npt.ArrayLike) -> LinearModel:

@@ -196,9 +196,16 @@ class MpcProblem:
             raise ProblemError(
                 f"model size ({model.nx}, {model.nu}) differs from ({self.nx}, {self.nu})"
             )
+        return self._replace(model, self.horizon)
+
+    def with_horizon(self, horizon: int) -> MpcProblem:
+        """The same problem over another horizon (the intermediate controller's)."""
+        return self._replace(self.model, horizon)
+
+    def _replace(self, model: LinearModel, horizon: int) -> MpcProblem:
         return MpcProblem(
             model,
-            horizon=self.horizon,
+            horizon=horizon,
             Q=self.Q,
             R=self.R,
             x_min=self.x_min,
