@@ -175,8 +175,8 @@ class ExperienceController:
     ``max_size`` bounds the library (least important evicted); ``tol`` is the KKT check's
     tolerance (multipliers >= -tol, bounds within tol); ``intermediate_horizon`` the short
     horizon of the slack QP; ``learn_on_miss`` False leaves the full solve to the caller
-    (``step`` applies the intermediate controller and queues the parameters in
-    :attr:`pending`, for a worker to pass to :meth:`learn`); ``with_prediction`` adds the
+    (``step`` applies the intermediate controller and queues the parameter vectors in
+    :attr:`pending`, for a worker to pass to :meth:`learn_theta`); ``with_prediction`` adds the
     predicted trajectory to hit decisions (one more mat-vec).
     """
 
@@ -223,7 +223,6 @@ class ExperienceController:
         self.problem = problem
         self._geom = _ProblemGeometry(problem)
         self._solver = OsqpSolver(problem.H, problem.G, polish=True)
-        self._pinv_b = np.linalg.pinv(problem.model.B)
         self._theta = np.zeros(problem.n_theta)
         self._intermediate_qp = _IntermediateQp(problem, self._int_horizon, self._slack_weight)
 
@@ -261,7 +260,7 @@ class ExperienceController:
         With a perturbation and no ``u_p``, ``u_p = -pinv(B) p^`` (the input cancelling it).
         """
         t0 = time.perf_counter()
-        theta = self._fill_theta(x0, refs, u_p, perturbation)
+        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation, out=self._theta)
         self._tick += 1
         found = self._query(theta)
         if found is not None:
@@ -273,7 +272,7 @@ class ExperienceController:
             return Decision(u, "hit", (time.perf_counter() - t0) * 1e6, x_pred)
         self._misses += 1
         if self.learn_on_miss:
-            learned = self.learn(theta)
+            learned = self.learn_theta(theta)
             if learned is not None:
                 entry, v = learned
                 self._use(entry)
@@ -283,36 +282,6 @@ class ExperienceController:
         elif len(self.pending) < self._max_pending:
             self.pending.append(theta.copy())
         return self._degraded(theta, t0)
-
-    def _fill_theta(
-        self,
-        x0: npt.ArrayLike,
-        refs: npt.ArrayLike,
-        u_p: npt.ArrayLike | None,
-        perturbation: npt.ArrayLike | None,
-    ) -> FloatArray:
-        p = self.problem
-        nx, N = p.nx, p.horizon
-        th = self._theta
-        x = np.asarray(x0, dtype=np.float64)
-        r = np.asarray(refs, dtype=np.float64)
-        if x.shape != (nx,) or r.shape != (N, nx):
-            raise ValueError(
-                f"step expects x0 ({nx},) and refs ({N}, {nx}), got {x.shape} and {r.shape}"
-            )
-        th[:nx] = x
-        th[nx : nx + N * nx] = r.reshape(-1)
-        c0 = nx + N * nx
-        if perturbation is None:
-            th[c0 : c0 + nx] = p.model.c
-            th[c0 + nx :] = 0.0 if u_p is None else u_p
-        else:
-            pert = np.asarray(perturbation, dtype=np.float64)
-            if pert.shape != (nx,):
-                raise ValueError(f"perturbation must have shape ({nx},), got {pert.shape}")
-            th[c0 : c0 + nx] = p.model.c + pert
-            th[c0 + nx :] = -(self._pinv_b @ pert) if u_p is None else u_p
-        return th
 
     def _first_input(self, v: FloatArray) -> FloatArray:
         nu = self.problem.nu
@@ -370,7 +339,24 @@ class ExperienceController:
 
     # -- miss path --------------------------------------------------------------------------
 
-    def learn(self, theta: FloatArray) -> tuple[_Entry, FloatArray] | None:
+    def learn(
+        self,
+        x0: npt.ArrayLike,
+        refs: npt.ArrayLike,
+        u_p: npt.ArrayLike | None = None,
+        *,
+        perturbation: npt.ArrayLike | None = None,
+    ) -> LibraryEntry | None:
+        """The miss path's full solve for one tick's data, separable from :meth:`step` so a
+        worker can run it off the loop. Returns the (possibly pre-existing) entry or None."""
+        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation)
+        learned = self.learn_theta(theta)
+        if learned is None:
+            return None
+        e = learned[0]
+        return LibraryEntry(e.map.active, e.importance, e.uses)
+
+    def learn_theta(self, theta: FloatArray) -> tuple[_Entry, FloatArray] | None:
         """Solve the full QP at ``theta``, recover and verify its active set, add it.
 
         Returns the library entry and its map's value at ``theta`` (the exact solution), or
@@ -463,8 +449,7 @@ class ExperienceController:
     def hover_input(self, theta: FloatArray) -> FloatArray:
         """The bounded hover command: ``u_p`` (zero, or the input cancelling p^), clipped."""
         p = self.problem
-        u_p = theta[p.n_theta - p.nu :]
-        return np.minimum(np.maximum(np.nan_to_num(u_p), p.u_min), p.u_max)
+        return np.minimum(np.maximum(np.nan_to_num(p.u_p(theta)), p.u_min), p.u_max)
 
     # -- library ----------------------------------------------------------------------------
 

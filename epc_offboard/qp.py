@@ -121,6 +121,7 @@ class MpcProblem:
             raise ProblemError("u_min must be <= u_max (the input box must be non-empty)")
         self.n_u = N * nu
         self.n_theta = nx + N * nx + nx + nu
+        self._pinv_b = np.asarray(np.linalg.pinv(model.B), dtype=np.float64)
         self._build()
 
     # -- construction ---------------------------------------------------------------------
@@ -220,26 +221,42 @@ class MpcProblem:
         self,
         x0: npt.ArrayLike,
         refs: npt.ArrayLike,
-        c_tilde: npt.ArrayLike | None = None,
         u_p: npt.ArrayLike | None = None,
+        *,
+        perturbation: npt.ArrayLike | None = None,
+        out: FloatArray | None = None,
     ) -> FloatArray:
-        """Stack the parameter vector; ``refs`` (N, nx) absolute references for x_1..x_N.
+        """Stack the parameter vector (written into ``out`` when given, to spare allocation).
 
-        ``c_tilde`` defaults to the model's ``c``, ``u_p`` to zero.
+        ``x0`` (nx,); ``refs`` (N, nx) absolute references for x_1..x_N; ``perturbation`` p^
+        (nx,) makes ``c~ = c + p^``; ``u_p`` (nu,) defaults to the input cancelling p^,
+        ``-pinv(B) p^`` (zero without a perturbation).
         """
         nx, N = self.nx, self.horizon
-        x = np.asarray(x0, dtype=np.float64).reshape(-1)
+        x = np.asarray(x0, dtype=np.float64)
         r = np.asarray(refs, dtype=np.float64)
-        if x.shape != (nx,):
-            raise ProblemError(f"x0 must have shape ({nx},), got {x.shape}")
-        if r.shape != (N, nx):
-            raise ProblemError(f"refs must have shape ({N}, {nx}), got {r.shape}")
-        out = np.empty(self.n_theta)
-        out[:nx] = x
-        out[nx : nx + N * nx] = r.reshape(-1)
-        out[nx + N * nx : 2 * nx + N * nx] = self.model.c if c_tilde is None else c_tilde
-        out[2 * nx + N * nx :] = 0.0 if u_p is None else u_p
-        return out
+        if x.shape != (nx,) or r.shape != (N, nx):
+            raise ProblemError(
+                f"expected x0 ({nx},) and refs ({N}, {nx}), got {x.shape} and {r.shape}"
+            )
+        th = np.empty(self.n_theta) if out is None else out
+        th[:nx] = x
+        th[nx : nx + N * nx] = r.reshape(-1)
+        c0 = nx + N * nx
+        if perturbation is None:
+            th[c0 : c0 + nx] = self.model.c
+            th[c0 + nx :] = 0.0 if u_p is None else u_p
+        else:
+            pert = np.asarray(perturbation, dtype=np.float64)
+            if pert.shape != (nx,):
+                raise ProblemError(f"perturbation must have shape ({nx},), got {pert.shape}")
+            th[c0 : c0 + nx] = self.model.c + pert
+            th[c0 + nx :] = -(self._pinv_b @ pert) if u_p is None else u_p
+        return th
+
+    def u_p(self, theta: FloatArray) -> FloatArray:
+        """The nominal input ``u_p`` inside ``theta``."""
+        return theta[self.n_theta - self.nu :]
 
     def vectors(self, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """``(h, gamma)`` of the condensed QP at ``theta``."""
