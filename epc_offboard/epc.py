@@ -1,0 +1,649 @@
+"""Experience-driven Predictive Control: a library of active sets reused by a KKT check.
+
+A controller is an active set ``a`` of the condensed QP (:mod:`epc_offboard.qp`). For a fixed
+model its KKT system (thesis 3.5-3.8)::
+
+    [H    Ga'] [U  ]   [-F theta        ]
+    [Ga   0  ] [lam] = [g0_a + S_a theta]
+
+is solved once, symbolically in ``theta``, into ONE stacked affine map ``v = M theta + m``
+whose rows are: the whole input sequence U (N nu), the bounded predicted state components
+(the rows of X with a finite bound), and the active multipliers. Applying and checking a
+stored controller is then one mat-vec and two comparisons: ``lo <= v <= hi`` where lo/hi hold
+the input and state bounds widened by ``tol`` and ``lam >= -tol``. Checking every bound row
+(active ones included, whose slack is zero by construction) is the thesis's "every inactive
+constraint holds" without gathering rows.
+
+Query order: the last used controller, then its successors in the transition counts (most
+frequent first), then the rest by importance (last use, most recent first). A miss calls
+:meth:`ExperienceController.learn` (OSQP, polished; active set recovered, rebuilt exactly from
+the KKT system and verified by the same check) and, if that fails, the intermediate
+controller (short horizon, slack on the state bounds, always feasible), then a bounded hover.
+
+Library exchange: entries carry the active set as sorted row indices into the problem's
+layout (:class:`epc_offboard.qp.ConstraintRow` order), their importance and use count.
+Transition counts are exported separately, keyed by pairs of indices into the exported list.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import time
+from collections import OrderedDict
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg as sla
+
+from epc_offboard.decision import Decision
+from epc_offboard.frames import FloatArray
+from epc_offboard.models import LinearModel
+from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
+
+logger = logging.getLogger(__name__)
+
+_DEPENDENCE_RTOL = 1e-9
+
+
+@dataclass(frozen=True)
+class LibraryEntry:
+    """A stored controller as exchanged with the store and the fleet.
+
+    ``active_set``: sorted, unique row indices into the problem's constraint layout;
+    ``importance``: local last-use tick (0 for imported entries never used here);
+    ``uses``: how many ticks it was applied.
+    """
+
+    active_set: tuple[int, ...]
+    importance: float = 0.0
+    uses: int = 0
+
+
+@dataclass(frozen=True)
+class EpcStats:
+    hits: int
+    misses: int
+    qp_solves: int
+    size: int
+    intermediate: int
+    fallback: int
+    learn_failures: int
+
+    @property
+    def hit_rate(self) -> float:
+        total = self.hits + self.misses
+        return self.hits / total if total else 0.0
+
+
+class DependentActiveSetError(ValueError):
+    """The active set's constraint rows are linearly dependent (no unique multipliers)."""
+
+
+class ActiveSetMap:
+    """The cached affine map of one active set: ``v = M theta + m`` checked by ``lo <= v <= hi``.
+
+    Rows of ``v``: U (N nu), bounded state components of X, active multipliers.
+    """
+
+    __slots__ = ("M", "active", "hi", "lo", "m")
+
+    def __init__(self, problem: MpcProblem, active: tuple[int, ...], geom: _ProblemGeometry,
+                 tol: float) -> None:
+        idx = np.asarray(active, dtype=np.intp)
+        Ga = problem.G[idx]
+        E1 = sla.cho_solve(geom.h_chol, Ga.T).T  # Ga H^-1  (na, nU)
+        W = E1 @ Ga.T
+        if len(active):
+            try:
+                w_chol = sla.cho_factor(W)
+            except np.linalg.LinAlgError as exc:
+                raise DependentActiveSetError(f"active set {active} is dependent") from exc
+            d = np.abs(np.diag(w_chol[0]))
+            if d.min() <= _DEPENDENCE_RTOL * max(1.0, float(d.max())):
+                raise DependentActiveSetError(f"active set {active} is dependent")
+            # lam = -W^-1 (E1 F theta + S_a theta + g0_a)
+            L_theta = -sla.cho_solve(w_chol, E1 @ problem.F + problem.S[idx])
+            l_0 = -sla.cho_solve(w_chol, problem.g0[idx])
+        else:
+            L_theta = np.zeros((0, problem.n_theta))
+            l_0 = np.zeros(0)
+        # U = -H^-1 F theta - H^-1 Ga' lam
+        U_theta = -geom.hinv_f - E1.T @ L_theta
+        U_0 = -E1.T @ l_0
+        X_theta = geom.xb_theta + geom.xb_bbar @ U_theta
+        X_0 = geom.xb_bbar @ U_0
+        self.M = np.ascontiguousarray(np.vstack([U_theta, X_theta, L_theta]))
+        self.m = np.concatenate([U_0, X_0, l_0])
+        na = len(active)
+        self.lo = np.concatenate([geom.lo_ux - tol, np.full(na, -tol)])
+        self.hi = np.concatenate([geom.hi_ux + tol, np.full(na, np.inf)])
+        self.active = active
+
+    def evaluate(self, theta: FloatArray) -> FloatArray | None:
+        """``v`` if the controller is optimal at ``theta`` (passes the KKT check), else None."""
+        v: FloatArray = self.M @ theta
+        v += self.m
+        if (v >= self.lo).all() and (v <= self.hi).all():
+            return v
+        return None
+
+
+class _ProblemGeometry:
+    """Per-model quantities shared by every active set's map."""
+
+    def __init__(self, problem: MpcProblem) -> None:
+        self.h_chol = sla.cho_factor(problem.H)
+        self.hinv_f = sla.cho_solve(self.h_chol, problem.F)
+        nx, N = problem.nx, problem.horizon
+        bounded = np.isfinite(problem.x_min) | np.isfinite(problem.x_max)
+        rows = np.array([k * nx + i for k in range(N) for i in range(nx) if bounded[i]],
+                        dtype=np.intp)
+        # X rows as affine maps of theta (through x0 and c~) and of U
+        xt = np.zeros((len(rows), problem.n_theta))
+        xt[:, :nx] = problem.Phi[rows]
+        c0 = nx + N * nx
+        xt[:, c0 : c0 + nx] = problem.Psi[rows]
+        self.xb_theta = xt
+        self.xb_bbar = problem.Bbar[rows]
+        self.xb_rows = rows
+        n_xb = len(rows)
+        self.n_xb = n_xb
+        self.lo_ux = np.concatenate(
+            [np.tile(problem.u_min, N), np.tile(problem.x_min[bounded], N)]
+        )
+        self.hi_ux = np.concatenate(
+            [np.tile(problem.u_max, N), np.tile(problem.x_max[bounded], N)]
+        )
+
+
+@dataclass
+class _Entry:
+    key: int
+    map: ActiveSetMap
+    importance: float
+    uses: int
+
+
+class ExperienceController:
+    """EPC over one :class:`MpcProblem` (thesis algorithm 1).
+
+    ``max_size`` bounds the library (least important evicted); ``tol`` is the KKT check's
+    tolerance (multipliers >= -tol, bounds within tol); ``intermediate_horizon`` the short
+    horizon of the slack QP; ``learn_on_miss`` False leaves the full solve to the caller
+    (``step`` applies the intermediate controller and queues the parameter vectors in
+    :attr:`pending`, for a worker to pass to :meth:`learn_theta`); ``with_prediction`` adds the
+    predicted trajectory to hit decisions (one more mat-vec).
+    """
+
+    def __init__(
+        self,
+        problem: MpcProblem,
+        *,
+        max_size: int = 500,
+        tol: float = 1e-9,
+        intermediate_horizon: int = 5,
+        slack_weight: float = 1e4,
+        learn_on_miss: bool = True,
+        with_prediction: bool = False,
+        max_pending: int = 8,
+    ) -> None:
+        if max_size < 1:
+            raise ValueError(f"max_size must be >= 1, got {max_size}")
+        if not (tol > 0.0 and math.isfinite(tol)):
+            raise ValueError(f"tol must be a positive finite number, got {tol}")
+        if intermediate_horizon < 1:
+            raise ValueError(f"intermediate_horizon must be >= 1, got {intermediate_horizon}")
+        self.max_size = max_size
+        self.tol = tol
+        self.learn_on_miss = learn_on_miss
+        self.with_prediction = with_prediction
+        self._int_horizon = min(intermediate_horizon, problem.horizon)
+        self._slack_weight = slack_weight
+        self._max_pending = max_pending
+        self.pending: list[FloatArray] = []
+        self._entries: OrderedDict[int, _Entry] = OrderedDict()  # least important first
+        self._by_set: dict[tuple[int, ...], int] = {}
+        self._succ: dict[int, dict[int, int]] = {}
+        self._next_key = 0
+        self._last: int | None = None
+        self._tick = 0
+        self._new: list[LibraryEntry] = []
+        self._hits = self._misses = self._solves = 0
+        self._intermediate = self._fallback = self._learn_failures = 0
+        self._setup(problem)
+
+    # -- model ------------------------------------------------------------------------------
+
+    def _setup(self, problem: MpcProblem) -> None:
+        self.problem = problem
+        self._geom = _ProblemGeometry(problem)
+        self._solver = OsqpSolver(problem.H, problem.G, polish=True)
+        self._theta = np.zeros(problem.n_theta)
+        self._intermediate_qp = _IntermediateQp(problem, self._int_horizon, self._slack_weight)
+
+    def set_model(self, model: LinearModel) -> None:
+        """Adopt a new model of equal size; rebuild every cached map (the library is kept).
+
+        Entries whose rows become dependent under the new model are dropped.
+        """
+        old = self.problem.model
+        if np.array_equal(old.A, model.A) and np.array_equal(old.B, model.B):
+            # only the offset changed: it enters through theta, the maps stay valid
+            self.problem = self.problem.with_model(model)
+            return
+        self._setup(self.problem.with_model(model))
+        for key, e in list(self._entries.items()):
+            try:
+                e.map = ActiveSetMap(self.problem, e.map.active, self._geom, self.tol)
+            except DependentActiveSetError:
+                logger.debug("dropping %s: dependent under the new model", e.map.active)
+                self._remove(key)
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def step(
+        self,
+        x0: npt.ArrayLike,
+        refs: npt.ArrayLike,
+        u_p: npt.ArrayLike | None = None,
+        *,
+        perturbation: npt.ArrayLike | None = None,
+    ) -> Decision:
+        """One control tick. ``x0`` (nx,), ``refs`` (N, nx) absolute references for x_1..x_N,
+        ``u_p`` (nu,) nominal input, ``perturbation`` p^ (nx,) added to the model offset.
+
+        With a perturbation and no ``u_p``, ``u_p = -pinv(B) p^`` (the input cancelling it).
+        """
+        t0 = time.perf_counter()
+        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation, out=self._theta)
+        self._tick += 1
+        found = self._query(theta)
+        if found is not None:
+            entry, v = found
+            self._hits += 1
+            self._use(entry)
+            u = self._first_input(v)
+            x_pred = self._predict(theta, v) if self.with_prediction else None
+            return Decision(u, "hit", (time.perf_counter() - t0) * 1e6, x_pred)
+        self._misses += 1
+        if self.learn_on_miss:
+            learned = self.learn_theta(theta)
+            if learned is not None:
+                entry, v = learned
+                self._use(entry)
+                u = self._first_input(v)
+                return Decision(u, "solved", (time.perf_counter() - t0) * 1e6,
+                                self._predict(theta, v))
+        elif len(self.pending) < self._max_pending:
+            self.pending.append(theta.copy())
+        return self._degraded(theta, t0)
+
+    def _first_input(self, v: FloatArray) -> FloatArray:
+        nu = self.problem.nu
+        # within tol of the bounds by the check; clipping makes "never violates" exact
+        return np.minimum(np.maximum(v[:nu], self.problem.u_min), self.problem.u_max)
+
+    def _predict(self, theta: FloatArray, v: FloatArray) -> FloatArray:
+        return self.problem.predict(theta, v[: self.problem.n_u])
+
+    def _candidates(self) -> Iterator[_Entry]:
+        entries = self._entries
+        last = self._last
+        tried: set[int] = set()
+        if last is not None and last in entries:
+            tried.add(last)
+            yield entries[last]
+            succ = self._succ.get(last)
+            if succ:
+                for key in sorted(succ, key=succ.__getitem__, reverse=True):
+                    if key not in tried and key in entries:
+                        tried.add(key)
+                        yield entries[key]
+        for key in reversed(entries):
+            if key not in tried:
+                yield entries[key]
+
+    def _query(self, theta: FloatArray) -> tuple[_Entry, FloatArray] | None:
+        last = self._last
+        if last is not None:
+            # the hot path: the last controller usually still applies
+            e = self._entries.get(last)
+            if e is not None:
+                v = e.map.evaluate(theta)
+                if v is not None:
+                    return e, v
+        for e in self._candidates():
+            if e.key == last:
+                continue
+            v = e.map.evaluate(theta)
+            if v is not None:
+                return e, v
+        return None
+
+    def _use(self, entry: _Entry) -> None:
+        key = entry.key
+        last = self._last
+        if last is not None and last in self._entries:
+            succ = self._succ.setdefault(last, {})
+            succ[key] = succ.get(key, 0) + 1
+        entry.importance = float(self._tick)
+        entry.uses += 1
+        if last != key:
+            self._entries.move_to_end(key)
+        self._last = key
+
+    # -- miss path --------------------------------------------------------------------------
+
+    def learn(
+        self,
+        x0: npt.ArrayLike,
+        refs: npt.ArrayLike,
+        u_p: npt.ArrayLike | None = None,
+        *,
+        perturbation: npt.ArrayLike | None = None,
+    ) -> LibraryEntry | None:
+        """The miss path's full solve for one tick's data, separable from :meth:`step` so a
+        worker can run it off the loop. Returns the (possibly pre-existing) entry or None."""
+        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation)
+        learned = self.learn_theta(theta)
+        if learned is None:
+            return None
+        e = learned[0]
+        return LibraryEntry(e.map.active, e.importance, e.uses)
+
+    def learn_theta(self, theta: FloatArray) -> tuple[_Entry, FloatArray] | None:
+        """Solve the full QP at ``theta``, recover and verify its active set, add it.
+
+        Returns the library entry and its map's value at ``theta`` (the exact solution), or
+        None when the QP is infeasible or the active set cannot be verified.
+        """
+        p = self.problem
+        h, gamma = p.vectors(theta)
+        self._solves += 1
+        res = self._solver.solve(h, gamma)
+        if res.status not in (QpStatus.SOLVED, QpStatus.INACCURATE):
+            logger.debug("full QP not solved: %s", res.status.value)
+            self._learn_failures += 1
+            return None
+        active = self._recover_active_set(theta, res.x, res.y, gamma)
+        if active is None:
+            self._learn_failures += 1
+            return None
+        amap, v = active
+        key = self._by_set.get(amap.active)
+        if key is not None:
+            return self._entries[key], v
+        entry = self._add(amap)
+        self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses))
+        return entry, v
+
+    def _recover_active_set(
+        self, theta: FloatArray, U: FloatArray, y: FloatArray, gamma: FloatArray
+    ) -> tuple[ActiveSetMap, FloatArray] | None:
+        """Rebuild the exact solution from OSQP's guess of the active set.
+
+        Start from rows with a clearly positive dual; then, until the KKT check passes:
+        drop linearly dependent rows (keeping the larger duals), drop the most negative
+        multiplier, add the most violated inactive row (tighten and retry).
+        """
+        p = self.problem
+        scale = max(1.0, float(np.max(np.abs(y))) if y.size else 1.0)
+        active = set(np.flatnonzero(y > 1e-6 * scale).tolist())
+        weight = {i: float(y[i]) for i in range(len(y))}
+        seen: set[tuple[int, ...]] = set()
+        for _ in range(4 * p.n_con + 10):
+            rows = self._independent(sorted(active, key=lambda i: -weight.get(i, 0.0)))
+            aset = tuple(sorted(rows))
+            if aset in seen:
+                break
+            seen.add(aset)
+            amap = ActiveSetMap(p, aset, self._geom, self.tol)
+            v = amap.M @ theta + amap.m
+            U_ex = v[: p.n_u]
+            lam = v[len(v) - len(aset) :]
+            slack = gamma - p.G @ U_ex
+            if len(aset):
+                slack[np.asarray(aset, dtype=np.intp)] = np.inf
+            worst_lam = int(np.argmin(lam)) if len(aset) else -1
+            worst_row = int(np.argmin(slack)) if p.n_con else -1
+            lam_bad = len(aset) > 0 and lam[worst_lam] < -self.tol
+            row_bad = p.n_con > 0 and slack[worst_row] < -self.tol
+            if not lam_bad and not row_bad and amap.evaluate(theta) is not None:
+                return amap, v
+            active = set(aset)
+            if lam_bad:
+                active.discard(aset[worst_lam])
+            if row_bad:
+                active.add(worst_row)
+                weight[worst_row] = math.inf  # keep the newly tightened row
+        logger.debug("active set recovery did not converge; OSQP x=%s", U[: p.nu])
+        return None
+
+    def _independent(self, rows: Sequence[int]) -> list[int]:
+        """Greedy linearly independent subset of constraint rows, in the given priority."""
+        G = self.problem.G
+        kept: list[int] = []
+        basis = np.zeros((0, G.shape[1]))
+        for i in rows:
+            g = G[i]
+            resid = g - basis.T @ (basis @ g) if len(kept) else g
+            n = float(np.linalg.norm(resid))
+            if n > 1e-9 * max(1.0, float(np.linalg.norm(g))):
+                basis = np.vstack([basis, resid / n])
+                kept.append(i)
+        return kept
+
+    def _degraded(self, theta: FloatArray, t0: float) -> Decision:
+        u = self._intermediate_qp.solve(theta)
+        if u is not None:
+            self._intermediate += 1
+            return Decision(u, "intermediate", (time.perf_counter() - t0) * 1e6)
+        self._fallback += 1
+        return Decision(self.hover_input(theta), "fallback", (time.perf_counter() - t0) * 1e6)
+
+    def hover_input(self, theta: FloatArray) -> FloatArray:
+        """The bounded hover command: ``u_p`` (zero, or the input cancelling p^), clipped."""
+        p = self.problem
+        return np.minimum(np.maximum(np.nan_to_num(p.u_p(theta)), p.u_min), p.u_max)
+
+    # -- library ----------------------------------------------------------------------------
+
+    def _add(self, amap: ActiveSetMap, importance: float | None = None, uses: int = 0,
+             *, least_important: bool = False) -> _Entry:
+        key = self._next_key
+        self._next_key += 1
+        entry = _Entry(key, amap, float(self._tick) if importance is None else importance, uses)
+        self._entries[key] = entry
+        self._by_set[amap.active] = key
+        if least_important:
+            self._entries.move_to_end(key, last=False)
+        while len(self._entries) > self.max_size:
+            victim = next(iter(self._entries))
+            if victim == key:  # never evict what was just added
+                self._entries.move_to_end(victim)
+                victim = next(iter(self._entries))
+            self._remove(victim)
+        return entry
+
+    def _remove(self, key: int) -> None:
+        entry = self._entries.pop(key)
+        self._by_set.pop(entry.map.active, None)
+        self._succ.pop(key, None)
+        for succ in self._succ.values():
+            succ.pop(key, None)
+        if self._last == key:
+            self._last = None
+
+    @property
+    def stats(self) -> EpcStats:
+        return EpcStats(
+            hits=self._hits,
+            misses=self._misses,
+            qp_solves=self._solves,
+            size=len(self._entries),
+            intermediate=self._intermediate,
+            fallback=self._fallback,
+            learn_failures=self._learn_failures,
+        )
+
+    def _ordered(self) -> list[_Entry]:
+        """Entries most important first."""
+        return list(reversed(self._entries.values()))
+
+    def export_library(self) -> list[LibraryEntry]:
+        """Entries, most important first; indices of this list key :meth:`export_transitions`."""
+        return [LibraryEntry(e.map.active, e.importance, e.uses) for e in self._ordered()]
+
+    def export_transitions(self) -> dict[tuple[int, int], int]:
+        """Transition counts ``(from, to) -> count`` over indices into :meth:`export_library`."""
+        index = {e.key: i for i, e in enumerate(self._ordered())}
+        return {
+            (index[a], index[b]): n
+            for a, succ in self._succ.items()
+            if a in index
+            for b, n in succ.items()
+            if b in index
+        }
+
+    def pop_new_entries(self) -> list[LibraryEntry]:
+        """Entries added by solves since the last call (for the store and the publisher)."""
+        out, self._new = self._new, []
+        return out
+
+    def import_entries(
+        self,
+        entries: Iterable[LibraryEntry],
+        source: Literal["prior", "shared"] = "prior",
+        *,
+        signature: str | None = None,
+        transitions: dict[tuple[int, int], int] | None = None,
+    ) -> int:
+        """Add validated candidates; return how many were new.
+
+        Everything is validated before the library changes: the problem signature (when
+        given), each active set (sorted unique ints in range, at most N nu rows, linearly
+        independent), importance and uses, the number of entries (<= max_size) and the
+        transition indices and counts. Imported entries are inserted as least important (in
+        their given importance order) so local experience wins eviction; they are still
+        applied only when they pass the KKT check.
+        """
+        if source not in ("prior", "shared"):
+            raise ValueError(f"source must be 'prior' or 'shared', got {source!r}")
+        p = self.problem
+        if signature is not None and signature != p.signature():
+            raise ValueError(
+                f"library signature {signature!r} does not match problem {p.signature()!r}"
+            )
+        items = list(entries)
+        if len(items) > self.max_size:
+            raise ValueError(f"{len(items)} entries exceed the size limit {self.max_size}")
+        maps: list[tuple[LibraryEntry, ActiveSetMap]] = []
+        for n, e in enumerate(items):
+            maps.append((e, self._validated_map(n, e)))
+        if transitions is not None:
+            for (a, b), count in transitions.items():
+                if not (0 <= a < len(items) and 0 <= b < len(items)):
+                    raise ValueError(f"transition ({a}, {b}) indexes outside the entries")
+                if not isinstance(count, int) or count < 1:
+                    raise ValueError(f"transition ({a}, {b}) count must be an int >= 1")
+        keys: dict[int, int] = {}
+        added = 0
+        order = sorted(range(len(maps)), key=lambda i: maps[i][0].importance, reverse=True)
+        for i in order:
+            e, amap = maps[i]
+            existing = self._by_set.get(amap.active)
+            if existing is not None:
+                keys[i] = existing
+                continue
+            keys[i] = self._add(amap, 0.0, 0, least_important=True).key
+            added += 1
+        for (a, b), count in (transitions or {}).items():
+            ka, kb = keys.get(a), keys.get(b)
+            if ka in self._entries and kb in self._entries and ka is not None and kb is not None:
+                succ = self._succ.setdefault(ka, {})
+                succ[kb] = succ.get(kb, 0) + count
+        logger.debug("imported %d of %d %s entries", added, len(items), source)
+        return added
+
+    def _validated_map(self, n: int, e: LibraryEntry) -> ActiveSetMap:
+        p = self.problem
+        aset = e.active_set
+        if not isinstance(aset, tuple) or not all(
+            isinstance(i, int) and not isinstance(i, bool) for i in aset
+        ):
+            raise ValueError(f"entry {n}: active_set must be a tuple of ints")
+        if any(i < 0 or i >= p.n_con for i in aset):
+            raise ValueError(f"entry {n}: active_set index out of range 0..{p.n_con - 1}")
+        if any(a >= b for a, b in itertools.pairwise(aset)):
+            raise ValueError(f"entry {n}: active_set must be sorted and unique")
+        if len(aset) > p.n_u:
+            raise ValueError(f"entry {n}: {len(aset)} active rows exceed {p.n_u} inputs")
+        if not math.isfinite(e.importance):
+            raise ValueError(f"entry {n}: importance must be finite")
+        if not isinstance(e.uses, int) or e.uses < 0:
+            raise ValueError(f"entry {n}: uses must be an int >= 0")
+        try:
+            return ActiveSetMap(p, aset, self._geom, self.tol)
+        except DependentActiveSetError as exc:
+            raise ValueError(f"entry {n}: active set rows are linearly dependent") from exc
+
+
+class _IntermediateQp:
+    """Short-horizon QP with slack on the state bounds: always feasible (thesis 3.1.3).
+
+    Variables ``z = [U (Ni nu); s (m_x)]``, cost ``1/2 U'H U + h'U + w/2 |s|² + w 1's``,
+    rows ``Gx U - s <= gamma_x``, ``s >= 0``, ``u_min <= U <= u_max``.
+    """
+
+    def __init__(self, full: MpcProblem, horizon: int, slack_weight: float) -> None:
+        self.full = full
+        self.problem = full.with_horizon(horizon)
+        p = self.problem
+        is_x = np.array([r.kind == "x" for r in p.rows], dtype=bool)
+        self._is_x = is_x
+        n_s = int(is_x.sum())
+        n_u = p.n_u
+        Gx = p.G[is_x]
+        P = sla.block_diag(p.H, slack_weight * np.eye(n_s))
+        Au = np.hstack([np.eye(n_u), np.zeros((n_u, n_s))])
+        A = np.vstack([
+            np.hstack([Gx, -np.eye(n_s)]),
+            np.hstack([np.zeros((n_s, n_u)), np.eye(n_s)]),
+            Au,
+        ])
+        self._solver = OsqpSolver(P, A, polish=False, eps_abs=1e-5, eps_rel=1e-5, max_iter=400)
+        N = p.horizon
+        self._l = np.concatenate([np.full(n_s, -np.inf), np.zeros(n_s),
+                                  np.tile(p.u_min, N)])
+        self._u = np.concatenate([np.zeros(n_s), np.full(n_s, np.inf), np.tile(p.u_max, N)])
+        self._q = np.concatenate([np.zeros(n_u), np.full(n_s, slack_weight)])
+        self._n_s = n_s
+
+    def solve(self, theta_full: FloatArray) -> FloatArray | None:
+        p, f = self.problem, self.full
+        nx, nu, N, Nf = p.nx, p.nu, p.horizon, f.horizon
+        theta = np.concatenate([
+            theta_full[:nx],
+            theta_full[nx : nx + N * nx],
+            theta_full[nx + Nf * nx :],
+        ])
+        h, gamma = p.vectors(theta)
+        self._q[: p.n_u] = h
+        self._u[: self._n_s] = gamma[self._is_x]
+        try:
+            res = self._solver.solve(self._q, self._u, self._l)
+        except (ValueError, RuntimeError) as exc:
+            logger.debug("intermediate QP raised %s", exc)
+            return None
+        if res.status not in (QpStatus.SOLVED, QpStatus.INACCURATE, QpStatus.MAX_ITER):
+            return None
+        u0 = res.x[:nu]
+        if not np.all(np.isfinite(u0)):
+            return None
+        out: FloatArray = np.minimum(np.maximum(u0, p.u_min), p.u_max)
+        return out

@@ -1,0 +1,466 @@
+"""A small PX4-like autopilot: modes, arming, takeoff/hold/land, offboard, cascaded control.
+
+Pure logic and numerics: commands and setpoints come in as method calls stamped with vehicle
+time, ``update`` turns the vehicle state into rotor speed commands. No sockets, no MAVLink.
+
+Cascade (each loop's gains are accelerations per unit error, so they are mass-independent):
+position PID -> desired acceleration -> thrust vector + yaw -> attitude quaternion (thesis 3.13,
+without the small-angle linearisation) -> attitude P on the quaternion error -> body rates ->
+rate PI -> torques -> inverse effectiveness (the x-layout generalisation of thesis 3.11) ->
+rotor forces -> rotor speeds.
+
+Thrust normalisation (SET_ATTITUDE_TARGET): ``thrust_norm * 4 k_F w_max^2`` is the collective
+rotor force; 0.52 hovers the default vehicle.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from epc_offboard.frames import (
+    GRAVITY_M_S2,
+    FloatArray,
+    quat_conjugate,
+    quat_multiply,
+    quat_to_euler,
+    quat_to_rotation,
+)
+from sitl.params import AutopilotParams, VehicleParams
+from sitl.physics import POS, QUAT, RATE, VEL, cross3, effectiveness_matrix, on_ground
+
+
+class Result(IntEnum):
+    """Command outcome, numbered as MAV_RESULT."""
+
+    ACCEPTED = 0
+    TEMPORARILY_REJECTED = 1
+    DENIED = 2
+    UNSUPPORTED = 3
+    FAILED = 4
+
+
+class LandedState(IntEnum):
+    """Numbered as MAV_LANDED_STATE."""
+
+    ON_GROUND = 1
+    IN_AIR = 2
+    TAKEOFF = 3
+    LANDING = 4
+
+
+@dataclass(frozen=True)
+class Mode:
+    """PX4 custom mode: main mode and sub mode (custom_mode = main << 16 | sub << 24)."""
+
+    main: int
+    sub: int = 0
+
+    @property
+    def custom_mode(self) -> int:
+        return (self.main << 16) | (self.sub << 24)
+
+
+POSCTL = Mode(3)
+TAKEOFF = Mode(4, 2)
+HOLD = Mode(4, 3)  # AUTO.LOITER
+LAND = Mode(4, 6)
+OFFBOARD = Mode(6)
+SETTABLE_MODES = frozenset({POSCTL, TAKEOFF, HOLD, LAND, OFFBOARD})
+
+# SET_ATTITUDE_TARGET type_mask bits
+IGNORE_ROLL_RATE = 1
+IGNORE_PITCH_RATE = 2
+IGNORE_YAW_RATE = 4
+IGNORE_THRUST = 64
+IGNORE_ATTITUDE = 128
+FORCE_DISARM_MAGIC = 21196  # PX4's param2 that forces a disarm in the air
+
+
+@dataclass(frozen=True)
+class AttitudeSetpoint:
+    """An offboard SET_ATTITUDE_TARGET, already decoded: NaN-free, masks applied."""
+
+    type_mask: int
+    q_wxyz: tuple[float, float, float, float]
+    rate_frd_rad_s: tuple[float, float, float]
+    thrust_norm: float
+
+
+@dataclass(frozen=True)
+class PositionSetpoint:
+    """An offboard SET_POSITION_TARGET_LOCAL_NED: position and/or velocity, yaw (None = ignore)."""
+
+    pos_ned_m: tuple[float, float, float] | None
+    vel_ned_m_s: tuple[float, float, float] | None
+    yaw_rad: float | None
+
+
+@dataclass(frozen=True)
+class ActuatorCommand:
+    """What the autopilot commanded this step (logged as ground truth)."""
+
+    rotor_speed_rad_s: FloatArray  # (4,)
+    thrust_norm: float
+    rate_cmd_frd_rad_s: FloatArray  # (3,)
+    q_cmd_wxyz: FloatArray  # (4,) attitude command (current attitude in pure rate control)
+
+
+def quat_from_rotation(R: FloatArray) -> FloatArray:
+    """Unit quaternion [w, x, y, z] of a (3, 3) rotation matrix (Shepperd's method), w >= 0."""
+    tr = float(np.trace(R))
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    qa = np.asarray(q)
+    qa /= np.linalg.norm(qa)
+    return -qa if qa[0] < 0.0 else qa
+
+
+def attitude_from_thrust(thrust_dir_ned: FloatArray, yaw_rad: float) -> FloatArray:
+    """Quaternion whose body -z axis points along ``thrust_dir_ned`` (unit), Z-Y-X yaw exact.
+
+    As PX4's bodyzToAttitude: body x is kept in the vertical plane of the heading.
+    """
+    z_b = -thrust_dir_ned
+    y_c = np.array([-math.sin(yaw_rad), math.cos(yaw_rad), 0.0])
+    x_b = cross3(y_c, z_b)
+    x_b /= np.linalg.norm(x_b)
+    y_b = cross3(z_b, x_b)
+    return quat_from_rotation(np.column_stack([x_b, y_b, z_b]))
+
+
+class Autopilot:
+    """Mode state machine plus the cascaded controllers. Times are vehicle seconds."""
+
+    def __init__(self, vehicle: VehicleParams, params: AutopilotParams) -> None:
+        self.vehicle = vehicle
+        self.params = params
+        self.mode = HOLD
+        self.armed = False
+        self.landed_state = LandedState.ON_GROUND
+        self.failsafe_count = 0
+        self._arm_time_s = 0.0
+        self._has_flown = False
+        self._ground_since_s: float | None = 0.0
+        self._hold_pos_ned_m = np.zeros(3)
+        self._hold_yaw_rad = 0.0
+        self._takeoff_target_d_m = 0.0
+        self._ref_pos_ned_m = np.zeros(3)
+        self._setpoint_times_s: deque[float] = deque(maxlen=64)
+        self._att_sp: AttitudeSetpoint | None = None
+        self._pos_sp: PositionSetpoint | None = None
+        self._pos_integral = np.zeros(3)
+        self._rate_integral = np.zeros(3)
+        self._inertia = np.asarray(vehicle.inertia_diag_kg_m2)
+        self._mix_inv = np.linalg.inv(effectiveness_matrix(vehicle))
+        self._f_max_n = vehicle.k_f_n_s2 * vehicle.rotor_speed_max_rad_s**2
+        self._f_idle_n = vehicle.k_f_n_s2 * vehicle.rotor_speed_min_rad_s**2
+        self._last_state: FloatArray | None = None
+        self._last_thrust_norm = vehicle.hover_thrust_norm
+        self._target: tuple[FloatArray, float, FloatArray] | None = None  # rate, thrust, q
+        self._idle_speed_rad_s = 0.0
+
+    # ---- commands -------------------------------------------------------------------------
+
+    def arm(self, arm: bool, t_s: float, force: bool = False) -> Result:
+        if arm == self.armed:
+            return Result.ACCEPTED
+        landed = self.landed_state == LandedState.ON_GROUND
+        if arm:
+            if not landed:
+                return Result.DENIED
+            self.armed = True
+            self._arm_time_s = t_s
+            self._has_flown = False
+            self._reset_integrators()
+            return Result.ACCEPTED
+        if not landed and not force:
+            return Result.DENIED
+        self._disarm()
+        return Result.ACCEPTED
+
+    def set_mode(self, mode: Mode, t_s: float) -> Result:
+        if mode not in SETTABLE_MODES:
+            return Result.UNSUPPORTED
+        if mode == self.mode:
+            return Result.ACCEPTED
+        if mode == OFFBOARD:
+            if not self.offboard_stream_ok(t_s):
+                return Result.DENIED
+        elif mode == TAKEOFF:
+            return self.takeoff(None, t_s)
+        elif mode == LAND:
+            return self.land(t_s)
+        else:
+            self._capture_hold()
+        self.mode = mode
+        return Result.ACCEPTED
+
+    def takeoff(self, altitude_m: float | None, t_s: float) -> Result:
+        """Climb to ``altitude_m`` above home (default from config), then hold there."""
+        if not self.armed:
+            return Result.DENIED
+        alt = self.params.takeoff_altitude_m if altitude_m is None else altitude_m
+        if not math.isfinite(alt) or alt <= 0.0:
+            alt = self.params.takeoff_altitude_m
+        pos = self._current_pos()
+        self._takeoff_target_d_m = -alt
+        self._ref_pos_ned_m = pos.copy()
+        self._hold_yaw_rad = self._current_yaw()
+        self.mode = TAKEOFF
+        return Result.ACCEPTED
+
+    def land(self, t_s: float) -> Result:
+        if not self.armed:
+            return Result.DENIED
+        self._capture_hold()
+        self.mode = LAND
+        return Result.ACCEPTED
+
+    def on_attitude_setpoint(self, sp: AttitudeSetpoint, t_s: float) -> None:
+        self._att_sp = sp
+        self._pos_sp = None
+        if not sp.type_mask & IGNORE_THRUST:
+            self._last_thrust_norm = sp.thrust_norm
+        self._setpoint_times_s.append(t_s)
+
+    def on_position_setpoint(self, sp: PositionSetpoint, t_s: float) -> None:
+        self._pos_sp = sp
+        self._att_sp = None
+        self._setpoint_times_s.append(t_s)
+
+    def offboard_stream_ok(self, t_s: float) -> bool:
+        """PX4's entry condition: setpoints are streaming faster than ``offboard_min_rate_hz``."""
+        times = self._setpoint_times_s
+        if not times or t_s - times[-1] > self.params.offboard_loss_timeout_s:
+            return False
+        window_s = 1.0
+        recent = sum(1 for s in times if t_s - s <= window_s)
+        return recent > self.params.offboard_min_rate_hz * window_s
+
+    # ---- the periodic update --------------------------------------------------------------
+
+    def update_outer(self, x: FloatArray, t_s: float, dt_s: float) -> None:
+        """Supervision, position and attitude loops on the true state ``x`` (17,).
+
+        Runs at the tick rate; sets the body-rate and thrust target the inner loop tracks.
+        """
+        self._last_state = x
+        self._supervise(x, t_s)
+        q = x[QUAT]
+        if not self.armed:
+            self._idle_speed_rad_s = 0.0
+            self._target = None
+            return
+        if self.mode == OFFBOARD and self._att_sp is not None:
+            q_cmd, rate_cmd, thrust_norm = self._offboard_attitude(x, self._att_sp)
+        elif self._on_ground_idle(x):
+            self._idle_speed_rad_s = self.vehicle.rotor_speed_min_rad_s
+            self._target = None
+            return
+        else:
+            pos_ref, vel_ref, yaw_ref = self._position_reference(x, dt_s)
+            q_cmd, thrust_norm = self._position_control(x, pos_ref, vel_ref, yaw_ref, dt_s)
+            rate_cmd = self._attitude_control(q, q_cmd)
+        if on_ground(x):
+            self._reset_integrators()
+        self._target = (rate_cmd, thrust_norm, q_cmd)
+
+    def update_inner(self, x: FloatArray, dt_s: float) -> ActuatorCommand:
+        """The rate loop (physics rate): rotor speed commands for state ``x`` (17,)."""
+        if self._target is None:
+            return ActuatorCommand(
+                rotor_speed_rad_s=np.full(4, self._idle_speed_rad_s),
+                thrust_norm=0.0,
+                rate_cmd_frd_rad_s=np.zeros(3),
+                q_cmd_wxyz=x[QUAT].copy(),
+            )
+        rate_cmd, thrust_norm, q_cmd = self._target
+        return ActuatorCommand(
+            rotor_speed_rad_s=self._rate_control(x, rate_cmd, thrust_norm, dt_s),
+            thrust_norm=thrust_norm,
+            rate_cmd_frd_rad_s=rate_cmd,
+            q_cmd_wxyz=q_cmd,
+        )
+
+    def _supervise(self, x: FloatArray, t_s: float) -> None:
+        """Landed detection, auto-disarm, offboard loss failsafe, takeoff completion."""
+        grounded = on_ground(x)
+        if grounded:
+            if self._ground_since_s is None:
+                self._ground_since_s = t_s
+        else:
+            self._ground_since_s = None
+            self._has_flown = self.armed or self._has_flown
+        if self.mode == LAND:
+            self.landed_state = LandedState.ON_GROUND if grounded else LandedState.LANDING
+        elif self.mode == TAKEOFF:
+            self.landed_state = LandedState.TAKEOFF
+        else:
+            self.landed_state = LandedState.ON_GROUND if grounded else LandedState.IN_AIR
+        if not self.armed:
+            return
+        ground_s = 0.0 if self._ground_since_s is None else t_s - self._ground_since_s
+        if (
+            grounded
+            and not self._has_flown
+            and t_s - self._arm_time_s > self.params.disarm_preflight_s
+        ):
+            self._disarm()
+            return
+        if grounded and self._has_flown and ground_s > self.params.disarm_after_land_s:
+            self._disarm()
+            return
+        if self.mode == OFFBOARD and (
+            not self._setpoint_times_s
+            or t_s - self._setpoint_times_s[-1] > self.params.offboard_loss_timeout_s
+        ):
+            self.failsafe_count += 1
+            self._capture_hold()
+            self.mode = HOLD
+        if self.mode == TAKEOFF and abs(x[2] - self._takeoff_target_d_m) < 0.1:
+            self._hold_pos_ned_m = np.array(
+                [self._ref_pos_ned_m[0], self._ref_pos_ned_m[1], self._takeoff_target_d_m]
+            )
+            self.mode = HOLD
+
+    def _disarm(self) -> None:
+        self.armed = False
+        self._reset_integrators()
+        if self.mode in (TAKEOFF, LAND):
+            self.mode = HOLD
+
+    def _on_ground_idle(self, x: FloatArray) -> bool:
+        """Armed on the ground in a hold-type mode: PX4 spins at idle and waits."""
+        return on_ground(x) and self.mode in (HOLD, POSCTL, LAND)
+
+    def _capture_hold(self) -> None:
+        self._hold_pos_ned_m = self._current_pos()
+        self._hold_yaw_rad = self._current_yaw()
+        self._pos_integral[:] = 0.0
+
+    def _current_pos(self) -> FloatArray:
+        return np.zeros(3) if self._last_state is None else self._last_state[POS].copy()
+
+    def _current_yaw(self) -> float:
+        return 0.0 if self._last_state is None else quat_to_euler(self._last_state[QUAT])[2]
+
+    def _reset_integrators(self) -> None:
+        self._pos_integral[:] = 0.0
+        self._rate_integral[:] = 0.0
+
+    # ---- controllers ----------------------------------------------------------------------
+
+    def _position_reference(
+        self, x: FloatArray, dt_s: float
+    ) -> tuple[FloatArray, FloatArray, float]:
+        p = self.params
+        zero = np.zeros(3)
+        if self.mode == TAKEOFF:
+            # The reference climbs at climb speed; the vehicle follows it up to the target.
+            ref = self._ref_pos_ned_m
+            ref[2] = max(self._takeoff_target_d_m, ref[2] - p.climb_speed_m_s * dt_s)
+            climbing = ref[2] > self._takeoff_target_d_m
+            vel = np.array([0.0, 0.0, -p.climb_speed_m_s if climbing else 0.0])
+            return ref.copy(), vel, self._hold_yaw_rad
+        if self.mode == LAND:
+            ref = np.array([self._hold_pos_ned_m[0], self._hold_pos_ned_m[1], x[2]])
+            return ref, np.array([0.0, 0.0, p.land_speed_m_s]), self._hold_yaw_rad
+        if self.mode == OFFBOARD and self._pos_sp is not None:
+            sp = self._pos_sp
+            pos = x[POS].copy() if sp.pos_ned_m is None else np.asarray(sp.pos_ned_m)
+            vel = zero if sp.vel_ned_m_s is None else np.asarray(sp.vel_ned_m_s)
+            yaw = self._current_yaw() if sp.yaw_rad is None else sp.yaw_rad
+            return pos, vel, yaw
+        return self._hold_pos_ned_m.copy(), zero, self._hold_yaw_rad
+
+    def _position_control(
+        self, x: FloatArray, pos_ref: FloatArray, vel_ref: FloatArray, yaw_ref: float, dt_s: float
+    ) -> tuple[FloatArray, float]:
+        """PID on position -> acceleration -> (attitude quaternion, normalised thrust)."""
+        p = self.params
+        err = pos_ref - x[POS]
+        self._pos_integral = np.clip(self._pos_integral + err * dt_s, -2.0, 2.0)
+        acc = (
+            np.asarray(p.position_p_1_s2) * err
+            + np.asarray(p.velocity_d_1_s) * (vel_ref - x[VEL])
+            + np.asarray(p.position_i_1_s3) * self._pos_integral
+        )
+        # Specific force the rotors must produce (NED): f = a - g.
+        f = acc - np.array([0.0, 0.0, GRAVITY_M_S2])
+        f[2] = min(f[2], -0.2 * GRAVITY_M_S2)  # never command thrust pointing down
+        horiz = math.hypot(f[0], f[1])
+        max_horiz = -f[2] * math.tan(math.radians(p.tilt_max_deg))
+        if horiz > max_horiz:
+            f[:2] *= max_horiz / horiz
+        f_norm = float(np.linalg.norm(f))
+        q_cmd = attitude_from_thrust(f / f_norm, yaw_ref)
+        # Collective thrust: the part of f along the current body -z axis (as PX4 projects).
+        body_up = -quat_to_rotation(x[QUAT])[:, 2]
+        collective_n = self.vehicle.mass_kg * max(0.0, float(f @ body_up))
+        return q_cmd, collective_n / self.vehicle.max_total_thrust_n
+
+    def _attitude_control(self, q: FloatArray, q_cmd: FloatArray) -> FloatArray:
+        """Quaternion-error P controller -> body rate command (FRD), clamped."""
+        q_err = quat_multiply(quat_conjugate(q), q_cmd)
+        if q_err[0] < 0.0:
+            q_err = -q_err
+        rate = 2.0 * np.asarray(self.params.attitude_p_1_s) * q_err[1:]
+        lim = np.asarray(self.params.rate_max_rad_s)
+        return np.clip(rate, -lim, lim)
+
+    def _offboard_attitude(
+        self, x: FloatArray, sp: AttitudeSetpoint
+    ) -> tuple[FloatArray, FloatArray, float]:
+        q = x[QUAT]
+        if sp.type_mask & IGNORE_ATTITUDE:
+            ignore = (IGNORE_ROLL_RATE, IGNORE_PITCH_RATE, IGNORE_YAW_RATE)
+            rate = np.array(
+                [
+                    0.0 if sp.type_mask & bit else r
+                    for bit, r in zip(ignore, sp.rate_frd_rad_s, strict=True)
+                ]
+            )
+            q_cmd = q.copy()
+        else:
+            q_cmd = np.asarray(sp.q_wxyz)
+            rate = self._attitude_control(q, q_cmd)
+        return q_cmd, rate, self._last_thrust_norm
+
+    def _rate_control(
+        self, x: FloatArray, rate_cmd: FloatArray, thrust_norm: float, dt_s: float
+    ) -> FloatArray:
+        """Rate PI -> torques -> rotor forces (inverse effectiveness, desaturated) -> speeds."""
+        p = self.params
+        w = x[RATE]
+        err = rate_cmd - w
+        self._rate_integral = np.clip(self._rate_integral + err * dt_s, -0.5, 0.5)
+        ang_acc = np.asarray(p.rate_p_1_s) * err + np.asarray(p.rate_i_1_s2) * self._rate_integral
+        torque = self._inertia * ang_acc + cross3(w, self._inertia * w)
+        collective_n = float(np.clip(thrust_norm, 0.0, 1.0)) * self.vehicle.max_total_thrust_n
+        base = self._mix_inv @ np.array([collective_n, 0.0, 0.0, 0.0])
+        delta = self._mix_inv @ np.concatenate([[0.0], torque])
+        # Keep the collective, scale the torque part down until every rotor is within limits.
+        scale = 1.0
+        for b, d in zip(base, delta, strict=True):
+            if b + d > self._f_max_n and d > 0.0:
+                scale = min(scale, max(0.0, (self._f_max_n - b) / d))
+            elif b + d < self._f_idle_n and d < 0.0:
+                scale = min(scale, max(0.0, (self._f_idle_n - b) / d))
+        forces = np.clip(base + scale * delta, self._f_idle_n, self._f_max_n)
+        speeds: FloatArray = np.sqrt(forces / self.vehicle.k_f_n_s2)
+        return speeds

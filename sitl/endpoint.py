@@ -1,0 +1,431 @@
+"""MAVLink 2 over UDP for the SITL: PX4 SITL conventions, sans-IO codec on asyncio.
+
+pymavlink's generated ``MAVLink`` class is used as a pure codec: datagrams are fed to
+``parse_buffer``, outgoing messages are packed into bytes and sent with ``sendto``. The
+endpoint owns no clock: telemetry is emitted when the runner calls :meth:`emit` after each
+tick, stamped with vehicle time. Nothing a peer sends can raise out of ``datagram_received``:
+malformed, unknown, mis-targeted or badly signed traffic is counted and dropped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import Any, cast
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.frames import quat_to_euler, quat_to_rotation
+from sitl.autopilot import (
+    FORCE_DISARM_MAGIC,
+    IGNORE_ATTITUDE,
+    IGNORE_PITCH_RATE,
+    IGNORE_ROLL_RATE,
+    IGNORE_THRUST,
+    IGNORE_YAW_RATE,
+    AttitudeSetpoint,
+    Mode,
+    PositionSetpoint,
+    Result,
+)
+from sitl.simulation import Simulation, StateEstimate
+
+Address = tuple[str, int]
+
+# Seconds between 1970-01-01 and the MAVLink signing epoch 2015-01-01.
+_SIGNING_EPOCH_S = 1420070400
+
+# Telemetry streams: config field -> MAVLink message id.
+STREAMS: dict[str, int] = {
+    "heartbeat_hz": mavlink.MAVLINK_MSG_ID_HEARTBEAT,
+    "sys_status_hz": mavlink.MAVLINK_MSG_ID_SYS_STATUS,
+    "extended_sys_state_hz": mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+    "attitude_hz": mavlink.MAVLINK_MSG_ID_ATTITUDE,
+    "attitude_quaternion_hz": mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
+    "local_position_ned_hz": mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+    "odometry_hz": mavlink.MAVLINK_MSG_ID_ODOMETRY,
+    "attitude_target_hz": mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET,
+}
+
+_CAPABILITIES = (
+    mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+)
+
+
+@dataclass
+class Counters:
+    """What the endpoint and the runner dropped or noticed; printed on exit."""
+
+    received: int = 0
+    malformed: int = 0
+    unknown: int = 0
+    wrong_target: int = 0
+    bad_signature: int = 0
+    unexpected_sysid: int = 0
+    nan_setpoints: int = 0
+    commands: int = 0
+    setpoints: int = 0
+    send_errors: int = 0
+    lockstep_timeouts: int = 0
+    offboard_failsafes: int = 0
+
+    def summary(self) -> str:
+        return " ".join(f"{f.name}={getattr(self, f.name)}" for f in fields(self))
+
+
+class _Capture:
+    """File-like sink for ``MAVLink.send``: keeps the last packed message."""
+
+    def __init__(self) -> None:
+        self.data = b""
+
+    def write(self, buf: bytes) -> None:
+        self.data = bytes(buf)
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+class SitlEndpoint(asyncio.DatagramProtocol):
+    """The vehicle's MAVLink link: commands in, telemetry and acknowledgements out."""
+
+    def __init__(
+        self,
+        sim: Simulation,
+        sysid: int,
+        telemetry_dests: list[Address],
+        counters: Counters,
+        signing_key: bytes | None = None,
+        on_attitude_setpoint: Callable[[int], None] | None = None,
+    ) -> None:
+        self.sim = sim
+        self.sysid = sysid
+        self.dests = list(telemetry_dests)
+        self.counters = counters
+        self.on_attitude_setpoint = on_attitude_setpoint
+        self.transport: asyncio.DatagramTransport | None = None
+        self._sink = _Capture()
+        self.mav = mavlink.MAVLink(self._sink, srcSystem=sysid, srcComponent=1)
+        self.mav.robust_parsing = True
+        if signing_key is not None:
+            self.mav.signing.secret_key = signing_key
+            self.mav.signing.sign_outgoing = True
+            self.mav.signing.timestamp = int((time.time() - _SIGNING_EPOCH_S) * 1e5)
+            self.mav.signing.allow_unsigned_callback = lambda _mav, _msg_id: False
+        self._allowed_sysids = frozenset(sim.config.sitl.allowed_source_sysids)
+        rates = sim.config.sitl.telemetry
+        self._default_interval_us = {
+            STREAMS[name]: _interval_us(getattr(rates, name)) for name in STREAMS
+        }
+        self._interval_us = dict(self._default_interval_us)
+        self._next_due_us = dict.fromkeys(self._interval_us, 0)
+        self._estimate: StateEstimate | None = None
+        self._builders: dict[int, Callable[[], Any]] = {
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._sys_status,
+            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._extended_sys_state,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self._attitude_quaternion,
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position_ned,
+            mavlink.MAVLINK_MSG_ID_ODOMETRY: self._odometry,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: self._attitude_target,
+            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
+        }
+
+    # ---- asyncio protocol -----------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = cast(asyncio.DatagramTransport, transport)
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable from a telemetry port nobody listens on: expected, harmless.
+        self.counters.send_errors += 1
+
+    def datagram_received(self, data: bytes, addr: Address) -> None:
+        self.counters.received += 1
+        try:
+            msgs = self.mav.parse_buffer(data) or []
+        except Exception:
+            msgs = []
+            self.counters.malformed += 1
+        if self.mav.buf_len() > 0:
+            # A datagram carries whole messages; a leftover fragment is garbage.
+            self.counters.malformed += 1
+            self._reset_parser()
+        for msg in msgs:
+            try:
+                self._dispatch(msg, addr)
+            except Exception:
+                self.counters.malformed += 1
+
+    def _reset_parser(self) -> None:
+        self.mav.buf = bytearray()
+        self.mav.buf_index = 0
+        self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+        self.mav.have_prefix_error = False
+
+    # ---- outgoing ---------------------------------------------------------------------------
+
+    def send(self, msg: Any, extra: Address | None = None) -> None:
+        """Pack ``msg`` once and send it to every telemetry destination (and ``extra``)."""
+        if self.transport is None:
+            return
+        self.mav.send(msg)
+        data = self._sink.data
+        for dest in self.dests:
+            self.transport.sendto(data, dest)
+        if extra is not None and extra not in self.dests:
+            self.transport.sendto(data, extra)
+
+    def emit(self) -> None:
+        """Send every stream due at the current vehicle time (call once per tick)."""
+        self._estimate = self.sim.estimate()
+        now_us = self.sim.time_us
+        for msg_id, interval in self._interval_us.items():
+            if interval <= 0 or now_us < self._next_due_us[msg_id]:
+                continue
+            due = self._next_due_us[msg_id] + interval
+            self._next_due_us[msg_id] = due if due > now_us else now_us + interval
+            self.send(self._builders[msg_id]())
+
+    # ---- incoming ---------------------------------------------------------------------------
+
+    def _dispatch(self, msg: Any, addr: Address) -> None:
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            if "signature" in str(getattr(msg, "reason", "")).lower():
+                self.counters.bad_signature += 1
+            else:
+                self.counters.malformed += 1
+            return
+        if self._allowed_sysids and msg.get_srcSystem() not in self._allowed_sysids:
+            self.counters.unexpected_sysid += 1
+            return
+        target = getattr(msg, "target_system", None)
+        if target is not None and target not in (0, self.sysid):
+            self.counters.wrong_target += 1
+            return
+        handler = {
+            "COMMAND_LONG": self._on_command,
+            "COMMAND_INT": self._on_command,
+            "SET_MODE": self._on_set_mode,
+            "SET_ATTITUDE_TARGET": self._on_set_attitude_target,
+            "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target,
+            "TIMESYNC": self._on_timesync,
+            "HEARTBEAT": None,
+        }.get(mtype, self._on_unknown)
+        if handler is not None:
+            handler(msg, addr)
+
+    def _on_unknown(self, msg: Any, addr: Address) -> None:
+        self.counters.unknown += 1
+
+    def _on_command(self, msg: Any, addr: Address) -> None:
+        self.counters.commands += 1
+        if msg.get_type() == "COMMAND_LONG":
+            params = [
+                msg.param1,
+                msg.param2,
+                msg.param3,
+                msg.param4,
+                msg.param5,
+                msg.param6,
+                msg.param7,
+            ]
+        else:  # COMMAND_INT: x, y are scaled integers; only param1-4 and z are used here
+            params = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y, msg.z]
+        result, follow_up = self._command_result(msg.command, params)
+        self.send(
+            self.mav.command_ack_encode(
+                msg.command, int(result), 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+            ),
+            extra=addr,
+        )
+        if follow_up is not None:
+            self.send(follow_up, extra=addr)
+
+    def _command_result(self, command: int, p: list[float]) -> tuple[Result, Any]:
+        ap = self.sim.autopilot
+        t = self.sim.time_s
+        if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            return ap.arm(p[0] > 0.5, t, force=round(p[1]) == FORCE_DISARM_MAGIC), None
+        if command == mavlink.MAV_CMD_DO_SET_MODE:
+            if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or not _finite(p[1], p[2]):
+                return Result.UNSUPPORTED, None
+            return ap.set_mode(Mode(int(p[1]), int(p[2])), t), None
+        if command == mavlink.MAV_CMD_NAV_TAKEOFF:
+            return ap.takeoff(p[6] if math.isfinite(p[6]) else None, t), None
+        if command == mavlink.MAV_CMD_NAV_LAND:
+            return ap.land(t), None
+        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(int(p[0]), p[1]), None
+        if command == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            builder = self._builders.get(int(p[0])) if math.isfinite(p[0]) else None
+            if builder is None:
+                return Result.DENIED, None
+            return Result.ACCEPTED, builder()
+        if command == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            return Result.ACCEPTED, self._autopilot_version()
+        return Result.UNSUPPORTED, None
+
+    def _set_interval(self, msg_id: int, interval_us: float) -> Result:
+        if msg_id not in self._interval_us or not math.isfinite(interval_us):
+            return Result.DENIED
+        if interval_us < 0:
+            self._interval_us[msg_id] = 0
+        elif interval_us == 0:
+            self._interval_us[msg_id] = self._default_interval_us[msg_id]
+        else:
+            self._interval_us[msg_id] = int(interval_us)
+        self._next_due_us[msg_id] = self.sim.time_us
+        return Result.ACCEPTED
+
+    def _on_set_mode(self, msg: Any, addr: Address) -> None:
+        self.counters.commands += 1
+        if msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            main = (msg.custom_mode >> 16) & 0xFF
+            sub = (msg.custom_mode >> 24) & 0xFF
+            self.sim.autopilot.set_mode(Mode(main, sub), self.sim.time_s)
+
+    def _on_set_attitude_target(self, msg: Any, addr: Address) -> None:
+        self.counters.setpoints += 1
+        mask = msg.type_mask
+        used = [] if mask & IGNORE_THRUST else [msg.thrust]
+        if not mask & IGNORE_ATTITUDE:
+            used += list(msg.q)
+        rates = (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate)
+        for bit, r in zip(
+            (IGNORE_ROLL_RATE, IGNORE_PITCH_RATE, IGNORE_YAW_RATE), rates, strict=True
+        ):
+            if not mask & bit:
+                used.append(r)
+        q = np.asarray(msg.q, dtype=np.float64)
+        use_q = not mask & IGNORE_ATTITUDE
+        if not _finite(*used) or (use_q and float(np.linalg.norm(q)) < 0.5):
+            self.counters.nan_setpoints += 1
+        else:
+            qw, qx, qy, qz = (q / np.linalg.norm(q)).tolist() if use_q else (1.0, 0.0, 0.0, 0.0)
+            wx, wy, wz = (float(r) if math.isfinite(r) else 0.0 for r in rates)
+            thrust = float(msg.thrust) if math.isfinite(msg.thrust) else 0.0
+            sp = AttitudeSetpoint(
+                type_mask=mask,
+                q_wxyz=(qw, qx, qy, qz),
+                rate_frd_rad_s=(wx, wy, wz),
+                thrust_norm=min(1.0, max(0.0, thrust)),
+            )
+            self.sim.autopilot.on_attitude_setpoint(sp, self.sim.time_s)
+        if self.on_attitude_setpoint is not None:
+            self.on_attitude_setpoint(msg.time_boot_ms)
+
+    def _on_set_position_target(self, msg: Any, addr: Address) -> None:
+        self.counters.setpoints += 1
+        if msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED:
+            self.counters.unknown += 1
+            return
+        mask = msg.type_mask
+        pos = None if mask & 0b111 else (msg.x, msg.y, msg.z)
+        vel = None if mask & 0b111000 else (msg.vx, msg.vy, msg.vz)
+        yaw = None if mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE else msg.yaw
+        used = [*(pos or ()), *(vel or ()), *([] if yaw is None else [yaw])]
+        if not used or not _finite(*used):
+            self.counters.nan_setpoints += 1
+            return
+        self.sim.autopilot.on_position_setpoint(PositionSetpoint(pos, vel, yaw), self.sim.time_s)
+
+    def _on_timesync(self, msg: Any, addr: Address) -> None:
+        if msg.tc1 == 0:
+            self.send(self.mav.timesync_encode(self.sim.time_us * 1000, msg.ts1), extra=addr)
+
+    # ---- message builders (vehicle time, published = noisy estimate) -----------------------
+
+    def _est(self) -> StateEstimate:
+        if self._estimate is None:
+            self._estimate = self.sim.estimate()
+        return self._estimate
+
+    def _heartbeat(self) -> Any:
+        ap = self.sim.autopilot
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if ap.armed:
+            base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        state = mavlink.MAV_STATE_ACTIVE if ap.armed else mavlink.MAV_STATE_STANDBY
+        return self.mav.heartbeat_encode(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, ap.mode.custom_mode, state
+        )
+
+    def _sys_status(self) -> Any:
+        sensors = (
+            mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
+            | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+            | mavlink.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
+            | mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+            | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
+            | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
+        )
+        return self.mav.sys_status_encode(
+            sensors, sensors, sensors, 0, 16000, -1, 100, 0, 0, 0, 0, 0, 0
+        )
+
+    def _extended_sys_state(self) -> Any:
+        return self.mav.extended_sys_state_encode(
+            mavlink.MAV_VTOL_STATE_UNDEFINED, int(self.sim.autopilot.landed_state)
+        )
+
+    def _attitude(self) -> Any:
+        e = self._est()
+        roll, pitch, yaw = quat_to_euler(e.q_wxyz)
+        return self.mav.attitude_encode(self.sim.time_ms, roll, pitch, yaw, *e.rate_frd_rad_s)
+
+    def _attitude_quaternion(self) -> Any:
+        e = self._est()
+        return self.mav.attitude_quaternion_encode(
+            self.sim.time_ms, *e.q_wxyz, *e.rate_frd_rad_s, [0.0, 0.0, 0.0, 0.0]
+        )
+
+    def _local_position_ned(self) -> Any:
+        e = self._est()
+        return self.mav.local_position_ned_encode(self.sim.time_ms, *e.pos_ned_m, *e.vel_ned_m_s)
+
+    def _odometry(self) -> Any:
+        e = self._est()
+        # PX4 sends ODOMETRY velocity in the child frame (body FRD).
+        vel_frd = quat_to_rotation(e.q_wxyz).T @ e.vel_ned_m_s
+        unknown_cov = [math.nan] + [0.0] * 20
+        return self.mav.odometry_encode(
+            self.sim.time_us,
+            mavlink.MAV_FRAME_LOCAL_NED,
+            mavlink.MAV_FRAME_BODY_FRD,
+            *e.pos_ned_m,
+            list(e.q_wxyz),
+            *vel_frd,
+            *e.rate_frd_rad_s,
+            unknown_cov,
+            unknown_cov,
+            0,
+            mavlink.MAV_ESTIMATOR_TYPE_NAIVE,
+            100,
+        )
+
+    def _attitude_target(self) -> Any:
+        cmd = self.sim.last_command
+        return self.mav.attitude_target_encode(
+            self.sim.time_ms, 0, list(cmd.q_cmd_wxyz), *cmd.rate_cmd_frd_rad_s, cmd.thrust_norm
+        )
+
+    def _autopilot_version(self) -> Any:
+        version = (1 << 24) | (16 << 16)  # 1.16.0, like the PX4 the design notes describe
+        return self.mav.autopilot_version_encode(
+            _CAPABILITIES, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.sysid
+        )
+
+
+def _interval_us(rate_hz: float) -> int:
+    return 0 if rate_hz <= 0.0 else round(1e6 / rate_hz)

@@ -1,0 +1,154 @@
+"""``epc-sitl``: one simulated quadrotor speaking MAVLink 2 over UDP like a PX4 SITL instance.
+
+Exit codes: 0 on success (also on SIGINT/SIGTERM), 2 on bad usage or an invalid config,
+1 on a runtime failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+from epc_offboard.configio import ConfigError
+from sitl.endpoint import Counters, SitlEndpoint
+from sitl.groundtruth import GroundTruthWriter
+from sitl.lockstep import Clock, LockstepGate
+from sitl.params import DEFAULT_VEHICLE_FILE, load_sim_config
+from sitl.simulation import Simulation
+
+HOST = "127.0.0.1"
+
+
+class UsageError(ValueError):
+    """Bad command line: exit code 2."""
+
+
+def _wind(text: str) -> tuple[float, float]:
+    try:
+        speed, direction = (float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--wind wants SPEED_M_S,DIR_DEG, got {text!r}") from exc
+    return speed, direction
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="epc-sitl",
+        description="Simulated quadrotor speaking MAVLink 2 over UDP like a PX4 SITL instance.",
+    )
+    ap.add_argument("--instance", type=int, default=0, help="I: system id I+1, ports +I")
+    ap.add_argument("--lockstep", action="store_true", help="advance only when answered")
+    ap.add_argument("--wind", type=_wind, help="SPEED_M_S,DIR_DEG (towards, CCW from east)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--config", type=Path, default=DEFAULT_VEHICLE_FILE, help="vehicle TOML")
+    ap.add_argument("--groundtruth", type=Path, help="write the true state to this CSV")
+    ap.add_argument("--signing-key", type=Path, help="file holding a 32-byte MAVLink key")
+    ap.add_argument("--speedup", type=float, default=1.0, help="pace = wall clock x this")
+    ap.add_argument("--listen-port", type=int, help="default 14580+I; 0 = any free port")
+    ap.add_argument("--offboard-port", type=int, help="telemetry to 127.0.0.1:P, default 14540+I")
+    ap.add_argument("--gcs-port", type=int, default=14550, help="ground station port, 0 = off")
+    ap.add_argument("--lockstep-period-ms", type=float, help="overrides sitl.lockstep_period_s")
+    ap.add_argument("--lockstep-timeout-ms", type=float, help="overrides sitl.lockstep_timeout_s")
+    ap.add_argument("--duration", type=float, help="exit after this many vehicle seconds")
+    return ap
+
+
+def _overrides(args: argparse.Namespace) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    sitl: dict[str, Any] = {}
+    if args.wind is not None:
+        out["environment"] = {"wind_speed_m_s": args.wind[0], "wind_dir_deg": args.wind[1]}
+    if args.lockstep_period_ms is not None:
+        sitl["lockstep_period_s"] = args.lockstep_period_ms / 1000.0
+    if args.lockstep_timeout_ms is not None:
+        sitl["lockstep_timeout_s"] = args.lockstep_timeout_ms / 1000.0
+    if sitl:
+        out["sitl"] = sitl
+    return out
+
+
+def _signing_key(path: Path | None) -> bytes | None:
+    if path is None:
+        return None
+    try:
+        key = path.read_bytes()
+    except OSError as exc:
+        raise UsageError(f"--signing-key: cannot read {path}: {exc}") from exc
+    if len(key) != 32:
+        raise UsageError(f"--signing-key: {path} must hold exactly 32 bytes, has {len(key)}")
+    return key
+
+
+async def run(args: argparse.Namespace) -> Counters:
+    if args.instance < 0 or args.speedup <= 0.0:
+        raise UsageError("--instance must be >= 0 and --speedup > 0")
+    config = load_sim_config(args.config, _overrides(args))
+    key = _signing_key(args.signing_key)
+    sysid = args.instance + 1
+    listen_port = 14580 + args.instance if args.listen_port is None else args.listen_port
+    offboard_port = 14540 + args.instance if args.offboard_port is None else args.offboard_port
+    dests = [(HOST, p) for p in (offboard_port, args.gcs_port) if p]
+
+    sim = Simulation(config, seed=args.seed)
+    counters = Counters()
+    gate = LockstepGate(
+        args.lockstep, config.sitl.lockstep_timeout_s, config.sitl.lockstep_max_timeouts
+    )
+    loop = asyncio.get_running_loop()
+    transport, endpoint = await loop.create_datagram_endpoint(
+        lambda: SitlEndpoint(sim, sysid, dests, counters, key, gate.on_setpoint),
+        local_addr=(HOST, listen_port),
+    )
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    writer = None
+    if args.groundtruth is not None:
+        writer = GroundTruthWriter(args.groundtruth, config.sitl.groundtruth_flush_s)
+
+    def tick() -> None:
+        sim.advance_tick()
+        endpoint.emit()
+        if writer is not None:
+            writer.write(sim)
+
+    port = transport.get_extra_info("sockname")[1]
+    print(
+        f"epc-sitl: instance {args.instance}, sysid {sysid}, listening udp {HOST}:{port}, "
+        f"telemetry -> {', '.join(f'{h}:{p}' for h, p in dests) or 'none'}",
+        flush=True,
+    )
+    clock = Clock(gate, config.sitl.lockstep_period_s, args.speedup, lambda: sim.time_ms)
+    try:
+        await clock.run(tick, stop, args.duration)
+    finally:
+        transport.close()
+        if writer is not None:
+            writer.close()
+    counters.lockstep_timeouts = gate.timeouts
+    counters.offboard_failsafes = sim.autopilot.failsafe_count
+    return counters
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        counters = asyncio.run(run(args))
+    except (ConfigError, UsageError) as exc:
+        print(f"epc-sitl: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"epc-sitl: {exc}", file=sys.stderr)
+        return 1
+    print(f"epc-sitl: counters {counters.summary()}", file=sys.stderr, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    with contextlib.suppress(KeyboardInterrupt):
+        sys.exit(main())

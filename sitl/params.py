@@ -1,0 +1,243 @@
+"""Configuration of the bundled SITL: vehicle, environment, autopilot and link.
+
+One TOML file (``config/vehicles/*.toml``) holds four tables, ``[vehicle]``, ``[environment]``,
+``[autopilot]`` and ``[sitl]``; it is loaded strictly by :func:`epc_offboard.configio.load_config`
+so an unknown or misspelt key is an error naming the key and the file. Every key carries its
+unit. Range checks live in ``__post_init__``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from epc_offboard.configio import load_config
+from epc_offboard.frames import GRAVITY_M_S2
+
+# The packaged default vehicle: config/ sits beside sitl/ in the distribution's source tree.
+DEFAULT_VEHICLE_FILE = (
+    Path(__file__).resolve().parent.parent / "config" / "vehicles" / "quad_x_1500g.toml"
+)
+
+
+def _positive(**values: float) -> None:
+    for name, value in values.items():
+        if not value > 0.0:
+            raise ValueError(f"{name} must be > 0, got {value}")
+
+
+def _non_negative(**values: float) -> None:
+    for name, value in values.items():
+        if value < 0.0:
+            raise ValueError(f"{name} must be >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """Rigid body, rotors and airframe drag (thesis 3.2, plus motor lag, limits and drag).
+
+    Rotor i sits at ``arm_length_m`` from the centre, at ``rotor_angles_deg[i]`` measured in the
+    body x-y plane from forward (+x) towards right (+y): FRD, so clockwise seen from above.
+    ``rotor_yaw_moment_sign[i]`` is the sign of rotor i's reaction moment k_M w^2 about body +z
+    (down): +1 for a rotor spinning counter-clockwise seen from above.
+    """
+
+    mass_kg: float
+    arm_length_m: float
+    inertia_diag_kg_m2: tuple[float, float, float]
+    k_f_n_s2: float  # rotor thrust F = k_F w^2   [N / (rad/s)^2]
+    k_m_n_m_s2: float  # rotor moment M = k_M w^2  [N m / (rad/s)^2]
+    motor_time_constant_s: float
+    rotor_speed_min_rad_s: float  # armed idle
+    rotor_speed_max_rad_s: float
+    drag_coeff_body_n_s_m: tuple[float, float, float]  # linear drag per body axis
+    rotor_angles_deg: tuple[float, float, float, float] = (45.0, -135.0, -45.0, 135.0)
+    rotor_yaw_moment_sign: tuple[float, float, float, float] = (1.0, 1.0, -1.0, -1.0)
+
+    def __post_init__(self) -> None:
+        _positive(
+            mass_kg=self.mass_kg,
+            arm_length_m=self.arm_length_m,
+            k_f_n_s2=self.k_f_n_s2,
+            k_m_n_m_s2=self.k_m_n_m_s2,
+            motor_time_constant_s=self.motor_time_constant_s,
+            rotor_speed_max_rad_s=self.rotor_speed_max_rad_s,
+        )
+        for i, v in enumerate(self.inertia_diag_kg_m2):
+            _positive(**{f"inertia_diag_kg_m2[{i}]": v})
+        for i, v in enumerate(self.drag_coeff_body_n_s_m):
+            _non_negative(**{f"drag_coeff_body_n_s_m[{i}]": v})
+        if not 0.0 <= self.rotor_speed_min_rad_s < self.rotor_speed_max_rad_s:
+            raise ValueError("need 0 <= rotor_speed_min_rad_s < rotor_speed_max_rad_s")
+        if any(abs(s) != 1.0 for s in self.rotor_yaw_moment_sign):
+            raise ValueError("rotor_yaw_moment_sign entries must be +1 or -1")
+
+    @property
+    def max_total_thrust_n(self) -> float:
+        """Collective thrust at full rotor speed; SET_ATTITUDE_TARGET thrust 1.0 maps to it."""
+        return 4.0 * self.k_f_n_s2 * self.rotor_speed_max_rad_s**2
+
+    @property
+    def hover_thrust_norm(self) -> float:
+        return self.mass_kg * GRAVITY_M_S2 / self.max_total_thrust_n
+
+
+@dataclass(frozen=True)
+class SurfaceParams:
+    """Near-surface disturbance: a plane (wall, gantry) that pulls the vehicle towards it.
+
+    The force points along ``-normal_ned`` (towards the surface) with magnitude
+    ``peak_force_n * exp(-distance / decay_length_m)``, plus seeded fluctuation of relative
+    standard deviation ``fluctuation_rel``; zero beyond ``range_m``.
+    """
+
+    enabled: bool = False
+    point_ned_m: tuple[float, float, float] = (5.0, 0.0, 0.0)
+    normal_ned: tuple[float, float, float] = (-1.0, 0.0, 0.0)  # unit, pointing away from it
+    peak_force_n: float = 2.0
+    decay_length_m: float = 0.5
+    range_m: float = 3.0
+    fluctuation_rel: float = 0.3
+
+    def __post_init__(self) -> None:
+        _positive(decay_length_m=self.decay_length_m, range_m=self.range_m)
+        _non_negative(peak_force_n=self.peak_force_n, fluctuation_rel=self.fluctuation_rel)
+        if abs(math.hypot(*self.normal_ned) - 1.0) > 1e-6:
+            raise ValueError(f"normal_ned must be a unit vector, got {self.normal_ned}")
+
+
+@dataclass(frozen=True)
+class EnvironmentParams:
+    """Wind (CONTRACTS convention) with first-order Gauss-Markov gusts, and a surface."""
+
+    wind_speed_m_s: float = 0.0
+    wind_dir_deg: float = 0.0  # towards, counter-clockwise from east
+    gust_std_m_s: float = 0.0  # per axis, horizontal; vertical gets half
+    gust_time_constant_s: float = 2.0
+    surface: SurfaceParams = field(default_factory=SurfaceParams)
+
+    def __post_init__(self) -> None:
+        _non_negative(wind_speed_m_s=self.wind_speed_m_s, gust_std_m_s=self.gust_std_m_s)
+        _positive(gust_time_constant_s=self.gust_time_constant_s)
+
+
+@dataclass(frozen=True)
+class AutopilotParams:
+    """The small PX4-like autopilot: gains (as accelerations per error), limits, timeouts."""
+
+    rate_p_1_s: tuple[float, float, float] = (25.0, 25.0, 10.0)
+    rate_i_1_s2: tuple[float, float, float] = (10.0, 10.0, 5.0)
+    attitude_p_1_s: tuple[float, float, float] = (7.0, 7.0, 3.0)
+    rate_max_rad_s: tuple[float, float, float] = (4.0, 4.0, 2.0)
+    position_p_1_s2: tuple[float, float, float] = (1.5, 1.5, 3.0)
+    velocity_d_1_s: tuple[float, float, float] = (2.2, 2.2, 3.0)
+    position_i_1_s3: tuple[float, float, float] = (0.3, 0.3, 0.5)
+    tilt_max_deg: float = 35.0
+    takeoff_altitude_m: float = 2.5
+    climb_speed_m_s: float = 1.5
+    land_speed_m_s: float = 0.7
+    offboard_loss_timeout_s: float = 0.5
+    offboard_min_rate_hz: float = 2.0  # entry needs a setpoint stream above this rate
+    disarm_preflight_s: float = 10.0  # armed on the ground without taking off
+    disarm_after_land_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        _positive(
+            tilt_max_deg=self.tilt_max_deg,
+            takeoff_altitude_m=self.takeoff_altitude_m,
+            climb_speed_m_s=self.climb_speed_m_s,
+            land_speed_m_s=self.land_speed_m_s,
+            offboard_loss_timeout_s=self.offboard_loss_timeout_s,
+            offboard_min_rate_hz=self.offboard_min_rate_hz,
+            disarm_preflight_s=self.disarm_preflight_s,
+            disarm_after_land_s=self.disarm_after_land_s,
+        )
+
+
+@dataclass(frozen=True)
+class NoiseParams:
+    """Standard deviations of the seeded Gaussian noise on the published state estimate."""
+
+    position_std_m: float = 0.005
+    velocity_std_m_s: float = 0.01
+    attitude_std_rad: float = 0.002
+    rate_std_rad_s: float = 0.005
+
+    def __post_init__(self) -> None:
+        _non_negative(
+            position_std_m=self.position_std_m,
+            velocity_std_m_s=self.velocity_std_m_s,
+            attitude_std_rad=self.attitude_std_rad,
+            rate_std_rad_s=self.rate_std_rad_s,
+        )
+
+
+@dataclass(frozen=True)
+class TelemetryRates:
+    """Default stream rates (Hz, 0 = off); SET_MESSAGE_INTERVAL changes them at run time."""
+
+    heartbeat_hz: float = 1.0
+    sys_status_hz: float = 5.0
+    extended_sys_state_hz: float = 5.0
+    attitude_hz: float = 200.0
+    attitude_quaternion_hz: float = 200.0
+    local_position_ned_hz: float = 100.0
+    odometry_hz: float = 100.0
+    attitude_target_hz: float = 50.0
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            _non_negative(**{name: value})
+
+
+@dataclass(frozen=True)
+class SitlParams:
+    """Simulation clock, lockstep protocol and link behaviour."""
+
+    physics_rate_hz: float = 1000.0
+    lockstep_period_s: float = 0.005
+    lockstep_timeout_s: float = 0.25
+    lockstep_max_timeouts: int = 20  # consecutive timeouts before falling back to real time
+    groundtruth_flush_s: float = 1.0  # wall clock
+    allowed_source_sysids: tuple[int, ...] = ()  # empty: any
+    telemetry: TelemetryRates = field(default_factory=TelemetryRates)
+    noise: NoiseParams = field(default_factory=NoiseParams)
+
+    def __post_init__(self) -> None:
+        _positive(
+            physics_rate_hz=self.physics_rate_hz,
+            lockstep_period_s=self.lockstep_period_s,
+            lockstep_timeout_s=self.lockstep_timeout_s,
+            groundtruth_flush_s=self.groundtruth_flush_s,
+        )
+        if self.physics_rate_hz < 500.0:
+            raise ValueError(f"physics_rate_hz must be >= 500, got {self.physics_rate_hz}")
+        if self.lockstep_max_timeouts < 1:
+            raise ValueError("lockstep_max_timeouts must be >= 1")
+        substeps = self.lockstep_period_s * self.physics_rate_hz
+        if abs(substeps - round(substeps)) > 1e-9 or round(substeps) < 1:
+            raise ValueError(
+                "lockstep_period_s must be a whole number of physics steps "
+                f"(period {self.lockstep_period_s} s at {self.physics_rate_hz} Hz)"
+            )
+
+    @property
+    def physics_steps_per_tick(self) -> int:
+        return round(self.lockstep_period_s * self.physics_rate_hz)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    vehicle: VehicleParams
+    environment: EnvironmentParams = field(default_factory=EnvironmentParams)
+    autopilot: AutopilotParams = field(default_factory=AutopilotParams)
+    sitl: SitlParams = field(default_factory=SitlParams)
+
+
+def load_sim_config(
+    path: str | Path | None = None, overrides: dict[str, Any] | None = None
+) -> SimConfig:
+    """Load a vehicle file (default: the packaged 1.5 kg x-quad) with ``overrides`` on top."""
+    return load_config(SimConfig, path or DEFAULT_VEHICLE_FILE, overrides)

@@ -1,0 +1,163 @@
+"""The autopilot's state machine and controllers, without any networking."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from epc_offboard.frames import euler_to_quat, quat_to_euler, quat_to_rotation
+from sitl.autopilot import (
+    HOLD,
+    IGNORE_ATTITUDE,
+    IGNORE_THRUST,
+    IGNORE_YAW_RATE,
+    LAND,
+    OFFBOARD,
+    TAKEOFF,
+    AttitudeSetpoint,
+    Autopilot,
+    LandedState,
+    Mode,
+    Result,
+    attitude_from_thrust,
+    quat_from_rotation,
+)
+from sitl.params import load_sim_config
+from sitl.physics import initial_state
+from sitl.simulation import Simulation
+
+CONFIG = load_sim_config()
+LEVEL = (1.0, 0.0, 0.0, 0.0)
+RATES_ONLY = IGNORE_ATTITUDE  # body rates + thrust
+
+
+def sp(thrust=0.5, q=LEVEL, rates=(0.0, 0.0, 0.0), mask=0b111):
+    return AttitudeSetpoint(type_mask=mask, q_wxyz=q, rate_frd_rad_s=rates, thrust_norm=thrust)
+
+
+def autopilot() -> Autopilot:
+    ap = Autopilot(CONFIG.vehicle, CONFIG.autopilot)
+    ap.update_outer(initial_state(), 0.0, 0.005)
+    return ap
+
+
+def stream(ap: Autopilot, t0: float, t1: float, hz: float = 50.0, **kw) -> None:
+    for k in range(round((t1 - t0) * hz)):
+        ap.on_attitude_setpoint(sp(**kw), t0 + k / hz)
+
+
+def test_custom_mode_encoding_is_px4s():
+    assert HOLD.custom_mode == 0x03040000
+    assert OFFBOARD.custom_mode == 6 << 16
+    assert TAKEOFF.custom_mode == (4 << 16) | (2 << 24)
+    assert LAND.custom_mode == (4 << 16) | (6 << 24)
+
+
+def test_arming_and_mode_rules_on_the_ground():
+    ap = autopilot()
+    assert ap.mode == HOLD
+    assert not ap.armed
+    assert ap.takeoff(None, 0.0) == Result.DENIED  # must arm first
+    assert ap.set_mode(Mode(5), 0.0) == Result.UNSUPPORTED  # ACRO
+    assert ap.set_mode(OFFBOARD, 0.0) == Result.DENIED  # no setpoint stream
+    assert ap.arm(True, 0.0) == Result.ACCEPTED
+    assert ap.armed
+    assert ap.arm(False, 1.0) == Result.ACCEPTED
+
+
+def test_offboard_needs_a_stream_above_2_hz_and_fails_safe_to_hold():
+    ap = autopilot()
+    x = initial_state()
+    ap.arm(True, 0.0)
+    ap.on_attitude_setpoint(sp(), 0.0)
+    ap.on_attitude_setpoint(sp(), 0.6)
+    assert ap.set_mode(OFFBOARD, 0.7) == Result.DENIED  # 2 setpoints in 1 s is not > 2 Hz
+    stream(ap, 1.0, 2.0, hz=4.0)
+    assert ap.set_mode(OFFBOARD, 2.0) == Result.ACCEPTED
+    ap.update_outer(x, 2.0, 0.005)
+    assert ap.mode == OFFBOARD
+    ap.update_outer(x, 1.75 + 0.49, 0.005)  # last setpoint at 1.75 s, loss timeout 0.5 s
+    assert ap.mode == OFFBOARD
+    ap.update_outer(x, 1.75 + 0.51, 0.005)
+    assert ap.mode == HOLD
+    assert ap.failsafe_count == 1
+
+
+def test_auto_disarm_after_preflight_timeout_without_takeoff():
+    ap = autopilot()
+    x = initial_state()
+    ap.arm(True, 1.0)
+    ap.update_outer(x, 1.0 + CONFIG.autopilot.disarm_preflight_s - 0.01, 0.005)
+    assert ap.armed
+    ap.update_outer(x, 1.0 + CONFIG.autopilot.disarm_preflight_s + 0.01, 0.005)
+    assert not ap.armed
+
+
+def test_rate_setpoints_honour_type_mask_and_thrust():
+    ap = autopilot()
+    x = initial_state((0.0, 0.0, -5.0))
+    ap.arm(True, 0.0)
+    stream(ap, 0.0, 0.2, mask=RATES_ONLY | IGNORE_YAW_RATE, rates=(0.3, -0.2, 0.9), thrust=0.6)
+    assert ap.set_mode(OFFBOARD, 0.2) == Result.ACCEPTED
+    ap.update_outer(x, 0.2, 0.005)
+    cmd = ap.update_inner(x, 0.001)
+    np.testing.assert_allclose(cmd.rate_cmd_frd_rad_s, [0.3, -0.2, 0.0])  # yaw rate ignored
+    assert cmd.thrust_norm == pytest.approx(0.6)
+    # ignore-thrust keeps the last thrust; attitude setpoints go through the attitude loop
+    q_roll = tuple(euler_to_quat(0.2, 0.0, 0.0))
+    ap.on_attitude_setpoint(sp(thrust=0.1, q=q_roll, mask=0b111 | IGNORE_THRUST), 0.21)
+    ap.update_outer(x, 0.21, 0.005)
+    cmd = ap.update_inner(x, 0.001)
+    assert cmd.thrust_norm == pytest.approx(0.6)
+    assert cmd.rate_cmd_frd_rad_s[0] > 0.5  # rolls right towards +0.2 rad
+    assert abs(cmd.rate_cmd_frd_rad_s[1]) < 1e-9
+
+
+def test_attitude_from_thrust_vector_round_trips_through_euler():
+    # accelerating north (NED +x) needs nose down: negative pitch
+    f = np.array([2.0, 0.0, -9.0])
+    q = attitude_from_thrust(f / np.linalg.norm(f), yaw_rad=0.3)
+    _, pitch, yaw = quat_to_euler(q)
+    assert yaw == pytest.approx(0.3)
+    assert pitch < -0.1
+    q2 = euler_to_quat(0.1, -0.2, 2.5)
+    np.testing.assert_allclose(quat_from_rotation(quat_to_rotation(q2)), q2, atol=1e-12)
+
+
+def test_takeoff_hold_land_and_disarm_on_touchdown():
+    sim = Simulation(CONFIG, seed=0)
+    ap = sim.autopilot
+    assert ap.arm(True, 0.0) == Result.ACCEPTED
+    assert ap.takeoff(2.0, 0.0) == Result.ACCEPTED
+    modes = set()
+    for _ in range(round(4.0 / 0.005)):
+        sim.advance_tick()
+        modes.add(ap.mode)
+    assert TAKEOFF in modes
+    assert ap.mode == HOLD
+    assert sim.state[2] == pytest.approx(-2.0, abs=0.25)
+    assert ap.landed_state == LandedState.IN_AIR
+    assert math.hypot(sim.state[0], sim.state[1]) < 0.05
+    assert ap.land(sim.time_s) == Result.ACCEPTED
+    for _ in range(round(6.5 / 0.005)):
+        sim.advance_tick()
+    assert sim.state[2] == 0.0
+    assert not ap.armed
+
+
+def test_hold_rejects_a_steady_wind():
+    cfg = dataclasses.replace(
+        CONFIG, environment=dataclasses.replace(CONFIG.environment, wind_speed_m_s=3.0)
+    )
+    sim = Simulation(cfg, seed=0)
+    sim.autopilot.arm(True, 0.0)
+    sim.autopilot.takeoff(2.5, 0.0)
+    for _ in range(round(10.0 / 0.005)):
+        sim.advance_tick()
+    # The integrator trims out the drag: back near the takeoff point, tilted into the wind.
+    assert math.hypot(sim.state[0], sim.state[1]) < 0.3
+    roll, _, _ = quat_to_euler(sim.state[6:10])
+    assert roll < -0.02  # wind towards east: lean west (roll left) into it
