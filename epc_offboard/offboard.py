@@ -40,6 +40,7 @@ class Phase(enum.Enum):
     OFFBOARD = "offboard"
     PILOT = "pilot"
     FAILSAFE = "failsafe"
+    LANDING = "landing"  # the service's mission is over: the autopilot lands the vehicle
 
 
 class Action(enum.Enum):
@@ -58,6 +59,7 @@ class OffboardConfig:
     auto_offboard: bool = False
     takeoff_altitude_m: float = 2.5
     airborne_altitude_m: float = 0.5  # above which the vehicle counts as flying
+    settled_climb_rate_m_s: float = 0.3  # ...and climbing or sinking slower than this
     heartbeat_timeout_s: float = 3.0
     max_state_age_s: float = 0.25
     min_stream_s: float = 0.5  # setpoints streamed before offboard is requested
@@ -77,6 +79,7 @@ class Inputs:
     heartbeat: Heartbeat | None
     state_age_s: float
     altitude_m: float | None  # height above home, positive up; None if unknown
+    climb_rate_m_s: float = 0.0  # positive up
 
 
 @dataclass(frozen=True)
@@ -174,7 +177,13 @@ class OffboardStateMachine:
         if hb.offboard:
             self._enter(Phase.OFFBOARD, now, "already in offboard")
             return
-        airborne = inp.altitude_m is not None and inp.altitude_m >= cfg.airborne_altitude_m
+        # A heartbeat comes once a second, so its mode can lag a takeoff just commanded:
+        # flying also means the climb has settled, or offboard would cut the takeoff short.
+        airborne = (
+            inp.altitude_m is not None
+            and inp.altitude_m >= cfg.airborne_altitude_m
+            and abs(inp.climb_rate_m_s) <= cfg.settled_climb_rate_m_s
+        )
         taking_off = hb.main_mode == PX4_MAIN_MODE_AUTO and hb.sub_mode == PX4_AUTO_SUB_TAKEOFF
         landing = hb.main_mode == PX4_MAIN_MODE_AUTO and hb.sub_mode == PX4_AUTO_SUB_LAND
         if hb.armed and airborne and not taking_off and not landing:

@@ -186,9 +186,10 @@ class Service:
             )
             if self._mission_done:
                 self._finish_mission(hb)
-                out = Outputs(self.sm.phase, True, (), "mission complete: landing")
+                out = Outputs(Phase.LANDING, True, (), "mission complete: landing")
             else:
-                out = self.sm.step(Inputs(now, hb, age, alt))
+                climb = 0.0 if state is None else -float(state.vel_ned_m_s[2])
+                out = self.sm.step(Inputs(now, hb, age, alt, climb))
                 for action in out.actions:
                     self._do_action(action)
             if out.phase != self.outputs.phase:

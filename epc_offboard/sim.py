@@ -109,10 +109,14 @@ def service_config_for(
         base = tomllib.load(fh)
     traj = {k: v for k, v in vars(scenario.trajectory).items()}
     traj["waypoints_ned_m"] = [list(w) for w in scenario.trajectory.waypoints_ned_m]
+    from sitl.params import load_sim_config
+
+    # what PX4 users set as MPC_THR_HOVER, known exactly for the simulated airframe
+    hover = load_sim_config().vehicle.hover_thrust_norm
     flags: dict[str, Any] = {
         "link": {"url": f"udpin://127.0.0.1:{port}", "target_system": vehicle_id},
         "loops": {"clock": "vehicle" if args.lockstep else "wall"},
-        "position": {"controller": args.controller},
+        "position": {"controller": args.controller, "hover_thrust_norm": hover},
         "estimator": {"kind": args.adaptation},
         "trajectory": traj,
         "trajectory_altitude_m": scenario.altitude_m,

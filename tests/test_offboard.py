@@ -21,8 +21,8 @@ def hb(t, *, armed=False, main=3, sub=0):
     return Heartbeat(1, armed, main, sub, t)
 
 
-def step(sm, t, heartbeat, *, age=0.01, alt=0.0):
-    return sm.step(Inputs(t, heartbeat, age, alt))
+def step(sm, t, heartbeat, *, age=0.01, alt=0.0, climb=0.0):
+    return sm.step(Inputs(t, heartbeat, age, alt, climb))
 
 
 def test_full_automatic_ritual():
@@ -42,6 +42,9 @@ def test_full_automatic_ritual():
     out = step(sm, 2.0, hb(2.0, armed=True, main=4, sub=2), alt=1.0)  # AUTO.TAKEOFF
     assert out.phase == Phase.PREFLIGHT
     assert out.actions == ()
+    # the heartbeat still says LOITER but the vehicle is climbing: not settled, keep waiting
+    out = step(sm, 2.5, hb(2.5, armed=True, main=4, sub=3), alt=1.5, climb=1.2)
+    assert out.phase == Phase.PREFLIGHT
     out = step(sm, 3.0, hb(3.0, armed=True, main=4, sub=3), alt=2.5)  # AUTO.LOITER
     assert out.phase == Phase.STREAMING
     assert out.stream_setpoints
