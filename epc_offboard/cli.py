@@ -13,9 +13,8 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import cast
 
-EXIT_OK = 0
-EXIT_RUNTIME = 1
-EXIT_USAGE = 2
+from epc_offboard.configio import ConfigError
+from epc_offboard.errors import EXIT_RUNTIME, EXIT_USAGE, UsageError
 
 
 # subcommand -> "module:function(args) -> exit code"
@@ -25,10 +24,6 @@ _COMMANDS = {
     "bench": "epc_offboard.bench:run_bench_command",
     "db": "epc_offboard.store:run_db_command",
 }
-
-
-class UsageError(ValueError):
-    """Bad usage or invalid configuration: reported with exit code 2."""
 
 
 def parse_wind(text: str) -> tuple[float, float]:
@@ -96,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = cast(Callable[[argparse.Namespace], int], getattr(module, func_name))
     try:
         return command(args)
-    except UsageError as exc:
+    except (UsageError, ConfigError) as exc:
         print(f"epc-offboard: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
@@ -104,4 +99,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main())  # prefer `python -m epc_offboard`

@@ -501,7 +501,7 @@ def _next_tick(
 
 
 def run_service_command(args: argparse.Namespace) -> int:
-    from epc_offboard.cli import UsageError
+    from epc_offboard.errors import UsageError
 
     try:
         cfg = load_service_config(args.config)

@@ -390,7 +390,7 @@ def print_table(report: dict[str, Any]) -> None:
 
 
 def run_sim_command(args: argparse.Namespace) -> int:
-    from epc_offboard.cli import EXIT_OK, EXIT_RUNTIME, UsageError
+    from epc_offboard.errors import EXIT_OK, EXIT_RUNTIME, UsageError
 
     if args.vehicles < 1:
         raise UsageError("--vehicles must be >= 1")

@@ -280,7 +280,7 @@ def _connect(path: Path) -> sqlite3.Connection:
 
 def run_db_command(args: argparse.Namespace) -> int:
     """`epc-offboard db info PATH`: what a library file holds, per problem signature."""
-    from epc_offboard.cli import EXIT_OK, EXIT_RUNTIME, UsageError
+    from epc_offboard.errors import EXIT_OK, EXIT_RUNTIME, UsageError
 
     if args.action != "info":
         print(f"epc-offboard db {args.action}: not implemented yet", file=sys.stderr)
