@@ -207,6 +207,13 @@ class MavlinkLink:
             self.counters["bad_data"] += 1
             log.debug("unparseable datagram from %s: %s", addr, exc)
             return
+        if self.mav.buf_len() > 0:
+            # A datagram carries whole messages: a leftover is garbage, and kept it would
+            # swallow the first message of the next datagram.
+            self.counters["bad_data"] += 1
+            self.mav.buf = bytearray()
+            self.mav.buf_index = 0
+            self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
         for msg in msgs:
             self._dispatch(msg, addr)
 

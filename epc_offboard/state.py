@@ -25,6 +25,9 @@ from epc_offboard import frames
 from epc_offboard.frames import FloatArray
 
 MAV_MODE_FLAG_SAFETY_ARMED = 128
+# time_boot_ms is truncated to whole ms while ODOMETRY's time_usec is not: samples of one
+# instant can differ by up to a millisecond and must not count as out of order.
+_ORDER_TOLERANCE_S = 1.5e-3
 MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_LOCAL_FRD = 20
 MAV_FRAME_BODY_FRD = 12
@@ -174,7 +177,7 @@ class StateTracker:
         if float(np.max(np.abs(rate))) > self.limits.max_rate_rad_s:
             self.counters["rejected_range"] += 1
             return False
-        if self._attitude is not None and t_s < self._attitude.vehicle_s:
+        if self._attitude is not None and t_s < self._attitude.vehicle_s - _ORDER_TOLERANCE_S:
             self.counters["rejected_out_of_order"] += 1
             return False
         self._attitude = _Sample(t_s, now, (frames.quat_normalize(q), rate))
@@ -191,7 +194,7 @@ class StateTracker:
         ):
             self.counters["rejected_range"] += 1
             return False
-        if self._position is not None and t_s < self._position.vehicle_s:
+        if self._position is not None and t_s < self._position.vehicle_s - _ORDER_TOLERANCE_S:
             self.counters["rejected_out_of_order"] += 1
             return False
         self._position = _Sample(t_s, now, (pos, vel))

@@ -86,16 +86,17 @@ async def _garbage():
     good = heartbeat(client).pack(client.mav)
     corrupt = bytearray(good)
     corrupt[-1] ^= 0xFF  # bad CRC
+    other = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
     for dgram in (b"\xfd\x09garbage", bytes(corrupt), b"", good[:5]):
         raw.sendto(dgram, ("127.0.0.1", port))
-    other = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
-    raw.sendto(heartbeat(client).pack(other), ("127.0.0.1", port))
+        # a partial frame must not swallow the next datagram's message
+        raw.sendto(heartbeat(client).pack(other), ("127.0.0.1", port))
     client.send(heartbeat(client))
     await settle(lambda: got_server)
     await asyncio.sleep(0.05)
     assert [m.get_srcSystem() for m in got_server] == [1]
     assert server.counters["bad_data"] >= 1
-    assert server.counters["wrong_system"] == 1
+    assert server.counters["wrong_system"] == 4
     raw.close()
     server.close()
     client.close()
