@@ -64,6 +64,7 @@ class OffboardConfig:
     max_state_age_s: float = 0.25
     min_stream_s: float = 0.5  # setpoints streamed before offboard is requested
     retry_period_s: float = 1.0  # between repeated arm / takeoff / offboard requests
+    hold_confirm_s: float = 2.5  # after a failsafe, wait this long for the heartbeat to show hold
 
     def __post_init__(self) -> None:
         for name in ("heartbeat_timeout_s", "max_state_age_s", "retry_period_s"):
@@ -132,6 +133,13 @@ class OffboardStateMachine:
                 self._enter(Phase.FAILSAFE, now, f"state stale ({inp.state_age_s:.3f} s)")
             elif self.phase != Phase.FAILSAFE:
                 self._enter(Phase.WAIT_STATE, now, "waiting for fresh state")
+        elif self.phase == Phase.FAILSAFE and hb is not None and hb.offboard:
+            # Heartbeats come at 1 Hz: give our hold request time to show before deciding the
+            # vehicle is (again, by a pilot's choice) in offboard.
+            if now - self._phase_since_s >= cfg.hold_confirm_s:
+                self._enter(Phase.OFFBOARD, now, "offboard kept after failsafe")
+            else:
+                self._reason = "state fresh again: waiting for hold to show"
         elif self.phase in (Phase.WAIT_HEARTBEAT, Phase.WAIT_STATE, Phase.FAILSAFE):
             self._enter(Phase.PREFLIGHT, now, "state flowing")
 

@@ -90,6 +90,10 @@ def test_stale_state_fails_safe_and_recovers():
     assert not out.stream_setpoints
     assert out.actions == (Action.REQUEST_HOLD,)
     assert "stale" in out.reason
+    # fresh again before the 1 Hz heartbeat shows the hold: stay in failsafe, keep asking
+    out = step(sm, 0.25, hb(0.1, armed=True, main=6), alt=3.0)
+    assert out.phase == Phase.FAILSAFE
+    assert not out.stream_setpoints
     out = step(sm, 0.3, hb(0.3, armed=True, main=4, sub=3), age=1.0, alt=3.0)
     assert out.actions == ()  # vehicle already left offboard: no more hold requests
     # fresh again and still airborne: straight back to streaming, the ritual from the top
@@ -98,6 +102,18 @@ def test_stale_state_fails_safe_and_recovers():
     assert out.stream_setpoints
     out = step(sm, 1.0, hb(1.0, armed=True, main=4, sub=3), alt=3.0)
     assert out.phase == Phase.OFFBOARD_REQUESTED
+
+
+def test_offboard_kept_after_failsafe_is_respected():
+    sm = OffboardStateMachine(AUTO)
+    flying(sm)
+    step(sm, 0.2, hb(0.2, armed=True, main=6), age=1.0, alt=3.0)
+    assert sm.phase == Phase.FAILSAFE
+    out = step(sm, 1.3, hb(1.3, armed=True, main=6), alt=3.0)
+    assert out.phase == Phase.FAILSAFE
+    assert out.actions == (Action.REQUEST_HOLD,)  # retried after retry_period_s
+    out = step(sm, 3.0, hb(3.0, armed=True, main=6), alt=3.0)
+    assert out.phase == Phase.OFFBOARD
 
 
 def test_heartbeat_loss_fails_safe():
