@@ -1,0 +1,160 @@
+"""A flight rig for end-to-end tests: the SITL and the service as real processes on loopback.
+
+The test plays the ground station: it listens on the SITL's GCS port (like QGroundControl on
+14550) and can send commands to the SITL's own port, so it observes the vehicle exactly as a
+person watching QGC would, and can break things (cut a message stream) as a real link would.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pymavlink import mavutil
+
+from epc_offboard.configio import dump_toml, merge_dicts
+from epc_offboard.sim import SITL_SERVICE_CONFIG
+from epc_offboard.state import px4_modes
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Rig:
+    def __init__(
+        self,
+        tmp: Path,
+        *,
+        service_overrides: dict[str, Any] | None = None,
+        sitl_args: tuple[str, ...] = (),
+        lockstep: bool = True,
+    ) -> None:
+        self.tmp = tmp
+        self.offboard_port = free_port()
+        self.sitl_port = free_port()
+        self.gcs_port = free_port()
+        with SITL_SERVICE_CONFIG.open("rb") as fh:
+            base = tomllib.load(fh)
+        from sitl.params import load_sim_config
+
+        cfg = merge_dicts(
+            base,
+            {
+                "link": {"url": f"udpin://127.0.0.1:{self.offboard_port}"},
+                "loops": {"clock": "vehicle" if lockstep else "wall"},
+                "position": {"hover_thrust_norm": load_sim_config().vehicle.hover_thrust_norm},
+                "store": {"path": str(tmp / "library.sqlite")},
+                "log": {
+                    "stats_path": str(tmp / "stats.json"),
+                    "flight_log_path": str(tmp / "flight.csv"),
+                },
+            },
+        )
+        self.config = merge_dicts(cfg, service_overrides or {})
+        self.config_path = tmp / "service.toml"
+        self.config_path.write_text(dump_toml(self.config))
+        self.sitl_args = [
+            "--listen-port", str(self.sitl_port), "--offboard-port", str(self.offboard_port),
+            "--gcs-port", str(self.gcs_port), "--groundtruth", str(tmp / "groundtruth.csv"),
+            "--speedup", "4", *sitl_args,
+        ]  # fmt: skip
+        if lockstep:
+            self.sitl_args.append("--lockstep")
+        self.sitl: subprocess.Popen[bytes] | None = None
+        self.service: subprocess.Popen[bytes] | None = None
+        self.gcs: Any = None
+
+    def start_sitl(self) -> None:
+        self.sitl = subprocess.Popen(
+            [sys.executable, "-m", "sitl.main", *self.sitl_args],
+            stdout=(self.tmp / "sitl.log").open("wb"),
+            stderr=subprocess.STDOUT,
+        )
+        self.gcs = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{self.gcs_port}", source_system=250, source_component=190
+        )
+
+    def start_service(self, config_path: Path | None = None) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.service = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "epc_offboard.cli",
+                "run",
+                "--config",
+                str(config_path or self.config_path),
+            ],
+            stdout=(self.tmp / "service.log").open("ab"),
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
+
+    def __enter__(self) -> Rig:
+        self.start_sitl()
+        self.start_service()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for proc in (self.service, self.sitl):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    proc.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        if self.gcs is not None:
+            self.gcs.close()
+
+    def stop_service(self, sig: int = signal.SIGTERM, timeout_s: float = 5.0) -> tuple[int, float]:
+        """Signal the service, wait for it; returns (exit code, seconds it took)."""
+        assert self.service is not None
+        t0 = time.monotonic()
+        self.service.send_signal(sig)
+        code = self.service.wait(timeout=timeout_s)
+        self.service = None
+        return code, time.monotonic() - t0
+
+    # -- observing as a ground station ------------------------------------------------
+
+    def heartbeat(self, timeout_s: float = 5.0) -> Any:
+        msg = self.gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=timeout_s)
+        assert msg is not None, "no heartbeat from the SITL"
+        return msg
+
+    def wait_mode(self, main: int, sub: int = 0, timeout_s: float = 60.0) -> float:
+        """Wait until the SITL reports (main, sub); returns the wall seconds it took."""
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout_s:
+            if self.service is not None and self.service.poll() is not None:
+                raise AssertionError(
+                    f"service exited with {self.service.returncode}:\n{self.log()}"
+                )
+            msg = self.gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=1.0)
+            if msg is not None and px4_modes(msg.custom_mode) == (main, sub):
+                return time.monotonic() - t0
+        raise AssertionError(f"mode {(main, sub)} not reached in {timeout_s} s:\n{self.log()}")
+
+    def command(self, command: int, *params: float) -> None:
+        p = list(params) + [0.0] * (7 - len(params))
+        self.gcs.mav.command_long_send(1, 1, command, 0, *p)
+
+    def log(self) -> str:
+        path = self.tmp / "service.log"
+        return path.read_text(errors="replace")[-4000:] if path.exists() else ""
+
+    def stats(self) -> dict[str, Any]:
+        data: dict[str, Any] = json.loads((self.tmp / "stats.json").read_text())
+        return data

@@ -1,0 +1,157 @@
+"""The service end to end: real SITL and service processes over UDP MAVLink, lockstep.
+
+Each test flies a short real flight; together they take well under two minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.state import (
+    PX4_AUTO_SUB_LOITER,
+    PX4_MAIN_MODE_AUTO,
+    PX4_MAIN_MODE_OFFBOARD,
+    px4_custom_mode,
+)
+from epc_offboard.store import LibraryStore
+from tests.rig import Rig
+
+pytestmark = pytest.mark.timeout(240)
+
+OFFBOARD = (PX4_MAIN_MODE_OFFBOARD, 0)
+HOLD = (PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER)
+
+
+def sim(tmp_path, *args):
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "sim", "--out", str(out), *args],
+        capture_output=True,
+        text=True,
+        timeout=220,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return json.loads((out / "report.json").read_text()), out
+
+
+def test_sim_hover_holds_within_5_cm(tmp_path):
+    report, out = sim(tmp_path, "--scenario", "hover", "--duration", "6", "--adaptation", "none")
+    v = report["vehicles"][0]
+    assert v["tracking"]["max_error_m"] < 0.05
+    assert v["constraint_violations"] == 0
+    assert v["library"]["hits"] > 0
+    assert (out / "flight.png").stat().st_size > 10_000
+    assert (out / "vehicle1" / "session.tlog").stat().st_size > 10_000
+    loops = v["loops"]
+    assert loops["position"]["rate_hz"] == pytest.approx(100.0, rel=0.05)
+    assert loops["attitude"]["rate_hz"] == pytest.approx(200.0, rel=0.05)
+
+
+def test_second_run_starts_from_the_saved_library(tmp_path):
+    args = ("--scenario", "circle", "--duration", "12", "--adaptation", "none")
+    first, _ = sim(tmp_path, *args)
+    second, _ = sim(tmp_path, *args)  # same --out: library-1.sqlite is the prior
+    m1 = first["vehicles"][0]["library"]["misses"]
+    m2 = second["vehicles"][0]["library"]["misses"]
+    assert first["vehicles"][0]["tracking"]["max_error_m"] < 0.15
+    assert m1 >= 10
+    assert m2 <= 0.2 * m1, (m1, m2)
+
+
+def test_stream_loss_makes_the_vehicle_hold(tmp_path):
+    with Rig(tmp_path, sitl_args=("--lockstep-timeout-ms", "20")) as rig:
+        rig.wait_mode(*OFFBOARD)
+        rig.stop_service(signal.SIGKILL)  # the companion computer dies
+        assert rig.wait_mode(*HOLD, timeout_s=20) < 20
+
+
+def test_stale_state_commands_hold(tmp_path):
+    with Rig(tmp_path) as rig:
+        rig.wait_mode(*OFFBOARD)
+        rig.heartbeat()
+        # the position streams stop, as when the estimator of a real vehicle drops out
+        for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ODOMETRY):
+            rig.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), -1.0)
+        rig.wait_mode(*HOLD, timeout_s=20)
+        assert "state stale" in rig.log()
+        # the service asks for the streams again and, with auto_offboard, flies on
+        rig.wait_mode(*OFFBOARD, timeout_s=30)
+
+
+def test_sigterm_holds_saves_and_exits_0_within_2_s(tmp_path):
+    with Rig(tmp_path) as rig:
+        rig.wait_mode(*OFFBOARD)
+        time.sleep(1.0)
+        code, took_s = rig.stop_service(signal.SIGTERM)
+        assert code == 0
+        assert took_s < 2.0
+        rig.wait_mode(*HOLD, timeout_s=10)
+        stats = rig.stats()
+        size = stats["library"]["position"]["size"]
+        assert size > 0
+    with LibraryStore.open(tmp_path / "library.sqlite") as store:
+        assert sum(v["controllers"] for v in store.summary().values()) >= size
+
+
+def test_bad_input_is_rejected_and_the_flight_goes_on(tmp_path):
+    with Rig(tmp_path) as rig:
+        rig.wait_mode(*OFFBOARD)
+        intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        target = ("127.0.0.1", rig.offboard_port)
+        fake = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+        stranger = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
+        for _ in range(20):
+            intruder.sendto(b"\xfd\x10\x00garbage-not-mavlink", target)
+            intruder.sendto(
+                stranger.heartbeat_encode(2, 12, 129, px4_custom_mode(4, 3), 4).pack(stranger),
+                target,
+            )
+            nan_pos = fake.local_position_ned_encode(10**9, math.nan, 0.0, -2.0, 0.0, 0.0, 0.0)
+            intruder.sendto(nan_pos.pack(fake), target)
+            time.sleep(0.02)
+        time.sleep(1.0)
+        hb = rig.heartbeat()
+        assert (hb.custom_mode >> 16) & 0xFF == PX4_MAIN_MODE_OFFBOARD
+        assert rig.stop_service()[0] == 0
+        stats = rig.stats()
+    assert stats["link"]["bad_data"] >= 1
+    assert stats["link"]["wrong_system"] >= 20
+    assert stats["state"]["rejected_nan"] >= 20
+
+
+def test_unknown_config_key_exits_2_naming_key_and_file(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[offboard]\nauto_arn = true\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "run", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 2
+    assert "offboard.auto_arn" in proc.stderr
+    assert str(cfg) in proc.stderr
+
+
+def test_truncated_library_is_moved_aside_and_the_service_flies(tmp_path):
+    lib = tmp_path / "library.sqlite"
+    with LibraryStore.open(lib) as store:
+        from epc_offboard.store import StoredController
+
+        store.save_controllers("x", [StoredController((i,), 1.0, 1) for i in range(300)])
+    lib.write_bytes(lib.read_bytes()[:2000])
+    with Rig(tmp_path) as rig:
+        rig.wait_mode(*OFFBOARD)
+        assert "moved aside" in rig.log()
+    assert list(tmp_path.glob("library.sqlite.corrupt-*"))
