@@ -116,6 +116,19 @@ def _positive_vector(value: ArrayLike | None, n: int, what: str) -> FloatArray:
     return arr.copy()
 
 
+def check_vector(value: ArrayLike, n: int, name: str) -> FloatArray:
+    """``value`` as a finite float array of shape (n,); else LwprError naming ``name``."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise LwprError(f"{name} must be a numeric array of shape ({n},): {exc}") from exc
+    if arr.shape != (n,):
+        raise LwprError(f"{name} must have shape ({n},), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise LwprError(f"{name} must be finite, got {arr}")
+    return arr
+
+
 class LWPR:
     """Incremental LWPR regression from R^n_in to R^n_out.
 
@@ -253,8 +266,8 @@ class LWPR:
 
     def update(self, x: ArrayLike, y: ArrayLike) -> FloatArray:
         """Learn one sample (x (n_in,), y (n_out,)); return the prediction at x before it."""
-        xn = self._check(x, self.n_in, "x") / self.norm_in
-        yn = self._check(y, self.n_out, "y") / self.norm_out
+        xn = check_vector(x, self.n_in, "x") / self.norm_in
+        yn = check_vector(y, self.n_out, "y") / self.norm_out
         v = self._active_views()
         w = self._activations(v, xn)
         y_before = self._predict_normalised(v, w, xn)
@@ -272,7 +285,7 @@ class LWPR:
 
     def predict(self, x: ArrayLike) -> FloatArray:
         """Prediction at x (n_in,): shape (n_out,); 0 where no trusted field is active."""
-        xn = self._check(x, self.n_in, "x") / self.norm_in
+        xn = check_vector(x, self.n_in, "x") / self.norm_in
         v = self._active_views()
         return self._predict_normalised(v, self._activations(v, xn), xn) * self.norm_out
 
@@ -283,7 +296,7 @@ class LWPR:
         is from the field's data in projection space) with the spread of the fields'
         predictions; it is 1e20 where no trusted field is active.
         """
-        xn = self._check(x, self.n_in, "x") / self.norm_in
+        xn = check_vector(x, self.n_in, "x") / self.norm_in
         n = self._n
         w = self._activations(self._active_views(), xn)
         use = (w > self.cutoff) & self._trusted[:n]
@@ -441,18 +454,6 @@ class LWPR:
         return model
 
     # ----------------------------------------------------------------- internals
-
-    @staticmethod
-    def _check(value: ArrayLike, n: int, name: str) -> FloatArray:
-        try:
-            arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise LwprError(f"{name} must be a numeric array of shape ({n},): {exc}") from exc
-        if arr.shape != (n,):
-            raise LwprError(f"{name} must have shape ({n},), got {arr.shape}")
-        if not np.isfinite(arr).all():
-            raise LwprError(f"{name} must be finite, got {arr}")
-        return arr
 
     def _active_views(self) -> dict[str, FloatArray]:
         """Named views of the fields in use (rows [0, n)); writes go to the model."""
