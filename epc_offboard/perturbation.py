@@ -213,7 +213,7 @@ def _unpack(data: bytes, kind: str, nx: int, n_z: int) -> dict[str, Any]:
         if str(arrays["kind"]) != kind:
             raise ValueError(f"state is for a {str(arrays['kind'])!r} estimator, not {kind!r}")
         if [int(v) for v in arrays["dims"]] != [nx, n_z]:
-            raise ValueError(f"state has dims {list(arrays['dims'])}, expected [{nx}, {n_z}]")
+            raise ValueError(f"state has dims {arrays['dims'].tolist()}, expected [{nx}, {n_z}]")
     except KeyError as exc:
         raise ValueError(f"not a perturbation-estimator state (missing {exc})") from exc
     return arrays
