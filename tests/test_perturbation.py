@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from epc_offboard import bench_lwpr as bench
 from epc_offboard.configio import ConfigError, load_config
 from epc_offboard.perturbation import (
     KalmanPerturbation,
@@ -20,51 +21,10 @@ from epc_offboard.perturbation import (
     make_estimator,
 )
 
-DT_S = 0.01
-NX = 6  # p(3), v(3)
-NZ = 9  # z = [x; u], u = acceleration (3)
-VEL = [3, 4, 5]
-K_DRAG = 0.4  # 1/s
-
-
-class DoubleIntegrator:
-    """x = (p, v), u = a; the truth adds drag a_d = -k (v - v_wind) that the model lacks:
-    nominal x+ = (p + dt v, v + dt u), truth x+ = (p + dt v, v + dt (u + a_d))."""
-
-    def __init__(self, seed: int) -> None:
-        self.rng = np.random.default_rng(seed)
-        self.x = np.zeros(NX)
-        self.target = np.zeros(3)
-        self.k = 0
-
-    def step(self, v_wind: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One tick flying between random waypoints: (z, p_measured)."""
-        if self.k % 150 == 0:
-            self.target = self.rng.uniform(-6.0, 6.0, 3)
-        self.k += 1
-        p, v = self.x[:3], self.x[3:]
-        u = np.clip(2.0 * (self.target - p) - 1.5 * v, -6.0, 6.0)
-        z = np.r_[self.x, u]
-        nominal = np.r_[p + DT_S * v, v + DT_S * u]
-        self.x = np.r_[p + DT_S * v, v + DT_S * (u - K_DRAG * (v - v_wind))]
-        return z, self.x - nominal
-
-
-def drag_estimator() -> LwprPerturbation:
-    return LwprPerturbation(
-        NX,
-        NZ,
-        inputs=VEL,  # the thesis's example: velocity, not position or input
-        outputs=VEL,
-        lowpass_cutoff_hz=2.0,
-        dt_s=DT_S,
-        norm_z=[1.0] * 3 + [3.0] * 3 + [1.0] * 3,  # velocities within a few m/s
-        norm_p=[1.0] * 3 + [0.01] * 3,  # velocity perturbation per step ~ 1 cm/s
-        init_d=4.0,
-        init_lambda=0.995,
-        final_lambda=0.999,  # forget on a ~10 s timescale, so a changed wind is re-learned
-        tau_lambda=0.999,
-    )
+NX, NZ, DT_S = bench.NX, bench.NZ, bench.DT_S  # position loop: x = p(3), v(3); u = a(3)
+VEL = list(bench.VELOCITY)
+DoubleIntegrator = bench.DragFlight  # flies between waypoints in wind, with drag
+drag_estimator = bench.drag_estimator
 
 
 def fly(est: LwprPerturbation, sim: DoubleIntegrator, v_wind: np.ndarray, steps: int) -> float:
