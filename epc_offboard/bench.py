@@ -171,7 +171,7 @@ def run_bench(horizon: int, steps: int) -> dict[str, Any]:
     for k in range(steps):
         th = thetas[k]
 
-        def osqp_step(th: FloatArray = th) -> FloatArray:
+        def osqp_step(th: FloatArray = th, k: int = k) -> FloatArray:
             h, g = p.vectors(th)
             res = osqp.solve(h, g)
             if res.status not in (QpStatus.SOLVED, QpStatus.INACCURATE):
@@ -185,7 +185,7 @@ def run_bench(horizon: int, steps: int) -> dict[str, Any]:
     # 3) DAQP hot-started every step (optional dependency)
     daqp_report: dict[str, Any]
     try:
-        import daqp  # noqa: PLC0415  (optional dependency)
+        import daqp
     except ImportError:
         daqp = None
     if daqp is not None:
