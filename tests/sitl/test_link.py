@@ -163,13 +163,13 @@ def test_telemetry_rates_intervals_and_requests(client):
         assert client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, lpn_id, 40000) == 0  # 25 Hz
         client.wait("LOCAL_POSITION_NED")  # the one due under the old rate
         seen: list[int] = []
-        client.pump(
-            lambda m: (
-                m.get_type() == "LOCAL_POSITION_NED"
-                and (seen.append(m.time_boot_ms) or len(seen) == 10)
-            ),
-            None,
-        )
+
+        def ten_samples(m):
+            if m.get_type() == "LOCAL_POSITION_NED":
+                seen.append(m.time_boot_ms)
+            return len(seen) == 10
+
+        client.pump(ten_samples, None)
         assert {b - a for a, b in itertools.pairwise(seen)} == {40}
 
         version_id = mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION
