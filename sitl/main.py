@@ -99,37 +99,39 @@ async def run(args: argparse.Namespace) -> Counters:
     gate = LockstepGate(
         args.lockstep, config.sitl.lockstep_timeout_s, config.sitl.lockstep_max_timeouts
     )
+    if args.lockstep and config.sitl.telemetry.attitude_hz * config.sitl.lockstep_period_s < 1:
+        # The controller stamps its answer with the newest state it saw; if no ATTITUDE is
+        # sent on a tick, no answer can match that tick and lockstep degrades to timeouts.
+        print("epc-sitl: warning: ATTITUDE is slower than the lockstep tick", file=sys.stderr)
     loop = asyncio.get_running_loop()
-    transport, endpoint = await loop.create_datagram_endpoint(
-        lambda: SitlEndpoint(sim, sysid, dests, counters, key, gate.on_setpoint),
-        local_addr=(HOST, listen_port),
-    )
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
-    writer = None
-    if args.groundtruth is not None:
-        writer = GroundTruthWriter(args.groundtruth, config.sitl.groundtruth_flush_s)
+    with contextlib.ExitStack() as resources:
+        writer = None
+        if args.groundtruth is not None:
+            writer = GroundTruthWriter(args.groundtruth, config.sitl.groundtruth_flush_s)
+            resources.callback(writer.close)
+        transport, endpoint = await loop.create_datagram_endpoint(
+            lambda: SitlEndpoint(sim, sysid, dests, counters, key, gate.on_setpoint),
+            local_addr=(HOST, listen_port),
+        )
+        resources.callback(transport.close)
 
-    def tick() -> None:
-        sim.advance_tick()
-        endpoint.emit()
-        if writer is not None:
-            writer.write(sim)
+        def tick() -> None:
+            sim.advance_tick()
+            endpoint.emit()
+            if writer is not None:
+                writer.write(sim)
 
-    port = transport.get_extra_info("sockname")[1]
-    print(
-        f"epc-sitl: instance {args.instance}, sysid {sysid}, listening udp {HOST}:{port}, "
-        f"telemetry -> {', '.join(f'{h}:{p}' for h, p in dests) or 'none'}",
-        flush=True,
-    )
-    clock = Clock(gate, config.sitl.lockstep_period_s, args.speedup, lambda: sim.time_ms)
-    try:
+        port = transport.get_extra_info("sockname")[1]
+        print(
+            f"epc-sitl: instance {args.instance}, sysid {sysid}, listening udp {HOST}:{port}, "
+            f"telemetry -> {', '.join(f'{h}:{p}' for h, p in dests) or 'none'}",
+            flush=True,
+        )
+        clock = Clock(gate, config.sitl.lockstep_period_s, args.speedup, lambda: sim.time_ms)
         await clock.run(tick, stop, args.duration)
-    finally:
-        transport.close()
-        if writer is not None:
-            writer.close()
     counters.lockstep_timeouts = gate.timeouts
     counters.offboard_failsafes = sim.autopilot.failsafe_count
     return counters
