@@ -33,7 +33,7 @@ class Peer:
     def pack(self, msg) -> bytes:
         return bytes(msg.pack(self.mav))
 
-    def decode(self, transport: RecordingTransport, addr=PEER) -> list:
+    def decode(self, transport: RecordingTransport, addr=PEER) -> list[Any]:
         out: list[Any] = []
         for data, dest in transport.sent:
             if dest == addr:
