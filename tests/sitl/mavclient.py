@@ -6,7 +6,6 @@ an OS-chosen port (``--listen-port 0``) that it prints on its first line. No fix
 
 from __future__ import annotations
 
-import math
 import re
 import socket
 import subprocess
@@ -180,10 +179,3 @@ def counters_from(stderr: str) -> dict[str, int]:
     line = next(ln for ln in stderr.splitlines() if "counters" in ln)
     return {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", line)}
 
-
-def level_q() -> tuple[float, float, float, float]:
-    return (1.0, 0.0, 0.0, 0.0)
-
-
-def is_finite(*values: float) -> bool:
-    return all(math.isfinite(v) for v in values)
