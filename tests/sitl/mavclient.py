@@ -178,4 +178,3 @@ def stop_sitl(proc: subprocess.Popen[str], timeout_s: float = 10.0) -> tuple[int
 def counters_from(stderr: str) -> dict[str, int]:
     line = next(ln for ln in stderr.splitlines() if "counters" in ln)
     return {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", line)}
-

@@ -134,3 +134,19 @@ def test_command_results(command, params, result):
     ep.datagram_received(peer.pack(peer.mav.command_long_encode(1, 1, command, 0, *p)), PEER)
     acks = [m for m in peer.decode(transport) if m.get_type() == "COMMAND_ACK"]
     assert [(a.command, a.result) for a in acks] == [(command, result)]
+
+
+def test_ground_station_ritual_params_and_empty_mission():
+    sim, ep, transport, _ = make()
+    peer = Peer()
+    ep.datagram_received(peer.pack(peer.mav.param_request_list_encode(1, 1)), PEER)
+    ep.datagram_received(
+        peer.pack(peer.mav.param_request_read_encode(1, 1, b"COM_OF_LOSS_T", -1)), PEER
+    )
+    ep.datagram_received(peer.pack(peer.mav.mission_request_list_encode(1, 1)), PEER)
+    got = peer.decode(transport)
+    values = [m for m in got if m.get_type() == "PARAM_VALUE"]
+    assert len(values) == values[0].param_count + 1
+    loss = [m.param_value for m in values if m.param_id == "COM_OF_LOSS_T"]
+    assert loss == [sim.config.autopilot.offboard_loss_timeout_s] * 2
+    assert [m.count for m in got if m.get_type() == "MISSION_COUNT"] == [0]
