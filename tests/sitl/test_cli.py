@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sitl.main import main
+from sitl.main import build_parser, link_addresses, main
 from sitl.params import DEFAULT_VEHICLE_FILE, load_sim_config
 
 
@@ -36,3 +36,10 @@ def test_bad_signing_key_and_wind_are_usage_errors(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--wind", "3"])
     assert exc.value.code == 2
+
+
+def test_instances_get_px4_sitl_ports_and_overrides_win():
+    args = build_parser().parse_args(["--instance", "2"])
+    assert link_addresses(args) == (14582, [("127.0.0.1", 14542), ("127.0.0.1", 14550)])
+    args = build_parser().parse_args(["--instance", "2", "--gcs-port", "0", "--offboard-port", "9"])
+    assert link_addresses(args) == (14582, [("127.0.0.1", 9)])

@@ -180,3 +180,16 @@ def test_near_surface_disturbance_pulls_towards_the_wall_and_decays():
     far = env.surface_force_ned_n(np.array([3.0, 0.0, -2.0]))
     assert 0.0 < far[0] < near[0]
     np.testing.assert_array_equal(env.surface_force_ned_n(np.array([1.0, 0, -2.0])), 0.0)
+
+
+def test_plus_layout_mixer_has_the_thesis_eq_3_11_pattern():
+    """Inverse effectiveness of the plus layout = eq. 3.11's sign pattern, with the pitch and
+    yaw columns negated because body y and z flip between the thesis's z-up frame and FRD."""
+    plus = dataclasses.replace(
+        VEHICLE, rotor_angles_deg=(0.0, -90.0, 180.0, 90.0), rotor_yaw_moment_sign=(-1, 1, -1, 1)
+    )
+    thesis = np.array([[1, 0, -1, 1], [1, 1, 0, -1], [1, 0, 1, 1], [1, -1, 0, -1]])
+    frd = thesis * np.array([1, 1, -1, -1])
+    np.testing.assert_array_equal(
+        np.sign(np.round(np.linalg.inv(effectiveness_matrix(plus)), 12)), frd
+    )
