@@ -10,11 +10,11 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.frames import euler_to_quat
 from sitl.groundtruth import COLUMNS
-from tests.sitl.mavclient import MavClient, start_sitl, stop_sitl
+from tests.sitl.mavclient import MavClient, counters_from, start_sitl, stop_sitl
 
 DURATION_S = 2.0
-ARM_TICK = 40
-OFFBOARD_TICK = 60
+ARM_TICK = 100  # well after the first reply has put the SITL into waiting mode
+OFFBOARD_TICK = 120
 
 
 def scripted_flight(tmp_path, name: str) -> tuple[str, float]:
@@ -32,6 +32,8 @@ def scripted_flight(tmp_path, name: str) -> tuple[str, float]:
         str(gt),
         "--duration",
         str(DURATION_S),
+        "--lockstep-timeout-ms",
+        "2000",  # a loaded CI machine must not turn a slow reply into a timeout
     )
     t0 = time.monotonic()
     try:
@@ -72,6 +74,7 @@ def scripted_flight(tmp_path, name: str) -> tuple[str, float]:
         rc, err = stop_sitl(proc)
         client.close()
     assert rc == 0, err
+    assert counters_from(err)["lockstep_timeouts"] == 0
     return gt.read_text(), wall_s
 
 
