@@ -72,6 +72,7 @@ class Counters:
     nan_setpoints: int = 0
     commands: int = 0
     setpoints: int = 0
+    handler_errors: int = 0
     send_errors: int = 0
     lockstep_timeouts: int = 0
     offboard_failsafes: int = 0
@@ -140,6 +141,20 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
         }
 
+        self._handlers: dict[str, Callable[[Any, Address], None] | None] = {
+            "COMMAND_LONG": self._on_command,
+            "COMMAND_INT": self._on_command,
+            "SET_MODE": self._on_set_mode,
+            "SET_ATTITUDE_TARGET": self._on_set_attitude_target,
+            "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target,
+            "TIMESYNC": self._on_timesync,
+            "PARAM_REQUEST_LIST": self._on_param_request,
+            "PARAM_REQUEST_READ": self._on_param_request,
+            "PARAM_SET": self._on_param_request,
+            "MISSION_REQUEST_LIST": self._on_mission_request_list,
+            "HEARTBEAT": None,  # peers announce themselves; nothing to do
+        }
+
     # ---- asyncio protocol -----------------------------------------------------------------
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -164,7 +179,9 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             try:
                 self._dispatch(msg, addr)
             except Exception:
-                self.counters.malformed += 1
+                # Decoded but unusable (e.g. a value out of range for an int field): the link
+                # never dies on what a peer sends.
+                self.counters.handler_errors += 1
 
     def _reset_parser(self) -> None:
         self.mav.buf = bytearray()
@@ -213,19 +230,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         if target is not None and target not in (0, self.sysid):
             self.counters.wrong_target += 1
             return
-        handler = {
-            "COMMAND_LONG": self._on_command,
-            "COMMAND_INT": self._on_command,
-            "SET_MODE": self._on_set_mode,
-            "SET_ATTITUDE_TARGET": self._on_set_attitude_target,
-            "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target,
-            "TIMESYNC": self._on_timesync,
-            "PARAM_REQUEST_LIST": self._on_param_request,
-            "PARAM_REQUEST_READ": self._on_param_request,
-            "PARAM_SET": self._on_param_request,
-            "MISSION_REQUEST_LIST": self._on_mission_request_list,
-            "HEARTBEAT": None,
-        }.get(mtype, self._on_unknown)
+        handler = self._handlers.get(mtype, self._on_unknown)
         if handler is not None:
             handler(msg, addr)
 
@@ -246,7 +251,10 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             ]
         else:  # COMMAND_INT: x, y are scaled integers; only param1-4 and z are used here
             params = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y, msg.z]
-        result, follow_up = self._command_result(msg.command, params)
+        try:
+            result, follow_up = self._command_result(msg.command, params)
+        except (ValueError, OverflowError):  # NaN or inf where an integer is meant
+            result, follow_up = Result.DENIED, None
         self.send(
             self.mav.command_ack_encode(
                 msg.command, int(result), 0, 0, msg.get_srcSystem(), msg.get_srcComponent()

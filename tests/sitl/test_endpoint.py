@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import pytest
@@ -125,6 +126,8 @@ def test_unexpected_source_system_is_ignored_when_restricted():
         (mavlink.MAV_CMD_NAV_TAKEOFF, (0,) * 7, mavlink.MAV_RESULT_DENIED),  # disarmed
         (mavlink.MAV_CMD_REQUEST_MESSAGE, (9999,), mavlink.MAV_RESULT_DENIED),
         (mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, (), mavlink.MAV_RESULT_UNSUPPORTED),
+        (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, (math.nan, 1000), mavlink.MAV_RESULT_DENIED),
+        (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, (math.inf, 1000), mavlink.MAV_RESULT_DENIED),
     ],
 )
 def test_command_results(command, params, result):
