@@ -47,7 +47,9 @@ from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
 
 logger = logging.getLogger(__name__)
 
-_DEPENDENCE_RTOL = 1e-9
+# Cholesky pivots of Ga H^-1 Ga' below this fraction of the largest mean cond > ~1e12:
+# the rows are treated as linearly dependent.
+_DEPENDENCE_RTOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -104,7 +106,7 @@ class ActiveSetMap:
             except np.linalg.LinAlgError as exc:
                 raise DependentActiveSetError(f"active set {active} is dependent") from exc
             d = np.abs(np.diag(w_chol[0]))
-            if d.min() <= _DEPENDENCE_RTOL * max(1.0, float(d.max())):
+            if d.min() <= _DEPENDENCE_RTOL * float(d.max()):
                 raise DependentActiveSetError(f"active set {active} is dependent")
             # lam = -W^-1 (E1 F theta + S_a theta + g0_a)
             L_theta = -sla.cho_solve(w_chol, E1 @ problem.F + problem.S[idx])
@@ -187,7 +189,7 @@ class ExperienceController:
         max_size: int = 500,
         tol: float = 1e-9,
         intermediate_horizon: int = 5,
-        slack_weight: float = 1e4,
+        slack_weight: float = 1e3,
         learn_on_miss: bool = True,
         with_prediction: bool = False,
         max_pending: int = 8,
@@ -307,6 +309,10 @@ class ExperienceController:
         for key in reversed(entries):
             if key not in tried:
                 yield entries[key]
+
+    def query_order(self) -> list[tuple[int, ...]]:
+        """Active sets in the order the next query will try them (diagnostics and tests)."""
+        return [e.map.active for e in self._candidates()]
 
     def _query(self, theta: FloatArray) -> tuple[_Entry, FloatArray] | None:
         last = self._last
@@ -616,7 +622,7 @@ class _IntermediateQp:
             np.hstack([np.zeros((n_s, n_u)), np.eye(n_s)]),
             Au,
         ])
-        self._solver = OsqpSolver(P, A, polish=False, eps_abs=1e-5, eps_rel=1e-5, max_iter=400)
+        self._solver = OsqpSolver(P, A, polish=False, eps_abs=1e-5, eps_rel=1e-5, max_iter=2000)
         N = p.horizon
         self._l = np.concatenate([np.full(n_s, -np.inf), np.zeros(n_s),
                                   np.tile(p.u_min, N)])

@@ -116,6 +116,19 @@ def _positive_vector(value: ArrayLike | None, n: int, what: str) -> FloatArray:
     return arr.copy()
 
 
+def check_vector(value: ArrayLike, n: int, name: str) -> FloatArray:
+    """``value`` as a finite float array of shape (n,); else LwprError naming ``name``."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise LwprError(f"{name} must be a numeric array of shape ({n},): {exc}") from exc
+    if arr.shape != (n,):
+        raise LwprError(f"{name} must have shape ({n},), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise LwprError(f"{name} must be finite, got {arr}")
+    return arr
+
+
 class LWPR:
     """Incremental LWPR regression from R^n_in to R^n_out.
 
@@ -239,6 +252,7 @@ class LWPR:
         self._out = np.zeros(_INITIAL_CAPACITY, dtype=np.int64)  # output of each field
         self._nreg = np.zeros(_INITIAL_CAPACITY, dtype=np.int64)  # PLS projections in use
         self._trusted = np.zeros(_INITIAL_CAPACITY, dtype=bool)
+        self._nuse = np.zeros(_INITIAL_CAPACITY, dtype=np.int64)  # projections predictions use
         self._n = 0  # fields in use: rows [0, _n)
         self.n_updates = 0
         self.n_pruned = np.zeros(self.n_out, dtype=np.int64)
@@ -253,8 +267,8 @@ class LWPR:
 
     def update(self, x: ArrayLike, y: ArrayLike) -> FloatArray:
         """Learn one sample (x (n_in,), y (n_out,)); return the prediction at x before it."""
-        xn = self._check(x, self.n_in, "x") / self.norm_in
-        yn = self._check(y, self.n_out, "y") / self.norm_out
+        xn = check_vector(x, self.n_in, "x") / self.norm_in
+        yn = check_vector(y, self.n_out, "y") / self.norm_out
         v = self._active_views()
         w = self._activations(v, xn)
         y_before = self._predict_normalised(v, w, xn)
@@ -272,7 +286,7 @@ class LWPR:
 
     def predict(self, x: ArrayLike) -> FloatArray:
         """Prediction at x (n_in,): shape (n_out,); 0 where no trusted field is active."""
-        xn = self._check(x, self.n_in, "x") / self.norm_in
+        xn = check_vector(x, self.n_in, "x") / self.norm_in
         v = self._active_views()
         return self._predict_normalised(v, self._activations(v, xn), xn) * self.norm_out
 
@@ -283,7 +297,7 @@ class LWPR:
         is from the field's data in projection space) with the spread of the fields'
         predictions; it is 1e20 where no trusted field is active.
         """
-        xn = self._check(x, self.n_in, "x") / self.norm_in
+        xn = check_vector(x, self.n_in, "x") / self.norm_in
         n = self._n
         w = self._activations(self._active_views(), xn)
         use = (w > self.cutoff) & self._trusted[:n]
@@ -294,7 +308,7 @@ class LWPR:
         v = {name: arr[use] for name, arr in self._active_views().items()}
         wu = w[use]
         rows_idx = np.arange(wu.size)
-        n_use = self._projections_in_use(v, self._nreg[:n][use])
+        n_use = self._nuse[:n][use]
         s, _ = self._project(xn - v["mean_x"], v["U"], v["P"])
         used = self._r_idx < n_use[:, None]
         yp = v["beta0"] + np.sum(v["beta"] * s * used, axis=1)
@@ -433,6 +447,7 @@ class LWPR:
         model._trusted[:n] = trusted.astype(bool)
         model._n = n
         model._views_n = -1
+        model._nuse[:n] = model._projections_in_use(model._active_views(), model._nreg[:n])
         n_pruned = np.asarray(need("n_pruned"), dtype=np.int64)
         if n_pruned.shape != (n_out,):
             raise LwprError("LWPR model has inconsistent field arrays")
@@ -441,18 +456,6 @@ class LWPR:
         return model
 
     # ----------------------------------------------------------------- internals
-
-    @staticmethod
-    def _check(value: ArrayLike, n: int, name: str) -> FloatArray:
-        try:
-            arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise LwprError(f"{name} must be a numeric array of shape ({n},): {exc}") from exc
-        if arr.shape != (n,):
-            raise LwprError(f"{name} must have shape ({n},), got {arr.shape}")
-        if not np.isfinite(arr).all():
-            raise LwprError(f"{name} must be finite, got {arr}")
-        return arr
 
     def _active_views(self) -> dict[str, FloatArray]:
         """Named views of the fields in use (rows [0, n)); writes go to the model."""
@@ -479,11 +482,11 @@ class LWPR:
         """Weighted mean of the trusted active fields' linear models (eqs. 3.1, 3.2, 3.4)."""
         n = self._n
         local = v["beta0"] + ((xn - v["mean_x"]) * v["slope"]) @ self._ones
-        wu = w * ((w > self.cutoff) & self._trusted[:n])
+        wu = np.where((w > self.cutoff) & self._trusted[:n], w, 0.0)
         out = self._out[:n]
         sw = np.bincount(out, weights=wu, minlength=self.n_out)
         swy = np.bincount(out, weights=wu * local, minlength=self.n_out)
-        y: FloatArray = np.divide(swy, sw, out=np.zeros(self.n_out), where=sw > 0.0)
+        y: FloatArray = swy / np.where(sw > 0.0, sw, 1.0)  # 0 where no field contributes
         return y
 
     def _project(
@@ -573,8 +576,9 @@ class LWPR:
         ssp *= lam_last
         ssp += (ws * ws / ss2) @ self._ones
 
-        s, _ = self._project(xmz, U, P)
-        n_use = self._projections_in_use(v, nreg)
+        G = self._projection_rows(U, P)
+        s = (G * xmz[:, None, :]) @ self._ones  # projections with the updated directions
+        n_use = self._nuse[:n]
         y_fit = (beta * s * (self._r_idx < n_use[:, None])) @ self._ones
         i_cv = np.maximum(n_use - 1, 0)
         e_cv_r = e_cv[rows, i_cv]  # leave-one-out error of the projections in use
@@ -596,7 +600,11 @@ class LWPR:
         np.copyto(
             lam, self.tau_lambda * lam + (1.0 - self.tau_lambda) * self.final_lambda, where=act_r
         )
-        self._update_slopes(v, nreg)
+        # Cache each field's linear model y = beta0 + slope'(x - mean_x) for predictions.
+        n_use = self._projections_in_use(v, nreg)
+        self._nuse[:n] = n_use
+        coef = beta * (self._r_idx < n_use[:, None])
+        v["slope"][...] = np.einsum("kr,krd->kd", coef, G)
 
     def _update_metric(
         self,
@@ -754,47 +762,49 @@ class LWPR:
         active: npt.NDArray[np.bool_],
     ) -> None:
         """Add a PLS projection where the newest one cut the leave-one-out error enough."""
-        can = (nreg < self.n_in) & active
-        if not can.any():
-            return
         rows = np.arange(nreg.size)
         last = nreg - 1
-        prev = np.maximum(nreg - 2, 0)
-        sec, sw, n_data = v["sum_e_cv2"], v["sum_w"], v["n_data"]
-        mse_last = sec[rows, last] / sw[rows, last] + 1e-10
-        mse_prev = sec[rows, prev] / sw[rows, prev] + 1e-10
+        n_data = v["n_data"]
         n_last = n_data[rows, last]
+        can = (nreg < self.n_in) & active & (n_last * (1.0 - v["lam"][rows, last]) > 0.5)
+        if not can.any():
+            return
+        mse = v["sum_e_cv2"] / v["sum_w"] + 1e-10
         add = (
             can
-            & (mse_last < self.add_threshold * mse_prev)
+            & (mse[rows, last] < self.add_threshold * mse[rows, np.maximum(nreg - 2, 0)])
             & (n_last > 0.99 * n_data[:, 0])
-            & (n_last * (1.0 - v["lam"][rows, last]) > 0.5)
         )
         # The new slot has been kept in its initial state (weight 0, no forgetting).
         nreg[add] += 1
         v["ssp"][add] = 0.0
 
-    def _update_slopes(self, v: dict[str, FloatArray], nreg: npt.NDArray[np.int64]) -> None:
-        """Cache each field's linear model y = beta0 + slope'(x - mean_x) for predictions:
-        s_r = g_r'x with g_r = T_r'u_r, T_0 = I, T_{r+1} = T_r - p_r g_r'."""
-        U, P, beta = v["U"], v["P"], v["beta"]
+    @staticmethod
+    def _projection_rows(U: FloatArray, P: FloatArray) -> FloatArray:
+        """The PLS projections as linear maps, G (k, R, d) with s_r = g_r'x: from
+        x_{r+1} = x_r - p_r s_r, g_r = T_r'u_r with T_0 = I, T_{r+1} = T_r - p_r g_r'."""
         R, d = U.shape[1:]
-        coef = beta * (self._r_idx < self._projections_in_use(v, nreg)[:, None])
-        g = U[:, 0]
-        slope = coef[:, :1] * g
-        T = np.eye(d) - P[:, 0, :, None] * g[:, None, :]
-        for j in range(1, R):
-            g = np.einsum("ki,kij->kj", U[:, j], T)
-            slope += coef[:, j, None] * g
-            if j + 1 < R:
-                T = T - P[:, j, :, None] * g[:, None, :]
-        v["slope"][...] = slope
+        G = np.empty(U.shape)
+        G[:, 0] = U[:, 0]
+        if R > 1:
+            T = np.eye(d) - P[:, 0, :, None] * U[:, 0, None, :]
+            for j in range(1, R):
+                G[:, j] = np.einsum("ki,kij->kj", U[:, j], T)
+                if j + 1 < R:
+                    T = T - P[:, j, :, None] * G[:, j, None, :]
+        return G
 
     def _add_or_prune(self, w: FloatArray, xn: FloatArray, yn: FloatArray) -> None:
         """Per output: a new field where none is active above w_gen, else prune one of the
         two most active fields if both exceed w_prune (the narrower one, larger trace D)."""
         n = self._n
         out = self._out[:n]
+        # Fast path, almost every update: each output has a field above w_gen, and no
+        # two fields exceed w_prune.
+        w_best = np.zeros(self.n_out)
+        np.maximum.at(w_best, out, w)
+        if (w_best > self.w_gen).all() and np.count_nonzero(w > self.w_prune) < 2:
+            return
         counts = np.bincount(out, minlength=self.n_out)
         order = np.lexsort((w, out))  # by output, then by activation
         ends = np.cumsum(counts)
@@ -827,7 +837,7 @@ class LWPR:
         keep = np.ones(n, dtype=bool)
         keep[rows] = False
         m = int(keep.sum())
-        for arr in (*self._store.values(), self._out, self._nreg, self._trusted):
+        for arr in (*self._store.values(), self._out, self._nreg, self._trusted, self._nuse):
             arr[:m] = arr[:n][keep]
         self._n = m
         self._views_n = -1
@@ -845,11 +855,8 @@ class LWPR:
             return new
 
         self._store = {k: grown(a) for k, a in self._store.items()}
-        self._out, self._nreg, self._trusted = (
-            grown(self._out),
-            grown(self._nreg),
-            grown(self._trusted),
-        )
+        self._out, self._nreg = grown(self._out), grown(self._nreg)
+        self._trusted, self._nuse = grown(self._trusted), grown(self._nuse)
         self._views_n = -1
 
     def _append_field(
@@ -880,6 +887,7 @@ class LWPR:
         v["n_data"][0, :nreg] = 1e-10
         self._out[i] = o
         self._nreg[i] = nreg
+        self._nuse[i] = nreg - 1  # the newest projection waits for data
         self._trusted[i] = False
         self._n = i + 1
         self._views_n = -1

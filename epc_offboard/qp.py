@@ -395,9 +395,9 @@ class OsqpSolver:
         self._solver.update(q=q, l=lower, u=u)
         if self._polish:
             with _quiet_stdout():
-                res = self._solver.solve()
+                res = self._solver.solve(raise_error=False)
         else:
-            res = self._solver.solve()
+            res = self._solver.solve(raise_error=False)
         status = _STATUS.get(int(res.info.status_val), QpStatus.FAILED)
         x = np.array(res.x, dtype=np.float64) if res.x is not None else np.full(self.n, np.nan)
         y = np.array(res.y, dtype=np.float64) if res.y is not None else np.full(self.m, np.nan)

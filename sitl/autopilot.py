@@ -394,7 +394,11 @@ class Autopilot:
         """PID on position -> acceleration -> (attitude quaternion, normalised thrust)."""
         p = self.params
         err = pos_ref - x[POS]
-        self._pos_integral = np.clip(self._pos_integral + err * dt_s, -2.0, 2.0)
+        # Integrate a clipped error: a large step must not wind the integrator up (overshoot),
+        # yet any steady offset (wind) is still trimmed out.
+        self._pos_integral = np.clip(
+            self._pos_integral + np.clip(err, -0.3, 0.3) * dt_s, -2.0, 2.0
+        )
         acc = (
             np.asarray(p.position_p_1_s2) * err
             + np.asarray(p.velocity_d_1_s) * (vel_ref - x[VEL])

@@ -72,6 +72,7 @@ class Counters:
     nan_setpoints: int = 0
     commands: int = 0
     setpoints: int = 0
+    handler_errors: int = 0
     send_errors: int = 0
     lockstep_timeouts: int = 0
     offboard_failsafes: int = 0
@@ -140,6 +141,20 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
         }
 
+        self._handlers: dict[str, Callable[[Any, Address], None] | None] = {
+            "COMMAND_LONG": self._on_command,
+            "COMMAND_INT": self._on_command,
+            "SET_MODE": self._on_set_mode,
+            "SET_ATTITUDE_TARGET": self._on_set_attitude_target,
+            "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target,
+            "TIMESYNC": self._on_timesync,
+            "PARAM_REQUEST_LIST": self._on_param_request,
+            "PARAM_REQUEST_READ": self._on_param_request,
+            "PARAM_SET": self._on_param_request,
+            "MISSION_REQUEST_LIST": self._on_mission_request_list,
+            "HEARTBEAT": None,  # peers announce themselves; nothing to do
+        }
+
     # ---- asyncio protocol -----------------------------------------------------------------
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -164,7 +179,9 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             try:
                 self._dispatch(msg, addr)
             except Exception:
-                self.counters.malformed += 1
+                # Decoded but unusable (e.g. a value out of range for an int field): the link
+                # never dies on what a peer sends.
+                self.counters.handler_errors += 1
 
     def _reset_parser(self) -> None:
         self.mav.buf = bytearray()
@@ -213,15 +230,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         if target is not None and target not in (0, self.sysid):
             self.counters.wrong_target += 1
             return
-        handler = {
-            "COMMAND_LONG": self._on_command,
-            "COMMAND_INT": self._on_command,
-            "SET_MODE": self._on_set_mode,
-            "SET_ATTITUDE_TARGET": self._on_set_attitude_target,
-            "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target,
-            "TIMESYNC": self._on_timesync,
-            "HEARTBEAT": None,
-        }.get(mtype, self._on_unknown)
+        handler = self._handlers.get(mtype, self._on_unknown)
         if handler is not None:
             handler(msg, addr)
 
@@ -242,7 +251,10 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             ]
         else:  # COMMAND_INT: x, y are scaled integers; only param1-4 and z are used here
             params = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y, msg.z]
-        result, follow_up = self._command_result(msg.command, params)
+        try:
+            result, follow_up = self._command_result(msg.command, params)
+        except (ValueError, OverflowError):  # NaN or inf where an integer is meant
+            result, follow_up = Result.DENIED, None
         self.send(
             self.mav.command_ack_encode(
                 msg.command, int(result), 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
@@ -343,6 +355,46 @@ class SitlEndpoint(asyncio.DatagramProtocol):
     def _on_timesync(self, msg: Any, addr: Address) -> None:
         if msg.tc1 == 0:
             self.send(self.mav.timesync_encode(self.sim.time_us * 1000, msg.ts1), extra=addr)
+
+    def _parameters(self) -> list[tuple[str, float]]:
+        """A read-only view of the config under PX4's parameter names, for ground stations."""
+        ap = self.sim.config.autopilot
+        return [
+            ("COM_DISARM_LAND", ap.disarm_after_land_s),
+            ("COM_DISARM_PRFLT", ap.disarm_preflight_s),
+            ("COM_OF_LOSS_T", ap.offboard_loss_timeout_s),
+            ("MIS_TAKEOFF_ALT", ap.takeoff_altitude_m),
+            ("MPC_LAND_SPEED", ap.land_speed_m_s),
+            ("MPC_TKO_SPEED", ap.climb_speed_m_s),
+        ]
+
+    def _on_param_request(self, msg: Any, addr: Address) -> None:
+        """PARAM_REQUEST_LIST sends all; READ and SET answer one (SET changes nothing)."""
+        params = self._parameters()
+        wanted = range(len(params))
+        if msg.get_type() != "PARAM_REQUEST_LIST":
+            index = getattr(msg, "param_index", -1)
+            names = [name for name, _ in params]
+            if index < 0 and msg.param_id in names:
+                index = names.index(msg.param_id)
+            wanted = range(index, index + 1) if 0 <= index < len(params) else range(0)
+        for i in wanted:
+            name, value = params[i]
+            self.send(
+                self.mav.param_value_encode(
+                    name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32, len(params), i
+                ),
+                extra=addr,
+            )
+
+    def _on_mission_request_list(self, msg: Any, addr: Address) -> None:
+        # No missions here: an empty list lets a ground station finish its connection ritual.
+        self.send(
+            self.mav.mission_count_encode(
+                msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type
+            ),
+            extra=addr,
+        )
 
     # ---- message builders (vehicle time, published = noisy estimate) -----------------------
 

@@ -50,7 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--signing-key", type=Path, help="file holding a 32-byte MAVLink key")
     ap.add_argument("--speedup", type=float, default=1.0, help="pace = wall clock x this")
     ap.add_argument("--listen-port", type=int, help="default 14580+I; 0 = any free port")
-    ap.add_argument("--offboard-port", type=int, help="telemetry to 127.0.0.1:P, default 14540+I")
+    ap.add_argument(
+        "--offboard-port", type=int, help="telemetry to 127.0.0.1:P, default 14540+I, 0 = off"
+    )
     ap.add_argument("--gcs-port", type=int, default=14550, help="ground station port, 0 = off")
     ap.add_argument("--lockstep-period-ms", type=float, help="overrides sitl.lockstep_period_s")
     ap.add_argument("--lockstep-timeout-ms", type=float, help="overrides sitl.lockstep_timeout_s")
@@ -72,6 +74,13 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+def link_addresses(args: argparse.Namespace) -> tuple[int, list[tuple[str, int]]]:
+    """PX4 SITL port plan: listen on 14580+I, telemetry to 14540+I and the GCS port (0 = off)."""
+    listen_port = 14580 + args.instance if args.listen_port is None else args.listen_port
+    offboard_port = 14540 + args.instance if args.offboard_port is None else args.offboard_port
+    return listen_port, [(HOST, p) for p in (offboard_port, args.gcs_port) if p]
+
+
 def _signing_key(path: Path | None) -> bytes | None:
     if path is None:
         return None
@@ -90,46 +99,46 @@ async def run(args: argparse.Namespace) -> Counters:
     config = load_sim_config(args.config, _overrides(args))
     key = _signing_key(args.signing_key)
     sysid = args.instance + 1
-    listen_port = 14580 + args.instance if args.listen_port is None else args.listen_port
-    offboard_port = 14540 + args.instance if args.offboard_port is None else args.offboard_port
-    dests = [(HOST, p) for p in (offboard_port, args.gcs_port) if p]
+    listen_port, dests = link_addresses(args)
 
     sim = Simulation(config, seed=args.seed)
     counters = Counters()
     gate = LockstepGate(
         args.lockstep, config.sitl.lockstep_timeout_s, config.sitl.lockstep_max_timeouts
     )
+    if args.lockstep and config.sitl.telemetry.attitude_hz * config.sitl.lockstep_period_s < 1:
+        # The controller stamps its answer with the newest state it saw; if no ATTITUDE is
+        # sent on a tick, no answer can match that tick and lockstep degrades to timeouts.
+        print("epc-sitl: warning: ATTITUDE is slower than the lockstep tick", file=sys.stderr)
     loop = asyncio.get_running_loop()
-    transport, endpoint = await loop.create_datagram_endpoint(
-        lambda: SitlEndpoint(sim, sysid, dests, counters, key, gate.on_setpoint),
-        local_addr=(HOST, listen_port),
-    )
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
-    writer = None
-    if args.groundtruth is not None:
-        writer = GroundTruthWriter(args.groundtruth, config.sitl.groundtruth_flush_s)
+    with contextlib.ExitStack() as resources:
+        writer = None
+        if args.groundtruth is not None:
+            writer = GroundTruthWriter(args.groundtruth, config.sitl.groundtruth_flush_s)
+            resources.callback(writer.close)
+        transport, endpoint = await loop.create_datagram_endpoint(
+            lambda: SitlEndpoint(sim, sysid, dests, counters, key, gate.on_setpoint),
+            local_addr=(HOST, listen_port),
+        )
+        resources.callback(transport.close)
 
-    def tick() -> None:
-        sim.advance_tick()
-        endpoint.emit()
-        if writer is not None:
-            writer.write(sim)
+        def tick() -> None:
+            sim.advance_tick()
+            endpoint.emit()
+            if writer is not None:
+                writer.write(sim)
 
-    port = transport.get_extra_info("sockname")[1]
-    print(
-        f"epc-sitl: instance {args.instance}, sysid {sysid}, listening udp {HOST}:{port}, "
-        f"telemetry -> {', '.join(f'{h}:{p}' for h, p in dests) or 'none'}",
-        flush=True,
-    )
-    clock = Clock(gate, config.sitl.lockstep_period_s, args.speedup, lambda: sim.time_ms)
-    try:
+        port = transport.get_extra_info("sockname")[1]
+        print(
+            f"epc-sitl: instance {args.instance}, sysid {sysid}, listening udp {HOST}:{port}, "
+            f"telemetry -> {', '.join(f'{h}:{p}' for h, p in dests) or 'none'}",
+            flush=True,
+        )
+        clock = Clock(gate, config.sitl.lockstep_period_s, args.speedup, lambda: sim.time_ms)
         await clock.run(tick, stop, args.duration)
-    finally:
-        transport.close()
-        if writer is not None:
-            writer.close()
     counters.lockstep_timeouts = gate.timeouts
     counters.offboard_failsafes = sim.autopilot.failsafe_count
     return counters

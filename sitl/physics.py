@@ -71,8 +71,7 @@ class QuadrotorModel:
 
     def __init__(self, params: VehicleParams) -> None:
         self.params = params
-        self._inertia = np.diag(params.inertia_diag_kg_m2)
-        self._inertia_inv = np.diag(1.0 / np.asarray(params.inertia_diag_kg_m2))
+        self._inertia_diag = np.asarray(params.inertia_diag_kg_m2, dtype=np.float64)
         self._mix = effectiveness_matrix(params)
         # Rows 1..3 of the effectiveness matrix give the torque from forces F_i.
         self._torque_of_force = self._mix[1:, :]
@@ -88,29 +87,27 @@ class QuadrotorModel:
     ) -> FloatArray:
         """dx/dt (17,) for state ``x`` (17,), rotor commands (4,), wind and external force (3,)."""
         p = self.params
-        q = x[QUAT]
-        w = x[RATE]
+        dx = np.empty(NX)
+        R = quat_to_rotation(x[QUAT])
         omega = x[ROTOR]
-        R = quat_to_rotation(q)
         forces = p.k_f_n_s2 * omega * omega
-        v_rel_frd = R.T @ (x[VEL] - wind_ned_m_s)
-        f_body = -self._drag * v_rel_frd
+        f_body = -self._drag * (R.T @ (x[VEL] - wind_ned_m_s))
         f_body[2] -= forces.sum()
-        acc = self._gravity + (R @ f_body + ext_force_ned_n) / p.mass_kg
-        torque = self._torque_of_force @ forces
-        w_dot = self._inertia_inv @ (torque - cross3(w, self._inertia @ w))
-        qw, qx, qy, qz = q
+        dx[POS] = x[VEL]
+        dx[VEL] = self._gravity + (R @ f_body + ext_force_ned_n) / p.mass_kg
+        w = x[RATE]
+        inertia = self._inertia_diag
+        dx[RATE] = (self._torque_of_force @ forces - cross3(w, inertia * w)) / inertia
+        qw, qx, qy, qz = x[QUAT]
         wx, wy, wz = w
-        q_dot = 0.5 * np.array(
-            [
-                -qx * wx - qy * wy - qz * wz,
-                qw * wx + qy * wz - qz * wy,
-                qw * wy - qx * wz + qz * wx,
-                qw * wz + qx * wy - qy * wx,
-            ]
+        dx[QUAT] = (
+            0.5 * (-qx * wx - qy * wy - qz * wz),
+            0.5 * (qw * wx + qy * wz - qz * wy),
+            0.5 * (qw * wy - qx * wz + qz * wx),
+            0.5 * (qw * wz + qx * wy - qy * wx),
         )
-        omega_dot = (rotor_cmd_rad_s - omega) / p.motor_time_constant_s
-        return np.concatenate([x[VEL], acc, q_dot, w_dot, omega_dot])
+        dx[ROTOR] = (rotor_cmd_rad_s - omega) / p.motor_time_constant_s
+        return dx
 
     def step(
         self,

@@ -6,7 +6,6 @@ an OS-chosen port (``--listen-port 0``) that it prints on its first line. No fix
 
 from __future__ import annotations
 
-import math
 import re
 import socket
 import subprocess
@@ -94,6 +93,36 @@ class MavClient:
             )
         )
 
+    def pump(
+        self,
+        until: Callable[[Any], bool],
+        setpoint: Callable[[int], tuple[float, tuple[float, float, float, float]]] | None,
+        timeout_s: float = 20.0,
+    ) -> Any:
+        """Lockstep responder: answer every ATTITUDE with ``setpoint(time_boot_ms)`` (thrust, q),
+        stamped with that ATTITUDE's time, until ``until(msg)`` holds for a received message.
+        ``setpoint=None`` answers nothing (the controller went silent)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for m in self.poll(deadline - time.monotonic()):
+                if setpoint is not None and m.get_type() == "ATTITUDE":
+                    thrust, q = setpoint(m.time_boot_ms)
+                    self.attitude_setpoint(thrust, q, time_boot_ms=m.time_boot_ms)
+                if until(m):
+                    return m
+        raise TimeoutError(f"condition not met within {timeout_s} s")
+
+    def command_while_pumping(
+        self,
+        command: int,
+        params: tuple[float, ...],
+        setpoint: Callable[[int], tuple[float, tuple[float, float, float, float]]] | None,
+    ) -> int:
+        p = [*params, *([0.0] * (7 - len(params)))]
+        self.send(self.mav.command_long_encode(1, 1, command, 0, *p))
+        ack = self.pump(lambda m: m.get_type() == "COMMAND_ACK" and m.command == command, setpoint)
+        return int(ack.result)
+
 
 class _Sink:
     data = b""
@@ -149,11 +178,3 @@ def stop_sitl(proc: subprocess.Popen[str], timeout_s: float = 10.0) -> tuple[int
 def counters_from(stderr: str) -> dict[str, int]:
     line = next(ln for ln in stderr.splitlines() if "counters" in ln)
     return {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", line)}
-
-
-def level_q() -> tuple[float, float, float, float]:
-    return (1.0, 0.0, 0.0, 0.0)
-
-
-def is_finite(*values: float) -> bool:
-    return all(math.isfinite(v) for v in values)

@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from epc_offboard.frames import euler_to_quat, quat_to_euler, quat_to_rotation
 from sitl.autopilot import (
@@ -21,6 +23,7 @@ from sitl.autopilot import (
     Autopilot,
     LandedState,
     Mode,
+    PositionSetpoint,
     Result,
     attitude_from_thrust,
     quat_from_rotation,
@@ -161,3 +164,37 @@ def test_hold_rejects_a_steady_wind():
     assert math.hypot(sim.state[0], sim.state[1]) < 0.3
     roll, _, _ = quat_to_euler(sim.state[6:10])
     assert roll < -0.02  # wind towards east: lean west (roll left) into it
+
+
+def test_position_setpoints_fly_the_vehicle_in_offboard():
+    sim = Simulation(CONFIG, seed=0)
+    ap = sim.autopilot
+    target = PositionSetpoint(pos_ned_m=(1.0, -0.5, -1.5), vel_ned_m_s=None, yaw_rad=0.5)
+    ap.arm(True, 0.0)
+    for _ in range(5):
+        ap.on_position_setpoint(target, sim.time_s)
+        sim.advance_tick()
+    assert ap.set_mode(OFFBOARD, sim.time_s) == Result.ACCEPTED
+    for _ in range(round(6.0 / 0.005)):
+        ap.on_position_setpoint(target, sim.time_s)
+        sim.advance_tick()
+    assert ap.mode == OFFBOARD
+    np.testing.assert_allclose(sim.state[0:3], [1.0, -0.5, -1.5], atol=0.15)
+    assert quat_to_euler(sim.state[6:10])[2] == pytest.approx(0.5, abs=0.05)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    north=st.floats(-1, 1),
+    east=st.floats(-1, 1),
+    up=st.floats(0.2, 1),
+    yaw=st.floats(-3.1, 3.1),
+)
+def test_attitude_from_thrust_points_body_up_along_thrust_with_exact_yaw(north, east, up, yaw):
+    f = np.array([north, east, -up])
+    f /= np.linalg.norm(f)
+    q = attitude_from_thrust(f, yaw)
+    R = quat_to_rotation(q)
+    np.testing.assert_allclose(-R[:, 2], f, atol=1e-9)
+    assert math.cos(quat_to_euler(q)[2] - yaw) == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(quat_from_rotation(R), q, atol=1e-9)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from epc_offboard.frames import GRAVITY_M_S2, euler_to_quat
-from sitl.params import EnvironmentParams, load_sim_config
+from sitl.params import EnvironmentParams, SurfaceParams, load_sim_config
 from sitl.physics import (
     QUAT,
     RATE,
@@ -162,3 +162,34 @@ def test_ground_holds_a_vehicle_with_rotors_stopped():
     for _ in range(100):
         x = model.step(x, np.zeros(4), np.array([5.0, 0, 0]), ZERO3, 0.001)
     np.testing.assert_array_equal(x[0:6], 0.0)
+
+
+def test_near_surface_disturbance_pulls_towards_the_wall_and_decays():
+    surface = SurfaceParams(
+        enabled=True,
+        point_ned_m=(5.0, 0.0, 0.0),
+        normal_ned=(-1.0, 0, 0),
+        peak_force_n=2.0,
+        decay_length_m=0.5,
+        range_m=3.0,
+        fluctuation_rel=0.0,
+    )
+    env = Environment(EnvironmentParams(surface=surface), np.random.default_rng(0))
+    near = env.surface_force_ned_n(np.array([4.5, 0.0, -2.0]))  # 0.5 m from the wall
+    np.testing.assert_allclose(near, [2.0 * math.exp(-1.0), 0.0, 0.0])  # towards +north
+    far = env.surface_force_ned_n(np.array([3.0, 0.0, -2.0]))
+    assert 0.0 < far[0] < near[0]
+    np.testing.assert_array_equal(env.surface_force_ned_n(np.array([1.0, 0, -2.0])), 0.0)
+
+
+def test_plus_layout_mixer_has_the_thesis_eq_3_11_pattern():
+    """Inverse effectiveness of the plus layout = eq. 3.11's sign pattern, with the pitch and
+    yaw columns negated because body y and z flip between the thesis's z-up frame and FRD."""
+    plus = dataclasses.replace(
+        VEHICLE, rotor_angles_deg=(0.0, -90.0, 180.0, 90.0), rotor_yaw_moment_sign=(-1, 1, -1, 1)
+    )
+    thesis = np.array([[1, 0, -1, 1], [1, 1, 0, -1], [1, 0, 1, 1], [1, -1, 0, -1]])
+    frd = thesis * np.array([1, 1, -1, -1])
+    np.testing.assert_array_equal(
+        np.sign(np.round(np.linalg.inv(effectiveness_matrix(plus)), 12)), frd
+    )

@@ -1,0 +1,155 @@
+"""The MAVLink endpoint in-process: a recording transport instead of a socket."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from sitl.autopilot import HOLD, OFFBOARD
+from sitl.endpoint import Counters, SitlEndpoint
+from sitl.params import load_sim_config
+from sitl.simulation import Simulation
+
+TELEMETRY = ("127.0.0.1", 14999)
+PEER = ("127.0.0.1", 40001)
+
+
+class RecordingTransport:
+    def __init__(self) -> None:
+        self.sent: list[tuple[bytes, tuple[str, int]]] = []
+
+    def sendto(self, data: bytes, addr: tuple[str, int]) -> None:
+        self.sent.append((data, addr))
+
+
+class Peer:
+    def __init__(self, sysid: int = 245) -> None:
+        self.mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=190)
+        self.rx = mavlink.MAVLink(None)
+
+    def pack(self, msg) -> bytes:
+        return bytes(msg.pack(self.mav))
+
+    def decode(self, transport: RecordingTransport, addr=PEER) -> list[Any]:
+        out: list[Any] = []
+        for data, dest in transport.sent:
+            if dest == addr:
+                out += self.rx.parse_buffer(data) or []
+        return out
+
+
+def make(allowed=()):
+    cfg = load_sim_config()
+    cfg = dataclasses.replace(
+        cfg, sitl=dataclasses.replace(cfg.sitl, allowed_source_sysids=tuple(allowed))
+    )
+    sim = Simulation(cfg, seed=0)
+    counters = Counters()
+    ep = SitlEndpoint(sim, 1, [TELEMETRY], counters)
+    transport = RecordingTransport()
+    ep.connection_made(transport)  # type: ignore[arg-type]
+    return sim, ep, transport, counters
+
+
+def test_replies_go_to_the_sender_and_to_telemetry():
+    sim, ep, transport, _ = make()
+    peer = Peer()
+    ep.datagram_received(
+        peer.pack(peer.mav.command_int_encode(1, 1, 0, 400, 0, 0, 1, 0, 0, 0, 0, 0, 0)), PEER
+    )
+    acks = [m for m in peer.decode(transport) if m.get_type() == "COMMAND_ACK"]
+    assert [(a.command, a.result, a.target_system) for a in acks] == [(400, 0, 245)]
+    assert any(dest == TELEMETRY for _, dest in transport.sent)
+    assert sim.autopilot.armed
+
+
+def test_set_mode_message_and_position_setpoints_enter_offboard():
+    sim, ep, _transport, counters = make()
+    peer = Peer()
+    for _k in range(5):
+        sim.advance_tick()
+        ep.datagram_received(
+            peer.pack(
+                peer.mav.set_position_target_local_ned_encode(
+                    sim.time_ms,
+                    1,
+                    1,
+                    mavlink.MAV_FRAME_LOCAL_NED,
+                    0b110111111000,
+                    0.0,
+                    0.0,
+                    -3.0,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                )
+            ),
+            PEER,
+        )
+    custom = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    ep.datagram_received(peer.pack(peer.mav.set_mode_encode(1, custom, 6 << 16)), PEER)
+    assert sim.autopilot.mode == OFFBOARD
+    assert counters.setpoints == 5
+    ep.datagram_received(peer.pack(peer.mav.set_mode_encode(1, custom, 0x03040000)), PEER)
+    assert sim.autopilot.mode == HOLD
+
+
+def test_unexpected_source_system_is_ignored_when_restricted():
+    sim, ep, transport, counters = make(allowed=(255,))
+    stranger = Peer(sysid=42)
+    arm = stranger.mav.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
+    ep.datagram_received(stranger.pack(arm), PEER)
+    assert counters.unexpected_sysid == 1
+    assert not sim.autopilot.armed
+    assert transport.sent == []
+    gcs = Peer(sysid=255)
+    ep.datagram_received(
+        gcs.pack(gcs.mav.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)), PEER
+    )
+    assert sim.autopilot.armed
+
+
+@pytest.mark.parametrize(
+    ("command", "params", "result"),
+    [
+        (mavlink.MAV_CMD_DO_SET_MODE, (1, 4, 0), mavlink.MAV_RESULT_UNSUPPORTED),  # AUTO, no sub
+        (mavlink.MAV_CMD_DO_SET_MODE, (0, 6, 0), mavlink.MAV_RESULT_UNSUPPORTED),  # no custom flag
+        (mavlink.MAV_CMD_NAV_TAKEOFF, (0,) * 7, mavlink.MAV_RESULT_DENIED),  # disarmed
+        (mavlink.MAV_CMD_REQUEST_MESSAGE, (9999,), mavlink.MAV_RESULT_DENIED),
+        (mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, (), mavlink.MAV_RESULT_UNSUPPORTED),
+        (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, (math.nan, 1000), mavlink.MAV_RESULT_DENIED),
+        (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, (math.inf, 1000), mavlink.MAV_RESULT_DENIED),
+    ],
+)
+def test_command_results(command, params, result):
+    _, ep, transport, _ = make()
+    peer = Peer()
+    p = [*params, *([0.0] * (7 - len(params)))]
+    ep.datagram_received(peer.pack(peer.mav.command_long_encode(1, 1, command, 0, *p)), PEER)
+    acks = [m for m in peer.decode(transport) if m.get_type() == "COMMAND_ACK"]
+    assert [(a.command, a.result) for a in acks] == [(command, result)]
+
+
+def test_ground_station_ritual_params_and_empty_mission():
+    sim, ep, transport, _ = make()
+    peer = Peer()
+    ep.datagram_received(peer.pack(peer.mav.param_request_list_encode(1, 1)), PEER)
+    ep.datagram_received(
+        peer.pack(peer.mav.param_request_read_encode(1, 1, b"COM_OF_LOSS_T", -1)), PEER
+    )
+    ep.datagram_received(peer.pack(peer.mav.mission_request_list_encode(1, 1)), PEER)
+    got = peer.decode(transport)
+    values = [m for m in got if m.get_type() == "PARAM_VALUE"]
+    assert len(values) == values[0].param_count + 1
+    loss = [m.param_value for m in values if m.param_id == "COM_OF_LOSS_T"]
+    assert loss == [sim.config.autopilot.offboard_loss_timeout_s] * 2
+    assert [m.count for m in got if m.get_type() == "MISSION_COUNT"] == [0]

@@ -1,0 +1,296 @@
+"""EPC: oracles (LQR, exact QP solutions), the KKT check, library behaviour, import/export."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from epc_offboard.epc import ExperienceController, LibraryEntry
+from epc_offboard.models import position_model
+from epc_offboard.qp import MpcProblem
+from tests.mpc_cases import A_MAX, V_MAX, exact_solution, hover_refs, position_problem
+
+FAST = settings(max_examples=25, deadline=None,
+                suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+def lqr_first_gain(A, B, Q, R, N):
+    """Finite-horizon LQR for sum_k 1/2 x_{k+1}'Q x_{k+1} + 1/2 u_k'R u_k: u_0 = -K_0 x_0."""
+    P = np.zeros_like(Q)
+    K = None
+    for _ in range(N):
+        S = Q + P
+        K = np.linalg.solve(R + B.T @ S @ B, B.T @ S @ A)
+        P = A.T @ S @ (A - B @ K)
+    return K
+
+
+@FAST
+@given(x0=st.lists(st.floats(-5, 5), min_size=6, max_size=6))
+def test_unconstrained_epc_equals_finite_horizon_lqr(x0):
+    p = position_problem(12, constrained=False)
+    ctrl = ExperienceController(p)
+    K = lqr_first_gain(p.model.A, p.model.B, p.Q, p.R, 12)
+    d = ctrl.step(np.array(x0), np.zeros((12, 6)))
+    assert d.source in ("hit", "solved")
+    assert np.allclose(d.u, -K @ np.array(x0), atol=1e-9, rtol=0)
+
+
+state = st.lists(st.floats(-3, 3), min_size=6, max_size=6).map(np.array)
+target = st.lists(st.floats(-10, 10), min_size=3, max_size=3).map(np.array)
+pert = st.lists(st.floats(-0.05, 0.05), min_size=6, max_size=6).map(np.array)
+
+
+def feasible_state(x0):
+    x = x0.copy()
+    x[3:] = np.clip(x[3:], -0.8 * V_MAX, 0.8 * V_MAX)
+    return x
+
+
+@settings(max_examples=30, deadline=None)
+@given(x0=state, tgt=target, p_hat=pert, shift=st.floats(-0.05, 0.05))
+def test_library_hit_equals_a_fresh_exact_solve(x0, tgt, p_hat, shift):
+    p = position_problem(8)
+    ctrl = ExperienceController(p)
+    x0 = feasible_state(x0)
+    refs = hover_refs(p, tgt)
+    first = ctrl.step(x0, refs, perturbation=p_hat)
+    assert first.source == "solved"
+    # the same data again and a nearby point: the stored controller, if it applies, is exact
+    for x in (x0, x0 + shift):
+        d = ctrl.step(x, refs, perturbation=p_hat)
+        U = exact_solution(p, p.theta(x, refs, perturbation=p_hat))
+        assert d.source in ("hit", "solved")
+        assert np.allclose(d.u, np.clip(U[:3], -A_MAX, A_MAX), atol=1e-8, rtol=0)
+    assert ctrl.stats.hits >= 1
+
+
+def test_hits_are_exact_on_constrained_closed_loop():
+    p = position_problem(10)
+    ctrl = ExperienceController(p)
+    x = np.zeros(6)
+    constrained = 0
+    for k in range(120):
+        tgt = [8.0, -6.0, 3.0] if (k // 40) % 2 == 0 else [0.0, 0.0, 0.0]
+        refs = hover_refs(p, tgt)
+        d = ctrl.step(x, refs)
+        theta = p.theta(x, refs)
+        U = exact_solution(p, theta)
+        assert np.allclose(d.u, U[:3], atol=1e-8, rtol=0)
+        _, gamma = p.vectors(theta)
+        constrained += bool(np.any(gamma - p.G @ U < 1e-9))
+        x = p.model.step(x, d.u)
+    assert ctrl.stats.hits > 30
+    assert constrained > 30
+
+
+def test_an_active_set_not_optimal_here_is_refused():
+    p = position_problem(8)
+    learner = ExperienceController(p)
+    learner.step(np.zeros(6), hover_refs(p, [10.0, 0.0, 0.0]))  # saturating: inputs at bound
+    (saturated,) = learner.export_library()
+    assert saturated.active_set  # some constraints active
+    ctrl = ExperienceController(p)
+    assert ctrl.import_entries([saturated], "shared") == 1
+    # at rest on the reference the unconstrained law is optimal: the stored set must fail
+    d = ctrl.step(np.zeros(6), hover_refs(p, [0.0, 0.0, 0.0]))
+    assert d.source == "solved"
+    assert np.allclose(d.u, 0.0, atol=1e-12)
+    assert ctrl.stats.hits == 0
+    # and conversely the unconstrained set is refused where constraints bind
+    empty = LibraryEntry(())
+    ctrl2 = ExperienceController(p)
+    ctrl2.import_entries([empty])
+    d = ctrl2.step(np.zeros(6), hover_refs(p, [10.0, 0.0, 0.0]))
+    assert d.source == "solved"
+    assert ctrl2.stats.hits == 0
+    assert d.u[0] == pytest.approx(A_MAX)
+
+
+@settings(max_examples=40, deadline=None)
+@given(x0=st.lists(st.floats(-20, 20), min_size=6, max_size=6).map(np.array), tgt=target,
+       p_hat=pert)
+def test_inputs_never_violate_bounds_and_predictions_respect_state_bounds(x0, tgt, p_hat):
+    p = position_problem(6)
+    ctrl = ExperienceController(p, with_prediction=True)
+    refs = hover_refs(p, tgt)
+    for _ in range(2):
+        d = ctrl.step(x0, refs, perturbation=p_hat)
+        assert np.all(d.u >= p.u_min)
+        assert np.all(d.u <= p.u_max)
+        if d.source in ("hit", "solved"):  # the full QP was feasible
+            assert d.x_pred is not None
+            assert np.all(np.abs(d.x_pred[:, 3:]) <= V_MAX + 1e-7)
+        else:
+            assert abs(x0[3:]).max() > V_MAX - 0.5  # only far outside the bounds
+
+
+def test_infeasible_state_degrades_to_intermediate_then_learns_nothing():
+    p = position_problem(6)
+    ctrl = ExperienceController(p)
+    d = ctrl.step(np.array([0, 0, 0, 10.0, 0, 0]), hover_refs(p, [0, 0, 0]))
+    assert d.source == "intermediate"
+    assert d.u[0] == pytest.approx(-A_MAX, abs=1e-3)  # braking as hard as allowed
+    assert ctrl.stats.size == 0
+    assert ctrl.stats.intermediate == 1
+
+
+def sets_for(p, targets):
+    """Distinct active sets learned at rest for the given targets."""
+    out = []
+    for tgt in targets:
+        c = ExperienceController(p)
+        c.step(np.zeros(6), hover_refs(p, tgt))
+        out.extend(c.export_library())
+    return out
+
+
+def test_eviction_removes_the_least_recently_used():
+    p = position_problem(6)
+    ctrl = ExperienceController(p, max_size=2)
+    points = [[0, 0, 0], [10, 0, 0], [0, -10, 0]]
+    for tgt in points:
+        assert ctrl.step(np.zeros(6), hover_refs(p, tgt)).source == "solved"
+    lib = ctrl.export_library()
+    assert len(lib) == 2
+    assert ctrl.stats.size == 2
+    first = sets_for(p, [points[0]])[0].active_set
+    assert first not in [e.active_set for e in lib]
+    # most important first: the last used leads
+    assert lib[0].active_set == sets_for(p, [points[2]])[0].active_set
+    # using the older one makes it most important, so the next add evicts the other
+    ctrl.step(np.zeros(6), hover_refs(p, points[1]))
+    ctrl.step(np.zeros(6), hover_refs(p, [0, 0, 10]))
+    kept = [e.active_set for e in ctrl.export_library()]
+    assert sets_for(p, [points[1]])[0].active_set in kept
+    assert sets_for(p, [points[2]])[0].active_set not in kept
+
+
+def test_query_order_is_last_then_successors_then_importance():
+    p = position_problem(6)
+    a, b, c = sets_for(p, [[0, 0, 0], [10, 0, 0], [0, -10, 0]])
+    ctrl = ExperienceController(p)
+    # entries most important first: c, b, a; a -> b seen 5 times
+    ctrl.import_entries([LibraryEntry(c.active_set, 3.0), LibraryEntry(b.active_set, 2.0),
+                         LibraryEntry(a.active_set, 1.0)], transitions={(2, 1): 5})
+    assert ctrl.query_order() == [c.active_set, b.active_set, a.active_set]
+    assert ctrl.step(np.zeros(6), hover_refs(p, [0, 0, 0])).source == "hit"  # uses a
+    assert ctrl.query_order() == [a.active_set, b.active_set, c.active_set]
+    trans = ctrl.export_transitions()
+    lib = ctrl.export_library()
+    assert lib[0].active_set == a.active_set
+    assert lib[0].uses == 1
+    ((i, j), n), = trans.items()
+    assert (lib[i].active_set, lib[j].active_set, n) == (a.active_set, b.active_set, 5)
+
+
+def test_import_rejects_malformed_entries_and_leaves_the_library_unchanged():
+    p = position_problem(6)
+    ctrl = ExperienceController(p, max_size=3)
+    ctrl.step(np.zeros(6), hover_refs(p, [10, 0, 0]))
+    before = ctrl.export_library()
+    n = p.n_con
+    # rows of an input's upper and lower bound together are linearly dependent
+    up = next(i for i, r in enumerate(p.rows) if r.kind == "u" and r.upper)
+    lo = next(i for i, r in enumerate(p.rows) if r.kind == "u" and not r.upper
+              and r.stage == p.rows[up].stage and r.index == p.rows[up].index)
+    bad_cases: list[tuple[list[LibraryEntry], dict[str, Any], str]] = [
+        ([LibraryEntry((3, 1))], {}, "sorted and unique"),
+        ([LibraryEntry((1, 1))], {}, "sorted and unique"),
+        ([LibraryEntry((0, n))], {}, "out of range"),
+        ([LibraryEntry((-1,))], {}, "out of range"),
+        ([LibraryEntry((1.0,))], {}, "tuple of ints"),  # type: ignore[arg-type]
+        ([LibraryEntry((up, lo))], {}, "linearly dependent"),
+        ([LibraryEntry(()), LibraryEntry((0,), math.nan)], {}, "importance"),
+        ([LibraryEntry(())] * 4, {}, "size limit"),
+        ([LibraryEntry(())], {"signature": "nope"}, "signature"),
+        ([LibraryEntry(())], {"transitions": {(0, 3): 1}}, "transition"),
+    ]
+    for entries, kw, msg in bad_cases:
+        with pytest.raises(ValueError, match=msg):
+            ctrl.import_entries(entries, "shared", **kw)
+        assert ctrl.export_library() == before
+    assert ctrl.import_entries([LibraryEntry(())], signature=p.signature()) == 1
+
+
+def test_pop_new_entries_returns_each_solve_once():
+    p = position_problem(6)
+    ctrl = ExperienceController(p)
+    ctrl.step(np.zeros(6), hover_refs(p, [10, 0, 0]))
+    ctrl.step(np.zeros(6), hover_refs(p, [10, 0, 0]))  # hit, nothing new
+    new = ctrl.pop_new_entries()
+    assert len(new) == 1
+    assert ctrl.pop_new_entries() == []
+    imported = ExperienceController(p)
+    imported.import_entries(new, "prior")
+    assert imported.pop_new_entries() == []
+
+
+def test_set_model_rebuilds_the_cache_and_keeps_the_library():
+    p = position_problem(8)
+    ctrl = ExperienceController(p)
+    x0 = np.array([0, 0, 0, 1.0, 0, 0])
+    for tgt in ([10.0, 0, 0], [0.0, 0, 0], [0.0, 5, 0]):
+        ctrl.step(x0, hover_refs(p, tgt))
+    ctrl.step(np.zeros(6), hover_refs(p, [0.1, 0, 0]))
+    size = ctrl.stats.size
+    ctrl.set_model(position_model(0.08))
+    assert ctrl.stats.size == size
+    # the unconstrained set stays optimal near rest under the new model: a hit, exact
+    for x, tgt in ((np.zeros(6), [0.2, 0.0, 0.0]), (x0, [10.0, 0, 0]), (x0, [0.0, 5, 0])):
+        refs = hover_refs(ctrl.problem, tgt)
+        d = ctrl.step(x, refs)
+        U = exact_solution(ctrl.problem, ctrl.problem.theta(x, refs))
+        assert np.allclose(d.u, U[:3], atol=1e-8)
+    assert ctrl.stats.hits >= 1
+
+
+def test_perturbation_is_cancelled_by_default_u_p():
+    p = position_problem(8, constrained=False)
+    ctrl = ExperienceController(p)
+    a_wind = np.array([0.4, -0.3, 0.1])
+    d = ctrl.step(np.zeros(6), np.zeros((8, 6)), perturbation=p.model.B @ a_wind)
+    assert np.allclose(d.u, -a_wind, atol=1e-10)
+
+
+def test_deferred_learning_applies_intermediate_then_hits():
+    p = position_problem(6)
+    ctrl = ExperienceController(p, learn_on_miss=False)
+    refs = hover_refs(p, [3, 0, 0])
+    d = ctrl.step(np.zeros(6), refs)
+    assert d.source == "intermediate"
+    assert len(ctrl.pending) == 1
+    assert ctrl.learn_theta(ctrl.pending.pop()) is not None
+    assert ctrl.step(np.zeros(6), refs).source == "hit"
+    assert ctrl.learn(np.zeros(6), refs) is not None  # already known: the same entry
+    assert ctrl.stats.size == 1
+
+
+def test_unknown_source_and_bad_arguments_are_rejected():
+    p = position_problem(4)
+    with pytest.raises(ValueError, match="max_size"):
+        ExperienceController(p, max_size=0)
+    ctrl = ExperienceController(p)
+    with pytest.raises(ValueError, match="source"):
+        ctrl.import_entries([], "elsewhere")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="refs"):
+        ctrl.step(np.zeros(6), np.zeros((3, 6)))
+
+
+def test_contract_import_path():
+    from epc_offboard.mpc import ExperienceController as E
+    from epc_offboard.mpc import LinearModel
+    from epc_offboard.mpc import MpcProblem as P
+
+    model = LinearModel(np.eye(2), np.eye(2)[:, :1])
+    ctrl = E(P(model, horizon=3, Q=[1, 1], R=[1], u_min=[-1], u_max=[1]), max_size=10)
+    d = ctrl.step(np.array([1.0, 0.0]), np.zeros((3, 2)), u_p=None)
+    assert d.u.shape == (1,)
+    assert d.source == "solved"
+    assert {"hits", "misses", "qp_solves", "size"} <= set(vars(ctrl.stats))
+    assert isinstance(ctrl.problem, MpcProblem)

@@ -1,0 +1,255 @@
+"""LWPR: learning benchmarks with real thresholds, update/predict consistency, persistence,
+and rejection of bad inputs with the model left untouched."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from epc_offboard.lwpr import LWPR, LwprError
+
+
+def cross(X: np.ndarray) -> np.ndarray:
+    """The classic 2-D test function of the LWPR papers."""
+    x, y = X[:, 0], X[:, 1]
+    out: np.ndarray = np.maximum.reduce(
+        [np.exp(-10 * x**2), np.exp(-50 * y**2), 1.25 * np.exp(-5 * (x**2 + y**2))]
+    )
+    return out
+
+
+GRID = np.stack(np.meshgrid(np.linspace(-1, 1, 41), np.linspace(-1, 1, 41)), -1).reshape(-1, 2)
+
+
+def nmse(model: LWPR, X: np.ndarray, y: np.ndarray) -> float:
+    pred = np.array([model.predict(x)[0] for x in X])
+    return float(np.mean((pred - y) ** 2) / np.var(y))
+
+
+def cross_epoch(model: LWPR, rng: np.random.Generator) -> None:
+    X = rng.uniform(-1, 1, (500, 2))
+    Y = cross(X) + 0.1 * rng.standard_normal(500)
+    for x, y in zip(X, Y, strict=True):
+        model.update(x, [y])
+
+
+@pytest.fixture(scope="module")
+def cross_model() -> tuple[LWPR, list[float]]:
+    """20 epochs of 500 noisy samples (the reference library's cross demo settings)."""
+    rng = np.random.default_rng(0)
+    model = LWPR(2, 1, init_d=50.0, init_alpha=250.0)
+    errors = []
+    for epoch in range(20):
+        cross_epoch(model, rng)
+        if epoch in (0, 4, 19):
+            errors.append(nmse(model, GRID, cross(GRID)))
+    return model, errors
+
+
+def test_cross_function_is_learned_to_the_reference_accuracy(cross_model):
+    model, (after_1, after_5, after_20) = cross_model
+    print(f"cross nMSE after 1/5/20 epochs: {after_1:.4f} {after_5:.4f} {after_20:.4f}")
+    print(f"receptive fields: {model.num_rfs}")
+    assert after_20 <= 0.03
+    assert after_20 < after_5 < after_1
+    assert 20 <= model.num_rfs[0] <= 80
+    assert model.n_updates == 10_000
+
+
+def test_cross_confidence_is_small_inside_and_absent_far_away(cross_model):
+    model, _ = cross_model
+    y, conf = model.predict_conf(np.array([0.0, 0.0]))
+    assert abs(y[0] - 1.25) < 0.15
+    assert 0.0 < conf[0] < 0.3  # about the noise level (0.1)
+    y_far, conf_far = model.predict_conf(np.array([5.0, 5.0]))
+    assert y_far[0] == 0.0
+    assert conf_far[0] == 1e20
+
+
+@pytest.mark.parametrize(
+    ("diag_only", "meta"), [(False, False), (True, True), (False, True)], ids=str
+)
+def test_full_metric_and_meta_learning_also_learn_the_cross(diag_only, meta):
+    rng = np.random.default_rng(1)
+    model = LWPR(2, 1, init_d=50.0, init_alpha=250.0, diag_only=diag_only, meta=meta)
+    for _ in range(5):
+        cross_epoch(model, rng)
+    assert nmse(model, GRID, cross(GRID)) < 0.06
+
+
+def test_sine_1d():
+    rng = np.random.default_rng(2)
+    model = LWPR(1, 1, init_d=50.0, norm_in=[np.pi])
+    for _ in range(3000):
+        x = rng.uniform(-np.pi, np.pi)
+        model.update([x], [np.sin(x) + 0.05 * rng.standard_normal()])
+    xs = np.linspace(-3.0, 3.0, 61)[:, None]
+    err = nmse(model, xs, np.sin(xs[:, 0]))
+    assert err < 0.01, err
+    assert 3 <= model.num_rfs[0] <= 30
+
+
+def test_outputs_have_independent_fields():
+    """Each output has its own fields: a two-output model equals two one-output models."""
+    rng = np.random.default_rng(3)
+    both, first, second = LWPR(1, 2, init_d=50.0), LWPR(1, 1, init_d=50.0), LWPR(1, 1, init_d=50.0)
+    for _ in range(1500):
+        x = rng.uniform(-1, 1, 1)
+        y = [0.5 * x[0], np.sin(6 * x[0])]
+        both.update(x, y)
+        first.update(x, y[:1])
+        second.update(x, y[1:])
+    assert both.num_rfs == (first.num_rfs[0], second.num_rfs[0])
+    for x in np.linspace(-1, 1, 21)[:, None]:
+        np.testing.assert_array_equal(both.predict(x), np.r_[first.predict(x), second.predict(x)])
+    y_at = both.predict([0.3])
+    assert y_at[0] == pytest.approx(0.15, abs=0.02)
+    assert y_at[1] == pytest.approx(np.sin(1.8), abs=0.1)
+
+
+def test_update_returns_the_prediction_from_before_the_update():
+    rng = np.random.default_rng(4)
+    model = LWPR(2, 2)
+    for _ in range(800):
+        x = rng.uniform(-1, 1, 2)
+        before = model.predict(x)
+        fit = model.update(x, [x[0] * x[1], np.cos(x[0])])
+        np.testing.assert_array_equal(fit, before)
+    assert np.any(fit != 0.0)  # trusted fields exist, so this compared real predictions
+
+
+def test_max_rfs_caps_the_fields_of_each_output():
+    rng = np.random.default_rng(5)
+    model = LWPR(2, 1, init_d=200.0, max_rfs=7)
+    for _ in range(500):
+        x = rng.uniform(-1, 1, 2)
+        model.update(x, [x.sum()])
+    assert model.num_rfs == (7,)
+
+
+def trained(seed: int = 6, n: int = 600) -> LWPR:
+    rng = np.random.default_rng(seed)
+    model = LWPR(3, 2, init_d=[10.0, 20.0, 5.0], norm_out=[2.0, 1.0], diag_only=True)
+    for _ in range(n):
+        x = rng.uniform(-1, 1, 3)
+        model.update(x, [x @ [1.0, -2.0, 0.5], np.sin(2 * x[0]) * x[2]])
+    return model
+
+
+def test_save_load_round_trip_gives_identical_predictions_and_learning(tmp_path: Path):
+    model = trained()
+    path = tmp_path / "model.npz"
+    model.save(path)
+    loaded = LWPR.load(path)
+    blob_copy = LWPR.from_bytes(model.to_bytes())
+    assert loaded.num_rfs == model.num_rfs
+    rng = np.random.default_rng(7)
+    for x in rng.uniform(-1.2, 1.2, (200, 3)):
+        np.testing.assert_array_equal(loaded.predict(x), model.predict(x))
+        np.testing.assert_array_equal(blob_copy.predict_conf(x)[1], model.predict_conf(x)[1])
+    # The whole state is saved: learning continues identically.
+    for x in rng.uniform(-1, 1, (200, 3)):
+        y = [x.sum(), x[0] ** 2]
+        np.testing.assert_array_equal(loaded.update(x, y), model.update(x, y))
+    np.testing.assert_array_equal(loaded.predict([0.1, 0.2, 0.3]), model.predict([0.1, 0.2, 0.3]))
+
+
+def test_loading_a_wrong_or_corrupt_file_raises_a_clear_error(tmp_path: Path):
+    good = trained(n=100).to_bytes()
+    bad_files = {
+        "random.npz": bytes(np.random.default_rng(8).integers(0, 256, 500, dtype=np.uint8)),
+        "truncated.npz": good[: len(good) // 2],
+        "empty.npz": b"",
+    }
+    other = tmp_path / "other.npz"
+    np.savez(other, a=np.zeros(3))
+    for name, data in bad_files.items():
+        (tmp_path / name).write_bytes(data)
+    for path in [*(tmp_path / name for name in bad_files), other]:
+        with pytest.raises(LwprError, match=str(path.name)):
+            LWPR.load(path)
+    with pytest.raises(LwprError, match="missing `format`"):
+        LWPR.load(other)
+
+
+def test_loading_another_format_version_is_refused(tmp_path: Path):
+    path = tmp_path / "v99.npz"
+    with np.load(io.BytesIO(trained(n=50).to_bytes())) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["version"] = np.array(99)
+    np.savez(path, **arrays)
+    with pytest.raises(LwprError, match="version 99"):
+        LWPR.load(path)
+    assert zipfile.is_zipfile(path)
+
+
+@pytest.mark.parametrize(
+    ("x", "y", "message"),
+    [
+        ([np.nan, 0.0, 0.0], [0.0, 0.0], "x must be finite"),
+        ([0.0, np.inf, 0.0], [0.0, 0.0], "x must be finite"),
+        ([0.0, 0.0, 0.0], [0.0, np.nan], "y must be finite"),
+        ([0.0, 0.0], [0.0, 0.0], r"x must have shape \(3,\), got \(2,\)"),
+        ([[0.0, 0.0, 0.0]], [0.0, 0.0], r"x must have shape \(3,\), got \(1, 3\)"),
+        ([0.0, 0.0, 0.0], 1.0, r"y must have shape \(2,\), got \(\)"),
+        ([0.0, 0.0, 0.0], ["a", "b"], "y must be a numeric array"),
+    ],
+)
+def test_bad_inputs_are_rejected_and_the_model_is_unchanged(x, y, message):
+    model = trained(n=300)
+    before = model.to_bytes()
+    with pytest.raises(LwprError, match=message):
+        model.update(x, y)
+    if np.shape(x) != (3,) or not np.all(np.isfinite(x)):
+        with pytest.raises(LwprError, match=message):
+            model.predict(x)
+    assert model.to_bytes() == before
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"init_d": [[1.0, 2.0], [2.0, 1.0]], "diag_only": False}, "positive definite"),
+        ({"init_d": [[2.0, 0.5], [0.5, 2.0]]}, "diagonal when diag_only"),
+        ({"init_d": [1.0, 2.0, 3.0]}, r"init_d must be a scalar, \(2,\)"),
+        ({"w_gen": 1.5}, "w_gen must be in"),
+        ({"final_lambda": 0.0}, "final_lambda must be in"),
+        ({"norm_in": [1.0, 0.0]}, "norm_in must be finite and > 0"),
+        ({"max_rfs": 0}, "max_rfs"),
+    ],
+)
+def test_bad_settings_are_rejected(kwargs, message):
+    with pytest.raises(LwprError, match=message):
+        LWPR(2, 1, **kwargs)
+
+
+def test_unknown_settings_are_rejected():
+    with pytest.raises(TypeError):
+        LWPR(2, 1, init_D=25.0)  # type: ignore[call-arg]
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    scale=st.floats(min_value=1e-3, max_value=1e3),
+    x=st.lists(st.floats(min_value=-2.0, max_value=2.0), min_size=2, max_size=2),
+)
+def test_normalisation_makes_the_learner_unit_free(scale, x):
+    """Inputs scaled by s with norm_in scaled by s learn the same function."""
+    rng = np.random.default_rng(9)
+    X = rng.uniform(-1, 1, (100, 2))
+    a = LWPR(2, 1, init_d=5.0)
+    b = LWPR(2, 1, init_d=5.0, norm_in=[scale, scale], norm_out=[scale])
+    for xi in X:
+        yi = np.sin(xi[0]) + xi[1]
+        a.update(xi, [yi])
+        b.update(xi * scale, [yi * scale])
+    pa = a.predict(np.array(x))
+    pb = b.predict(np.array(x) * scale)
+    assert np.all(np.isfinite(pa))
+    np.testing.assert_allclose(pb, pa * scale, rtol=1e-6, atol=1e-9 * scale)

@@ -1,0 +1,138 @@
+"""Models: ZOH matrices, the exact accel <-> attitude map, the acceleration box."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from epc_offboard.frames import GRAVITY_M_S2
+from epc_offboard.models import (
+    AttitudeThrust,
+    LinearModel,
+    ModelError,
+    accel_to_attitude,
+    acceleration_box,
+    attitude_model,
+    attitude_to_accel,
+    position_model,
+)
+
+HOVER = 0.5
+
+
+def test_position_model_is_exact_zoh_double_integrator():
+    dt = 0.05
+    m = position_model(dt)
+    I3 = np.eye(3)
+    assert np.allclose(m.A, np.block([[I3, dt * I3], [0 * I3, I3]]), atol=1e-14)
+    assert np.allclose(m.B, np.vstack([0.5 * dt * dt * I3, dt * I3]), atol=1e-14)
+    assert m.dt_s == dt
+    assert (m.nx, m.nu) == (6, 3)
+
+
+def test_attitude_model_first_order_rate_response():
+    dt, tau = 0.005, 0.03
+    m = attitude_model(dt, tau)
+    e = math.exp(-dt / tau)
+    # rate: w+ = e w + (1 - e) w_cmd; angle: th+ = th + tau (1 - e) w + (dt - tau (1 - e)) w_cmd
+    assert np.allclose(m.A[3:, 3:], e * np.eye(3))
+    assert np.allclose(m.B[3:, :], (1 - e) * np.eye(3))
+    assert np.allclose(m.A[:3, 3:], tau * (1 - e) * np.eye(3))
+    assert np.allclose(m.B[:3, :], (dt - tau * (1 - e)) * np.eye(3))
+    # a held command is followed: rates converge to it
+    x = np.zeros(6)
+    for _ in range(400):
+        x = m.step(x, [0.5, -0.2, 0.1])
+    assert np.allclose(x[3:], [0.5, -0.2, 0.1], atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("A", "B", "c", "msg"),
+    [
+        (np.eye(2), np.ones((3, 1)), None, "B must be"),
+        (np.ones((2, 3)), np.ones((2, 1)), None, "A must be square"),
+        (np.eye(2), np.ones((2, 1)), [1.0], "c must have shape"),
+        (np.eye(2) * np.nan, np.ones((2, 1)), None, "non-finite"),
+    ],
+)
+def test_linear_model_rejects_bad_shapes(A, B, c, msg):
+    with pytest.raises(ModelError, match=msg):
+        LinearModel(A, B, c)
+
+
+def test_cancelling_input_cancels_a_perturbation_in_range_of_b():
+    m = position_model(0.1)
+    p = m.B @ np.array([0.3, -0.1, 0.2])
+    assert np.allclose(m.B @ m.cancelling_input(p) + p, 0.0, atol=1e-14)
+
+
+def test_hover_is_level_with_hover_thrust():
+    sp = accel_to_attitude([0.0, 0.0, 0.0], 0.7, HOVER)
+    assert sp.roll_rad == pytest.approx(0.0, abs=1e-15)
+    assert sp.pitch_rad == pytest.approx(0.0, abs=1e-15)
+    assert sp.thrust_norm == pytest.approx(HOVER)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.4, math.pi / 2, -2.0])
+def test_small_angles_match_thesis_3_13_in_ned(yaw):
+    a_n, a_e, a_d = 0.02, -0.03, 0.01
+    sp = accel_to_attitude([a_n, a_e, a_d], yaw, HOVER)
+    g = GRAVITY_M_S2
+    assert sp.roll_rad == pytest.approx((a_e * math.cos(yaw) - a_n * math.sin(yaw)) / g, abs=1e-5)
+    assert sp.pitch_rad == pytest.approx(-(a_n * math.cos(yaw) + a_e * math.sin(yaw)) / g,
+                                         abs=1e-5)
+    # moving down needs less thrust
+    assert sp.thrust_norm == pytest.approx(HOVER * (g - a_d) / g, abs=1e-5)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    a=st.lists(st.floats(-8.0, 8.0), min_size=3, max_size=3),
+    yaw=st.floats(-math.pi, math.pi),
+)
+def test_accel_attitude_round_trip(a, yaw):
+    a_ned = np.array(a)
+    a_ned[2] = min(a_ned[2], 5.0)  # keep some upward thrust
+    sp = accel_to_attitude(a_ned, yaw, HOVER)
+    assert np.allclose(attitude_to_accel(sp, HOVER), a_ned, atol=1e-9)
+    back = accel_to_attitude(attitude_to_accel(sp, HOVER), yaw, HOVER)
+    assert back.roll_rad == pytest.approx(sp.roll_rad, abs=1e-9)
+    assert back.pitch_rad == pytest.approx(sp.pitch_rad, abs=1e-9)
+
+
+def test_attitude_to_accel_tilts_the_right_way():
+    # NED/FRD: positive roll accelerates east, nose-down (negative pitch) accelerates north
+    a = attitude_to_accel(AttitudeThrust(0.1, 0.0, 0.0, HOVER), HOVER)
+    assert a[1] > 0
+    a = attitude_to_accel(AttitudeThrust(0.0, -0.1, 0.0, HOVER), HOVER)
+    assert a[0] > 0
+
+
+@pytest.mark.parametrize("tilt_deg", [20.0, 35.0, 60.0])
+def test_acceleration_box_corners_are_flyable(tilt_deg):
+    tilt = math.radians(tilt_deg)
+    t_min, t_max = 0.1, 0.9
+    box = acceleration_box(tilt, t_min, t_max, HOVER)
+    assert np.all(box.u_min < 0)
+    assert np.all(box.u_max > 0)
+    for ix in (0, 1):
+        for iy in (0, 1):
+            for iz in (0, 1):
+                a = np.array([
+                    (box.u_min, box.u_max)[ix][0],
+                    (box.u_min, box.u_max)[iy][1],
+                    (box.u_min, box.u_max)[iz][2],
+                ])
+                sp = accel_to_attitude(a, 0.3, HOVER)
+                tilt_now = math.acos(math.cos(sp.roll_rad) * math.cos(sp.pitch_rad))
+                assert tilt_now <= tilt + 1e-9
+                assert t_min - 1e-9 <= sp.thrust_norm <= t_max + 1e-9
+
+
+def test_acceleration_box_rejects_limits_not_bracketing_hover():
+    with pytest.raises(ModelError, match="bracket hover"):
+        acceleration_box(0.5, 0.6, 0.9, HOVER)
