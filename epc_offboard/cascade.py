@@ -27,7 +27,7 @@ import logging
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -45,7 +45,12 @@ from epc_offboard.models import (
     attitude_to_accel,
     position_model,
 )
-from epc_offboard.perturbation import EstimatorConfig, make_estimator
+from epc_offboard.perturbation import (
+    KalmanPerturbationConfig,
+    LwprPerturbationConfig,
+    PerturbationConfig,
+    make_estimator,
+)
 from epc_offboard.qp import MpcProblem
 from epc_offboard.state import VehicleState
 from epc_offboard.store import LibraryStore, StoredController
@@ -108,6 +113,27 @@ class AttitudeControlConfig:
             raise ValueError(f"max_rate_rad_s must be > 0, got {self.max_rate_rad_s}")
 
 
+def _default_lwpr() -> LwprPerturbationConfig:
+    # z = velocity (m/s), p = acceleration disturbance (m/s^2); fields about 0.8 m/s wide
+    return LwprPerturbationConfig(
+        norm_z=(4.0, 4.0, 2.0), norm_p=(1.0, 1.0, 1.0), lowpass_cutoff_hz=1.0
+    )
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """The acceleration-disturbance estimator of the position loop (thesis 3.1.1).
+
+    It learns d (3,) m/s^2 from the velocity (3,) m/s: the thesis's subspace example, and
+    what wind acting through drag depends on. ``dt_s`` of the sub-tables is set from the
+    position loop's period.
+    """
+
+    kind: Literal["none", "lwpr", "kf"] = "lwpr"
+    lwpr: LwprPerturbationConfig = field(default_factory=_default_lwpr)
+    kf: KalmanPerturbationConfig = field(default_factory=KalmanPerturbationConfig)
+
+
 @dataclass(frozen=True)
 class PositionOutput:
     """The position loop's answer: the attitude + thrust the vehicle should have."""
@@ -158,6 +184,7 @@ class Cascade:
     position_cfg: PositionControlConfig
     attitude_cfg: AttitudeControlConfig
     estimator_cfg: EstimatorConfig
+    loop_period_s: float = 0.01  # the position loop's period: the estimator's filter step
     _history: deque[_Observation] = field(default_factory=lambda: deque(maxlen=64))
     _hold_pos: FloatArray | None = None
     _last_thrust_norm: float = math.nan
@@ -168,7 +195,10 @@ class Cascade:
         self.position_horizon = pc.horizon
         self.pos_model = position_model(pc.dt_s)
         box = acceleration_box(
-            math.radians(pc.max_tilt_deg), pc.min_thrust_norm, pc.max_thrust_norm, pc.hover_thrust_norm
+            math.radians(pc.max_tilt_deg),
+            pc.min_thrust_norm,
+            pc.max_thrust_norm,
+            pc.hover_thrust_norm,
         )
         self.acc_min, self.acc_max = box.u_min, box.u_max
         inf3 = np.full(3, math.inf)
@@ -203,7 +233,16 @@ class Cascade:
             u_max=rmax,
         )
         self.attitude = ExperienceController(self.att_problem, max_size=ac.library_size)
-        self.estimator = make_estimator(self.estimator_cfg, dt_s=pc.dt_s)
+        ec = self.estimator_cfg
+        self.estimator = make_estimator(
+            ec.kind,
+            3,
+            3,
+            PerturbationConfig(
+                lwpr=replace(ec.lwpr, dt_s=self.loop_period_s),
+                kf=replace(ec.kf, dt_s=self.loop_period_s),
+            ),
+        )
         self._estimator_key = f"estimator.{self.estimator_cfg.kind}"
         self._b_vel = self.pos_model.B  # (6, 3): how an acceleration enters one prediction step
 
@@ -240,14 +279,25 @@ class Cascade:
         if oldest is None or newest.t_s - oldest.t_s < 0.5 * self.position_dt_s:
             return
         span = newest.t_s - oldest.t_s
-        window = [o.acc_achieved_ned_m_s2 for o in self._history if oldest.t_s <= o.t_s < newest.t_s]
+        window = [
+            o.acc_achieved_ned_m_s2 for o in self._history if oldest.t_s <= o.t_s < newest.t_s
+        ]
         d_meas = (newest.vel_ned_m_s - oldest.vel_ned_m_s) / span - np.mean(window, axis=0)
         self.estimator.observe(oldest.vel_ned_m_s, d_meas)
 
-    def position_tick(self, state: VehicleState, refs: FloatArray) -> PositionOutput:
-        """One position-loop tick; ``refs`` (N, 6) rows [p_ned, v_ned] for x[1..N]."""
+    def position_tick(
+        self, state: VehicleState, refs: FloatArray, *, learn: bool = True
+    ) -> PositionOutput:
+        """One position-loop tick; ``refs`` (N, 6) rows [p_ned, v_ned] for x[1..N].
+
+        ``learn``: the vehicle is flying our commands, so the measured disturbance is real
+        (before offboard is confirmed, our thrust is not what flies and must not be learned).
+        """
         t0 = time.perf_counter()
-        self._observe(state)
+        if learn:
+            self._observe(state)
+        else:
+            self._history.clear()
         d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), self.acc_min, self.acc_max)
         x0 = np.concatenate([state.pos_ned_m, state.vel_ned_m_s])
         # PD takes its acceleration feedforward from the reference horizon itself
@@ -292,7 +342,9 @@ class Cascade:
 
     # -- attitude loop ------------------------------------------------------------------
 
-    def _attitude_refs(self, state: VehicleState, target: PositionOutput) -> tuple[FloatArray, FloatArray]:
+    def _attitude_refs(
+        self, state: VehicleState, target: PositionOutput
+    ) -> tuple[FloatArray, FloatArray]:
         roll, pitch, yaw = state.euler_rad
         troll, tpitch, tyaw = target.euler_target_rad
         # take the short way round in yaw: the reference is expressed next to the current yaw
@@ -331,7 +383,9 @@ class Cascade:
             store.save_transitions(
                 sig, {(sets[a], sets[b]): n for (a, b), n in ctrl.export_transitions().items()}
             )
-        store.save_model(self._estimator_key, self.pos_problem.signature(), self.estimator.to_bytes())
+        store.save_model(
+            self._estimator_key, self.pos_problem.signature(), self.estimator.to_bytes()
+        )
 
     def load_from(self, store: LibraryStore) -> dict[str, int]:
         """Load the prior library (thesis M_prior) and estimator; returns counts per part.
@@ -359,7 +413,9 @@ class Cascade:
                     try:
                         loaded[name] += ctrl.import_entries([e], "prior")
                     except ValueError as exc_one:
-                        log.warning("stored %s controller %s skipped: %s", name, e.active_set, exc_one)
+                        log.warning(
+                            "stored %s controller %s skipped: %s", name, e.active_set, exc_one
+                        )
         blob = store.load_model(self._estimator_key, self.pos_problem.signature())
         if blob is not None:
             try:

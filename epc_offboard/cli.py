@@ -16,7 +16,6 @@ from typing import cast
 from epc_offboard.configio import ConfigError
 from epc_offboard.errors import EXIT_RUNTIME, EXIT_USAGE, UsageError
 
-
 # subcommand -> "module:function(args) -> exit code"
 _COMMANDS = {
     "run": "epc_offboard.service:run_service_command",

@@ -10,11 +10,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from epc_offboard.cascade import AttitudeControlConfig, PositionControlConfig
+from epc_offboard.cascade import AttitudeControlConfig, EstimatorConfig, PositionControlConfig
 from epc_offboard.configio import load_config
 from epc_offboard.logsetup import LogConfig
 from epc_offboard.offboard import OffboardConfig
-from epc_offboard.perturbation import EstimatorConfig
 from epc_offboard.state import StateLimits
 from epc_offboard.trajectories import TrajectoryConfig
 
@@ -46,7 +45,12 @@ class LoopsConfig:
     watchdog_period_s: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("position_rate_hz", "attitude_rate_hz", "supervisor_rate_hz", "watchdog_period_s"):
+        for name in (
+            "position_rate_hz",
+            "attitude_rate_hz",
+            "supervisor_rate_hz",
+            "watchdog_period_s",
+        ):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
 

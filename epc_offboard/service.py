@@ -74,7 +74,9 @@ class Service:
         self.clock: Clock = VehicleClock() if cfg.loops.clock == "vehicle" else WallClock()
         self.tracker = StateTracker(system_id=cfg.link.target_system, limits=cfg.state_limits)
         self.sm = OffboardStateMachine(cfg.offboard)
-        self.cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator)
+        self.cascade = Cascade(
+            cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz
+        )
         self.counters: Counter[str] = Counter()
         self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
@@ -179,11 +181,7 @@ class Service:
             if not self._home_known and state is not None and hb is not None and not hb.armed:
                 self._home_down_m = float(state.pos_ned_m[2])
                 self._home_known = True
-            alt = (
-                None
-                if state is None
-                else -float(state.pos_ned_m[2]) - self._home_down_m
-            )
+            alt = None if state is None else -float(state.pos_ned_m[2]) - self._home_down_m
             if self._mission_done:
                 self._finish_mission(hb)
                 out = Outputs(Phase.LANDING, True, (), "mission complete: landing")
@@ -258,11 +256,14 @@ class Service:
             start = self.clock.now_s()
             wall0 = time.perf_counter()
             state = self.tracker.snapshot()
-            if self.outputs.stream_setpoints and state is not None:
+            if self.outputs.phase == Phase.LANDING and state is not None:
+                # the autopilot lands: keep answering (lockstep needs it) but learn nothing
+                self._position_out = self.cascade.hover(state)
+            elif self.outputs.stream_setpoints and state is not None:
                 self._position_out = self._position_tick(state, start)
                 self._control_alive_wall = time.monotonic()
             self.position_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
-            t_next = _next_tick(t_next, period, self.clock.now_s(), self.counters, "position")
+            t_next = self._next_tick(t_next, period, "position")
 
     def _position_tick(self, state: VehicleState, t_s: float) -> PositionOutput:
         try:
@@ -272,7 +273,9 @@ class Service:
                 refs = self.trajectory.horizon(
                     t_s, self.cascade.position_dt_s, self.cascade.position_horizon
                 )
-            out = self.cascade.position_tick(state, refs)
+            out = self.cascade.position_tick(
+                state, refs, learn=self.outputs.phase == Phase.OFFBOARD
+            )
         except Exception as exc:  # degrade, never die
             self._loop_error("position", exc)
             out = self.cascade.hover(state)
@@ -291,7 +294,19 @@ class Service:
                 target = self._position_out or self.cascade.hover(state)
                 self._send_setpoint(state, target)
             self.attitude_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
-            t_next = _next_tick(t_next, period, self.clock.now_s(), self.counters, "attitude")
+            t_next = self._next_tick(t_next, period, "attitude")
+
+    def _next_tick(self, t_next: float, period: float, loop: str) -> float:
+        """The next tick time; when more than a tick behind, skip (never burst) and count it
+        if it mattered (while streaming: before that the loops idle)."""
+        t_next += period
+        now = self.clock.now_s()
+        if now - t_next > period:
+            skipped = int((now - t_next) / period)
+            if self.outputs.stream_setpoints:
+                self.counters[f"{loop}_ticks_skipped"] += skipped
+            t_next += skipped * period
+        return t_next
 
     def _send_setpoint(self, state: VehicleState, target: PositionOutput) -> None:
         if self.cfg.attitude.mode == "autopilot":
@@ -487,17 +502,6 @@ _FLIGHT_LOG_COLUMNS = [
     "p_hat_n_m_s2", "p_hat_e_m_s2", "p_hat_d_m_s2", "thrust_norm",
     "source", "compute_us",
 ]  # fmt: skip
-
-
-def _next_tick(
-    t_next: float, period: float, now: float, counters: Counter[str], name: str
-) -> float:
-    t_next += period
-    if now - t_next > period:  # fell behind by more than a tick: skip, don't burst
-        skipped = int((now - t_next) / period)
-        counters[f"{name}_ticks_skipped"] += skipped
-        t_next += skipped * period
-    return t_next
 
 
 def run_service_command(args: argparse.Namespace) -> int:

@@ -58,14 +58,21 @@ def test_sim_hover_holds_within_5_cm(tmp_path):
 
 
 def test_second_run_starts_from_the_saved_library(tmp_path):
-    args = ("--scenario", "circle", "--duration", "12", "--adaptation", "none")
+    # the zig-zag has constrained phases: the first flight must solve many QPs
+    args = ("--scenario", "zigzag", "--duration", "8", "--adaptation", "none")
     first, _ = sim(tmp_path, *args)
     second, _ = sim(tmp_path, *args)  # same --out: library-1.sqlite is the prior
     m1 = first["vehicles"][0]["library"]["misses"]
     m2 = second["vehicles"][0]["library"]["misses"]
-    assert first["vehicles"][0]["tracking"]["max_error_m"] < 0.15
-    assert m1 >= 10
+    assert m1 >= 20
     assert m2 <= 0.2 * m1, (m1, m2)
+
+
+def test_sim_circle_tracks(tmp_path):
+    report, _ = sim(tmp_path, "--scenario", "circle", "--duration", "10", "--adaptation", "none")
+    v = report["vehicles"][0]
+    assert v["tracking"]["max_error_m"] < 0.10
+    assert v["library"]["hit_rate"] > 0.9
 
 
 def test_stream_loss_makes_the_vehicle_hold(tmp_path):

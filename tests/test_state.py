@@ -100,9 +100,24 @@ def test_ms_truncated_and_us_stamps_of_one_instant_are_in_order():
     tr = StateTracker(system_id=1)
     q = frames.euler_to_quat(0.0, 0.0, 0.0)
     odo = MAV.odometry_encode(
-        4_999, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
-        0.0, 0.0, -1.0, list(q), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-        [math.nan] * 21, [math.nan] * 21, 0, 0, 0,
+        4_999,
+        mavlink.MAV_FRAME_LOCAL_NED,
+        mavlink.MAV_FRAME_BODY_FRD,
+        0.0,
+        0.0,
+        -1.0,
+        list(q),
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        [math.nan] * 21,
+        [math.nan] * 21,
+        0,
+        0,
+        0,
     )
     assert tr.handle(decode(odo))
     assert tr.handle(att_q(4, q))  # 4 ms: the same instant, truncated
