@@ -10,7 +10,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import epc_offboard.epc as epc_module
 from epc_offboard.epc import ExperienceController, LibraryEntry
+from epc_offboard.kernels import apply_map_numpy
 from epc_offboard.models import position_model
 from epc_offboard.qp import MpcProblem
 from tests.mpc_cases import A_MAX, V_MAX, exact_solution, hover_refs, position_problem
@@ -70,7 +72,10 @@ def test_library_hit_equals_a_fresh_exact_solve(x0, tgt, p_hat, shift):
     assert ctrl.stats.hits >= 1
 
 
-def test_hits_are_exact_on_constrained_closed_loop():
+@pytest.mark.parametrize("kernel", ["default", "numpy"])
+def test_hits_are_exact_on_constrained_closed_loop(kernel, monkeypatch):
+    if kernel == "numpy":
+        monkeypatch.setattr(epc_module, "apply_map", apply_map_numpy)
     p = position_problem(10)
     ctrl = ExperienceController(p)
     x = np.zeros(6)
