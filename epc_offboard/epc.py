@@ -250,7 +250,7 @@ class ExperienceController:
         old = self.problem.model
         if np.array_equal(old.A, model.A) and np.array_equal(old.B, model.B):
             # only the offset changed: it enters through theta, the maps stay valid
-            self.problem = self.problem.with_model(model)
+            self.problem = self.problem.with_offset(model)
             return
         self._setup(self.problem.with_model(model))
         for key, e in list(self._entries.items()):
@@ -452,12 +452,8 @@ class ExperienceController:
             self._intermediate += 1
             return Decision(u, "intermediate", (time.perf_counter() - t0) * 1e6)
         self._fallback += 1
-        return Decision(self.hover_input(theta), "fallback", (time.perf_counter() - t0) * 1e6)
-
-    def hover_input(self, theta: FloatArray) -> FloatArray:
-        """The bounded hover command: ``u_p`` (zero, or the input cancelling p^), clipped."""
-        p = self.problem
-        return np.minimum(np.maximum(np.nan_to_num(p.u_p(theta)), p.u_min), p.u_max)
+        u = self.problem.hover_input(theta)
+        return Decision(u, "fallback", (time.perf_counter() - t0) * 1e6)
 
     # -- library ----------------------------------------------------------------------------
 
@@ -653,5 +649,4 @@ class _IntermediateQp:
         u0 = res.x[:nu]
         if not np.all(np.isfinite(u0)):
             return None
-        out: FloatArray = np.minimum(np.maximum(u0, p.u_min), p.u_max)
-        return out
+        return p.clip_input(u0)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 import epc_offboard.epc as epc_module
 from epc_offboard.epc import ExperienceController, LibraryEntry
 from epc_offboard.kernels import apply_map_numpy
-from epc_offboard.models import position_model
+from epc_offboard.models import LinearModel, position_model
 from epc_offboard.qp import MpcProblem
 from tests.mpc_cases import A_MAX, V_MAX, exact_solution, hover_refs, position_problem
 
@@ -299,3 +299,45 @@ def test_contract_import_path():
     assert d.source == "solved"
     assert {"hits", "misses", "qp_solves", "size"} <= set(vars(ctrl.stats))
     assert isinstance(ctrl.problem, MpcProblem)
+
+
+def test_linearly_dependent_active_constraints_are_dropped_not_fatal():
+    # x[k+1] = u[k]: the bound on x[k+1] and the bound on u[k] are the same row of Gamma,
+    # so at a saturated optimum both are active and dependent
+    model = LinearModel(np.zeros((1, 1)), np.ones((1, 1)))
+    p = MpcProblem(model, horizon=3, Q=[1.0], R=[0.01], x_max=[1.0], u_max=[1.0])
+    ctrl = ExperienceController(p)
+    refs = np.full((3, 1), 5.0)
+    first = ctrl.step(np.zeros(1), refs)
+    assert first.source == "solved"
+    assert first.u[0] == pytest.approx(1.0, abs=1e-12)
+    (entry,) = ctrl.export_library()
+    rows = [p.rows[i] for i in entry.active_set]
+    assert len(rows) == 3  # one of each dependent pair kept
+    assert ctrl.step(np.zeros(1), refs).source == "hit"
+
+
+def test_a_failed_solve_and_intermediate_degrade_to_bounded_hover(monkeypatch):
+    p = position_problem(6)
+    ctrl = ExperienceController(p)
+    monkeypatch.setattr(ctrl._intermediate_qp, "solve", lambda theta: None)
+    a = np.array([5.0, 0.0, -0.5])  # more than the input box can cancel
+    d = ctrl.step(np.array([0, 0, 0, 10.0, 0, 0]), hover_refs(p, [0, 0, 0]),
+                  perturbation=p.model.B @ a)
+    assert d.source == "fallback"
+    assert np.allclose(d.u, [-A_MAX, 0.0, 0.5])
+    assert ctrl.stats.fallback == 1
+
+
+def test_offset_only_model_change_keeps_the_maps():
+    p = position_problem(6)
+    ctrl = ExperienceController(p)
+    ctrl.step(np.zeros(6), hover_refs(p, [1.0, 0, 0]))
+    c = np.array([0, 0, 0, 0.01, 0, 0])
+    ctrl.set_model(p.model.with_offset(c))
+    assert np.array_equal(ctrl.problem.model.c, c)
+    assert ctrl.problem.H is p.H  # nothing rebuilt
+    refs = hover_refs(p, [1.0, 0, 0])
+    d = ctrl.step(np.zeros(6), refs)
+    U = exact_solution(ctrl.problem, ctrl.problem.theta(np.zeros(6), refs))
+    assert np.allclose(d.u, U[:3], atol=1e-8)
