@@ -51,6 +51,10 @@ logger = logging.getLogger(__name__)
 # Cholesky pivots of Ga H^-1 Ga' below this fraction of the largest mean cond > ~1e12:
 # the rows are treated as linearly dependent.
 _DEPENDENCE_RTOL = 1e-6
+# the full solve's OSQP tolerances; polishing makes the active set exact, these only need to
+# make OSQP's duals point at it
+_EPS = 1e-8
+_MAX_ITER = 10000
 
 
 @dataclass(frozen=True)
@@ -192,6 +196,10 @@ class ExperienceController:
     (``step`` applies the intermediate controller and queues the parameter vectors in
     :attr:`pending`, for a worker to pass to :meth:`learn_theta`); ``with_prediction`` adds the
     predicted trajectory to hit decisions (one more mat-vec).
+
+    Not thread-safe: ``step``, ``learn`` and the library methods share the solver and the
+    library, so a worker running ``learn`` must be serialised with the loop (or hand its
+    entries back through :meth:`import_entries`, which re-validates them).
     """
 
     def __init__(
@@ -236,7 +244,8 @@ class ExperienceController:
     def _setup(self, problem: MpcProblem) -> None:
         self.problem = problem
         self._geom = _ProblemGeometry(problem, self.tol)
-        self._solver = OsqpSolver(problem.H, problem.G, polish=True)
+        self._solver = OsqpSolver(problem.H, problem.G, polish=True, eps_abs=_EPS, eps_rel=_EPS,
+                                  max_iter=_MAX_ITER)
         # theta_aug = [theta; 1]: the maps carry their constant as a last column
         self._theta_aug = np.zeros(problem.n_theta + 1)
         self._theta_aug[-1] = 1.0
@@ -378,12 +387,19 @@ class ExperienceController:
         theta = theta_aug[:-1]
         h, gamma = p.vectors(theta)
         self._solves += 1
-        res = self._solver.solve(h, gamma)
-        if res.status not in (QpStatus.SOLVED, QpStatus.INACCURATE):
-            logger.debug("full QP not solved: %s", res.status.value)
-            self._learn_failures += 1
-            return None
-        amap = self._recover_active_set(theta_aug, res.y, gamma, u_out)
+        amap = None
+        for attempt in range(2):
+            if attempt:  # tighten and retry once: a sharper optimum gives clearer duals
+                self._solver.set_tolerances(1e-11, 1e-11, 40000)
+            res = self._solver.solve(h, gamma)
+            if attempt:
+                self._solver.set_tolerances(_EPS, _EPS, _MAX_ITER)
+            if res.status not in (QpStatus.SOLVED, QpStatus.INACCURATE):
+                logger.debug("full QP not solved: %s", res.status.value)
+                break
+            amap = self._recover_active_set(theta_aug, res.y, gamma, u_out)
+            if amap is not None:
+                break
         if amap is None:
             self._learn_failures += 1
             return None

@@ -410,6 +410,10 @@ class OsqpSolver:
             warm_starting=True,
         )
 
+    def set_tolerances(self, eps_abs: float, eps_rel: float, max_iter: int) -> None:
+        """Change the termination tolerances (kept for later solves)."""
+        self._solver.update_settings(eps_abs=eps_abs, eps_rel=eps_rel, max_iter=max_iter)
+
     def solve(
         self, q: FloatArray, u: FloatArray, l: FloatArray | None = None  # noqa: E741
     ) -> QpResult:
