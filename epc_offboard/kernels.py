@@ -13,6 +13,7 @@ The numpy version below is the reference and the fallback; the tests run both.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 
@@ -48,8 +49,6 @@ def _compile() -> ApplyMap | None:
     except ImportError:  # numba is a dependency; keep working without it, only slower
         return None
 
-    # reassoc/contract let the dot product vectorise; no nnan/ninf: widths may be +inf
-    @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
     def apply_map_numba(
         M: FloatArray,
         width: FloatArray,
@@ -74,7 +73,15 @@ def _compile() -> ApplyMap | None:
             u_out[k] = min(max(s, u_min[k]), u_max[k])
         return True
 
-    return apply_map_numba
+    # reassoc/contract let the dot product vectorise; no nnan/ninf: widths may be +inf.
+    # The on-disk cache spares the ~1 s compile on later starts; without a writable cache
+    # location numba refuses cache=True, so compile in memory then.
+    fastmath = {"reassoc", "contract"}
+    try:
+        compiled = numba.njit(apply_map_numba, cache=True, nogil=True, fastmath=fastmath)
+    except RuntimeError:
+        compiled = numba.njit(apply_map_numba, cache=False, nogil=True, fastmath=fastmath)
+    return cast(ApplyMap, compiled)
 
 
 _NUMBA = _compile()
