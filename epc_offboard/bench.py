@@ -274,6 +274,8 @@ def active_fractions(p: MpcProblem, thetas: FloatArray, U: FloatArray) -> dict[s
 def format_table(report: dict[str, Any]) -> str:
     m = report["methods"]
     e, o, d = m["epc"], m["osqp"], m["daqp"]
+    r = e["hit_rate_repeat"]
+    repeat = "n/a, fewer steps than a lap" if r is None else f"{r:.3f}"
 
     def num(v: float | None) -> str:
         return f"{v:10.1f}" if v is not None else "         -"
@@ -283,8 +285,7 @@ def format_table(report: dict[str, Any]) -> str:
         f"{report['decision_variables']} variables, {report['constraint_rows']} rows",
         f"{'method':8s} {'median us':>10s} {'p99 us':>10s}",
         f"{'epc':8s} {num(e['median_us'])} {num(e['p99_us'])}   hit rate "
-        f"{e['hit_rate']:.3f} (repeat {e['hit_rate_repeat'] or 0.0:.3f}), "
-        f"library {e['library_size']}",
+        f"{e['hit_rate']:.3f} (once repeating: {repeat}), library {e['library_size']}",
         f"{'osqp':8s} {num(o['median_us'])} {num(o['p99_us'])}",
         f"{'daqp':8s} {num(d['median_us'])} {num(d['p99_us'])}"
         + (f"   ({d['missing']})" if "missing" in d else ""),
