@@ -33,7 +33,7 @@ def test_numba_and_numpy_kernels_agree():
             assert np.all(u1 <= u_max)
 
 
-def test_numpy_kernel_refuses_negative_zero_free_violations():
+def test_numpy_kernel_refuses_a_tiny_negative_slack():
     M = np.array([[0.0, -1e-300], [1.0, 0.0]])
     ok = apply_map_numpy(M, np.array([1.0]), np.array([0.0, 1.0]), 1, np.empty(1),
                          np.array([-1.0]), np.array([1.0]))
