@@ -14,7 +14,6 @@ import numpy as np
 import numpy.typing as npt
 
 from epc_offboard.decision import Decision
-from epc_offboard.frames import FloatArray
 from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
 
 
@@ -61,8 +60,7 @@ class PdController:
         r = theta[p.nx : p.nx + p.horizon * p.nx].reshape(p.horizon, p.nx)
         a_ff = (r[1, n:] - r[0, n:]) / self.dt_s if p.horizon > 1 else np.zeros(n)
         u = a_ff + self.kp * (r[0, :n] - x[:n]) + self.kd * (r[0, n:] - x[n:]) + p.u_p(theta)
-        u = np.minimum(np.maximum(u, p.u_min), p.u_max)
-        return Decision(u, "solved", (time.perf_counter() - t0) * 1e6)
+        return Decision(p.clip_input(u), "solved", (time.perf_counter() - t0) * 1e6)
 
 
 class MpcController:
@@ -94,9 +92,8 @@ class MpcController:
         h, gamma = p.vectors(theta)
         res = self._solver.solve(h, gamma)
         if res.status in (QpStatus.SOLVED, QpStatus.INACCURATE):
-            u: FloatArray = np.minimum(np.maximum(res.x[: p.nu], p.u_min), p.u_max)
+            u = p.clip_input(res.x[: p.nu])
             return Decision(u, "solved", (time.perf_counter() - t0) * 1e6,
                             p.predict(theta, res.x))
         self.failures += 1
-        u = np.minimum(np.maximum(p.u_p(theta), p.u_min), p.u_max)
-        return Decision(u, "fallback", (time.perf_counter() - t0) * 1e6)
+        return Decision(p.hover_input(theta), "fallback", (time.perf_counter() - t0) * 1e6)

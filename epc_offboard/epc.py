@@ -6,13 +6,13 @@ model its KKT system (thesis 3.5-3.8)::
     [H    Ga'] [U  ]   [-F theta        ]
     [Ga   0  ] [lam] = [g0_a + S_a theta]
 
-is solved once, symbolically in ``theta``, into ONE stacked affine map ``v = M theta + m``
-whose rows are: the whole input sequence U (N nu), the bounded predicted state components
-(the rows of X with a finite bound), and the active multipliers. Applying and checking a
-stored controller is then one mat-vec and two comparisons: ``lo <= v <= hi`` where lo/hi hold
-the input and state bounds widened by ``tol`` and ``lam >= -tol``. Checking every bound row
-(active ones included, whose slack is zero by construction) is the thesis's "every inactive
-constraint holds" without gathering rows.
+is solved once, symbolically in ``theta``, into ONE stacked affine map ``w = M [theta; 1]``
+whose rows are: the active multipliers, every finite bound of the inputs and predicted states
+as a shifted slack, and the first input. Applying and checking a stored controller is then
+one mat-vec with ``0 <= w <= width`` tests (:mod:`epc_offboard.kernels`, compiled by numba,
+with an early exit on the first failed row). Checking every bound row (active ones included,
+whose slack is zero by construction) is the thesis's "every inactive constraint holds"
+without gathering rows.
 
 Query order: the last used controller, then its successors in the transition counts (most
 frequent first), then the rest by importance (last use, most recent first). A miss calls
@@ -42,6 +42,7 @@ import scipy.linalg as sla
 
 from epc_offboard.decision import Decision
 from epc_offboard.frames import FloatArray
+from epc_offboard.kernels import apply_map
 from epc_offboard.models import LinearModel
 from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
 
@@ -50,6 +51,10 @@ logger = logging.getLogger(__name__)
 # Cholesky pivots of Ga H^-1 Ga' below this fraction of the largest mean cond > ~1e12:
 # the rows are treated as linearly dependent.
 _DEPENDENCE_RTOL = 1e-6
+# the full solve's OSQP tolerances; polishing makes the active set exact, these only need to
+# make OSQP's duals point at it
+_EPS = 1e-8
+_MAX_ITER = 10000
 
 
 @dataclass(frozen=True)
@@ -87,12 +92,21 @@ class DependentActiveSetError(ValueError):
 
 
 class ActiveSetMap:
-    """The cached affine map of one active set: ``v = M theta + m`` checked by ``lo <= v <= hi``.
+    """The cached affine map of one active set, checked and applied by one mat-vec.
 
-    Rows of ``v``: U (N nu), bounded state components of X, active multipliers.
+    With ``theta_aug = [theta; 1]``, ``w = M theta_aug`` has rows:
+
+    * the active multipliers plus ``tol`` (must be >= 0);
+    * one row per finite-bounded component of ``[U; X]``, shifted (and, for rows bounded
+      only above, negated) so that its bounds widened by ``tol`` become ``0 <= w <= width``;
+    * ``u_0`` (nu), the first input, as is.
+
+    The first ``n_check`` rows are the KKT check (thesis 3.5-3.8: multipliers >= -tol and every
+    bound within tol; an active row's slack is zero by construction, so checking all rows is
+    checking the inactive ones). :func:`epc_offboard.kernels.apply_map` evaluates it.
     """
 
-    __slots__ = ("M", "active", "hi", "lo", "m")
+    __slots__ = ("M", "U", "active", "lam", "n_check", "width")
 
     def __init__(self, problem: MpcProblem, active: tuple[int, ...], geom: _ProblemGeometry,
                  tol: float) -> None:
@@ -108,59 +122,61 @@ class ActiveSetMap:
             d = np.abs(np.diag(w_chol[0]))
             if d.min() <= _DEPENDENCE_RTOL * float(d.max()):
                 raise DependentActiveSetError(f"active set {active} is dependent")
-            # lam = -W^-1 (E1 F theta + S_a theta + g0_a)
+            # lam = -W^-1 (E1 F theta + S_a theta + g0_a)   (thesis 3.8)
             L_theta = -sla.cho_solve(w_chol, E1 @ problem.F + problem.S[idx])
             l_0 = -sla.cho_solve(w_chol, problem.g0[idx])
         else:
             L_theta = np.zeros((0, problem.n_theta))
             l_0 = np.zeros(0)
-        # U = -H^-1 F theta - H^-1 Ga' lam
-        U_theta = -geom.hinv_f - E1.T @ L_theta
-        U_0 = -E1.T @ l_0
-        X_theta = geom.xb_theta + geom.xb_bbar @ U_theta
-        X_0 = geom.xb_bbar @ U_0
-        self.M = np.ascontiguousarray(np.vstack([U_theta, X_theta, L_theta]))
-        self.m = np.concatenate([U_0, X_0, l_0])
-        na = len(active)
-        self.lo = np.concatenate([geom.lo_ux - tol, np.full(na, -tol)])
-        self.hi = np.concatenate([geom.hi_ux + tol, np.full(na, np.inf)])
+        # U = -H^-1 (F theta + Ga' lam)   (thesis 3.6)
+        U_aug = np.hstack([-geom.hinv_f - E1.T @ L_theta, (-E1.T @ l_0)[:, None]])
+        UX_aug = np.vstack([U_aug, geom.xb_aug + geom.xb_bbar @ U_aug])
+        L_aug = np.hstack([L_theta, l_0[:, None]])
+        chk = geom.chk_sign[:, None] * UX_aug[geom.chk_rows]
+        chk[:, -1] += geom.chk_offset
+        lam_chk = L_aug.copy()
+        lam_chk[:, -1] += tol
+        self.M = np.ascontiguousarray(np.vstack([lam_chk, chk, U_aug[: problem.nu]]))
+        self.width = np.concatenate([np.full(len(active), np.inf), geom.chk_width])
+        self.n_check = len(self.width)
+        self.U = U_aug
+        self.lam = L_aug
         self.active = active
 
-    def evaluate(self, theta: FloatArray) -> FloatArray | None:
-        """``v`` if the controller is optimal at ``theta`` (passes the KKT check), else None."""
-        v: FloatArray = self.M @ theta
-        v += self.m
-        if (v >= self.lo).all() and (v <= self.hi).all():
-            return v
-        return None
+    def apply(self, theta_aug: FloatArray, u_out: FloatArray, u_min: FloatArray,
+              u_max: FloatArray) -> bool:
+        """KKT-check at ``theta_aug``; if it passes write the clipped first input to
+        ``u_out`` and return True."""
+        return apply_map(self.M, self.width, theta_aug, self.n_check, u_out, u_min, u_max)
 
 
 class _ProblemGeometry:
-    """Per-model quantities shared by every active set's map."""
+    """Per-model quantities shared by every active set's map (see :class:`ActiveSetMap`)."""
 
-    def __init__(self, problem: MpcProblem) -> None:
+    def __init__(self, problem: MpcProblem, tol: float) -> None:
         self.h_chol = sla.cho_factor(problem.H)
         self.hinv_f = sla.cho_solve(self.h_chol, problem.F)
         nx, N = problem.nx, problem.horizon
         bounded = np.isfinite(problem.x_min) | np.isfinite(problem.x_max)
         rows = np.array([k * nx + i for k in range(N) for i in range(nx) if bounded[i]],
                         dtype=np.intp)
-        # X rows as affine maps of theta (through x0 and c~) and of U
-        xt = np.zeros((len(rows), problem.n_theta))
+        # bounded X rows as affine maps of theta_aug (through x0 and c~) and of U
+        xt = np.zeros((len(rows), problem.n_theta + 1))
         xt[:, :nx] = problem.Phi[rows]
         c0 = nx + N * nx
         xt[:, c0 : c0 + nx] = problem.Psi[rows]
-        self.xb_theta = xt
+        self.xb_aug = xt
         self.xb_bbar = problem.Bbar[rows]
-        self.xb_rows = rows
-        n_xb = len(rows)
-        self.n_xb = n_xb
-        self.lo_ux = np.concatenate(
-            [np.tile(problem.u_min, N), np.tile(problem.x_min[bounded], N)]
-        )
-        self.hi_ux = np.concatenate(
-            [np.tile(problem.u_max, N), np.tile(problem.x_max[bounded], N)]
-        )
+        lo = np.concatenate([np.tile(problem.u_min, N), np.tile(problem.x_min[bounded], N)])
+        hi = np.concatenate([np.tile(problem.u_max, N), np.tile(problem.x_max[bounded], N)])
+        lo_f, hi_f = np.isfinite(lo), np.isfinite(hi)
+        self.chk_rows = np.flatnonzero(lo_f | hi_f)
+        lo, hi, lo_f = lo[self.chk_rows], hi[self.chk_rows], lo_f[self.chk_rows]
+        # w = v - (lo - tol) in [0, hi - lo + 2 tol]; rows bounded only above: w = hi + tol - v
+        self.chk_sign = np.where(lo_f, 1.0, -1.0)
+        self.chk_offset = np.where(lo_f, -(lo - tol), hi + tol)
+        with np.errstate(invalid="ignore"):
+            self.chk_width = np.where(lo_f, hi - lo + 2.0 * tol, np.inf)
 
 
 @dataclass
@@ -180,6 +196,10 @@ class ExperienceController:
     (``step`` applies the intermediate controller and queues the parameter vectors in
     :attr:`pending`, for a worker to pass to :meth:`learn_theta`); ``with_prediction`` adds the
     predicted trajectory to hit decisions (one more mat-vec).
+
+    Not thread-safe: ``step``, ``learn`` and the library methods share the solver and the
+    library, so a worker running ``learn`` must be serialised with the loop (or hand its
+    entries back through :meth:`import_entries`, which re-validates them).
     """
 
     def __init__(
@@ -223,9 +243,12 @@ class ExperienceController:
 
     def _setup(self, problem: MpcProblem) -> None:
         self.problem = problem
-        self._geom = _ProblemGeometry(problem)
-        self._solver = OsqpSolver(problem.H, problem.G, polish=True)
-        self._theta = np.zeros(problem.n_theta)
+        self._geom = _ProblemGeometry(problem, self.tol)
+        self._solver = OsqpSolver(problem.H, problem.G, polish=True, eps_abs=_EPS, eps_rel=_EPS,
+                                  max_iter=_MAX_ITER)
+        # theta_aug = [theta; 1]: the maps carry their constant as a last column
+        self._theta_aug = np.zeros(problem.n_theta + 1)
+        self._theta_aug[-1] = 1.0
         self._intermediate_qp = _IntermediateQp(problem, self._int_horizon, self._slack_weight)
 
     def set_model(self, model: LinearModel) -> None:
@@ -236,7 +259,7 @@ class ExperienceController:
         old = self.problem.model
         if np.array_equal(old.A, model.A) and np.array_equal(old.B, model.B):
             # only the offset changed: it enters through theta, the maps stay valid
-            self.problem = self.problem.with_model(model)
+            self.problem = self.problem.with_offset(model)
             return
         self._setup(self.problem.with_model(model))
         for key, e in list(self._entries.items()):
@@ -262,36 +285,29 @@ class ExperienceController:
         With a perturbation and no ``u_p``, ``u_p = -pinv(B) p^`` (the input cancelling it).
         """
         t0 = time.perf_counter()
-        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation, out=self._theta)
+        th_aug = self._theta_aug
+        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation, out=th_aug[:-1])
         self._tick += 1
-        found = self._query(theta)
-        if found is not None:
-            entry, v = found
+        u = np.empty(self.problem.nu)
+        entry = self._query(th_aug, u)
+        if entry is not None:
             self._hits += 1
             self._use(entry)
-            u = self._first_input(v)
-            x_pred = self._predict(theta, v) if self.with_prediction else None
+            x_pred = self._predict(entry, th_aug) if self.with_prediction else None
             return Decision(u, "hit", (time.perf_counter() - t0) * 1e6, x_pred)
         self._misses += 1
         if self.learn_on_miss:
-            learned = self.learn_theta(theta)
-            if learned is not None:
-                entry, v = learned
+            entry = self._learn(th_aug, u)
+            if entry is not None:
                 self._use(entry)
-                u = self._first_input(v)
                 return Decision(u, "solved", (time.perf_counter() - t0) * 1e6,
-                                self._predict(theta, v))
+                                self._predict(entry, th_aug))
         elif len(self.pending) < self._max_pending:
             self.pending.append(theta.copy())
         return self._degraded(theta, t0)
 
-    def _first_input(self, v: FloatArray) -> FloatArray:
-        nu = self.problem.nu
-        # within tol of the bounds by the check; clipping makes "never violates" exact
-        return np.minimum(np.maximum(v[:nu], self.problem.u_min), self.problem.u_max)
-
-    def _predict(self, theta: FloatArray, v: FloatArray) -> FloatArray:
-        return self.problem.predict(theta, v[: self.problem.n_u])
+    def _predict(self, entry: _Entry, theta_aug: FloatArray) -> FloatArray:
+        return self.problem.predict(theta_aug[:-1], entry.map.U @ theta_aug)
 
     def _candidates(self) -> Iterator[_Entry]:
         entries = self._entries
@@ -314,21 +330,18 @@ class ExperienceController:
         """Active sets in the order the next query will try them (diagnostics and tests)."""
         return [e.map.active for e in self._candidates()]
 
-    def _query(self, theta: FloatArray) -> tuple[_Entry, FloatArray] | None:
+    def _query(self, theta_aug: FloatArray, u_out: FloatArray) -> _Entry | None:
+        p = self.problem
+        u_min, u_max = p.u_min, p.u_max
         last = self._last
         if last is not None:
             # the hot path: the last controller usually still applies
             e = self._entries.get(last)
-            if e is not None:
-                v = e.map.evaluate(theta)
-                if v is not None:
-                    return e, v
+            if e is not None and e.map.apply(theta_aug, u_out, u_min, u_max):
+                return e
         for e in self._candidates():
-            if e.key == last:
-                continue
-            v = e.map.evaluate(theta)
-            if v is not None:
-                return e, v
+            if e.key != last and e.map.apply(theta_aug, u_out, u_min, u_max):
+                return e
         return None
 
     def _use(self, entry: _Entry) -> None:
@@ -355,42 +368,51 @@ class ExperienceController:
     ) -> LibraryEntry | None:
         """The miss path's full solve for one tick's data, separable from :meth:`step` so a
         worker can run it off the loop. Returns the (possibly pre-existing) entry or None."""
-        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation)
-        learned = self.learn_theta(theta)
-        if learned is None:
-            return None
-        e = learned[0]
-        return LibraryEntry(e.map.active, e.importance, e.uses)
+        return self.learn_theta(self.problem.theta(x0, refs, u_p, perturbation=perturbation))
 
-    def learn_theta(self, theta: FloatArray) -> tuple[_Entry, FloatArray] | None:
-        """Solve the full QP at ``theta``, recover and verify its active set, add it.
+    def learn_theta(self, theta: FloatArray) -> LibraryEntry | None:
+        """:meth:`learn` for a parameter vector (nθ,) built by ``problem.theta`` (as queued in
+        :attr:`pending`)."""
+        theta_aug = np.append(np.asarray(theta, dtype=np.float64), 1.0)
+        e = self._learn(theta_aug, np.empty(self.problem.nu))
+        return None if e is None else LibraryEntry(e.map.active, e.importance, e.uses)
 
-        Returns the library entry and its map's value at ``theta`` (the exact solution), or
-        None when the QP is infeasible or the active set cannot be verified.
+    def _learn(self, theta_aug: FloatArray, u_out: FloatArray) -> _Entry | None:
+        """Solve the full QP, recover and verify its active set, add it.
+
+        Returns the entry, with the exact first input written to ``u_out``, or None when the
+        QP is infeasible or no active set passes the check.
         """
         p = self.problem
+        theta = theta_aug[:-1]
         h, gamma = p.vectors(theta)
         self._solves += 1
-        res = self._solver.solve(h, gamma)
-        if res.status not in (QpStatus.SOLVED, QpStatus.INACCURATE):
-            logger.debug("full QP not solved: %s", res.status.value)
+        amap = None
+        for attempt in range(2):
+            if attempt:  # tighten and retry once: a sharper optimum gives clearer duals
+                self._solver.set_tolerances(1e-11, 1e-11, 40000)
+            res = self._solver.solve(h, gamma)
+            if attempt:
+                self._solver.set_tolerances(_EPS, _EPS, _MAX_ITER)
+            if res.status not in (QpStatus.SOLVED, QpStatus.INACCURATE):
+                logger.debug("full QP not solved: %s", res.status.value)
+                break
+            amap = self._recover_active_set(theta_aug, res.y, gamma, u_out)
+            if amap is not None:
+                break
+        if amap is None:
             self._learn_failures += 1
             return None
-        active = self._recover_active_set(theta, res.x, res.y, gamma)
-        if active is None:
-            self._learn_failures += 1
-            return None
-        amap, v = active
         key = self._by_set.get(amap.active)
         if key is not None:
-            return self._entries[key], v
+            return self._entries[key]
         entry = self._add(amap)
         self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses))
-        return entry, v
+        return entry
 
     def _recover_active_set(
-        self, theta: FloatArray, U: FloatArray, y: FloatArray, gamma: FloatArray
-    ) -> tuple[ActiveSetMap, FloatArray] | None:
+        self, theta_aug: FloatArray, y: FloatArray, gamma: FloatArray, u_out: FloatArray
+    ) -> ActiveSetMap | None:
         """Rebuild the exact solution from OSQP's guess of the active set.
 
         Start from rows with a clearly positive dual; then, until the KKT check passes:
@@ -409,25 +431,21 @@ class ExperienceController:
                 break
             seen.add(aset)
             amap = ActiveSetMap(p, aset, self._geom, self.tol)
-            v = amap.M @ theta + amap.m
-            U_ex = v[: p.n_u]
-            lam = v[len(v) - len(aset) :]
-            slack = gamma - p.G @ U_ex
+            if amap.apply(theta_aug, u_out, p.u_min, p.u_max):
+                return amap
+            U = amap.U @ theta_aug
+            lam = amap.lam @ theta_aug
+            slack = gamma - p.G @ U
             if len(aset):
                 slack[np.asarray(aset, dtype=np.intp)] = np.inf
-            worst_lam = int(np.argmin(lam)) if len(aset) else -1
-            worst_row = int(np.argmin(slack)) if p.n_con else -1
-            lam_bad = len(aset) > 0 and lam[worst_lam] < -self.tol
-            row_bad = p.n_con > 0 and slack[worst_row] < -self.tol
-            if not lam_bad and not row_bad and amap.evaluate(theta) is not None:
-                return amap, v
             active = set(aset)
-            if lam_bad:
-                active.discard(aset[worst_lam])
-            if row_bad:
-                active.add(worst_row)
-                weight[worst_row] = math.inf  # keep the newly tightened row
-        logger.debug("active set recovery did not converge; OSQP x=%s", U[: p.nu])
+            if len(aset) and lam.min() < -self.tol:
+                active.discard(aset[int(np.argmin(lam))])
+            if p.n_con and slack.min() < -self.tol:
+                worst = int(np.argmin(slack))
+                active.add(worst)
+                weight[worst] = math.inf  # keep the newly tightened row
+        logger.debug("active set recovery did not converge at theta=%s", theta_aug[: p.nx])
         return None
 
     def _independent(self, rows: Sequence[int]) -> list[int]:
@@ -450,12 +468,8 @@ class ExperienceController:
             self._intermediate += 1
             return Decision(u, "intermediate", (time.perf_counter() - t0) * 1e6)
         self._fallback += 1
-        return Decision(self.hover_input(theta), "fallback", (time.perf_counter() - t0) * 1e6)
-
-    def hover_input(self, theta: FloatArray) -> FloatArray:
-        """The bounded hover command: ``u_p`` (zero, or the input cancelling p^), clipped."""
-        p = self.problem
-        return np.minimum(np.maximum(np.nan_to_num(p.u_p(theta)), p.u_min), p.u_max)
+        u = self.problem.hover_input(theta)
+        return Decision(u, "fallback", (time.perf_counter() - t0) * 1e6)
 
     # -- library ----------------------------------------------------------------------------
 
@@ -651,5 +665,4 @@ class _IntermediateQp:
         u0 = res.x[:nu]
         if not np.all(np.isfinite(u0)):
             return None
-        out: FloatArray = np.minimum(np.maximum(u0, p.u_min), p.u_max)
-        return out
+        return p.clip_input(u0)

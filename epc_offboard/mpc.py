@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from epc_offboard.baselines import MpcController, PdController
 from epc_offboard.decision import Controller, Decision, Source
 from epc_offboard.epc import EpcStats, ExperienceController, LibraryEntry
 from epc_offboard.models import LinearModel, attitude_model, position_model
@@ -14,8 +15,10 @@ __all__ = [
     "ExperienceController",
     "LibraryEntry",
     "LinearModel",
+    "MpcController",
     "MpcProblem",
     "OsqpSolver",
+    "PdController",
     "QpResult",
     "QpStatus",
     "Source",

@@ -23,6 +23,7 @@ state upper bounds (k = 1..N, i = 0..nx-1), state lower bounds, input upper boun
 from __future__ import annotations
 
 import contextlib
+import copy
 import enum
 import hashlib
 import logging
@@ -258,6 +259,27 @@ class MpcProblem:
         """The nominal input ``u_p`` inside ``theta``."""
         return theta[self.n_theta - self.nu :]
 
+    def clip_input(self, u: FloatArray) -> FloatArray:
+        """``u`` (nu,) clipped into the input box (a new array)."""
+        out: FloatArray = np.minimum(np.maximum(u, self.u_min), self.u_max)
+        return out
+
+    def hover_input(self, theta: FloatArray) -> FloatArray:
+        """The bounded hover command every controller degrades to: ``u_p`` (zero, or the
+        input cancelling p^), clipped into the input box; NaN entries become zero."""
+        return self.clip_input(np.nan_to_num(self.u_p(theta)))
+
+    def with_offset(self, model: LinearModel) -> MpcProblem:
+        """This problem over ``model``, which differs from the current one only in ``c``.
+
+        Cheap (no matrix is rebuilt): ``c`` enters the QP only through ``theta``.
+        """
+        if not (np.array_equal(model.A, self.model.A) and np.array_equal(model.B, self.model.B)):
+            raise ProblemError("with_offset needs the same A and B; use with_model")
+        out = copy.copy(self)
+        out.model = model
+        return out
+
     def vectors(self, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """``(h, gamma)`` of the condensed QP at ``theta``."""
         return self.F @ theta, self.g0 + self.S @ theta
@@ -387,6 +409,10 @@ class OsqpSolver:
             max_iter=max_iter,
             warm_starting=True,
         )
+
+    def set_tolerances(self, eps_abs: float, eps_rel: float, max_iter: int) -> None:
+        """Change the termination tolerances (kept for later solves)."""
+        self._solver.update_settings(eps_abs=eps_abs, eps_rel=eps_rel, max_iter=max_iter)
 
     def solve(
         self, q: FloatArray, u: FloatArray, l: FloatArray | None = None  # noqa: E741

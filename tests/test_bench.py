@@ -34,3 +34,12 @@ def test_bench_measures_the_hit_rate_once_the_sequence_repeats():
 def test_bad_horizon_is_a_usage_error(capsys):
     assert run_bench_command(argparse.Namespace(horizon=1, steps=10, json=None)) == 2
     assert "horizon" in capsys.readouterr().err
+
+
+def test_bench_says_clearly_when_daqp_is_missing(monkeypatch, capsys):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "daqp", None)  # import daqp -> ImportError
+    report = run_bench(horizon=3, steps=20)
+    assert "not installed" in report["methods"]["daqp"]["missing"]
+    assert report["exact_reference"] == "osqp"

@@ -10,8 +10,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import epc_offboard.epc as epc_module
 from epc_offboard.epc import ExperienceController, LibraryEntry
-from epc_offboard.models import position_model
+from epc_offboard.kernels import apply_map_numpy
+from epc_offboard.models import LinearModel, attitude_model, position_model
 from epc_offboard.qp import MpcProblem
 from tests.mpc_cases import A_MAX, V_MAX, exact_solution, hover_refs, position_problem
 
@@ -70,7 +72,10 @@ def test_library_hit_equals_a_fresh_exact_solve(x0, tgt, p_hat, shift):
     assert ctrl.stats.hits >= 1
 
 
-def test_hits_are_exact_on_constrained_closed_loop():
+@pytest.mark.parametrize("kernel", ["default", "numpy"])
+def test_hits_are_exact_on_constrained_closed_loop(kernel, monkeypatch):
+    if kernel == "numpy":
+        monkeypatch.setattr(epc_module, "apply_map", apply_map_numpy)
     p = position_problem(10)
     ctrl = ExperienceController(p)
     x = np.zeros(6)
@@ -294,3 +299,70 @@ def test_contract_import_path():
     assert d.source == "solved"
     assert {"hits", "misses", "qp_solves", "size"} <= set(vars(ctrl.stats))
     assert isinstance(ctrl.problem, MpcProblem)
+
+
+def test_linearly_dependent_active_constraints_are_dropped_not_fatal():
+    # x[k+1] = u[k]: the bound on x[k+1] and the bound on u[k] are the same row of Gamma,
+    # so at a saturated optimum both are active and dependent
+    model = LinearModel(np.zeros((1, 1)), np.ones((1, 1)))
+    p = MpcProblem(model, horizon=3, Q=[1.0], R=[0.01], x_max=[1.0], u_max=[1.0])
+    ctrl = ExperienceController(p)
+    refs = np.full((3, 1), 5.0)
+    first = ctrl.step(np.zeros(1), refs)
+    assert first.source == "solved"
+    assert first.u[0] == pytest.approx(1.0, abs=1e-12)
+    (entry,) = ctrl.export_library()
+    rows = [p.rows[i] for i in entry.active_set]
+    assert len(rows) == 3  # one of each dependent pair kept
+    assert ctrl.step(np.zeros(1), refs).source == "hit"
+
+
+def test_a_failed_solve_and_intermediate_degrade_to_bounded_hover(monkeypatch):
+    p = position_problem(6)
+    ctrl = ExperienceController(p)
+    monkeypatch.setattr(ctrl._intermediate_qp, "solve", lambda theta: None)
+    a = np.array([5.0, 0.0, -0.5])  # more than the input box can cancel
+    d = ctrl.step(np.array([0, 0, 0, 10.0, 0, 0]), hover_refs(p, [0, 0, 0]),
+                  perturbation=p.model.B @ a)
+    assert d.source == "fallback"
+    assert np.allclose(d.u, [-A_MAX, 0.0, 0.5])
+    assert ctrl.stats.fallback == 1
+
+
+def test_offset_only_model_change_keeps_the_maps():
+    p = position_problem(6)
+    ctrl = ExperienceController(p)
+    ctrl.step(np.zeros(6), hover_refs(p, [1.0, 0, 0]))
+    c = np.array([0, 0, 0, 0.01, 0, 0])
+    ctrl.set_model(p.model.with_offset(c))
+    assert np.array_equal(ctrl.problem.model.c, c)
+    assert ctrl.problem.H is p.H  # nothing rebuilt
+    refs = hover_refs(p, [1.0, 0, 0])
+    d = ctrl.step(np.zeros(6), refs)
+    U = exact_solution(ctrl.problem, ctrl.problem.theta(np.zeros(6), refs))
+    assert np.allclose(d.u, U[:3], atol=1e-8)
+
+
+def test_attitude_loop_is_exact_too():
+    inf = math.inf
+    p = MpcProblem(
+        attitude_model(0.01, 0.04),
+        horizon=10,
+        Q=[50, 50, 20, 1, 1, 1],
+        R=[0.05] * 3,
+        x_min=[-0.4, -0.4, -inf, -inf, -inf, -inf],
+        x_max=[0.4, 0.4, inf, inf, inf, inf],
+        u_min=[-2.0] * 3,
+        u_max=[2.0] * 3,
+    )
+    ctrl = ExperienceController(p)
+    x = np.zeros(6)
+    for k in range(150):
+        refs = np.zeros((10, 6))
+        refs[:, :3] = [0.6, -0.2, 0.5] if (k // 50) % 2 == 0 else [0.0, 0.1, 0.0]
+        d = ctrl.step(x, refs)
+        U = exact_solution(p, p.theta(x, refs))
+        assert np.allclose(d.u, U[:3], atol=1e-8)
+        x = p.model.step(x, d.u)
+        assert abs(x[0]) <= 0.4 + 1e-7  # the roll bound holds in closed loop
+    assert ctrl.stats.hits > 50
