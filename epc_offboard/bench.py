@@ -11,29 +11,20 @@ is the exact reference for ``max_input_error`` (OSQP's when DAQP is missing).
 
 from __future__ import annotations
 
-import os
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
 
-# The matrices here are small (<= 240 x 136): BLAS threads only add synchronisation, and on a
-# loaded machine their spin-waiting makes EPC's miss path (map construction) 20x slower.
-# Effective when this module is imported before numpy, as `epc-offboard bench` does; the
-# service should run with the same setting (its systemd unit / environment).
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import numpy as np
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import math  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-from typing import Any  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from epc_offboard.epc import ExperienceController  # noqa: E402
-from epc_offboard.frames import FloatArray  # noqa: E402
-from epc_offboard.models import acceleration_box, position_model  # noqa: E402
-from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus  # noqa: E402
+from epc_offboard.epc import ExperienceController
+from epc_offboard.frames import FloatArray
+from epc_offboard.models import acceleration_box, position_model
+from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
 
 DT_S = 0.05  # prediction step and replay step
 LAP_STEPS = 500
