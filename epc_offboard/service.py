@@ -262,7 +262,8 @@ class Service:
             elif self.outputs.stream_setpoints and state is not None:
                 self._position_out = self._position_tick(state, start)
                 self._control_alive_wall = time.monotonic()
-            self.position_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
+            if self.outputs.stream_setpoints:  # timing of the ticks that control, not idle ones
+                self.position_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
             t_next = self._next_tick(t_next, period, "position")
 
     def _position_tick(self, state: VehicleState, t_s: float) -> PositionOutput:
@@ -293,7 +294,8 @@ class Service:
             if self.outputs.stream_setpoints and state is not None:
                 target = self._position_out or self.cascade.hover(state)
                 self._send_setpoint(state, target)
-            self.attitude_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
+            if self.outputs.stream_setpoints:
+                self.attitude_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
             t_next = self._next_tick(t_next, period, "attitude")
 
     def _next_tick(self, t_next: float, period: float, loop: str) -> float:

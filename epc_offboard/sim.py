@@ -368,8 +368,8 @@ def print_table(report: dict[str, Any]) -> None:
     from rich.table import Table
 
     table = Table(title=f"{report['scenario']}: {report['controller']} + {report['adaptation']}")
-    for col in ("vehicle", "RMSE [cm]", "max err [cm]", "max speed", "violations",
-                "hit rate", "QP solves", "pos loop Hz", "pos p99 us", "att loop Hz"):  # fmt: skip
+    for col in ("id", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "QPs",
+                "pos Hz", "pos p99 us", "att Hz"):  # fmt: skip
         table.add_column(col, justify="right")
     for v in report["vehicles"]:
         loops = v.get("loops", {})
