@@ -396,9 +396,7 @@ class Autopilot:
         err = pos_ref - x[POS]
         # Integrate a clipped error: a large step must not wind the integrator up (overshoot),
         # yet any steady offset (wind) is still trimmed out.
-        self._pos_integral = np.clip(
-            self._pos_integral + np.clip(err, -0.3, 0.3) * dt_s, -2.0, 2.0
-        )
+        self._pos_integral = np.clip(self._pos_integral + np.clip(err, -0.3, 0.3) * dt_s, -2.0, 2.0)
         acc = (
             np.asarray(p.position_p_1_s2) * err
             + np.asarray(p.velocity_d_1_s) * (vel_ref - x[VEL])
