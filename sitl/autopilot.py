@@ -166,6 +166,8 @@ class Autopilot:
         self._pos_integral = np.zeros(3)
         self._rate_integral = np.zeros(3)
         self._inertia = np.asarray(vehicle.inertia_diag_kg_m2)
+        self._rate_p = np.asarray(params.rate_p_1_s)
+        self._rate_i = np.asarray(params.rate_i_1_s2)
         self._mix_inv = np.linalg.inv(effectiveness_matrix(vehicle))
         self._f_max_n = vehicle.k_f_n_s2 * vehicle.rotor_speed_max_rad_s**2
         self._f_idle_n = vehicle.k_f_n_s2 * vehicle.rotor_speed_min_rad_s**2
@@ -447,22 +449,23 @@ class Autopilot:
         self, x: FloatArray, rate_cmd: FloatArray, thrust_norm: float, dt_s: float
     ) -> FloatArray:
         """Rate PI -> torques -> rotor forces (inverse effectiveness, desaturated) -> speeds."""
-        p = self.params
         w = x[RATE]
         err = rate_cmd - w
-        self._rate_integral = np.clip(self._rate_integral + err * dt_s, -0.5, 0.5)
-        ang_acc = np.asarray(p.rate_p_1_s) * err + np.asarray(p.rate_i_1_s2) * self._rate_integral
+        integral = self._rate_integral + err * dt_s
+        self._rate_integral = np.minimum(np.maximum(integral, -0.5), 0.5)
+        ang_acc = self._rate_p * err + self._rate_i * self._rate_integral
         torque = self._inertia * ang_acc + cross3(w, self._inertia * w)
-        collective_n = float(np.clip(thrust_norm, 0.0, 1.0)) * self.vehicle.max_total_thrust_n
-        base = self._mix_inv @ np.array([collective_n, 0.0, 0.0, 0.0])
-        delta = self._mix_inv @ np.concatenate([[0.0], torque])
+        collective_n = min(1.0, max(0.0, thrust_norm)) * self.vehicle.max_total_thrust_n
+        # Forces = base (collective, equal shares) + delta (torques), via the inverse mixer.
+        base = collective_n * self._mix_inv[:, 0]
+        delta = self._mix_inv[:, 1:] @ torque
         # Keep the collective, scale the torque part down until every rotor is within limits.
         scale = 1.0
-        for b, d in zip(base, delta, strict=True):
+        for b, d in zip(base.tolist(), delta.tolist(), strict=True):
             if b + d > self._f_max_n and d > 0.0:
                 scale = min(scale, max(0.0, (self._f_max_n - b) / d))
             elif b + d < self._f_idle_n and d < 0.0:
                 scale = min(scale, max(0.0, (self._f_idle_n - b) / d))
-        forces = np.clip(base + scale * delta, self._f_idle_n, self._f_max_n)
+        forces = np.minimum(np.maximum(base + scale * delta, self._f_idle_n), self._f_max_n)
         speeds: FloatArray = np.sqrt(forces / self.vehicle.k_f_n_s2)
         return speeds
