@@ -38,13 +38,6 @@ RATE = slice(10, 13)
 ROTOR = slice(13, 17)
 
 
-def cross3(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Cross product of two (3,) vectors; np.cross costs ten times more on tiny arrays."""
-    a0, a1, a2 = a
-    b0, b1, b2 = b
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-
-
 def initial_state(pos_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> FloatArray:
     """Vehicle at rest, level, yaw north, rotors stopped."""
     x = np.zeros(NX)
