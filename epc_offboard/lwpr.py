@@ -256,6 +256,7 @@ class LWPR:
         self._n = 0  # fields in use: rows [0, _n)
         self.n_updates = 0
         self.n_pruned = np.zeros(self.n_out, dtype=np.int64)
+        self.n_dropped = 0  # fields removed because their statistics overflowed
 
     # ----------------------------------------------------------------- public API
 
@@ -279,7 +280,11 @@ class LWPR:
             # predictions (not seen in practice; counted in n_dropped).
             health = v["beta0"] + v["slope"] @ self._ones + v["M_diag"] @ self._ones
             if not np.isfinite(health).all():
-                self._remove_fields(np.flatnonzero(~np.isfinite(health)))
+                broken = np.flatnonzero(~np.isfinite(health))
+                self.n_dropped += broken.size
+                self._remove_fields(broken)
+                self.n_updates += 1
+                return y_before * self.norm_out
         self._add_or_prune(w, xn, yn)
         self.n_updates += 1
         return y_before * self.norm_out
