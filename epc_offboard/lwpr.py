@@ -10,11 +10,11 @@ field j owns a Gaussian kernel w_j(x) = exp(-1/2 (x - c_j)' D_j (x - c_j)), D_j 
 and a local linear model fitted by incremental partial least squares (PLS) with forgetting.
 The prediction of one output is the w-weighted mean of its trusted fields' local models.
 
-All fields of all outputs live in one packed float array of shape (capacity, width): one row
-per field, the named quantities at fixed column ranges (see ``_Layout``). An update gathers
-the rows of the activated fields, updates them with array operations (loops only over the
-at most n_in PLS projections, never over fields) and scatters them back; the capacity doubles
-when it runs out.
+The fields of all outputs share one set of arrays, one contiguous array per quantity with a
+row per field (shape (capacity, ...), see ``_schema``; the capacity doubles when it runs out).
+An update runs every array operation over all fields at once, never a Python loop over
+fields (only over the at most n_in PLS projections); a field below the update threshold gets
+weight 0 and forgetting factor 1 in those operations, which leaves it bit-for-bit unchanged.
 
 Inputs and outputs are divided by ``norm_in`` / ``norm_out`` before learning (as in the
 reference library): choose them near the typical range of each signal, so that ``init_d`` and
@@ -156,6 +156,9 @@ class LWPR:
 
     A field is trusted for prediction once it has seen more than 2*n_in updates, and its
     newest PLS projection is used once that projection has seen more than 2*n_in updates.
+    Of two overlapping fields (both activated above w_prune) the narrower one, with the larger
+    trace of D, is removed. Counters: n_updates, n_pruned (per output), n_dropped (fields
+    removed because their statistics overflowed, e.g. on an absurdly large target).
     Bad inputs raise ``LwprError`` (a ``ValueError``) and leave the model unchanged.
     """
 
@@ -368,6 +371,7 @@ class LWPR:
             nreg=self._nreg[:n],
             trusted=self._trusted[:n],
             n_pruned=self.n_pruned,
+            n_dropped=np.array(self.n_dropped),
             n_updates=np.array(self.n_updates),
         )
         return buf.getvalue()
@@ -458,6 +462,7 @@ class LWPR:
             raise LwprError("LWPR model has inconsistent field arrays")
         model.n_pruned = n_pruned.copy()
         model.n_updates = int(need("n_updates"))
+        model.n_dropped = int(need("n_dropped"))
         return model
 
     # ----------------------------------------------------------------- internals
