@@ -64,7 +64,9 @@ _PROJ = (  # (R,) one value per PLS projection
     "H",  # leave-one-out cost statistics of the distance-metric gradient
     "r",
 )
-_PROJV = ("U", "P", "sxres_yres", "ssxres")  # (R, d) projection directions and regressions
+# (R, d): projection directions u_r, input regressions p_r, their statistics, and the
+# projections as linear maps of the centred input, s_r = g_r'x (see _projection_rows).
+_PROJV = ("U", "P", "sxres_yres", "ssxres", "G")
 _SCALAR = ("beta0", "sum_e2", "ssp")
 
 
@@ -248,6 +250,7 @@ class LWPR:
         self._r_idx = np.arange(d)  # projection index, for masks (k, R)
         self._metric_mask = np.eye(d) if self.diag_only else np.triu(np.ones((d, d)))
         self._ones = np.ones(d)  # reductions over a length-d axis as a matmul (fast)
+        self._cumsum = np.triu(np.ones((d, d)))  # x @ this: cumulative sum over projections
         self._store = {k: np.zeros((_INITIAL_CAPACITY, *t)) for k, t in self._schema.items()}
         # Views of rows [0, n) of every store array, rebuilt when n or the capacity changes.
         self._views: dict[str, FloatArray] = {}
@@ -559,8 +562,14 @@ class LWPR:
 
         # Incremental PLS (the errors e_cv use the coefficients from before this sample).
         U, P, beta, ss2 = v["U"], v["P"], v["beta"], v["ss2"]
-        s, xres = self._project(xmz, U, P)
-        e_cv = ymz[:, None] - np.cumsum(beta * s, axis=1)
+        s = (v["G"] * xmz[:, None, :]) @ self._ones
+        # Input residual entering each projection: x_0 = x, x_r = x - sum_{i<r} p_i s_i.
+        xres = np.empty(U.shape)
+        xres[:, 0] = xmz
+        np.subtract(
+            xmz[:, None, :], np.cumsum(P[:, :-1] * s[:, :-1, None], axis=1), out=xres[:, 1:]
+        )
+        e_cv = ymz[:, None] - (beta * s) @ self._cumsum  # errors with the first r+1 projections
         ytarget = np.concatenate((ymz[:, None], e_cv[:, :-1]), axis=1)
         sum_w = v["sum_w"]
         sum_w *= lam_u
@@ -579,14 +588,17 @@ class LWPR:
         ssxres = v["ssxres"]
         ssxres *= lam_u[..., None]
         ssxres += ws[..., None] * xres
-        np.divide(syres, ss2, out=beta, where=in_use)
-        np.divide(ssxres, ss2[..., None], out=P, where=in_use[..., None])
+        # Unused slots have zero statistics, so their beta and p stay 0 (p_r of the newest
+        # slot is only ever used by the slots after it).
+        np.divide(syres, ss2, out=beta)
+        np.divide(ssxres, ss2[..., None], out=P)
         lam_last = lam_u[rows, nreg - 1]
         ssp = v["ssp"]
         ssp *= lam_last
         ssp += (ws * ws / ss2) @ self._ones
 
-        G = self._projection_rows(U, P)
+        G = v["G"]
+        G[...] = self._projection_rows(U, P)
         s = (G * xmz[:, None, :]) @ self._ones  # projections with the updated directions
         n_use = self._nuse[:n]
         y_fit = (beta * s * (self._r_idx < n_use[:, None])) @ self._ones
@@ -890,7 +902,7 @@ class LWPR:
         v["meta_b"][0] = np.log(v["alpha"][0] + 1e-10)
         v["c"][0] = xn
         v["mean_x"][0] = xn
-        v["U"][0] = v["P"][0] = np.eye(d)
+        v["U"][0] = v["P"][0] = v["G"][0] = np.eye(d)
         v["ss2"][0] = self.init_s2
         v["sum_w"][0] = 1e-10
         v["lam"][0] = self.init_lambda
