@@ -10,11 +10,11 @@ field j owns a Gaussian kernel w_j(x) = exp(-1/2 (x - c_j)' D_j (x - c_j)), D_j 
 and a local linear model fitted by incremental partial least squares (PLS) with forgetting.
 The prediction of one output is the w-weighted mean of its trusted fields' local models.
 
-All fields of all outputs live in one packed float array of shape (capacity, width): one row
-per field, the named quantities at fixed column ranges (see ``_Layout``). An update gathers
-the rows of the activated fields, updates them with array operations (loops only over the
-at most n_in PLS projections, never over fields) and scatters them back; the capacity doubles
-when it runs out.
+The fields of all outputs share one set of arrays, one contiguous array per quantity with a
+row per field (shape (capacity, ...), see ``_schema``; the capacity doubles when it runs out).
+An update runs every array operation over all fields at once, never a Python loop over
+fields (only over the at most n_in PLS projections); a field below the update threshold gets
+weight 0 and forgetting factor 1 in those operations, which leaves it bit-for-bit unchanged.
 
 Inputs and outputs are divided by ``norm_in`` / ``norm_out`` before learning (as in the
 reference library): choose them near the typical range of each signal, so that ``init_d`` and
@@ -64,7 +64,9 @@ _PROJ = (  # (R,) one value per PLS projection
     "H",  # leave-one-out cost statistics of the distance-metric gradient
     "r",
 )
-_PROJV = ("U", "P", "sxres_yres", "ssxres")  # (R, d) projection directions and regressions
+# (R, d): projection directions u_r, input regressions p_r, their statistics, and the
+# projections as linear maps of the centred input, s_r = g_r'x (see _projection_rows).
+_PROJV = ("U", "P", "sxres_yres", "ssxres", "G")
 _SCALAR = ("beta0", "sum_e2", "ssp")
 
 
@@ -156,6 +158,9 @@ class LWPR:
 
     A field is trusted for prediction once it has seen more than 2*n_in updates, and its
     newest PLS projection is used once that projection has seen more than 2*n_in updates.
+    Of two overlapping fields (both activated above w_prune) the narrower one, with the larger
+    trace of D, is removed. Counters: n_updates, n_pruned (per output), n_dropped (fields
+    removed because their statistics overflowed, e.g. on an absurdly large target).
     Bad inputs raise ``LwprError`` (a ``ValueError``) and leave the model unchanged.
     """
 
@@ -245,6 +250,7 @@ class LWPR:
         self._r_idx = np.arange(d)  # projection index, for masks (k, R)
         self._metric_mask = np.eye(d) if self.diag_only else np.triu(np.ones((d, d)))
         self._ones = np.ones(d)  # reductions over a length-d axis as a matmul (fast)
+        self._cumsum = np.triu(np.ones((d, d)))  # x @ this: cumulative sum over projections
         self._store = {k: np.zeros((_INITIAL_CAPACITY, *t)) for k, t in self._schema.items()}
         # Views of rows [0, n) of every store array, rebuilt when n or the capacity changes.
         self._views: dict[str, FloatArray] = {}
@@ -256,6 +262,7 @@ class LWPR:
         self._n = 0  # fields in use: rows [0, _n)
         self.n_updates = 0
         self.n_pruned = np.zeros(self.n_out, dtype=np.int64)
+        self.n_dropped = 0  # fields removed because their statistics overflowed
 
     # ----------------------------------------------------------------- public API
 
@@ -279,7 +286,11 @@ class LWPR:
             # predictions (not seen in practice; counted in n_dropped).
             health = v["beta0"] + v["slope"] @ self._ones + v["M_diag"] @ self._ones
             if not np.isfinite(health).all():
-                self._remove_fields(np.flatnonzero(~np.isfinite(health)))
+                broken = np.flatnonzero(~np.isfinite(health))
+                self.n_dropped += broken.size
+                self._remove_fields(broken)
+                self.n_updates += 1
+                return y_before * self.norm_out
         self._add_or_prune(w, xn, yn)
         self.n_updates += 1
         return y_before * self.norm_out
@@ -363,6 +374,7 @@ class LWPR:
             nreg=self._nreg[:n],
             trusted=self._trusted[:n],
             n_pruned=self.n_pruned,
+            n_dropped=np.array(self.n_dropped),
             n_updates=np.array(self.n_updates),
         )
         return buf.getvalue()
@@ -453,6 +465,7 @@ class LWPR:
             raise LwprError("LWPR model has inconsistent field arrays")
         model.n_pruned = n_pruned.copy()
         model.n_updates = int(need("n_updates"))
+        model.n_dropped = int(need("n_dropped"))
         return model
 
     # ----------------------------------------------------------------- internals
@@ -549,8 +562,14 @@ class LWPR:
 
         # Incremental PLS (the errors e_cv use the coefficients from before this sample).
         U, P, beta, ss2 = v["U"], v["P"], v["beta"], v["ss2"]
-        s, xres = self._project(xmz, U, P)
-        e_cv = ymz[:, None] - np.cumsum(beta * s, axis=1)
+        s = (v["G"] * xmz[:, None, :]) @ self._ones
+        # Input residual entering each projection: x_0 = x, x_r = x - sum_{i<r} p_i s_i.
+        xres = np.empty(U.shape)
+        xres[:, 0] = xmz
+        np.subtract(
+            xmz[:, None, :], np.cumsum(P[:, :-1] * s[:, :-1, None], axis=1), out=xres[:, 1:]
+        )
+        e_cv = ymz[:, None] - (beta * s) @ self._cumsum  # errors with the first r+1 projections
         ytarget = np.concatenate((ymz[:, None], e_cv[:, :-1]), axis=1)
         sum_w = v["sum_w"]
         sum_w *= lam_u
@@ -569,14 +588,17 @@ class LWPR:
         ssxres = v["ssxres"]
         ssxres *= lam_u[..., None]
         ssxres += ws[..., None] * xres
-        np.divide(syres, ss2, out=beta, where=in_use)
-        np.divide(ssxres, ss2[..., None], out=P, where=in_use[..., None])
+        # Unused slots have zero statistics, so their beta and p stay 0 (p_r of the newest
+        # slot is only ever used by the slots after it).
+        np.divide(syres, ss2, out=beta)
+        np.divide(ssxres, ss2[..., None], out=P)
         lam_last = lam_u[rows, nreg - 1]
         ssp = v["ssp"]
         ssp *= lam_last
         ssp += (ws * ws / ss2) @ self._ones
 
-        G = self._projection_rows(U, P)
+        G = v["G"]
+        G[...] = self._projection_rows(U, P)
         s = (G * xmz[:, None, :]) @ self._ones  # projections with the updated directions
         n_use = self._nuse[:n]
         y_fit = (beta * s * (self._r_idx < n_use[:, None])) @ self._ones
@@ -880,7 +902,7 @@ class LWPR:
         v["meta_b"][0] = np.log(v["alpha"][0] + 1e-10)
         v["c"][0] = xn
         v["mean_x"][0] = xn
-        v["U"][0] = v["P"][0] = np.eye(d)
+        v["U"][0] = v["P"][0] = v["G"][0] = np.eye(d)
         v["ss2"][0] = self.init_s2
         v["sum_w"][0] = 1e-10
         v["lam"][0] = self.init_lambda

@@ -259,7 +259,7 @@ class LwprPerturbation:
         nx: int,
         n_z: int,
         *,
-        inputs: Sequence[int] | Sequence[Sequence[int]] = (),
+        inputs: Sequence[int] | Sequence[Sequence[int]] | npt.NDArray[np.integer[Any]] = (),
         outputs: Sequence[int] = (),
         lowpass_cutoff_hz: float,
         dt_s: float,
@@ -271,7 +271,7 @@ class LwprPerturbation:
         self.outputs = _indices(outputs, nx, "outputs")
         # (z indices, state indices) learned by each LWPR model
         self.groups: list[tuple[tuple[int, ...], tuple[int, ...]]]
-        if inputs and not isinstance(inputs[0], int | np.integer):
+        if len(inputs) > 0 and not isinstance(inputs[0], int | np.integer):
             per_output = [_indices(s, n_z, "inputs") for s in inputs]  # type: ignore[arg-type]
             if len(per_output) != len(self.outputs):
                 raise ValueError(
@@ -289,6 +289,7 @@ class LwprPerturbation:
             np.ones(nx) if norm_p is None or np.size(norm_p) == 0 else norm_p, nx, "norm_p"
         )
         self.lwpr_kwargs = dict(lwpr_kwargs)
+        self._index = [(np.array(ins), np.array(outs)) for ins, outs in self.groups]
         self.models = self._new_models()  # raises on bad LWPR settings, before anything else
         self.filter = LowPassFilter(nx, lowpass_cutoff_hz, dt_s)
 
@@ -311,15 +312,15 @@ class LwprPerturbation:
     def observe(self, z: npt.ArrayLike, p_measured: npt.ArrayLike) -> None:
         zv = check_vector(z, self.n_z, "z")
         pv = check_vector(p_measured, self.nx, "p_measured")
-        for model, (ins, outs) in zip(self.models, self.groups, strict=True):
-            model.update(zv[list(ins)], pv[list(outs)])
+        for model, (ins, outs) in zip(self.models, self._index, strict=True):
+            model.update(zv[ins], pv[outs])
 
     def predict_raw(self, z: npt.ArrayLike) -> FloatArray:
         """The unfiltered LWPR prediction of p at z, shape (nx,)."""
         zv = check_vector(z, self.n_z, "z")
         raw = np.zeros(self.nx)
-        for model, (ins, outs) in zip(self.models, self.groups, strict=True):
-            raw[list(outs)] = model.predict(zv[list(ins)])
+        for model, (ins, outs) in zip(self.models, self._index, strict=True):
+            raw[outs] = model.predict(zv[ins])
         return raw
 
     def estimate(self, z: npt.ArrayLike) -> FloatArray:

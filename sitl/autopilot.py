@@ -31,7 +31,7 @@ from epc_offboard.frames import (
     quat_to_rotation,
 )
 from sitl.params import AutopilotParams, VehicleParams
-from sitl.physics import POS, QUAT, RATE, VEL, cross3, effectiveness_matrix, on_ground
+from sitl.physics import POS, QUAT, RATE, VEL, effectiveness_matrix, on_ground
 
 
 class Result(IntEnum):
@@ -110,6 +110,13 @@ class ActuatorCommand:
     q_cmd_wxyz: FloatArray  # (4,) attitude command (current attitude in pure rate control)
 
 
+def cross3(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Cross product of two (3,) vectors; np.cross costs ten times more on tiny arrays."""
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
 def quat_from_rotation(R: FloatArray) -> FloatArray:
     """Unit quaternion [w, x, y, z] of a (3, 3) rotation matrix (Shepperd's method), w >= 0."""
     tr = float(np.trace(R))
@@ -166,6 +173,8 @@ class Autopilot:
         self._pos_integral = np.zeros(3)
         self._rate_integral = np.zeros(3)
         self._inertia = np.asarray(vehicle.inertia_diag_kg_m2)
+        self._rate_p = np.asarray(params.rate_p_1_s)
+        self._rate_i = np.asarray(params.rate_i_1_s2)
         self._mix_inv = np.linalg.inv(effectiveness_matrix(vehicle))
         self._f_max_n = vehicle.k_f_n_s2 * vehicle.rotor_speed_max_rad_s**2
         self._f_idle_n = vehicle.k_f_n_s2 * vehicle.rotor_speed_min_rad_s**2
@@ -396,9 +405,7 @@ class Autopilot:
         err = pos_ref - x[POS]
         # Integrate a clipped error: a large step must not wind the integrator up (overshoot),
         # yet any steady offset (wind) is still trimmed out.
-        self._pos_integral = np.clip(
-            self._pos_integral + np.clip(err, -0.3, 0.3) * dt_s, -2.0, 2.0
-        )
+        self._pos_integral = np.clip(self._pos_integral + np.clip(err, -0.3, 0.3) * dt_s, -2.0, 2.0)
         acc = (
             np.asarray(p.position_p_1_s2) * err
             + np.asarray(p.velocity_d_1_s) * (vel_ref - x[VEL])
@@ -449,22 +456,23 @@ class Autopilot:
         self, x: FloatArray, rate_cmd: FloatArray, thrust_norm: float, dt_s: float
     ) -> FloatArray:
         """Rate PI -> torques -> rotor forces (inverse effectiveness, desaturated) -> speeds."""
-        p = self.params
         w = x[RATE]
         err = rate_cmd - w
-        self._rate_integral = np.clip(self._rate_integral + err * dt_s, -0.5, 0.5)
-        ang_acc = np.asarray(p.rate_p_1_s) * err + np.asarray(p.rate_i_1_s2) * self._rate_integral
+        integral = self._rate_integral + err * dt_s
+        self._rate_integral = np.minimum(np.maximum(integral, -0.5), 0.5)
+        ang_acc = self._rate_p * err + self._rate_i * self._rate_integral
         torque = self._inertia * ang_acc + cross3(w, self._inertia * w)
-        collective_n = float(np.clip(thrust_norm, 0.0, 1.0)) * self.vehicle.max_total_thrust_n
-        base = self._mix_inv @ np.array([collective_n, 0.0, 0.0, 0.0])
-        delta = self._mix_inv @ np.concatenate([[0.0], torque])
+        collective_n = min(1.0, max(0.0, thrust_norm)) * self.vehicle.max_total_thrust_n
+        # Forces = base (collective, equal shares) + delta (torques), via the inverse mixer.
+        base = collective_n * self._mix_inv[:, 0]
+        delta = self._mix_inv[:, 1:] @ torque
         # Keep the collective, scale the torque part down until every rotor is within limits.
         scale = 1.0
-        for b, d in zip(base, delta, strict=True):
+        for b, d in zip(base.tolist(), delta.tolist(), strict=True):
             if b + d > self._f_max_n and d > 0.0:
                 scale = min(scale, max(0.0, (self._f_max_n - b) / d))
             elif b + d < self._f_idle_n and d < 0.0:
                 scale = min(scale, max(0.0, (self._f_idle_n - b) / d))
-        forces = np.clip(base + scale * delta, self._f_idle_n, self._f_max_n)
+        forces = np.minimum(np.maximum(base + scale * delta, self._f_idle_n), self._f_max_n)
         speeds: FloatArray = np.sqrt(forces / self.vehicle.k_f_n_s2)
         return speeds

@@ -64,7 +64,7 @@ class GroundTruthWriter:
         ]
         fields = [
             f"{sim.time_s:.6f}",
-            *(f"{float(v):.9g}" for v in values[0:]),
+            *(f"{float(v):.9g}" for v in values),
             str(int(ap.armed)),
             str(ap.mode.main),
             str(ap.mode.sub),

@@ -87,6 +87,9 @@ class Clock:
             ticks += 1
             if self.gate.waiting:
                 await self.gate.wait_for(self._now_ms())
+                # A setpoint stamped in the future releases ticks without waiting; still let
+                # the loop read datagrams and signals between ticks.
+                await asyncio.sleep(0)
                 anchor_wall, anchor_ticks = time.monotonic(), ticks
                 continue
             target = anchor_wall + (ticks - anchor_ticks) * self.period_s / self.speedup

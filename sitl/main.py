@@ -41,22 +41,21 @@ def build_parser() -> argparse.ArgumentParser:
         prog="epc-sitl",
         description="Simulated quadrotor speaking MAVLink 2 over UDP like a PX4 SITL instance.",
     )
-    ap.add_argument("--instance", type=int, default=0, help="I: system id I+1, ports +I")
-    ap.add_argument("--lockstep", action="store_true", help="advance only when answered")
-    ap.add_argument("--wind", type=_wind, help="SPEED_M_S,DIR_DEG (towards, CCW from east)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--config", type=Path, default=DEFAULT_VEHICLE_FILE, help="vehicle TOML")
-    ap.add_argument("--groundtruth", type=Path, help="write the true state to this CSV")
-    ap.add_argument("--signing-key", type=Path, help="file holding a 32-byte MAVLink key")
-    ap.add_argument("--speedup", type=float, default=1.0, help="pace = wall clock x this")
-    ap.add_argument("--listen-port", type=int, help="default 14580+I; 0 = any free port")
-    ap.add_argument(
-        "--offboard-port", type=int, help="telemetry to 127.0.0.1:P, default 14540+I, 0 = off"
-    )
-    ap.add_argument("--gcs-port", type=int, default=14550, help="ground station port, 0 = off")
-    ap.add_argument("--lockstep-period-ms", type=float, help="overrides sitl.lockstep_period_s")
-    ap.add_argument("--lockstep-timeout-ms", type=float, help="overrides sitl.lockstep_timeout_s")
-    ap.add_argument("--duration", type=float, help="exit after this many vehicle seconds")
+    arg = ap.add_argument
+    arg("--instance", type=int, default=0, metavar="I", help="system id I+1, ports +I")
+    arg("--lockstep", action="store_true", help="advance only when the controller answered")
+    arg("--wind", type=_wind, metavar="SPEED_M_S,DIR_DEG", help="towards, CCW from east")
+    arg("--seed", type=int, default=0, metavar="S", help="seeds gusts and estimate noise")
+    arg("--config", type=Path, default=DEFAULT_VEHICLE_FILE, metavar="FILE", help="vehicle TOML")
+    arg("--groundtruth", type=Path, metavar="FILE", help="write the true state to this CSV")
+    arg("--signing-key", type=Path, metavar="FILE", help="file holding a 32-byte MAVLink key")
+    arg("--speedup", type=float, default=1.0, metavar="X", help="pace = wall clock x this")
+    arg("--listen-port", type=int, metavar="P", help="default 14580+I; 0 = any free port")
+    arg("--offboard-port", type=int, metavar="P", help="telemetry to 127.0.0.1:P, 14540+I")
+    arg("--gcs-port", type=int, default=14550, metavar="P", help="ground station, 0 = off")
+    arg("--lockstep-period-ms", type=float, metavar="MS", help="sitl.lockstep_period_s")
+    arg("--lockstep-timeout-ms", type=float, metavar="MS", help="sitl.lockstep_timeout_s")
+    arg("--duration", type=float, metavar="S", help="exit after S seconds of vehicle time")
     return ap
 
 

@@ -48,13 +48,14 @@ class Simulation:
         return self.tick * self.config.sitl.lockstep_period_s
 
     @property
-    def time_ms(self) -> int:
-        """Vehicle time in whole milliseconds (MAVLink time_boot_ms)."""
-        return (self.tick * round(self.config.sitl.lockstep_period_s * 1e6)) // 1000
+    def time_us(self) -> int:
+        """Vehicle time in whole microseconds (MAVLink time_usec): exact, no float drift."""
+        return self.tick * round(self.config.sitl.lockstep_period_s * 1e6)
 
     @property
-    def time_us(self) -> int:
-        return self.tick * round(self.config.sitl.lockstep_period_s * 1e6)
+    def time_ms(self) -> int:
+        """Vehicle time in whole milliseconds (MAVLink time_boot_ms)."""
+        return self.time_us // 1000
 
     def advance_tick(self) -> None:
         """Advance physics and the autopilot by one tick."""

@@ -253,3 +253,38 @@ def test_normalisation_makes_the_learner_unit_free(scale, x):
     pb = b.predict(np.array(x) * scale)
     assert np.all(np.isfinite(pa))
     np.testing.assert_allclose(pb, pa * scale, rtol=1e-6, atol=1e-9 * scale)
+
+
+def test_overlapping_fields_are_pruned_and_learning_goes_on():
+    rng = np.random.default_rng(10)
+    model = LWPR(2, 1, init_d=50.0, w_prune=0.5)
+    reference = LWPR(2, 1, init_d=50.0)
+    for _ in range(3000):
+        x = rng.uniform(-1, 1, 2)
+        y = [np.sin(3 * x[0]) * x[1]]
+        model.update(x, y)
+        reference.update(x, y)
+    assert model.n_pruned[0] > 0
+    assert reference.n_pruned[0] == 0
+    assert model.num_rfs[0] < reference.num_rfs[0]
+    X = rng.uniform(-1, 1, (300, 2))
+    assert nmse(model, X, np.sin(3 * X[:, 0]) * X[:, 1]) < 0.02
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_fields_whose_statistics_overflow_are_dropped_not_kept():
+    rng = np.random.default_rng(11)
+    model = LWPR(2, 1, init_d=50.0)
+    for _ in range(500):
+        x = rng.uniform(-1, 1, 2)
+        model.update(x, [x.sum()])
+    before = model.num_rfs[0]
+    model.update([0.1, 0.1], [1e300])  # finite, but beyond what the statistics can hold
+    assert 0 < model.n_dropped <= before
+    assert model.num_rfs[0] == before - model.n_dropped
+    for x in rng.uniform(-1, 1, (50, 2)):
+        assert np.all(np.isfinite(model.predict(x)))
+    for _ in range(300):  # and it learns again where the fields were dropped
+        x = rng.uniform(-0.3, 0.5, 2)
+        model.update(x, [x.sum()])
+    assert model.predict([0.1, 0.1])[0] == pytest.approx(0.2, abs=0.05)

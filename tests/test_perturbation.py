@@ -79,6 +79,8 @@ def test_per_output_input_subspaces():
         init_d=4.0,
     )
     assert [(m.n_in, m.n_out) for m in est.models] == [(1, 1)] * 3
+    same = LwprPerturbation(NX, NZ, inputs=np.array(VEL), lowpass_cutoff_hz=1.0, dt_s=DT_S)
+    assert same.groups == [(tuple(VEL), tuple(range(NX)))]  # an index array: one subspace
     sim = DoubleIntegrator(seed=2)
     fly(est, sim, np.zeros(3), 1000)
     assert fly(est, sim, np.zeros(3), 1000) < 0.03

@@ -35,7 +35,10 @@ def is_mode(main, sub=0):
 
 def test_offboard_flight_with_failsafe_to_hold(client):
     """Discover, arm, take off, stream, enter offboard, climb, go silent -> AUTO.LOITER."""
-    proc = start_sitl(client, "--lockstep", "--lockstep-timeout-ms", "20", "--seed", "1")
+    # --speedup paces the phases without a controller (before the stream, after silence)
+    proc = start_sitl(
+        client, "--lockstep", "--lockstep-timeout-ms", "20", "--seed", "1", "--speedup", "4"
+    )
     try:
         hb = client.wait("HEARTBEAT", timeout_s=10)
         assert hb.get_srcSystem() == 1
@@ -83,7 +86,7 @@ def test_signing_rejects_unsigned_and_wrongly_signed_commands(tmp_path):
     key = bytes(range(32))
     (tmp_path / "key").write_bytes(key)
     c = MavClient(key=key, sign=False)
-    proc = start_sitl(c, "--signing-key", str(tmp_path / "key"))
+    proc = start_sitl(c, "--signing-key", str(tmp_path / "key"), "--speedup", "4")
     try:
         hb = c.wait("HEARTBEAT", timeout_s=10)
         assert c.signed_received > 0  # telemetry is signed

@@ -1,0 +1,69 @@
+"""The lockstep gate and clock in-process: waiting, timeouts, fallback to real time."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+from sitl.lockstep import Clock, LockstepGate
+
+
+def run_clock(gate: LockstepGate, ticks: int, on_tick=lambda k: None) -> float:
+    async def main() -> float:
+        count = 0
+
+        def tick() -> None:
+            nonlocal count
+            count += 1
+            on_tick(count)
+
+        clock = Clock(gate, 0.005, speedup=1.0, now_ms=lambda: count * 5)
+        t0 = time.monotonic()
+        await clock.run(tick, asyncio.Event(), duration_s=ticks * 0.005)
+        return time.monotonic() - t0
+
+    return asyncio.run(main())
+
+
+def test_answered_ticks_run_faster_than_real_time():
+    gate = LockstepGate(enabled=True, timeout_s=1.0, max_timeouts=20)
+    # the "controller" answers each tick from inside the loop, as a datagram would
+    wall = run_clock(
+        gate, 400, on_tick=lambda k: asyncio.get_running_loop().call_soon(gate.on_setpoint, k * 5)
+    )
+    assert gate.waiting
+    assert gate.timeouts == 0
+    assert wall < 400 * 0.005 / 3  # 2 s of vehicle time well under real time
+
+
+def test_silence_times_out_then_falls_back_to_real_time_and_rejoins():
+    gate = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=5)
+    gate.on_setpoint(0)
+    log = []
+
+    def on_tick(k: int) -> None:
+        log.append(gate.waiting)
+        if k == 50:  # the controller comes back
+            asyncio.get_running_loop().call_soon(gate.on_setpoint, k * 5)
+
+    run_clock(gate, 60, on_tick)
+    assert gate.timeouts >= 5
+    assert log[0:5] == [True] * 5
+    assert log[5] is False  # after 5 consecutive timeouts: real-time pace
+    assert log[50] is True  # a setpoint put it back into waiting mode
+
+
+def test_future_stamps_do_not_starve_the_event_loop():
+    gate = LockstepGate(enabled=True, timeout_s=1.0, max_timeouts=20)
+    gate.on_setpoint(2**32 - 1)
+    seen: list[int] = []
+    seen_by_last_tick: list[int] = []
+
+    def on_tick(k: int) -> None:
+        if k == 1:
+            asyncio.get_running_loop().call_soon(seen.append, k)
+        if k == 5:
+            seen_by_last_tick.extend(seen)
+
+    run_clock(gate, 5, on_tick)
+    assert seen_by_last_tick == [1]
