@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from typing import cast
 
 from epc_offboard.configio import ConfigError
+from epc_offboard.db import add_db_arguments
 from epc_offboard.errors import EXIT_RUNTIME, EXIT_USAGE, UsageError
 
 # subcommand -> "module:function(args) -> exit code"
@@ -21,7 +22,7 @@ _COMMANDS = {
     "run": "epc_offboard.service:run_service_command",
     "sim": "epc_offboard.sim:run_sim_command",
     "bench": "epc_offboard.bench:run_bench_command",
-    "db": "epc_offboard.store:run_db_command",
+    "db": "epc_offboard.db:run_db_command",
 }
 
 
@@ -70,9 +71,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--steps", type=int, default=2000)
     bench.add_argument("--json", default=None, metavar="FILE")
 
-    db = sub.add_parser("db", help="the controller library on disk")
-    db.add_argument("action", choices=["info", "export", "import", "merge"])
-    db.add_argument("paths", nargs="*")
+    db = sub.add_parser(
+        "db",
+        help="the controller library on disk: info, export, import, merge",
+        description="Inspect a library file, export it, import an export or merge other "
+        "vehicles' library files into it (same problem signature only).",
+    )
+    add_db_arguments(db)
     return parser
 
 

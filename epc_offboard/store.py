@@ -11,20 +11,23 @@ importance and use count; transitions between active sets; and opaque model blob
 Rows are validated when read: a row that does not parse is skipped and counted, never fatal.
 A file that is not a database, fails SQLite's quick_check, or has another schema version is
 moved aside (``NAME.corrupt-YYYYmmddTHHMMSS``) with a log line, and a new empty store opens.
+
+Offline transfer between vehicles (``epc-offboard db``, :mod:`epc_offboard.db`) reads a whole
+library as a :class:`LibrarySnapshot` and writes one back in a single transaction, so an
+import either lands whole or not at all. Writing is idempotent: a controller or transition
+already present keeps the larger importance, use count and transition count.
 """
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import logging
 import sqlite3
-import sys
 import threading
 import time
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -73,19 +76,55 @@ class StoredController:
     origin: str = "solved"
 
 
+@dataclass(frozen=True)
+class Transition:
+    from_set: ActiveSet
+    to_set: ActiveSet
+    count: int
+
+
+@dataclass(frozen=True)
+class SignatureSnapshot:
+    """Everything stored under one problem signature."""
+
+    controllers: tuple[StoredController, ...] = ()
+    transitions: tuple[Transition, ...] = ()
+    models: Mapping[str, bytes] = field(default_factory=dict)  # name -> opaque blob
+
+
+@dataclass(frozen=True)
+class LibrarySnapshot:
+    """A whole library file (or the part of it under some signatures), as plain values."""
+
+    signatures: Mapping[str, SignatureSnapshot]
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "signatures": len(self.signatures),
+            "controllers": sum(len(s.controllers) for s in self.signatures.values()),
+            "transitions": sum(len(s.transitions) for s in self.signatures.values()),
+            "models": sum(len(s.models) for s in self.signatures.values()),
+        }
+
+
 def encode_active_set(active_set: Iterable[int]) -> str:
     return json.dumps(sorted(int(i) for i in active_set), separators=(",", ":"))
 
 
 def decode_active_set(text: str) -> ActiveSet:
     """Parse a stored active set; ValueError unless it is a sorted list of unique ints >= 0."""
-    data = json.loads(text)
+    return active_set_from_list(json.loads(text), text[:60])
+
+
+def active_set_from_list(data: object, shown: str | None = None) -> ActiveSet:
+    """``data`` as an active set; ValueError unless a sorted list of unique ints >= 0."""
+    shown = repr(data)[:60] if shown is None else repr(shown)
     if not isinstance(data, list) or not all(
         isinstance(i, int) and not isinstance(i, bool) for i in data
     ):
-        raise ValueError(f"active set must be a list of integers, got {text[:60]!r}")
+        raise ValueError(f"active set must be a list of integers, got {shown}")
     if any(i < 0 for i in data) or any(b <= a for a, b in itertools.pairwise(data)):
-        raise ValueError(f"active set must be sorted unique non-negative, got {text[:60]!r}")
+        raise ValueError(f"active set must be sorted unique non-negative, got {shown}")
     return tuple(data)
 
 
@@ -99,13 +138,20 @@ class LibraryStore:
         self.skipped_rows = 0
 
     @classmethod
-    def open(cls, path: str | Path) -> LibraryStore:
-        """Open or create the store; a corrupt or incompatible file is moved aside first."""
+    def open(cls, path: str | Path, *, repair: bool = True) -> LibraryStore:
+        """Open or create the store.
+
+        A corrupt or incompatible file is moved aside and a new one started when ``repair``
+        (the service: it must fly); otherwise :class:`StoreError` names the problem and the
+        file is left as it is (the offline tools: a user's file is never moved under them).
+        """
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)
         try:
             return cls(p, _conn=_connect(p))
         except (sqlite3.DatabaseError, StoreError) as exc:
+            if not repair:
+                raise StoreError(f"{p}: not a usable library: {exc}") from exc
             aside = p.with_name(f"{p.name}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}")
             log.error(
                 "library %s is unusable (%s): moved aside to %s, starting empty", p, exc, aside
@@ -115,6 +161,17 @@ class LibraryStore:
                 if side.exists():
                     side.rename(Path(str(aside) + suffix))
             return cls(p, _conn=_connect(p))
+
+    @classmethod
+    def open_readonly(cls, path: str | Path) -> LibraryStore:
+        """Open an existing library for reading only; :class:`StoreError` if it is unusable."""
+        p = Path(path)
+        if not p.is_file():
+            raise StoreError(f"{p}: no such library file")
+        try:
+            return cls(p, _conn=_connect(p, readonly=True))
+        except (sqlite3.DatabaseError, StoreError) as exc:
+            raise StoreError(f"{p}: not a usable library: {exc}") from exc
 
     def close(self) -> None:
         with self._lock:
@@ -227,6 +284,90 @@ class LibraryStore:
             ).fetchone()
         return None if row is None else bytes(row[0])
 
+    # -- whole library (offline transfer) ------------------------------------------------
+
+    def signatures(self) -> list[str]:
+        with self._lock:
+            rows = self._conn.execute(
+                "SELECT signature FROM controllers UNION SELECT signature FROM transitions "
+                "UNION SELECT signature FROM models ORDER BY 1"
+            ).fetchall()
+        return [str(r[0]) for r in rows]
+
+    def snapshot(self, signatures: Iterable[str] | None = None) -> LibrarySnapshot:
+        """Every valid row under ``signatures`` (all when None); bad rows skipped and counted."""
+        wanted = self.signatures() if signatures is None else list(signatures)
+        out: dict[str, SignatureSnapshot] = {}
+        for sig in wanted:
+            with self._lock:
+                names = [
+                    str(r[0])
+                    for r in self._conn.execute(
+                        "SELECT name FROM models WHERE signature = ? ORDER BY name", (sig,)
+                    )
+                ]
+            models = {n: blob for n in names if (blob := self.load_model(n, sig)) is not None}
+            out[sig] = SignatureSnapshot(
+                tuple(self.load_controllers(sig)),
+                tuple(Transition(a, b, n) for (a, b), n in self.load_transitions(sig).items()),
+                models,
+            )
+        return LibrarySnapshot(out)
+
+    def write_snapshot(
+        self, snapshot: LibrarySnapshot, *, origin: str, models: bool = False
+    ) -> dict[str, int]:
+        """Merge ``snapshot`` into this file in ONE transaction; returns rows new to it.
+
+        New controllers are tagged ``origin``; ones already here keep theirs and take the
+        larger importance and use count; transition counts take the larger of the two (so
+        writing the same snapshot twice changes nothing). Models are written only when
+        ``models`` is set: a learned model describes one airframe, an active set any vehicle
+        with the same problem.
+        """
+        now = time.time()
+        new = {"controllers": 0, "transitions": 0, "models": 0}
+        with self._lock, self._conn:
+            for sig, part in snapshot.signatures.items():
+                for c in part.controllers:
+                    key = encode_active_set(c.active_set)
+                    existed = self._conn.execute(
+                        "SELECT 1 FROM controllers WHERE signature = ? AND active_set = ?",
+                        (sig, key),
+                    ).fetchone()
+                    new["controllers"] += existed is None
+                    self._conn.execute(
+                        "INSERT INTO controllers VALUES (?, ?, ?, ?, ?, ?) "
+                        "ON CONFLICT (signature, active_set) DO UPDATE SET "
+                        "importance = max(importance, excluded.importance), "
+                        "uses = max(uses, excluded.uses)",
+                        (sig, key, float(c.importance), int(c.uses), origin, now),
+                    )
+                for t in part.transitions:
+                    a, b = encode_active_set(t.from_set), encode_active_set(t.to_set)
+                    existed = self._conn.execute(
+                        "SELECT 1 FROM transitions WHERE signature = ? AND from_set = ? "
+                        "AND to_set = ?",
+                        (sig, a, b),
+                    ).fetchone()
+                    new["transitions"] += existed is None
+                    self._conn.execute(
+                        "INSERT INTO transitions VALUES (?, ?, ?, ?) "
+                        "ON CONFLICT (signature, from_set, to_set) DO UPDATE SET "
+                        "count = max(count, excluded.count)",
+                        (sig, a, b, int(t.count)),
+                    )
+                if models:
+                    for name, blob in part.models.items():
+                        new["models"] += 1
+                        self._conn.execute(
+                            "INSERT INTO models VALUES (?, ?, ?, ?) ON CONFLICT (name, signature) "
+                            "DO UPDATE SET blob = excluded.blob, "
+                            "updated_unix_s = excluded.updated_unix_s",
+                            (name, sig, sqlite3.Binary(blob), now),
+                        )
+        return new
+
     # -- inspection ----------------------------------------------------------------------
 
     def summary(self) -> dict[str, dict[str, int]]:
@@ -247,17 +388,23 @@ class LibraryStore:
         return out
 
 
-def _connect(path: Path) -> sqlite3.Connection:
-    conn = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
+def _connect(path: Path, *, readonly: bool = False) -> sqlite3.Connection:
+    if readonly:
+        conn = sqlite3.connect(
+            f"file:{path}?mode=ro", uri=True, check_same_thread=False, isolation_level=None
+        )
+    else:
+        conn = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
     try:
         conn.execute("PRAGMA busy_timeout = 2000")
-        conn.execute("PRAGMA journal_mode = WAL")
-        conn.execute("PRAGMA synchronous = NORMAL")
+        if not readonly:
+            conn.execute("PRAGMA journal_mode = WAL")
+            conn.execute("PRAGMA synchronous = NORMAL")
         check = conn.execute("PRAGMA quick_check").fetchone()
         if check is None or check[0] != "ok":
             raise StoreError(f"quick_check failed: {check}")
         tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-        if tables and "meta" not in tables:
+        if (tables or readonly) and "meta" not in tables:
             raise StoreError("not an epc-offboard library (no meta table)")
         if "meta" in tables:
             row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
@@ -265,10 +412,11 @@ def _connect(path: Path) -> sqlite3.Connection:
                 raise StoreError(
                     f"schema version {row[0] if row else None}, expected {SCHEMA_VERSION}"
                 )
-        conn.executescript("BEGIN;" + _SCHEMA + "COMMIT;")
-        conn.execute(
-            "INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),)
-        )
+        if not readonly:
+            conn.executescript("BEGIN;" + _SCHEMA + "COMMIT;")
+            conn.execute(
+                "INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),)
+            )
         # Python's sqlite3 with isolation_level=None is in autocommit; `with conn:` below
         # still wraps each batch in one transaction.
         conn.isolation_level = "DEFERRED"
@@ -276,26 +424,3 @@ def _connect(path: Path) -> sqlite3.Connection:
         conn.close()
         raise
     return conn
-
-
-def run_db_command(args: argparse.Namespace) -> int:
-    """`epc-offboard db info PATH`: what a library file holds, per problem signature."""
-    from epc_offboard.errors import EXIT_OK, EXIT_RUNTIME, UsageError
-
-    if args.action != "info":
-        print(f"epc-offboard db {args.action}: not implemented yet", file=sys.stderr)
-        return EXIT_RUNTIME
-    if len(args.paths) != 1:
-        raise UsageError("usage: epc-offboard db info LIBRARY.sqlite")
-    path = Path(args.paths[0])
-    if not path.exists():
-        raise UsageError(f"{path}: no such library file")
-    with LibraryStore.open(path) as store:
-        summary = store.summary()
-    print(f"{path}: schema {SCHEMA_VERSION}, {len(summary)} problem signature(s)")
-    for sig, counts in sorted(summary.items()):
-        print(
-            f"  {sig}: {counts['controllers']} controllers, "
-            f"{counts['transitions']} transitions, {counts['models']} models"
-        )
-    return EXIT_OK

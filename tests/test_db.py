@@ -1,0 +1,227 @@
+"""`epc-offboard db info | export | import | merge`: offline transfer of libraries."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from epc_offboard.cli import main
+from epc_offboard.store import LibraryStore, StoredController
+
+SIG = "a" * 32
+OTHER = "b" * 32
+SITL_CONFIG = "config/sitl.toml"
+
+
+def _library(path, controllers, transitions=None, model=None, sig=SIG):
+    with LibraryStore.open(path) as store:
+        store.save_controllers(sig, controllers)
+        if transitions:
+            store.save_transitions(sig, transitions)
+        if model is not None:
+            store.save_model("estimator.lwpr", sig, model)
+    return path
+
+
+def _contents(path):
+    with LibraryStore.open_readonly(path) as store:
+        return store.snapshot()
+
+
+def test_export_import_round_trip_models_only_on_request(tmp_path, capsys):
+    src = _library(
+        tmp_path / "v1.sqlite",
+        [StoredController((1, 4), 5.0, 9), StoredController((), 2.0, 3)],
+        {((), (1, 4)): 6},
+        model=b"\x00lwpr\xff",
+    )
+    out = tmp_path / "v1.json"
+    assert main(["db", "export", str(src), str(out)]) == 0
+    exported = json.loads(out.read_text())
+    assert exported["format"] == "epc-offboard-library"
+    assert exported["signatures"][SIG]["transitions"] == [{"from": [], "to": [1, 4], "count": 6}]
+
+    dst = tmp_path / "v2.sqlite"
+    assert main(["db", "import", str(dst), str(out)]) == 0
+    got = _contents(dst).signatures[SIG]
+    assert {(c.active_set, c.importance, c.uses) for c in got.controllers} == {
+        ((1, 4), 5.0, 9),
+        ((), 2.0, 3),
+    }
+    assert all(c.origin == "import:v1.json" for c in got.controllers)
+    assert [(t.from_set, t.to_set, t.count) for t in got.transitions] == [((), (1, 4), 6)]
+    assert dict(got.models) == {}  # a model is one airframe's: only with --models
+
+    assert main(["db", "import", str(dst), str(out), "--models"]) == 0
+    assert dict(_contents(dst).signatures[SIG].models) == {"estimator.lwpr": b"\x00lwpr\xff"}
+    assert "0 new controllers" in capsys.readouterr().out  # second import added nothing
+
+
+def test_merge_is_a_union_and_idempotent(tmp_path):
+    v1 = _library(tmp_path / "v1.sqlite", [StoredController((1,), 3.0, 2)], {((1,), (1,)): 4})
+    v2 = _library(
+        tmp_path / "v2.sqlite",
+        [StoredController((1,), 7.0, 1), StoredController((2, 5), 1.0, 1)],
+        {((1,), (1,)): 2},
+    )
+    v3 = _library(tmp_path / "v3.sqlite", [StoredController((9,), 1.0, 1)], sig=OTHER)
+    fleet = tmp_path / "fleet.sqlite"
+    for _ in range(2):  # merging the same files again changes nothing
+        assert main(["db", "merge", str(fleet), str(v1), str(v2), str(v3)]) == 0
+        snap = _contents(fleet)
+        got = {c.active_set: (c.importance, c.uses) for c in snap.signatures[SIG].controllers}
+        assert got == {(1,): (7.0, 2), (2, 5): (1.0, 1)}
+        assert [t.count for t in snap.signatures[SIG].transitions] == [4]
+        assert [c.active_set for c in snap.signatures[OTHER].controllers] == [(9,)]
+
+
+def test_signature_filter(tmp_path):
+    v1 = _library(tmp_path / "v1.sqlite", [StoredController((1,), 1.0, 1)])
+    _library(v1, [StoredController((2,), 1.0, 1)], sig=OTHER)
+    out = tmp_path / "only.json"
+    assert main(["db", "export", str(v1), str(out), "--signature", OTHER]) == 0
+    assert list(json.loads(out.read_text())["signatures"]) == [OTHER]
+
+
+def _valid_export():
+    return {
+        "format": "epc-offboard-library",
+        "version": 1,
+        "signatures": {
+            SIG: {
+                "controllers": [{"active_set": [1, 2], "importance": 1.0, "uses": 1}],
+                "transitions": [],
+                "models": {},
+            }
+        },
+    }
+
+
+def _with(path, value):
+    def edit(doc):
+        node = doc
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = value
+        return doc
+
+    return edit
+
+
+C0 = ["signatures", SIG, "controllers", 0]
+
+
+@pytest.mark.parametrize(
+    ("edit", "named"),
+    [
+        (_with(["format"], "something-else"), "format"),
+        (_with(["version"], 2), "version"),
+        (_with(["signatures"], []), "signatures"),
+        (_with([*C0, "active_set"], [2, 1]), "active_set"),
+        (_with([*C0, "active_set"], [1, 1]), "active_set"),
+        (_with([*C0, "active_set"], [-1]), "active_set"),
+        (_with([*C0, "active_set"], [True]), "active_set"),
+        (_with([*C0, "active_set"], "1,2"), "active_set"),
+        (_with([*C0, "active_set"], list(range(5000))), "active_set"),
+        (_with([*C0, "importance"], float("nan")), "importance"),
+        (_with([*C0, "uses"], -3), "uses"),
+        (_with([*C0, "gain"], [1.0]), "controllers[0]"),
+        (_with(["signatures", SIG, "transitions"], [{"from": [1], "to": [2]}]), "transitions[0]"),
+        (
+            _with(["signatures", SIG, "transitions"], [{"from": [1], "to": [2], "count": 0}]),
+            "count",
+        ),
+        (_with(["signatures", SIG, "models"], {"m": "***"}), "models.m"),
+    ],
+)
+def test_bad_export_is_rejected_naming_the_field_and_changes_nothing(
+    tmp_path, capsys, edit, named
+):
+    lib = _library(tmp_path / "lib.sqlite", [StoredController((3,), 1.0, 1)])
+    before = _contents(lib)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(edit(_valid_export())))
+    assert main(["db", "import", str(lib), str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err
+    assert named in err
+    assert _contents(lib) == before
+
+
+@pytest.mark.parametrize("text", ["", "{not json", '{"format": "epc-offboard-library"'])
+def test_export_that_is_not_json_is_rejected(tmp_path, capsys, text):
+    lib = _library(tmp_path / "lib.sqlite", [StoredController((3,), 1.0, 1)])
+    bad = tmp_path / "bad.json"
+    bad.write_text(text)
+    assert main(["db", "import", str(lib), str(bad)]) == 2
+    assert "not a JSON library export" in capsys.readouterr().err
+    assert [c.active_set for c in _contents(lib).signatures[SIG].controllers] == [(3,)]
+
+
+def test_corrupt_files_are_reported_and_never_moved(tmp_path, capsys):
+    good = _library(tmp_path / "good.sqlite", [StoredController((3,), 1.0, 1)])
+    before = _contents(good)
+    garbage = tmp_path / "garbage.sqlite"
+    garbage.write_bytes(b"this is not a database" * 200)
+    assert main(["db", "merge", str(good), str(garbage)]) == 2
+    assert "garbage.sqlite: not a usable library" in capsys.readouterr().err
+    assert main(["db", "info", str(garbage)]) == 2
+    assert main(["db", "export", str(garbage), str(tmp_path / "x.json")]) == 2
+    assert main(["db", "merge", str(garbage), str(good)]) == 2  # a corrupt destination too
+    assert garbage.read_bytes() == b"this is not a database" * 200
+    assert not list(tmp_path.glob("*.corrupt-*"))
+    assert not (tmp_path / "x.json").exists()
+    assert _contents(good) == before
+
+
+def test_usage_errors(tmp_path, capsys):
+    lib = _library(tmp_path / "lib.sqlite", [StoredController((3,), 1.0, 1)])
+    assert main(["db", "export", str(lib)]) == 2
+    assert "usage: epc-offboard db export" in capsys.readouterr().err
+    assert main(["db", "merge", str(lib)]) == 2
+    assert main(["db", "info", str(lib), "--models"]) == 2
+    assert main(["db", "import", str(lib), str(tmp_path / "missing.json")]) == 2
+    assert "no such export file" in capsys.readouterr().err
+
+
+def test_config_keeps_only_its_problems_and_valid_controllers(tmp_path, capsys):
+    from epc_offboard.cascade import Cascade
+    from epc_offboard.config import load_service_config
+
+    cfg = load_service_config(SITL_CONFIG)
+    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
+    problem = cascade.pos_problem
+    sig = problem.signature()
+    src = _library(
+        tmp_path / "v1.sqlite",
+        [
+            StoredController((), 3.0, 1),  # unconstrained: valid for any problem
+            StoredController((problem.n_con + 5,), 2.0, 1),  # row out of range
+            StoredController(tuple(range(problem.n_u + 1)), 1.0, 1),  # more rows than inputs
+        ],
+        {((), (problem.n_con + 5,)): 2},
+        sig=sig,
+    )
+    _library(src, [StoredController((), 1.0, 1)], sig="f" * 32)  # another vehicle's problem
+    dst = tmp_path / "v2.sqlite"
+    assert main(["db", "merge", str(dst), str(src), "--config", SITL_CONFIG]) == 0
+    err = capsys.readouterr().err
+    assert "out of range" in err
+    assert "exceed" in err
+    assert f"signature {'f' * 32}: not a problem of" in err
+    snap = _contents(dst)
+    assert list(snap.signatures) == [sig]
+    assert [c.active_set for c in snap.signatures[sig].controllers] == [()]
+    assert snap.signatures[sig].transitions == ()  # it pointed at a dropped controller
+
+
+def test_info_lists_signatures_and_origins(tmp_path, capsys):
+    lib = _library(
+        tmp_path / "lib.sqlite",
+        [StoredController((1,), 1.0, 1), StoredController((2,), 1.0, 1, "shared:2")],
+        model=b"m",
+    )
+    assert main(["db", "info", str(lib)]) == 0
+    out = capsys.readouterr().out
+    assert f"{SIG}: 2 controllers (shared 1, solved 1), 0 transitions, 1 models" in out
