@@ -253,13 +253,18 @@ class Autopilot:
         self._setpoint_times_s.append(t_s)
 
     def offboard_stream_ok(self, t_s: float) -> bool:
-        """PX4's entry condition: setpoints are streaming faster than ``offboard_min_rate_hz``."""
+        """PX4's entry condition: a setpoint stream above ``offboard_min_rate_hz`` is present.
+
+        As PX4's commander judges it: by the age of the last setpoint (its offboard signal is
+        "lost" past COM_OF_LOSS_T), not by counting a window. So MAVSDK's ritual — send one
+        setpoint, then start offboard while its 20 Hz stream begins — is accepted, as on PX4.
+        """
         times = self._setpoint_times_s
-        if not times or t_s - times[-1] > self.params.offboard_loss_timeout_s:
+        if not times:
             return False
-        window_s = 1.0
-        recent = sum(1 for s in times if t_s - s <= window_s)
-        return recent > self.params.offboard_min_rate_hz * window_s
+        age_s = t_s - times[-1]
+        return age_s <= min(1.0 / self.params.offboard_min_rate_hz,
+                            self.params.offboard_loss_timeout_s)
 
     # ---- the periodic update --------------------------------------------------------------
 

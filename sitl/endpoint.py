@@ -268,7 +268,9 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         ap = self.sim.autopilot
         t = self.sim.time_s
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            return ap.arm(p[0] > 0.5, t, force=round(p[1]) == FORCE_DISARM_MAGIC), None
+            # unused params may come as NaN (MAVSDK sends them so; PX4 accepts it)
+            force = math.isfinite(p[1]) and round(p[1]) == FORCE_DISARM_MAGIC
+            return ap.arm(p[0] > 0.5, t, force=force), None
         if command == mavlink.MAV_CMD_DO_SET_MODE:
             if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or not _finite(p[1], p[2]):
                 return Result.UNSUPPORTED, None

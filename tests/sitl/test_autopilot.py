@@ -76,8 +76,9 @@ def test_offboard_needs_a_stream_above_2_hz_and_fails_safe_to_hold():
     x = initial_state()
     ap.arm(True, 0.0)
     ap.on_attitude_setpoint(sp(), 0.0)
+    assert ap.set_mode(OFFBOARD, 0.6) == Result.DENIED  # last setpoint 0.6 s old: < 2 Hz
     ap.on_attitude_setpoint(sp(), 0.6)
-    assert ap.set_mode(OFFBOARD, 0.7) == Result.DENIED  # 2 setpoints in 1 s is not > 2 Hz
+    assert ap.set_mode(OFFBOARD, 1.11) == Result.DENIED  # 0.51 s since the last one
     stream(ap, 1.0, 2.0, hz=4.0)
     assert ap.set_mode(OFFBOARD, 2.0) == Result.ACCEPTED
     ap.update_outer(x, 2.0, 0.005)
