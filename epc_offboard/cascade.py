@@ -188,6 +188,7 @@ class Cascade:
     _history: deque[_Observation] = field(default_factory=lambda: deque(maxlen=64))
     _hold_pos: FloatArray | None = None
     _last_thrust_norm: float = math.nan
+    yaw_target_rad: float | None = None  # a live reference's heading; None: position.yaw_deg
 
     def __post_init__(self) -> None:
         pc, ac = self.position_cfg, self.attitude_cfg
@@ -311,7 +312,8 @@ class Cascade:
         self, acc: FloatArray, d_hat: FloatArray, source: str, refs: FloatArray, t0: float
     ) -> PositionOutput:
         pc = self.position_cfg
-        att = accel_to_attitude(acc, math.radians(pc.yaw_deg), pc.hover_thrust_norm)
+        yaw = math.radians(pc.yaw_deg) if self.yaw_target_rad is None else self.yaw_target_rad
+        att = accel_to_attitude(acc, yaw, pc.hover_thrust_norm)
         thrust = min(max(att.thrust_norm, pc.min_thrust_norm), pc.max_thrust_norm)
         return PositionOutput(
             q_target=frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad),
@@ -372,11 +374,15 @@ class Cascade:
             out.insert(0, ("position", self.position))
         return out
 
+    def experience_controllers(self) -> list[tuple[str, ExperienceController]]:
+        """(name, controller) of each EPC problem: what the fleet shares. The caller owns
+        ``pop_new_entries`` (the service publishes them, or discards them when not sharing)."""
+        return self._epcs()
+
     def save_to(self, store: LibraryStore) -> None:
         """Write every controller (with importance, uses and transitions) and the estimator."""
         for _name, ctrl in self._epcs():
             sig = ctrl.problem.signature()
-            ctrl.pop_new_entries()
             entries = ctrl.export_library()
             store.save_controllers(sig, [_stored(e) for e in entries])
             sets = [e.active_set for e in entries]

@@ -6,6 +6,7 @@ the bundled SITL. Every table below maps to a frozen dataclass; the key names ca
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -71,6 +72,77 @@ class MissionConfig:
     land_at_end: bool = True
 
 
+_NAME_RE = re.compile(r"[A-Za-z0-9_-]{1,32}")
+
+
+@dataclass(frozen=True)
+class SharingConfig:
+    """Fleet sharing of controller libraries over Eclipse Zenoh (see ``sharing.py``).
+
+    Keys: ``epc/<fleet>/<signature>/{ctl,lib,alive}/<vehicle_id>``. Only vehicles whose
+    problems have identical signatures exchange controllers, and a received controller is
+    applied only where the local KKT check passes. For TLS/mTLS and access control give a
+    Zenoh JSON5 file in ``zenoh_config_file``; the keys below are set on top of it.
+    """
+
+    enabled: bool = False
+    fleet: str = "fleet"  # [A-Za-z0-9_-]{1,32}: one key space per fleet
+    vehicle_id: str = ""  # [A-Za-z0-9_-]{1,32}, unique in the fleet; required when used
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: tuple[str, ...] = ()  # Zenoh endpoints, e.g. "tcp/0.0.0.0:7447"
+    connect: tuple[str, ...] = ()  # e.g. "tcp/192.168.1.12:7447", "tls/router.local:7447"
+    scouting_multicast: bool = False  # discover peers by UDP multicast (off: explicit only)
+    zenoh_config_file: str = ""  # a Zenoh JSON5 config, loaded first
+    max_payload_bytes: int = 262_144  # larger payloads are dropped before decoding
+    max_messages_per_s: float = 20.0  # per peer, token bucket refill
+    burst_messages: int = 40  # per peer, token bucket depth
+    queue_size: int = 256  # inbound messages waiting for the event loop; beyond: dropped
+    publish_period_s: float = 0.2  # new controllers are batched and published this often
+    import_batch_size: int = 8  # controllers imported per event-loop slice (each factorises)
+    query_timeout_s: float = 3.0  # a library snapshot query gives up after this
+
+    def __post_init__(self) -> None:
+        if not _NAME_RE.fullmatch(self.fleet):
+            raise ValueError(f"fleet must be 1..32 characters of [A-Za-z0-9_-], got {self.fleet!r}")
+        if self.vehicle_id and not _NAME_RE.fullmatch(self.vehicle_id):
+            raise ValueError(
+                f"vehicle_id must be 1..32 characters of [A-Za-z0-9_-], got {self.vehicle_id!r}"
+            )
+        if self.enabled and not self.vehicle_id:
+            raise ValueError("vehicle_id must be set when sharing is enabled")
+        if self.max_payload_bytes < 64:
+            raise ValueError(f"max_payload_bytes must be >= 64, got {self.max_payload_bytes}")
+        for name in ("max_messages_per_s", "publish_period_s", "query_timeout_s"):
+            if getattr(self, name) <= 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("burst_messages", "queue_size", "import_batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for ep in (*self.listen, *self.connect):
+            if "/" not in ep:
+                raise ValueError(f"endpoint {ep!r} must look like PROTOCOL/ADDRESS:PORT")
+        if self.zenoh_config_file and not Path(self.zenoh_config_file).is_file():
+            raise ValueError(f"zenoh_config_file {self.zenoh_config_file!r} does not exist")
+
+
+@dataclass(frozen=True)
+class ReferenceConfig:
+    """Where the position loop's reference comes from.
+
+    ``zenoh``: a planner publishes live references (``wire.ReferenceMessage``, JSON) on
+    ``epc/<fleet>/<vehicle_id>/reference``; while the newest is younger than ``timeout_s``
+    it overrides the built-in trajectory (hold or track), when stale the service goes back
+    to the trajectory (or holds).
+    """
+
+    source: Literal["trajectory", "zenoh"] = "trajectory"
+    timeout_s: float = 0.5  # wall time
+
+    def __post_init__(self) -> None:
+        if self.timeout_s <= 0.0:
+            raise ValueError(f"timeout_s must be > 0, got {self.timeout_s}")
+
+
 @dataclass(frozen=True)
 class ServiceConfig:
     link: LinkConfig = field(default_factory=LinkConfig)
@@ -85,6 +157,12 @@ class ServiceConfig:
     store: StoreConfig = field(default_factory=StoreConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
     log: LogConfig = field(default_factory=LogConfig)
+    sharing: SharingConfig = field(default_factory=SharingConfig)
+    reference: ReferenceConfig = field(default_factory=ReferenceConfig)
+
+    def __post_init__(self) -> None:
+        if self.reference.source == "zenoh" and not self.sharing.vehicle_id:
+            raise ValueError("reference.source = 'zenoh' needs sharing.vehicle_id (the key)")
 
 
 def load_service_config(path: str | Path) -> ServiceConfig:

@@ -80,6 +80,7 @@ class EpcStats:
     intermediate: int
     fallback: int
     learn_failures: int
+    received_shared: int = 0  # entries imported from the fleet that were new here
 
     @property
     def hit_rate(self) -> float:
@@ -237,6 +238,7 @@ class ExperienceController:
         self._new: list[LibraryEntry] = []
         self._hits = self._misses = self._solves = 0
         self._intermediate = self._fallback = self._learn_failures = 0
+        self._received_shared = 0
         self._setup(problem)
 
     # -- model ------------------------------------------------------------------------------
@@ -509,6 +511,7 @@ class ExperienceController:
             intermediate=self._intermediate,
             fallback=self._fallback,
             learn_failures=self._learn_failures,
+            received_shared=self._received_shared,
         )
 
     def _ordered(self) -> list[_Entry]:
@@ -529,6 +532,10 @@ class ExperienceController:
             for b, n in succ.items()
             if b in index
         }
+
+    def contains(self, active_set: tuple[int, ...]) -> bool:
+        """Whether the library holds this active set (a cheap test before an import)."""
+        return active_set in self._by_set
 
     def pop_new_entries(self) -> list[LibraryEntry]:
         """Entries added by solves since the last call (for the store and the publisher)."""
@@ -587,6 +594,8 @@ class ExperienceController:
             if ka in self._entries and kb in self._entries and ka is not None and kb is not None:
                 succ = self._succ.setdefault(ka, {})
                 succ[kb] = succ.get(kb, 0) + count
+        if source == "shared":
+            self._received_shared += added
         logger.debug("imported %d of %d %s entries", added, len(items), source)
         return added
 

@@ -7,6 +7,8 @@ One asyncio TaskGroup with named tasks:
 * ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
   or the autopilot's own attitude loop fed quaternion + thrust (``attitude.mode = "autopilot"``);
 * ``library-saver``  — new controllers and learned models to SQLite, off the event loop;
+* ``library-sharing`` — with ``[sharing] enabled``: imports controllers received from the
+  fleet a few at a time, publishes new ones, keeps the snapshot peers query (``sharing.py``);
 * ``systemd``        — READY=1 once state flows, WATCHDOG=1 only while the control loop ticks.
 
 MAVLink arrives through callbacks of the link's DatagramProtocol (no task, no blocking read).
@@ -38,9 +40,11 @@ from epc_offboard.cascade import AttitudeOutput, Cascade, PositionOutput
 from epc_offboard.clock import Clock, VehicleClock, WallClock
 from epc_offboard.config import ServiceConfig, load_service_config
 from epc_offboard.configio import ConfigError
+from epc_offboard.frames import FloatArray
 from epc_offboard.link import MavlinkLink, TlogWriter, load_signing_key
 from epc_offboard.logsetup import setup_logging
 from epc_offboard.offboard import Action, Inputs, OffboardStateMachine, Outputs, Phase
+from epc_offboard.sharing import FleetSharing
 from epc_offboard.state import (
     PX4_AUTO_SUB_LAND,
     PX4_AUTO_SUB_LOITER,
@@ -51,7 +55,7 @@ from epc_offboard.state import (
 )
 from epc_offboard.store import LibraryStore
 from epc_offboard.timing import LoopTiming
-from epc_offboard.trajectories import Trajectory
+from epc_offboard.trajectories import Trajectory, live_reference_horizon
 
 log = logging.getLogger("epc_offboard.service")
 
@@ -110,6 +114,16 @@ class Service:
             tlog=tlog,
         )
         self.store: LibraryStore | None = None
+        self.sharing: FleetSharing | None = None
+        live = cfg.reference.source == "zenoh"
+        if cfg.sharing.enabled or live:
+            self.sharing = FleetSharing(
+                cfg.sharing,
+                self.cascade.experience_controllers() if cfg.sharing.enabled else [],
+                share_library=cfg.sharing.enabled,
+                reference=live,
+            )
+        self._live_reference = False  # whether the last position tick flew a live reference
         from sdnotify import SystemdNotifier
 
         self._notifier = SystemdNotifier()
@@ -268,12 +282,14 @@ class Service:
 
     def _position_tick(self, state: VehicleState, t_s: float) -> PositionOutput:
         try:
-            if self.trajectory is None:
+            refs = self._live_refs(state)
+            if refs is None and self.trajectory is None:
                 refs = self.cascade.hold_refs(state)
-            else:
+            elif refs is None and self.trajectory is not None:
                 refs = self.trajectory.horizon(
                     t_s, self.cascade.position_dt_s, self.cascade.position_horizon
                 )
+            assert refs is not None
             out = self.cascade.position_tick(
                 state, refs, learn=self.outputs.phase == Phase.OFFBOARD
             )
@@ -282,6 +298,40 @@ class Service:
             out = self.cascade.hover(state)
         self._log_tick(state, t_s, out)
         return out
+
+    def _live_refs(self, state: VehicleState) -> FloatArray | None:
+        """The reference horizon from a fresh live reference (offboard only), else None."""
+        ref = None
+        if self.sharing is not None and self.outputs.phase == Phase.OFFBOARD:
+            ref = self.sharing.live_reference(time.monotonic(), self.cfg.reference.timeout_s)
+        if (ref is not None) != self._live_reference:
+            self._live_reference = ref is not None
+            if ref is not None:
+                log.info("live reference: tracking from %s", list(ref.message.pos_ned_m))
+            elif self.sharing is not None:
+                self.counters["live_reference_stale"] += 1
+                log.warning(
+                    "live reference stale (> %.2f s): back to the %s",
+                    self.cfg.reference.timeout_s,
+                    "trajectory" if self.trajectory is not None else "hold",
+                )
+                self.cascade.yaw_target_rad = None
+                if self.trajectory is None:
+                    self.cascade.hold_position(state.pos_ned_m)
+        if ref is None:
+            return None
+        msg = ref.message
+        self.cascade.yaw_target_rad = msg.yaw_rad
+        return live_reference_horizon(
+            msg.pos_ned_m,
+            msg.vel_ned_m_s,
+            msg.horizon_pos_ned_m,
+            msg.horizon_dt_s,
+            age_s=time.monotonic() - ref.received_s,
+            dt_s=self.cascade.position_dt_s,
+            steps=self.cascade.position_horizon,
+            width=self.cascade.pos_problem.nx,
+        )
 
     async def _attitude_loop(self) -> None:
         period = 1.0 / self.cfg.loops.attitude_rate_hz
@@ -354,6 +404,10 @@ class Service:
     async def _saver(self) -> None:
         while True:
             await asyncio.sleep(self.cfg.store.save_period_s)
+            if self.sharing is None or not self.sharing.share_library:
+                # nobody publishes them: the store saves the whole library anyway
+                for _name, ctrl in self.cascade.experience_controllers():
+                    ctrl.pop_new_entries()
             await asyncio.to_thread(self._save_library)
 
     def _save_library(self) -> None:
@@ -433,6 +487,7 @@ class Service:
     async def run(self) -> int:
         self._open_store()
         self._open_flight_log()
+        await self._open_sharing()
         await self.link.open()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)
@@ -449,6 +504,8 @@ class Service:
                 tg.create_task(self._position_loop(), name="position-loop")
                 tg.create_task(self._attitude_loop(), name="attitude-loop")
                 tg.create_task(self._saver(), name="library-saver")
+                if self.sharing is not None and self.sharing.share_library:
+                    tg.create_task(self.sharing.run(), name="library-sharing")
                 tg.create_task(self._systemd(), name="systemd")
                 tg.create_task(self._stop_watch(), name="stop")
         except* _Stop:
@@ -456,6 +513,18 @@ class Service:
         finally:
             await self._shutdown()
         return self._exit_code
+
+    async def _open_sharing(self) -> None:
+        """Join the fleet; a vehicle that cannot still flies, alone (logged, counted)."""
+        if self.sharing is None:
+            return
+        try:
+            await self.sharing.open()
+        except Exception as exc:
+            self.counters["sharing_open_failed"] += 1
+            log.error("fleet sharing unavailable, flying without it: %s", exc)
+            self.sharing.close()
+            self.sharing = None
 
     async def _stop_watch(self) -> None:
         await self._stopping.wait()
@@ -469,6 +538,8 @@ class Service:
         self._save_library()
         if self.store is not None:
             self.store.close()
+        if self.sharing is not None:
+            self.sharing.close()
         if self._flight_log is not None:
             self._flight_log.close()
         self._write_stats()
@@ -486,6 +557,7 @@ class Service:
             "counters": dict(self.counters),
             "link": dict(self.link.counters),
             "state": dict(self.tracker.counters),
+            "sharing": self.sharing.stats() if self.sharing is not None else {},
         }
 
     def _write_stats(self) -> None:

@@ -218,3 +218,40 @@ class Trajectory:
             out[k, :3] = r.pos_ned_m
             out[k, 3:] = r.vel_ned_m_s
         return out
+
+
+def live_reference_horizon(
+    pos_ned_m: Sequence[float],
+    vel_ned_m_s: Sequence[float] | None,
+    horizon_pos_ned_m: Sequence[Sequence[float]],
+    horizon_dt_s: float | None,
+    *,
+    age_s: float,
+    dt_s: float,
+    steps: int,
+    width: int,
+) -> FloatArray:
+    """References for x[1..N] from a planner's live reference received ``age_s`` ago.
+
+    (steps, width) rows [p_ned, v_ned, 0...]: with a horizon, the piecewise-linear path
+    through ``pos`` then ``horizon_pos`` (spaced ``horizon_dt_s``), held at its end; with only
+    a velocity, the target moving at it; else a hold at ``pos``.
+    """
+    t = age_s + dt_s * np.arange(1, steps + 1)
+    pos = np.asarray(pos_ned_m, dtype=np.float64)
+    out = np.zeros((steps, width))
+    if len(horizon_pos_ned_m) and horizon_dt_s is not None:
+        pts = np.vstack([pos, np.asarray(horizon_pos_ned_m, dtype=np.float64)])
+        times = horizon_dt_s * np.arange(len(pts))
+        out[:, :3] = np.column_stack([np.interp(t, times, pts[:, i]) for i in range(3)])
+        seg = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(pts) - 2)
+        vel = (np.diff(pts, axis=0) / horizon_dt_s)[seg]
+        vel[t >= times[-1]] = 0.0
+        out[:, 3:6] = vel
+    elif vel_ned_m_s is not None:
+        vel = np.asarray(vel_ned_m_s, dtype=np.float64)
+        out[:, :3] = pos + np.outer(t, vel)
+        out[:, 3:6] = vel
+    else:
+        out[:, :3] = pos
+    return out
