@@ -1,6 +1,7 @@
-"""MAVLink 2 over UDP for asyncio: pymavlink's sans-IO codec driven by a DatagramProtocol.
+"""MAVLink 2 over UDP or serial for asyncio: pymavlink's sans-IO codec driven by the loop.
 
-No blocking ``recv_match`` anywhere: datagrams arrive on the event loop, are fed to
+No blocking ``recv_match`` anywhere: datagrams (a DatagramProtocol) or serial bytes (a
+non-blocking tty watched by ``loop.add_reader``) arrive on the event loop, are fed to
 ``MAVLink.parse_buffer`` and handed to a callback as decoded messages. Bad bytes never raise:
 the codec runs with ``robust_parsing`` so corrupt frames, bad CRCs and bad signatures come back
 as ``BAD_DATA`` and are counted here, by reason.
@@ -9,17 +10,26 @@ Connection URLs (as MAVSDK and mavutil spell them):
 
 * ``udpin://HOST:PORT``  — bind HOST:PORT, reply to whoever last sent us a valid message
   (the usual companion-computer setup: PX4 sends to us on 14540);
-* ``udpout://HOST:PORT`` — send to HOST:PORT from an ephemeral port (we speak first).
-
-Serial links are not supported by this asyncio link yet: a clear ConfigError says so.
+* ``udpout://HOST:PORT`` — send to HOST:PORT from an ephemeral port (we speak first);
+* ``serial:///dev/DEVICE:BAUD`` — a UART (PX4's TELEM2 to a companion computer), raw 8N1,
+  no flow control; BAUD defaults to 57600 (PX4's SER_TEL2_BAUD). Mind the bandwidth: a
+  200 Hz SET_ATTITUDE_TARGET stream alone is about 11 kB/s, so use 921600 for offboard.
+  A serial byte stream carries frames split anywhere: partial frames are kept for the next
+  read (a datagram's leftover, by contrast, is garbage). Writes never block the loop: what
+  the tty cannot take at once is queued (bounded) and written when it is writable. A device
+  that goes away (USB unplugged) is reopened every second until it is back.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import os
 import struct
+import termios
 import time
+import tty
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,19 +46,30 @@ log = logging.getLogger(__name__)
 MessageHandler = Callable[[Any], None]
 
 
+SERIAL_DEFAULT_BAUD = 57600
+SERIAL_REOPEN_PERIOD_S = 1.0
+SERIAL_MAX_PENDING_BYTES = 8192  # ~90 ms at 921600 baud: beyond that, a setpoint is stale
+
+
 @dataclass(frozen=True)
 class Endpoint:
-    mode: Literal["udpin", "udpout"]
-    host: str
-    port: int
+    mode: Literal["udpin", "udpout", "serial"]
+    host: str = ""
+    port: int = 0
+    device: str = ""  # serial only
+    baud: int = 0  # serial only
 
 
 def parse_url(url: str) -> Endpoint:
-    """Parse ``udpin://HOST:PORT`` or ``udpout://HOST:PORT``; anything else is a ConfigError."""
+    """Parse ``udpin://HOST:PORT``, ``udpout://HOST:PORT`` or ``serial:///dev/DEV[:BAUD]``;
+    anything else is a ConfigError naming what is wrong."""
     parts = urlsplit(url)
+    if parts.scheme == "serial":
+        return _parse_serial(url)
     if parts.scheme not in ("udpin", "udpout"):
-        hint = " (serial links are not supported yet)" if parts.scheme in ("serial", "") else ""
-        raise ConfigError(f"connection url {url!r}: scheme must be udpin:// or udpout://{hint}")
+        raise ConfigError(
+            f"connection url {url!r}: scheme must be udpin://, udpout:// or serial://"
+        )
     try:
         port = parts.port
     except ValueError as exc:
@@ -57,6 +78,24 @@ def parse_url(url: str) -> Endpoint:
         raise ConfigError(f"connection url {url!r}: expected {parts.scheme}://HOST:PORT")
     mode: Literal["udpin", "udpout"] = "udpin" if parts.scheme == "udpin" else "udpout"
     return Endpoint(mode, parts.hostname, port)
+
+
+def _parse_serial(url: str) -> Endpoint:
+    rest = url[len("serial://") :]
+    device, sep, baud_text = rest.rpartition(":")
+    if not sep:
+        device, baud_text = rest, str(SERIAL_DEFAULT_BAUD)
+    if not device.startswith("/"):
+        raise ConfigError(f"connection url {url!r}: expected serial:///dev/DEVICE:BAUD")
+    try:
+        baud = int(baud_text)
+    except ValueError as exc:
+        raise ConfigError(
+            f"connection url {url!r}: baud rate {baud_text!r} is not a number"
+        ) from exc
+    if not hasattr(termios, f"B{baud}"):
+        raise ConfigError(f"connection url {url!r}: unsupported baud rate {baud}")
+    return Endpoint("serial", device=device, baud=baud)
 
 
 def load_signing_key(path: str | Path) -> bytes:
@@ -140,6 +179,11 @@ class MavlinkLink:
         self._peer: tuple[str, int] | None = (
             (self.endpoint.host, self.endpoint.port) if self.endpoint.mode == "udpout" else None
         )
+        self._fd: int | None = None  # serial
+        self._pending = bytearray()  # serial bytes the tty has not taken yet
+        self._reopen: asyncio.TimerHandle | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._closed = False
         self._peer_timeout_s = peer_timeout_s
         self._peer_heard = -float("inf")
         self.counters: Counter[str] = Counter()
@@ -165,7 +209,13 @@ class MavlinkLink:
         return addr
 
     async def open(self) -> None:
+        """Bind or open the link; OSError names the address or device that failed."""
         loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._closed = False
+        if self.endpoint.mode == "serial":
+            self._open_serial(loop)
+            return
         if self.endpoint.mode == "udpin":
             transport, _ = await loop.create_datagram_endpoint(
                 lambda: _Protocol(self), local_addr=(self.endpoint.host, self.endpoint.port)
@@ -177,37 +227,159 @@ class MavlinkLink:
         self._transport = transport
 
     def close(self) -> None:
+        self._closed = True
         if self._transport is not None:
             self._transport.close()
             self._transport = None
+        if self._reopen is not None:
+            self._reopen.cancel()
+            self._reopen = None
+        self._close_serial()
         if self._tlog is not None:
             self._tlog.flush()
 
     def send(self, msg: Any) -> bool:
         """Encode and send ``msg``; False (and counted) when there is no peer or socket yet."""
-        if self._transport is None or self._peer is None:
+        if self.endpoint.mode == "serial":
+            if self._fd is None:
+                self.counters["send_no_peer"] += 1
+                return False
+        elif self._transport is None or self._peer is None:
             self.counters["send_no_peer"] += 1
             return False
         self.mav.send(msg)
         return True
 
     def _write_frame(self, frame: bytes) -> None:
-        if self._transport is None or self._peer is None:
-            return
-        self._transport.sendto(frame, self._peer)
+        if self.endpoint.mode == "serial":
+            if not self._write_serial(frame):
+                return
+        else:
+            if self._transport is None or self._peer is None:
+                return
+            self._transport.sendto(frame, self._peer)
         self.counters["sent"] += 1
         if self._tlog is not None:
             self._tlog.write(frame)
 
+    # -- serial ---------------------------------------------------------------------------
+
+    def _open_serial(self, loop: asyncio.AbstractEventLoop) -> None:
+        dev, baud = self.endpoint.device, self.endpoint.baud
+        fd = os.open(dev, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            tty.setraw(fd)  # 8 bits, no echo, no line editing, no signals
+            attrs = termios.tcgetattr(fd)
+            attrs[2] = (attrs[2] | termios.CLOCAL | termios.CREAD) & ~termios.CRTSCTS
+            attrs[4] = attrs[5] = getattr(termios, f"B{baud}")
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        except termios.error as exc:
+            os.close(fd)
+            raise OSError(f"{dev}: cannot configure the serial port: {exc}") from exc
+        self._fd = fd
+        self._pending.clear()
+        self._peer = (dev, baud)
+        loop.add_reader(fd, self._on_serial_readable)
+        log.info("serial link open: %s at %d baud", dev, baud)
+
+    def _close_serial(self) -> None:
+        if self._fd is None:
+            return
+        if self._loop is not None and not self._loop.is_closed():
+            self._loop.remove_reader(self._fd)
+            self._loop.remove_writer(self._fd)
+        with contextlib.suppress(OSError):
+            os.close(self._fd)
+        self._fd = None
+        self._pending.clear()
+
+    def _on_serial_readable(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            data = os.read(self._fd, 4096)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._serial_lost(str(exc))
+            return
+        if not data:
+            self._serial_lost("end of file")
+            return
+        self._on_bytes(data, (self.endpoint.device, self.endpoint.baud), stream=True)
+
+    def _write_serial(self, frame: bytes) -> bool:
+        if self._fd is None:
+            return False
+        if len(self._pending) + len(frame) > SERIAL_MAX_PENDING_BYTES:
+            self.counters["send_dropped"] += 1  # the link is saturated: drop, never block
+            return False
+        if self._pending:
+            self._pending += frame
+            return True
+        try:
+            n = os.write(self._fd, frame)
+        except BlockingIOError:
+            n = 0
+        except OSError as exc:
+            self._serial_lost(str(exc))
+            return False
+        if n < len(frame):
+            self._pending += frame[n:]
+            assert self._loop is not None
+            self._loop.add_writer(self._fd, self._flush_serial)
+        return True
+
+    def _flush_serial(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            n = os.write(self._fd, self._pending)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._serial_lost(str(exc))
+            return
+        del self._pending[:n]
+        if not self._pending and self._loop is not None:
+            self._loop.remove_writer(self._fd)
+
+    def _serial_lost(self, why: str) -> None:
+        self.counters["serial_lost"] += 1
+        log.error("serial link %s lost (%s): reopening", self.endpoint.device, why)
+        self._close_serial()
+        self._schedule_reopen()
+
+    def _schedule_reopen(self) -> None:
+        if self._closed or self._loop is None:
+            return
+        self._reopen = self._loop.call_later(
+            SERIAL_REOPEN_PERIOD_S, self._try_reopen, self._loop
+        )
+
+    def _try_reopen(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._reopen = None
+        try:
+            self._open_serial(loop)
+        except OSError as exc:
+            self.counters["serial_reopen_failed"] += 1
+            log.debug("serial reopen failed: %s", exc)
+            self._schedule_reopen()
+
+    # -- receiving ------------------------------------------------------------------------
+
     def _on_datagram(self, data: bytes, addr: tuple[Any, int]) -> None:
         self.counters["datagrams"] += 1
+        self._on_bytes(data, addr, stream=False)
+
+    def _on_bytes(self, data: bytes, addr: tuple[Any, int], *, stream: bool) -> None:
         try:
             msgs = self.mav.parse_buffer(data) or []
         except Exception as exc:  # the codec must never take the loop down
             self.counters["bad_data"] += 1
-            log.debug("unparseable datagram from %s: %s", addr, exc)
+            log.debug("unparseable bytes from %s: %s", addr, exc)
             return
-        if self.mav.buf_len() > 0:
+        if not stream and self.mav.buf_len() > 0:
             # A datagram carries whole messages: a leftover is garbage, and kept it would
             # swallow the first message of the next datagram.
             self.counters["bad_data"] += 1
