@@ -62,7 +62,19 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--wind", type=parse_wind, default=None, metavar="SPEED_M_S,DIR_DEG")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--duration", type=float, default=None, metavar="S")
-    sim.add_argument("--no-share", action="store_true")
+    sim.add_argument(
+        "--no-share",
+        action="store_true",
+        help="with --vehicles N > 1: no library sharing over Zenoh (by default vehicle k "
+        "listens on tcp/127.0.0.1:(7446+k) and connects to the others)",
+    )
+    sim.add_argument(
+        "--stagger",
+        action="store_true",
+        help="start vehicle k only after vehicle k-1 has flown the whole scenario and "
+        "landed; landed vehicles stay up, answering library queries, until the last lands. "
+        "Measures what a vehicle joining after others have flown gains from their library",
+    )
     sim.add_argument("--out", default="out", metavar="DIR")
     sim.add_argument("--json", default=None, metavar="FILE")
 

@@ -70,6 +70,8 @@ class StoreConfig:
 class MissionConfig:
     duration_s: float = 0.0  # > 0: after this long on the trajectory, land and exit
     land_at_end: bool = True
+    # after landing, stay up (answering the fleet's library queries) until stopped
+    linger_after_landing: bool = False
 
 
 _NAME_RE = re.compile(r"[A-Za-z0-9_-]{1,32}")

@@ -94,6 +94,7 @@ class Service:
         self._ready_sent = False
         self._control_alive_wall = -math.inf
         self._mission_done = False
+        self._lingering = False  # landed, still up for the fleet (mission.linger_after_landing)
         # Local NED z of the ground at home: taken from the first state seen while disarmed
         # (PX4's local origin is usually, not always, on the ground at power-up).
         self._home_down_m = 0.0
@@ -198,7 +199,11 @@ class Service:
             alt = None if state is None else -float(state.pos_ned_m[2]) - self._home_down_m
             if self._mission_done:
                 self._finish_mission(hb)
-                out = Outputs(Phase.LANDING, True, (), "mission complete: landing")
+                out = (
+                    Outputs(Phase.LANDING, False, (), "mission complete: landed, lingering")
+                    if self._lingering
+                    else Outputs(Phase.LANDING, True, (), "mission complete: landing")
+                )
             else:
                 climb = 0.0 if state is None else -float(state.vel_ned_m_s[2])
                 out = self.sm.step(Inputs(now, hb, age, alt, climb))
@@ -246,7 +251,12 @@ class Service:
             return
         landing = hb.main_mode == PX4_MAIN_MODE_AUTO and hb.sub_mode == PX4_AUTO_SUB_LAND
         if not self.cfg.mission.land_at_end or not hb.armed:
-            self._stopping.set()
+            if not self.cfg.mission.linger_after_landing:
+                self._stopping.set()
+            elif not self._lingering:
+                self._lingering = True
+                self._write_stats()  # the flight's figures; rewritten at the stop
+                log.info("mission complete: landed; staying up for the fleet until stopped")
             return
         if not landing and wall - self._land_sent_at > self.cfg.offboard.retry_period_s:
             self._land_sent_at = wall

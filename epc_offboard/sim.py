@@ -128,7 +128,31 @@ def service_config_for(
             "stats_path": str(run_dir / "stats.json"),
         },
     }
+    flags["sharing"] = _sharing_flags(args, vehicle_id)
+    if getattr(args, "stagger", False):
+        flags["mission"]["linger_after_landing"] = True
     return merge_dicts(merge_dicts(base, scenario.service), flags)
+
+
+ZENOH_BASE_PORT = 7446  # vehicle k listens on tcp/127.0.0.1:(7446 + k) (CONTRACTS.md)
+
+
+def _sharing_flags(args: argparse.Namespace, vehicle_id: int) -> dict[str, Any]:
+    """Fleet sharing for ``--vehicles N > 1`` unless ``--no-share``: every vehicle listens on
+    its own loopback port and connects to all the others (no multicast scouting)."""
+    n = int(args.vehicles)
+    if n < 2 or getattr(args, "no_share", False):
+        return {"enabled": False}
+    return {
+        "enabled": True,
+        "fleet": "sim",
+        "vehicle_id": f"v{vehicle_id}",
+        "listen": [f"tcp/127.0.0.1:{ZENOH_BASE_PORT + vehicle_id}"],
+        "connect": [
+            f"tcp/127.0.0.1:{ZENOH_BASE_PORT + k}" for k in range(1, n + 1) if k != vehicle_id
+        ],
+        "scouting_multicast": False,
+    }
 
 
 def _start(cmd: list[str], log_path: Path) -> subprocess.Popen[bytes]:
@@ -168,15 +192,23 @@ def _last_time_s(path: Path) -> float:
 
 
 def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> list[VehicleRun]:
-    """Start every SITL and service, wait for the services to finish, stop the SITLs."""
+    """Start every SITL and service, wait for the services to finish, stop the SITLs.
+
+    With ``--stagger`` vehicle k starts once vehicle k-1 has landed (its stats file appears;
+    its service lingers, sharing its library) and every service is stopped after the last
+    vehicle has landed.
+    """
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    runs = []
+    runs: list[VehicleRun] = []
     wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
-    for k in range(1, args.vehicles + 1):
+    stagger = bool(getattr(args, "stagger", False))
+
+    def start(k: int) -> None:
         run_dir = out_dir / f"vehicle{k}"
         run_dir.mkdir(parents=True, exist_ok=True)
         run = VehicleRun(k, run_dir)
+        run.stats.unlink(missing_ok=True)  # with --stagger its appearance means "landed"
         offboard_port = _free_udp_port()
         listen_port = _free_udp_port()
         library = out_dir / f"library-{k}.sqlite"
@@ -204,8 +236,11 @@ def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> li
         run.sitl = _start(sitl_cmd, run_dir / "sitl.log")
         runs.append(run)
 
+    for k in range(1, (1 if stagger else args.vehicles) + 1):
+        start(k)
     expected_s = scenario.duration_s + 20.0  # takeoff, offboard entry, landing
-    deadline = time.monotonic() + max(120.0, 20.0 * expected_s)
+    flights = args.vehicles if stagger else 1
+    deadline = time.monotonic() + flights * max(120.0, 20.0 * expected_s)
     try:
         with Progress(
             TextColumn("[bold]{task.description}"),
@@ -215,16 +250,25 @@ def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> li
             transient=False,
             disable=not sys.stderr.isatty(),
         ) as progress:
-            task = progress.add_task(f"{args.scenario}", total=expected_s)
+            task = progress.add_task(f"{args.scenario}", total=expected_s * flights)
             while any(r.service is not None and r.service.poll() is None for r in runs):
                 if time.monotonic() > deadline:
                     raise RuntimeError("the flight did not finish in time (see the vehicle logs)")
                 if any(r.sitl is not None and r.sitl.poll() is not None for r in runs):
                     raise RuntimeError("a SITL process exited early (see sitl.log)")
-                t = min(_last_time_s(r.groundtruth) for r in runs)
-                progress.update(task, completed=min(t, expected_s))
+                if stagger and runs[-1].stats.exists():  # the newest vehicle has landed
+                    if len(runs) < args.vehicles:
+                        start(len(runs) + 1)
+                    else:
+                        for r in runs:
+                            _stop(r.service)
+                if stagger:
+                    t = sum(min(_last_time_s(r.groundtruth), expected_s) for r in runs)
+                else:
+                    t = min(_last_time_s(r.groundtruth) for r in runs)
+                progress.update(task, completed=min(t, expected_s * flights))
                 time.sleep(0.2)
-            progress.update(task, completed=expected_s)
+            progress.update(task, completed=expected_s * flights)
     finally:
         for r in runs:
             _stop(r.service)
