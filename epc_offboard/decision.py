@@ -1,7 +1,8 @@
 """The decision every controller of the position/attitude loops returns, and their protocol.
 
 EPC, the PD baseline and MPC-every-tick share one interface so the service, the simulator
-and the benchmark can swap them: ``step(x0, refs, *, perturbation=None) -> Decision``.
+and the benchmark can swap them: ``step(x0, refs, u_p=None, *, perturbation=None) ->
+Decision`` (``u_p``: the nominal input, (nu,) or per stage (N, nu)).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ class Controller(Protocol):
         self,
         x0: npt.ArrayLike,
         refs: npt.ArrayLike,
+        u_p: npt.ArrayLike | None = None,
         *,
         perturbation: npt.ArrayLike | None = None,
     ) -> Decision: ...

@@ -282,7 +282,8 @@ class ExperienceController:
         perturbation: npt.ArrayLike | None = None,
     ) -> Decision:
         """One control tick. ``x0`` (nx,), ``refs`` (N, nx) absolute references for x_1..x_N,
-        ``u_p`` (nu,) nominal input, ``perturbation`` p^ (nx,) added to the model offset.
+        ``u_p`` (nu,) or (N, nu) nominal input, ``perturbation`` p^ (nx,) added to the model
+        offset.
 
         With a perturbation and no ``u_p``, ``u_p = -pinv(B) p^`` (the input cancelling it).
         """
@@ -656,10 +657,12 @@ class _IntermediateQp:
     def solve(self, theta_full: FloatArray) -> FloatArray | None:
         p, f = self.problem, self.full
         nx, nu, N, Nf = p.nx, p.nu, p.horizon, f.horizon
+        # the first N stages of the full problem's references and nominal inputs
         theta = np.concatenate([
             theta_full[:nx],
             theta_full[nx : nx + N * nx],
-            theta_full[nx + Nf * nx :],
+            theta_full[nx + Nf * nx : f.i_up],
+            theta_full[f.i_up : f.i_up + N * nu],
         ])
         h, gamma = p.vectors(theta)
         self._q[: p.n_u] = h

@@ -4,13 +4,17 @@ Over a horizon of N steps, with stacked inputs ``U = [u_0; ...; u_{N-1}]`` (N nu
 predicted states ``X = [x_1; ...; x_N]`` (N nx,)::
 
     X = Phi x0 + Bbar U + Psi c~           Phi = [A; A²; ...], Psi = [I; A + I; ...]
-    min_U  1/2 (X - r)' Qbar (X - r) + 1/2 (U - 1 ⊗ u_p)' Rbar (U - 1 ⊗ u_p)
+    min_U  1/2 (X - r)' Qbar (X - r) + 1/2 (U - U_p)' Rbar (U - U_p)
     s.t.   x_min <= x_k <= x_max (k = 1..N),  u_min <= u_k <= u_max (k = 0..N-1)
 
 which condenses to ``min 1/2 U' H U + h' U  s.t.  Gamma U <= gamma``. Everything that varies
 from tick to tick is collected in one parameter vector::
 
-    theta = [x0 (nx); r_1..r_N (N nx); c~ (nx); u_p (nu)]
+    theta = [x0 (nx); r_1..r_N (N nx); c~ (nx); U_p = u_p,0..u_p,N-1 (N nu)]
+
+``U_p`` is the nominal input per stage (thesis 3.1.2 stacks ``u_p0..u_p,N-1``): the input that
+keeps the model on its reference (trajectory feedforward) and cancels the perturbation, so
+the input penalty does not fight either. A single ``u_p`` (nu,) is repeated over the horizon.
 
 and both vectors are affine in it: ``h = F theta`` and ``gamma = g0 + S theta``. That is what
 lets EPC precompute one affine map per active set (thesis 3.6-3.8).
@@ -121,7 +125,8 @@ class MpcProblem:
         if np.any(self.u_min > self.u_max):
             raise ProblemError("u_min must be <= u_max (the input box must be non-empty)")
         self.n_u = N * nu
-        self.n_theta = nx + N * nx + nx + nu
+        self.n_theta = nx + N * nx + nx + N * nu
+        self.i_up = nx + N * nx + nx  # where U_p starts inside theta
         self._pinv_b = np.asarray(np.linalg.pinv(model.B), dtype=np.float64)
         self._build()
 
@@ -145,9 +150,8 @@ class MpcProblem:
         BtQ = Bbar.T @ Qbar
         self.H = BtQ @ Bbar + Rbar
         self.H = 0.5 * (self.H + self.H.T)
-        ones = np.kron(np.ones((N, 1)), np.eye(nu))
-        # h = Bbar' Qbar (Phi x0 + Psi c - r) - Rbar (1 ⊗ u_p) = F theta
-        self.F = np.hstack([BtQ @ self.Phi, -BtQ, BtQ @ self.Psi, -Rbar @ ones])
+        # h = Bbar' Qbar (Phi x0 + Psi c - r) - Rbar U_p = F theta
+        self.F = np.hstack([BtQ @ self.Phi, -BtQ, BtQ @ self.Psi, -Rbar])
 
         i_x0, i_c = 0, nx + N * nx
         rows_g: list[FloatArray] = []
@@ -230,8 +234,8 @@ class MpcProblem:
         """Stack the parameter vector (written into ``out`` when given, to spare allocation).
 
         ``x0`` (nx,); ``refs`` (N, nx) absolute references for x_1..x_N; ``perturbation`` p^
-        (nx,) makes ``c~ = c + p^``; ``u_p`` (nu,) defaults to the input cancelling p^,
-        ``-pinv(B) p^`` (zero without a perturbation).
+        (nx,) makes ``c~ = c + p^``; ``u_p`` (nu,) for every stage or (N, nu) per stage,
+        defaults to the input cancelling p^, ``-pinv(B) p^`` (zero without a perturbation).
         """
         nx, N = self.nx, self.horizon
         x = np.asarray(x0, dtype=np.float64)
@@ -244,20 +248,34 @@ class MpcProblem:
         th[:nx] = x
         th[nx : nx + N * nx] = r.reshape(-1)
         c0 = nx + N * nx
+        up = th[self.i_up :].reshape(N, self.nu)
         if perturbation is None:
             th[c0 : c0 + nx] = self.model.c
-            th[c0 + nx :] = 0.0 if u_p is None else u_p
+            if u_p is None:
+                up[:] = 0.0
         else:
             pert = np.asarray(perturbation, dtype=np.float64)
             if pert.shape != (nx,):
                 raise ProblemError(f"perturbation must have shape ({nx},), got {pert.shape}")
             th[c0 : c0 + nx] = self.model.c + pert
-            th[c0 + nx :] = -(self._pinv_b @ pert) if u_p is None else u_p
+            if u_p is None:
+                up[:] = -(self._pinv_b @ pert)
+        if u_p is not None:
+            u = np.asarray(u_p, dtype=np.float64)
+            if u.shape not in ((self.nu,), (N, self.nu)):
+                raise ProblemError(
+                    f"u_p must have shape ({self.nu},) or ({N}, {self.nu}), got {u.shape}"
+                )
+            up[:] = u
         return th
 
     def u_p(self, theta: FloatArray) -> FloatArray:
-        """The nominal input ``u_p`` inside ``theta``."""
-        return theta[self.n_theta - self.nu :]
+        """The first stage's nominal input ``u_p,0`` (nu,) inside ``theta``."""
+        return theta[self.i_up : self.i_up + self.nu]
+
+    def u_p_stages(self, theta: FloatArray) -> FloatArray:
+        """Every stage's nominal input, (N, nu), a view into ``theta``."""
+        return theta[self.i_up :].reshape(self.horizon, self.nu)
 
     def clip_input(self, u: FloatArray) -> FloatArray:
         """``u`` (nu,) clipped into the input box (a new array)."""

@@ -119,3 +119,31 @@ def test_osqp_reports_infeasible_as_a_typed_status():
     res = OsqpSolver(p.H, p.G).solve(*p.vectors(theta))
     assert res.status is QpStatus.INFEASIBLE
     assert not res.ok
+
+
+def test_per_stage_nominal_inputs_match_the_stagewise_cost():
+    # thesis 3.1.2 stacks u_p,0..u_p,N-1: a trajectory's feedforward differs per stage
+    rng = np.random.default_rng(3)
+    p = position_problem(5)
+    x0, refs = rng.normal(size=6), rng.normal(size=(5, 6))
+    U_p = rng.normal(size=(5, 3))
+    theta = p.theta(x0, refs, U_p)
+    assert np.array_equal(p.u_p_stages(theta), U_p)
+    assert np.array_equal(p.u_p(theta), U_p[0])
+    U1, U2 = rng.normal(size=p.n_u), rng.normal(size=p.n_u)
+
+    def cost(U):
+        x, total = x0.copy(), 0.0
+        for k in range(5):
+            u = U[3 * k : 3 * k + 3]
+            x = p.model.A @ x + p.model.B @ u + p.model.c
+            e = x - refs[k]
+            total += 0.5 * e @ p.Q @ e + 0.5 * (u - U_p[k]) @ p.R @ (u - U_p[k])
+        return total
+
+    assert p.cost(theta, U1) - p.cost(theta, U2) == pytest.approx(cost(U1) - cost(U2), rel=1e-10)
+    # a single u_p is every stage's
+    th1 = p.theta(x0, refs, U_p[2])
+    assert np.array_equal(p.u_p_stages(th1), np.tile(U_p[2], (5, 1)))
+    with pytest.raises(ProblemError, match="u_p must have shape"):
+        p.theta(x0, refs, np.zeros((4, 3)))
