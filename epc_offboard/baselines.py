@@ -18,7 +18,9 @@ from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
 
 
 class PdController:
-    """PD on ``x = [p (n), v (n)]`` with acceleration input ``u`` (n,).
+    """PD on ``x = [p (n), v (n), ...]`` with acceleration input ``u`` (n,).
+
+    Further states (the lagged acceleration of the position model) are not fed back.
 
     ``u = a_ff + kp (r_p - p) + kd (r_v - v) + u_p``, clipped to ``[u_min, u_max]``; the
     error is taken against ``refs[0]`` (the reference one prediction step ahead, the nearest
@@ -34,8 +36,8 @@ class PdController:
         kd: npt.ArrayLike,
     ) -> None:
         nx, nu = problem.nx, problem.nu
-        if nx != 2 * nu:
-            raise ValueError(f"PD needs x = [p (n), v (n)] with n = nu; got nx={nx}, nu={nu}")
+        if nx < 2 * nu:
+            raise ValueError(f"PD needs x = [p (n), v (n), ...] with n = nu; got nx={nx}, nu={nu}")
         dt_s = problem.model.dt_s
         if dt_s is None:
             raise ValueError("PD needs the model's prediction step dt_s for its feedforward")
@@ -58,8 +60,9 @@ class PdController:
         theta = p.theta(x0, refs, u_p, perturbation=perturbation)
         x = theta[: p.nx]
         r = theta[p.nx : p.nx + p.horizon * p.nx].reshape(p.horizon, p.nx)
-        a_ff = (r[1, n:] - r[0, n:]) / self.dt_s if p.horizon > 1 else np.zeros(n)
-        u = a_ff + self.kp * (r[0, :n] - x[:n]) + self.kd * (r[0, n:] - x[n:]) + p.u_p(theta)
+        v = slice(n, 2 * n)
+        a_ff = (r[1, v] - r[0, v]) / self.dt_s if p.horizon > 1 else np.zeros(n)
+        u = a_ff + self.kp * (r[0, :n] - x[:n]) + self.kd * (r[0, v] - x[v]) + p.u_p(theta)
         return Decision(p.clip_input(u), "solved", (time.perf_counter() - t0) * 1e6)
 
 

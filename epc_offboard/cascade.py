@@ -10,9 +10,14 @@ Position loop (100 Hz), :meth:`Cascade.position_tick`:
    attitude and the commanded thrust produce — so attitude-loop lag is not mistaken for wind;
    the estimator (LWPR on velocity, a Kalman observer, or none) is updated with it;
 2. predict: ``d_hat`` = the estimator's low-pass-filtered estimate at the current velocity;
-3. model: x = [p_ned, v_ned], u = a_ned, ``x[k+1] = A x[k] + B u[k] + c~`` with
-   ``c~ = c + B d_hat`` (thesis 3.1.1: the perturbation enters the affine model), and
-   ``u_p = -d_hat`` the input that cancels it;
+3. model: x = [p_ned, v_ned, a_ned] with ``a`` the acceleration the attitude and thrust
+   produce, following the command u = a_cmd with the inner loop's first-order lag
+   ``tau_acc_s`` (:func:`~epc_offboard.models.position_model_lagged`);
+   ``x[k+1] = A x[k] + B u[k] + c~`` with ``c~ = c + E d_hat`` (thesis 3.1.1: the
+   perturbation enters the affine model; E: how an acceleration disturbance enters v), and
+   per stage ``u_p[k] = u_ff[k] - d_hat``: the reference's feedforward (the command that makes
+   the lagged acceleration follow the reference acceleration) plus the input that cancels
+   the disturbance, so the input penalty fights neither;
 4. control: EPC (or PD / MPC-every-tick) over the reference horizon -> ``a_cmd``;
 5. map: ``a_cmd`` -> roll, pitch, yaw, thrust (thesis eq. 3.13, exact inverse, NED).
 
@@ -43,7 +48,8 @@ from epc_offboard.models import (
     acceleration_box,
     attitude_model,
     attitude_to_accel,
-    position_model,
+    position_model_lagged,
+    velocity_disturbance_input,
 )
 from epc_offboard.perturbation import (
     KalmanPerturbationConfig,
@@ -67,6 +73,11 @@ class PositionControlConfig:
     dt_s: float = 0.05  # prediction step, separate from the loop period
     q_pos: Vec3 = (20.0, 20.0, 30.0)
     q_vel: Vec3 = (3.0, 3.0, 3.0)
+    q_acc: Vec3 = (0.0, 0.0, 0.0)  # weight on the achieved-acceleration error
+    # inner-loop lag from commanded to achieved acceleration, first order, per NED axis:
+    # horizontally the attitude loop's response (identified on the bundled SITL from
+    # commanded vs ground-truth acceleration), vertically the motors' (thrust is direct)
+    tau_acc_s: Vec3 = (0.12, 0.12, 0.03)
     r_acc: Vec3 = (0.3, 0.3, 0.3)
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     geofence_min_ned_m: Vec3 | None = None  # optional position box
@@ -87,6 +98,10 @@ class PositionControlConfig:
             raise ValueError(f"dt_s must be > 0, got {self.dt_s}")
         if any(v <= 0.0 for v in self.max_vel_m_s):
             raise ValueError(f"max_vel_m_s must be > 0, got {self.max_vel_m_s}")
+        if any(not t > 0.0 for t in self.tau_acc_s):
+            raise ValueError(f"tau_acc_s must be > 0, got {self.tau_acc_s}")
+        if any(q < 0.0 for q in (*self.q_pos, *self.q_vel, *self.q_acc)):
+            raise ValueError("q_pos, q_vel and q_acc must be >= 0")
         if not 0.0 < self.min_thrust_norm < self.hover_thrust_norm < self.max_thrust_norm <= 1.0:
             raise ValueError("need 0 < min_thrust_norm < hover_thrust_norm < max_thrust_norm <= 1")
         if self.library_size < 1:
@@ -194,7 +209,9 @@ class Cascade:
         pc, ac = self.position_cfg, self.attitude_cfg
         self.position_dt_s = pc.dt_s
         self.position_horizon = pc.horizon
-        self.pos_model = position_model(pc.dt_s)
+        self.pos_model = position_model_lagged(pc.dt_s, pc.tau_acc_s)
+        # a[k+1] = alpha a[k] + (1 - alpha) u[k] per axis: what the feedforward inverts
+        self._acc_alpha = np.exp(-pc.dt_s / np.array(pc.tau_acc_s, dtype=np.float64))
         box = acceleration_box(
             math.radians(pc.max_tilt_deg),
             pc.min_thrust_norm,
@@ -209,10 +226,10 @@ class Cascade:
         self.pos_problem = MpcProblem(
             self.pos_model,
             horizon=pc.horizon,
-            Q=np.concatenate([pc.q_pos, pc.q_vel]),
+            Q=np.concatenate([pc.q_pos, pc.q_vel, pc.q_acc]),
             R=np.array(pc.r_acc, dtype=np.float64),
-            x_min=np.concatenate([pmin, -vmax]),
-            x_max=np.concatenate([pmax, vmax]),
+            x_min=np.concatenate([pmin, -vmax, -inf3]),
+            x_max=np.concatenate([pmax, vmax, inf3]),
             u_min=box.u_min,
             u_max=box.u_max,
         )
@@ -245,7 +262,8 @@ class Cascade:
             ),
         )
         self._estimator_key = f"estimator.{self.estimator_cfg.kind}"
-        self._b_vel = self.pos_model.B  # (6, 3): how an acceleration enters one prediction step
+        # (9, 3): how an acceleration disturbance enters one prediction step
+        self._e_dist = velocity_disturbance_input(self.pos_model)
 
     # -- position loop ------------------------------------------------------------------
 
@@ -256,7 +274,7 @@ class Cascade:
         """References that hold the hold point (or the current position) at rest."""
         if self._hold_pos is None:
             self._hold_pos = state.pos_ned_m.copy()
-        row = np.concatenate([self._hold_pos, np.zeros(3)])
+        row = np.concatenate([self._hold_pos, np.zeros(6)])
         out: FloatArray = np.tile(row, (self.position_horizon, 1))
         return out
 
@@ -286,10 +304,34 @@ class Cascade:
         d_meas = (newest.vel_ned_m_s - oldest.vel_ned_m_s) / span - np.mean(window, axis=0)
         self.estimator.observe(oldest.vel_ned_m_s, d_meas)
 
+    def feedforward(self, refs: FloatArray) -> FloatArray:
+        """(N, 3) commands that make the model's lagged acceleration follow the reference's.
+
+        Exact inverse of ``a[k+1] = alpha a[k] + (1 - alpha) u[k]`` along the reference
+        accelerations ``refs[:, 6:9]`` (a_1..a_N); a_0, the reference acceleration now, is
+        extrapolated linearly from a_1 and a_2 (exact for a piecewise-linear reference).
+        """
+        a_ref = refs[:, 6:9]
+        a_now = 2.0 * a_ref[0] - a_ref[1] if len(a_ref) >= 2 else a_ref[0]
+        prev = np.vstack([a_now, a_ref[:-1]])
+        out: FloatArray = (a_ref - self._acc_alpha * prev) / (1.0 - self._acc_alpha)
+        return out
+
+    def achieved_acceleration(self, state: VehicleState) -> FloatArray:
+        """The acceleration (NED, gravity compensated) the measured attitude produces with the
+        last commanded thrust: the model's ``a`` state now."""
+        thrust = self._last_thrust_norm
+        if math.isnan(thrust):
+            thrust = self.position_cfg.hover_thrust_norm
+        roll, pitch, yaw = state.euler_rad
+        return attitude_to_accel(
+            AttitudeThrust(roll, pitch, yaw, thrust), self.position_cfg.hover_thrust_norm
+        )
+
     def position_tick(
         self, state: VehicleState, refs: FloatArray, *, learn: bool = True
     ) -> PositionOutput:
-        """One position-loop tick; ``refs`` (N, 6) rows [p_ned, v_ned] for x[1..N].
+        """One position-loop tick; ``refs`` (N, 9) rows [p_ned, v_ned, a_ned] for x[1..N].
 
         ``learn``: the vehicle is flying our commands, so the measured disturbance is real
         (before offboard is confirmed, our thrust is not what flies and must not be learned).
@@ -300,9 +342,16 @@ class Cascade:
         else:
             self._history.clear()
         d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), self.acc_min, self.acc_max)
-        x0 = np.concatenate([state.pos_ned_m, state.vel_ned_m_s])
-        # PD takes its acceleration feedforward from the reference horizon itself
-        decision: Decision = self.position.step(x0, refs, perturbation=self._b_vel @ d_hat)
+        x0 = np.concatenate([state.pos_ned_m, state.vel_ned_m_s, self.achieved_acceleration(state)])
+        if isinstance(self.position, PdController):
+            # thesis A.1: PD takes its acceleration feedforward from the reference horizon
+            # itself; the nominal input only cancels the disturbance
+            u_p = np.broadcast_to(-d_hat, (self.position_horizon, 3))
+        else:
+            u_p = self.feedforward(refs) - d_hat
+        decision: Decision = self.position.step(
+            x0, refs, u_p, perturbation=self._e_dist @ d_hat
+        )
         acc = np.clip(decision.u, self.acc_min, self.acc_max)
         out = self._attitude_target(acc, d_hat, decision.source, refs, t0)
         self._last_thrust_norm = out.thrust_norm

@@ -23,6 +23,9 @@ from epc_offboard.frames import GRAVITY_M_S2, FloatArray
 # relative to gravity compensation (u = 0 hovers).
 POS_NX = 6  # p(3), v(3)
 POS_NU = 3  # a(3)
+# Position loop with the inner loop's lag: x = [p_ned_m(3), v_ned_m_s(3), a_ned_m_s2(3)], where
+# a is the acceleration the attitude and thrust actually produce; u = the commanded acceleration.
+POS_LAG_NX = 9  # p(3), v(3), a(3)
 # Attitude loop: x = [roll, pitch, yaw (rad), p, q, r (rad/s, body FRD)], u = body-rate command.
 ATT_NX = 6  # roll, pitch, yaw, p, q, r
 ATT_NU = 3  # p_cmd, q_cmd, r_cmd
@@ -133,6 +136,49 @@ def position_model(dt_s: float) -> LinearModel:
     bc[3:6, :] = np.eye(3)
     A, B = zoh_discretize(ac, bc, dt_s)
     return LinearModel(A, B, dt_s=dt_s)
+
+
+def position_model_lagged(dt_s: float, tau_acc_s: tuple[float, float, float]) -> LinearModel:
+    """Position model with the inner loop's lag between commanded and achieved acceleration.
+
+    The attitude loop (and, vertically, the motors) makes the achieved acceleration ``a``
+    follow the command ``u`` with a first-order lag of time constant ``tau_acc_s[i]`` per
+    NED axis, so x = [p, v, a] (9), u = a_cmd (3), ZOH at ``dt_s``::
+
+        p' = v
+        v' = a                      (+ the disturbance d, which enters through c~)
+        a' = (u - a) / tau
+
+    A double integrator driven directly by ``u`` would predict every acceleration (and so
+    every velocity, which the state constraints bound) one inner-loop lag too early.
+    """
+    tau = np.asarray(tau_acc_s, dtype=np.float64)
+    if tau.shape != (3,) or not np.all(np.isfinite(tau)) or np.any(tau <= 0.0):
+        raise ModelError(f"tau_acc_s must be three values > 0, got {tau_acc_s}")
+    ac = np.zeros((POS_LAG_NX, POS_LAG_NX))
+    ac[0:3, 3:6] = np.eye(3)
+    ac[3:6, 6:9] = np.eye(3)
+    ac[6:9, 6:9] = -np.diag(1.0 / tau)
+    bc = np.zeros((POS_LAG_NX, POS_NU))
+    bc[6:9, :] = np.diag(1.0 / tau)
+    A, B = zoh_discretize(ac, bc, dt_s)
+    return LinearModel(A, B, dt_s=dt_s)
+
+
+def velocity_disturbance_input(model: LinearModel) -> FloatArray:
+    """(nx, 3): how a constant acceleration disturbance d (NED, m/s²) enters one step.
+
+    For the position models (x starting with p(3), v(3)) d acts on v' (a force per mass the
+    controller did not command) and on nothing after it, so over one ZOH step it adds
+    ``E d`` with ``E = [dt²/2 I; dt I; 0]`` whether or not x carries the lagged acceleration.
+    """
+    if model.dt_s is None or model.nx < 6:
+        raise ModelError("velocity_disturbance_input needs a position model with dt_s")
+    dt = model.dt_s
+    E = np.zeros((model.nx, 3))
+    E[0:3, :] = 0.5 * dt * dt * np.eye(3)
+    E[3:6, :] = dt * np.eye(3)
+    return E
 
 
 def attitude_model(dt_s: float, rate_time_constant_s: float) -> LinearModel:

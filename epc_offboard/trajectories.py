@@ -211,12 +211,13 @@ class Trajectory:
         return RefSample(self.anchor_ned_m + p, dp * ds, ddp * ds * ds + dp * dds)
 
     def horizon(self, t0_s: float, dt_s: float, steps: int) -> FloatArray:
-        """References for x[1..N] of the position model: (steps, 6) rows [p_ned, v_ned]."""
-        out = np.empty((steps, 6))
+        """References for x[1..N] of the position model: (steps, 9) rows [p_ned, v_ned, a_ned]."""
+        out = np.empty((steps, 9))
         for k in range(steps):
             r = self.sample(t0_s + (k + 1) * dt_s)
             out[k, :3] = r.pos_ned_m
-            out[k, 3:] = r.vel_ned_m_s
+            out[k, 3:6] = r.vel_ned_m_s
+            out[k, 6:] = r.acc_ned_m_s2
         return out
 
 

@@ -19,6 +19,8 @@ from epc_offboard.models import (
     attitude_model,
     attitude_to_accel,
     position_model,
+    position_model_lagged,
+    velocity_disturbance_input,
 )
 
 HOVER = 0.5
@@ -32,6 +34,33 @@ def test_position_model_is_exact_zoh_double_integrator():
     assert np.allclose(m.B, np.vstack([0.5 * dt * dt * I3, dt * I3]), atol=1e-14)
     assert m.dt_s == dt
     assert (m.nx, m.nu) == (6, 3)
+
+
+def test_lagged_position_model_follows_the_command_with_a_first_order_lag():
+    dt, tau = 0.05, (0.12, 0.12, 0.03)
+    m = position_model_lagged(dt, tau)
+    assert (m.nx, m.nu) == (9, 3)
+    e = np.exp(-dt / np.array(tau))
+    # a+ = e a + (1 - e) u, exactly (ZOH)
+    assert np.allclose(m.A[6:, 6:], np.diag(e))
+    assert np.allclose(m.B[6:, :], np.diag(1 - e))
+    # p and v integrate a: against a fine Euler simulation of p' = v, v' = a, a' = (u - a)/tau
+    x, u = np.array([0.1, -0.2, 0.0, 0.5, 0.0, -0.1, 0.3, -0.4, 1.0]), np.array([1.0, 2.0, -1.0])
+    xf, h = x.copy(), dt / 20000
+    for _ in range(20000):
+        xf = xf + h * np.concatenate([xf[3:6], xf[6:9], (u - xf[6:9]) / np.array(tau)])
+    assert np.allclose(m.step(x, u), xf, atol=1e-4)  # Euler's own error is ~3e-5
+    # a held command is reached: the steady state is the double integrator's
+    a = np.zeros(9)
+    for _ in range(200):
+        a = m.step(a, u)
+    assert np.allclose(a[6:], u)
+    # the disturbance enters v (and p) as an uncommanded acceleration, never a
+    E = velocity_disturbance_input(m)
+    assert np.allclose(E[:6], position_model(dt).B)
+    assert np.all(E[6:] == 0.0)
+    with pytest.raises(ModelError, match="tau_acc_s"):
+        position_model_lagged(dt, (0.1, 0.0, 0.1))
 
 
 def test_attitude_model_first_order_rate_response():

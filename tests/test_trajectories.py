@@ -79,9 +79,10 @@ def test_zigzag_peaks_at_its_speed_and_stays_in_amplitude():
 def test_horizon_rows_are_future_samples():
     tr = Trajectory(SHAPES["figure8"], ANCHOR)
     refs = tr.horizon(3.0, 0.05, 20)
-    assert refs.shape == (20, 6)
+    assert refs.shape == (20, 9)  # [p, v, a]: the position model carries the acceleration
     np.testing.assert_allclose(refs[4, :3], tr.sample(3.25).pos_ned_m)
-    np.testing.assert_allclose(refs[19, 3:], tr.sample(4.0).vel_ned_m_s)
+    np.testing.assert_allclose(refs[19, 3:6], tr.sample(4.0).vel_ned_m_s)
+    np.testing.assert_allclose(refs[7, 6:], tr.sample(3.4).acc_ned_m_s2)
 
 
 def test_config_rejects_bad_values():
