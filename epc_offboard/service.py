@@ -128,6 +128,10 @@ class Service:
         from sdnotify import SystemdNotifier
 
         self._notifier = SystemdNotifier()
+        if self._notifier.socket is not None:
+            # a notify must never stall the control loop: if the socket's queue is full
+            # (nobody reading), the ping is dropped (sdnotify swallows the error), not waited on
+            self._notifier.socket.setblocking(False)
 
     # -- messages ---------------------------------------------------------------------
 
