@@ -77,6 +77,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("--out", default="out", metavar="DIR")
     sim.add_argument("--json", default=None, metavar="FILE")
+    sim.add_argument(
+        "--compare",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="CTRL:ADAPT,...",
+        help="fly several methods side by side (default: the scenario's [compare] methods), "
+        "e.g. --compare epc:lwpr,pd:none; writes compare.json and compare.png",
+    )
 
     bench = sub.add_parser("bench", help="compute benchmark: EPC vs OSQP vs DAQP")
     bench.add_argument("--horizon", type=int, default=20)

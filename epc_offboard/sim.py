@@ -32,6 +32,7 @@ import numpy as np
 
 from epc_offboard.configio import ConfigError, dump_toml, from_dict, merge_dicts
 from epc_offboard.frames import FloatArray
+from epc_offboard.targets import CompareConfig, TargetConfig
 from epc_offboard.trajectories import TrajectoryConfig
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
@@ -49,6 +50,8 @@ class ScenarioConfig:
     wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (CONTRACTS.md)
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     service: dict[str, Any] = field(default_factory=dict)  # overrides of config/sitl.toml
+    compare: CompareConfig = field(default_factory=CompareConfig)  # `sim --compare` methods
+    targets: tuple[TargetConfig, ...] = ()  # acceptance targets (epc_offboard.targets)
 
     def __post_init__(self) -> None:
         if self.duration_s <= 0.0:
@@ -433,8 +436,26 @@ def print_table(report: dict[str, Any]) -> None:
     Console(stderr=False).print(table)
 
 
-def run_sim_command(args: argparse.Namespace) -> int:
-    from epc_offboard.errors import EXIT_OK, EXIT_RUNTIME, UsageError
+def make_report(
+    args: argparse.Namespace, scenario: ScenarioConfig, results: list[VehicleResult]
+) -> dict[str, Any]:
+    """The CONTRACTS.md `sim --json` report of one flight."""
+    wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
+    return {
+        "scenario": args.scenario,
+        "controller": args.controller,
+        "adaptation": args.adaptation,
+        "wind": {"speed_m_s": wind[0], "dir_deg": wind[1]},
+        "duration_s": scenario.duration_s,
+        "seed": args.seed,
+        "lockstep": bool(args.lockstep),
+        "vehicles": [r.report for r in results],
+    }
+
+
+def scenario_for(args: argparse.Namespace) -> ScenarioConfig:
+    """The scenario named by ``--scenario`` with ``--duration`` applied (UsageError if bad)."""
+    from epc_offboard.errors import UsageError
 
     if args.vehicles < 1:
         raise UsageError("--vehicles must be >= 1")
@@ -448,6 +469,17 @@ def run_sim_command(args: argparse.Namespace) -> int:
                 f"--duration must exceed the scenario's settle time {scenario.settle_s} s"
             )
         scenario = ScenarioConfig(**{**vars(scenario), "duration_s": args.duration})
+    return scenario
+
+
+def run_sim_command(args: argparse.Namespace) -> int:
+    from epc_offboard.errors import EXIT_OK, EXIT_RUNTIME
+
+    if getattr(args, "compare", None) is not None:
+        from epc_offboard.compare import run_compare_command
+
+        return run_compare_command(args)
+    scenario = scenario_for(args)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
@@ -458,17 +490,7 @@ def run_sim_command(args: argparse.Namespace) -> int:
     except RuntimeError as exc:
         print(f"epc-offboard sim: {exc}", file=sys.stderr)
         return EXIT_RUNTIME
-    wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
-    report = {
-        "scenario": args.scenario,
-        "controller": args.controller,
-        "adaptation": args.adaptation,
-        "wind": {"speed_m_s": wind[0], "dir_deg": wind[1]},
-        "duration_s": scenario.duration_s,
-        "seed": args.seed,
-        "lockstep": bool(args.lockstep),
-        "vehicles": [r.report for r in results],
-    }
+    report = make_report(args, scenario, results)
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))

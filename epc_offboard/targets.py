@@ -1,0 +1,136 @@
+"""Acceptance targets of a scenario and their verdicts (pure: reports in, verdicts out).
+
+A scenario TOML declares which methods ``epc-offboard sim --compare`` flies side by side and
+what each must achieve, measured on ground truth after the settle time (CONTRACTS.md report)::
+
+    [compare]
+    methods = ["epc:lwpr", "epc:none", "pd:none"]     # controller:adaptation
+
+    [[targets]]
+    description = "EPC within 2 cm of the circle"
+    method = "epc:lwpr"
+    metric = "max_error_m"
+    max = 0.02                                        # absolute: value <= max
+
+    [[targets]]
+    method = "epc:lwpr"
+    metric = "rmse_m"
+    vs = "pd:none"                                    # relative: value <= ratio * value(vs)
+    ratio = 1.0
+
+A target whose methods were not flown in a run is "n/a", never a pass.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+Metric = Literal["rmse_m", "max_error_m", "max_speed_m_s", "constraint_violations"]
+Verdict = Literal["PASS", "FAIL", "n/a"]
+
+CONTROLLERS = ("epc", "pd", "mpc")
+ADAPTATIONS = ("lwpr", "kf", "none")
+
+
+def parse_method(text: str) -> tuple[str, str]:
+    """``"epc:lwpr"`` -> ("epc", "lwpr"); raises ValueError naming the bad part."""
+    parts = text.strip().split(":")
+    if len(parts) != 2:
+        raise ValueError(f"method must be CONTROLLER:ADAPTATION, got {text!r}")
+    controller, adaptation = parts
+    if controller not in CONTROLLERS:
+        raise ValueError(f"method {text!r}: controller must be one of {CONTROLLERS}")
+    if adaptation not in ADAPTATIONS:
+        raise ValueError(f"method {text!r}: adaptation must be one of {ADAPTATIONS}")
+    return controller, adaptation
+
+
+def method_name(controller: str, adaptation: str) -> str:
+    return f"{controller}:{adaptation}"
+
+
+@dataclass(frozen=True)
+class TargetConfig:
+    method: str
+    metric: Metric
+    max: float | None = None  # absolute bound, in the metric's unit
+    vs: str | None = None  # or relative to another method's value
+    ratio: float = 1.0
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        parse_method(self.method)
+        if (self.max is None) == (self.vs is None):
+            raise ValueError("a target needs exactly one of `max` (absolute) or `vs` (relative)")
+        if self.vs is not None:
+            parse_method(self.vs)
+        if not (math.isfinite(self.ratio) and self.ratio > 0.0):
+            raise ValueError(f"ratio must be > 0, got {self.ratio}")
+        if self.max is not None and not self.max >= 0.0:
+            raise ValueError(f"max must be >= 0, got {self.max}")
+
+    @property
+    def methods(self) -> tuple[str, ...]:
+        return (self.method,) if self.vs is None else (self.method, self.vs)
+
+    def label(self) -> str:
+        if self.description:
+            return self.description
+        if self.vs is None:
+            return f"{self.method} {self.metric} <= {self.max:g}"
+        factor = "" if self.ratio == 1.0 else f"{self.ratio:g} x "
+        return f"{self.method} {self.metric} <= {factor}{self.vs}"
+
+
+@dataclass(frozen=True)
+class CompareConfig:
+    methods: tuple[str, ...] = field(default_factory=lambda: ("epc:lwpr",))
+
+    def __post_init__(self) -> None:
+        if not self.methods:
+            raise ValueError("compare.methods must name at least one method")
+        for m in self.methods:
+            parse_method(m)
+        if len(set(self.methods)) != len(self.methods):
+            raise ValueError(f"compare.methods repeats a method: {self.methods}")
+
+
+def metric_value(report: dict[str, Any], metric: Metric) -> float:
+    """The metric over a sim report's vehicles: the worst vehicle (largest value)."""
+    values = []
+    for v in report["vehicles"]:
+        if metric in ("rmse_m", "max_error_m"):
+            values.append(float(v["tracking"][metric]))
+        else:
+            values.append(float(v[metric]))
+    return max(values)
+
+
+def evaluate(
+    targets: tuple[TargetConfig, ...], reports: dict[str, dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Verdict per target; ``reports`` maps ``controller:adaptation`` to a sim report."""
+    out: list[dict[str, Any]] = []
+    for t in targets:
+        row: dict[str, Any] = {
+            "target": t.label(),
+            "method": t.method,
+            "metric": t.metric,
+            "value": None,
+            "bound": None,
+            "vs": t.vs,
+            "verdict": "n/a",
+        }
+        if all(m in reports for m in t.methods):
+            value = metric_value(reports[t.method], t.metric)
+            bound = (
+                float(t.max)
+                if t.max is not None
+                else t.ratio * metric_value(reports[str(t.vs)], t.metric)
+            )
+            ok = math.isfinite(value) and value <= bound
+            row.update(value=value, bound=bound, verdict="PASS" if ok else "FAIL")
+        out.append(row)
+    return out
