@@ -315,3 +315,23 @@ def test_live_reference_is_received_fresh_then_stale():
             assert sa.live_reference(time.monotonic() + 0.6, 0.5) is None
 
     asyncio.run(main())
+
+
+def test_live_reference_horizon_holds_tracks_and_follows_a_path():
+    from epc_offboard.trajectories import live_reference_horizon
+
+    kw = {"age_s": 0.1, "dt_s": 0.1, "steps": 4, "width": 9}
+    hold = live_reference_horizon((1.0, 2.0, -3.0), None, (), None, **kw)
+    assert hold.shape == (4, 9)
+    np.testing.assert_allclose(hold[:, :3], np.tile([1.0, 2.0, -3.0], (4, 1)))
+    assert not hold[:, 3:].any()
+    track = live_reference_horizon((0.0, 0.0, -2.0), (1.0, 0.0, 0.0), (), None, **kw)
+    np.testing.assert_allclose(track[:, 0], [0.2, 0.3, 0.4, 0.5])  # age + k dt, at 1 m/s
+    np.testing.assert_allclose(track[:, 3], 1.0)
+    path = live_reference_horizon(
+        (0.0, 0.0, -2.0), None, ((0.2, 0.0, -2.0), (0.2, 0.2, -2.0)), 0.2, **kw
+    )
+    # t = 0.2, 0.3, 0.4, 0.5 s along 0 -> (0.2, 0) -> (0.2, 0.2), then held at the end
+    np.testing.assert_allclose(path[:, 0], [0.2, 0.2, 0.2, 0.2])
+    np.testing.assert_allclose(path[:, 1], [0.0, 0.1, 0.2, 0.2])
+    np.testing.assert_allclose(path[:, 4], [1.0, 1.0, 0.0, 0.0])
