@@ -469,6 +469,7 @@ class FleetSharing:
                 f"{p.prefix}/lib/{peer}",
                 functools.partial(self._on_reply, p),
                 timeout=self.cfg.query_timeout_s,
+                allowed_destination=zenoh.Locality.REMOTE,  # not our own queryable
             )
         except zenoh.ZError as exc:
             self._count("query_errors")
