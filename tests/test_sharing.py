@@ -320,7 +320,7 @@ def test_live_reference_is_received_fresh_then_stale():
 def test_live_reference_horizon_holds_tracks_and_follows_a_path():
     from epc_offboard.trajectories import live_reference_horizon
 
-    kw = {"age_s": 0.1, "dt_s": 0.1, "steps": 4, "width": 9}
+    kw: dict = {"age_s": 0.1, "dt_s": 0.1, "steps": 4, "width": 9}
     hold = live_reference_horizon((1.0, 2.0, -3.0), None, (), None, **kw)
     assert hold.shape == (4, 9)
     np.testing.assert_allclose(hold[:, :3], np.tile([1.0, 2.0, -3.0], (4, 1)))
