@@ -12,11 +12,12 @@ Shapes (horizontal plane; altitude is the anchor's):
 * ``line``     — to ``anchor + (dx_m, dy_m, dz_m)`` and back, at ``speed_m_s``;
 * ``circle``   — radius ``radius_m``, period ``period_s``, centre ``radius_m`` north of the anchor;
 * ``figure8``  — lemniscate of Gerono: x = A sin(wt), y = A/2 sin(2wt) (A = ``size_m``);
-* ``zigzag``   — y sweeps ±``amplitude_m`` with a trapezoidal speed profile peaking at
+* ``zigzag``   — y sweeps ±``amplitude_m`` with a jerk-limited speed profile peaking at
   ``peak_speed_m_s`` (the thesis's experiment: up to 3.75 m/s), optionally advancing north at
   ``forward_speed_m_s``;
 * ``waypoints``— straight segments through a list of (north, east, down) offsets, each with a
-  trapezoidal speed profile (stop at each waypoint).
+  jerk-limited speed profile (stop at each waypoint). ``accel_m_s2`` is the profiles' peak
+  acceleration.
 """
 
 from __future__ import annotations
@@ -86,26 +87,44 @@ def _warp(t_s: float, ramp_s: float) -> tuple[float, float, float]:
 def _trapezoid(
     distance_m: float, v_max: float, a_max: float
 ) -> Callable[[float], tuple[float, float, float]]:
-    """Rest-to-rest profile along a distance: returns f(t) -> (x, v, a), held at the end."""
+    """Rest-to-rest profile along a distance, jerk-limited: returns f(t) -> (x, v, a).
+
+    A trapezoidal speed profile whose acceleration phases are raised cosines,
+    ``a(t) = a_max sin^2(pi t / T)`` with ``T = 2 v_max / a_max``: acceleration is continuous
+    (peak ``a_max``, peak jerk ``pi a_max^2 / (2 v_max)``), as PX4's own jerk-limited
+    trajectories are. Why: the position model carries the inner loop's lag, and inverting a
+    lag turns an acceleration *step* into a command spike that saturates the acceleration
+    box for a stage or two — a chattering active set the library would have to learn anew at
+    every corner. Each phase covers ``v_max T / 2``; a distance too short for ``v_max``
+    lowers the peak speed to ``sqrt(a_max d / 2)``. Held at the end.
+    """
     if distance_m <= 0.0:
         return lambda _t: (0.0, 0.0, 0.0)
-    t_acc = v_max / a_max
-    if a_max * t_acc * t_acc >= distance_m:  # triangular: never reaches v_max
-        t_acc = math.sqrt(distance_m / a_max)
-        v_max = a_max * t_acc
-    t_cruise = (distance_m - a_max * t_acc * t_acc) / v_max
+    if 2.0 * v_max * v_max / a_max >= distance_m:  # never reaches v_max
+        v_max = math.sqrt(a_max * distance_m / 2.0)
+    t_acc = 2.0 * v_max / a_max
+    d_acc = 0.5 * v_max * t_acc
+    t_cruise = (distance_m - 2.0 * d_acc) / v_max
     t_total = 2 * t_acc + t_cruise
+    w = 2.0 * math.pi / t_acc
+
+    def ramp(t: float) -> tuple[float, float, float]:
+        """The acceleration phase from rest, 0 <= t <= t_acc."""
+        x = v_max / t_acc * (0.5 * t * t + (math.cos(w * t) - 1.0) / (w * w))
+        v = v_max / t_acc * (t - math.sin(w * t) / w)
+        a = v_max / t_acc * (1.0 - math.cos(w * t))
+        return x, v, a
 
     def f(t: float) -> tuple[float, float, float]:
         if t <= 0.0:
             return 0.0, 0.0, 0.0
         if t < t_acc:
-            return 0.5 * a_max * t * t, a_max * t, a_max
+            return ramp(t)
         if t < t_acc + t_cruise:
-            return 0.5 * a_max * t_acc * t_acc + v_max * (t - t_acc), v_max, 0.0
+            return d_acc + v_max * (t - t_acc), v_max, 0.0
         if t < t_total:
-            tr = t_total - t
-            return distance_m - 0.5 * a_max * tr * tr, a_max * tr, -a_max
+            x, v, a = ramp(t_total - t)
+            return distance_m - x, v, -a
         return distance_m, 0.0, 0.0
 
     f.duration_s = t_total  # type: ignore[attr-defined]
