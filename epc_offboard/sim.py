@@ -45,6 +45,7 @@ class ScenarioConfig:
     description: str = ""
     duration_s: float = 20.0  # flight under offboard control, from the trajectory's start
     settle_s: float = 3.0  # metrics ignore the first settle_s of the trajectory
+    lap_s: float = 0.0  # one lap of the trajectory, for first-lap library figures (0: whole)
     altitude_m: float = 2.5  # the trajectory's altitude above home
     wind_speed_m_s: float = 0.0
     wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (CONTRACTS.md)
@@ -58,6 +59,8 @@ class ScenarioConfig:
             raise ValueError(f"duration_s must be > 0, got {self.duration_s}")
         if not 0.0 <= self.settle_s < self.duration_s:
             raise ValueError("settle_s must be in [0, duration_s)")
+        if self.lap_s < 0.0:
+            raise ValueError(f"lap_s must be >= 0, got {self.lap_s}")
 
 
 def load_scenario(name: str) -> ScenarioConfig:
@@ -317,6 +320,9 @@ class VehicleResult:
     sources: np.ndarray
 
 
+_MISS_SOURCES = ("solved", "intermediate", "fallback")  # EPC ticks that were not hits
+
+
 def analyse(run: VehicleRun, scenario: ScenarioConfig, vel_bounds_m_s: FloatArray) -> VehicleResult:
     flight = _read_csv(run.flight_log)
     truth = _read_csv(run.groundtruth)
@@ -338,6 +344,11 @@ def analyse(run: VehicleRun, scenario: ScenarioConfig, vel_bounds_m_s: FloatArra
     violations = int(np.sum(np.any(np.abs(tvel) > vel_bounds_m_s + 1e-9, axis=1)))
     lib = stats.get("library", {}).get("position", {})
     hits, misses = int(lib.get("hits", 0)), int(lib.get("misses", 0))
+    # what a vehicle had to solve on its first lap: the measure of what a prior library (its
+    # own from an earlier flight, or the fleet's) spares it
+    lap_s = scenario.lap_s or scenario.duration_s
+    first_lap = tracking & (t_vehicle < start + lap_s)
+    first_lap_misses = int(np.sum(np.isin(flight["source"][first_lap], _MISS_SOURCES)))
     report = {
         "id": run.vehicle_id,
         "tracking": {
@@ -356,6 +367,7 @@ def analyse(run: VehicleRun, scenario: ScenarioConfig, vel_bounds_m_s: FloatArra
             "hit_rate": hits / (hits + misses) if hits + misses else 0.0,
             "qp_solves": int(lib.get("qp_solves", 0)),
             "received_shared": int(lib.get("received_shared", 0)),
+            "first_lap_misses": first_lap_misses,
         },
         "loops": stats.get("loops", {}),
     }
@@ -384,7 +396,7 @@ def write_figure(
         for i, axis in enumerate("NE"):
             ax_vel.plot(r.t_s, r.vel_ned_m_s[:, i], lw=1, label=f"v_{axis} {label}")
         hits = np.cumsum(r.sources == "hit")
-        solved = np.cumsum(np.isin(r.sources, ["solved", "intermediate", "fallback"]))
+        solved = np.cumsum(np.isin(r.sources, _MISS_SOURCES))
         ax_lib.plot(r.t_s, hits, label=f"hits {label}")
         ax_lib.plot(r.t_s, solved, label=f"misses {label}")
     ax_path.set(xlabel="east [m]", ylabel="north [m]", title="path (top view)", aspect="equal")

@@ -16,7 +16,6 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.sim import SCENARIO_DIR
 from epc_offboard.state import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
@@ -58,20 +57,10 @@ def test_sim_hover_holds_within_5_cm(tmp_path):
     assert loops["attitude"]["rate_hz"] == pytest.approx(200.0, rel=0.05)
 
 
-def constrained_zigzag(tmp_path):
-    """The zig-zag with a velocity bound below its reference speed (a planner asking for more
-    than the airframe may do): the bound is active on every sweep, so the library must learn
-    many active sets — what makes a saved library worth loading."""
-    text = (SCENARIO_DIR / "zigzag.toml").read_text()
-    text = text.replace("max_vel_m_s = [3.8, 3.8, 2.0]", "max_vel_m_s = [3.0, 3.0, 2.0]")
-    assert "[3.0, 3.0, 2.0]" in text
-    path = tmp_path / "zigzag_constrained.toml"
-    path.write_text(text)
-    return str(path)
-
-
 def test_second_run_starts_from_the_saved_library(tmp_path):
-    args = ("--scenario", constrained_zigzag(tmp_path), "--duration", "8", "--adaptation", "none")
+    # the velocity bound is below the reference speed: active on every sweep, so the library
+    # must learn many active sets — what makes a saved library worth loading
+    args = ("--scenario", "zigzag_bounded", "--duration", "8", "--adaptation", "none")
     first, _ = sim(tmp_path, *args)
     second, _ = sim(tmp_path, *args)  # same --out: library-1.sqlite is the prior
     m1 = first["vehicles"][0]["library"]["misses"]
