@@ -59,7 +59,7 @@ from epc_offboard.perturbation import (
 )
 from epc_offboard.qp import MpcProblem
 from epc_offboard.state import VehicleState
-from epc_offboard.store import LibraryStore, StoredController
+from epc_offboard.store import ActiveSet, LibraryStore, StoredController
 
 log = logging.getLogger(__name__)
 
@@ -428,19 +428,34 @@ class Cascade:
         ``pop_new_entries`` (the service publishes them, or discards them when not sharing)."""
         return self._epcs()
 
-    def save_to(self, store: LibraryStore) -> None:
-        """Write every controller (with importance, uses and transitions) and the estimator."""
+    def store_snapshot(self) -> StoreSnapshot:
+        """Everything :meth:`write_snapshot` saves, copied now.
+
+        Take it on the thread that runs the loops (the library is not thread-safe); the
+        copy can then be written to SQLite from a worker thread while the loops fly on.
+        """
+        parts = []
         for _name, ctrl in self._epcs():
-            sig = ctrl.problem.signature()
             entries = ctrl.export_library()
-            store.save_controllers(sig, [_stored(e) for e in entries])
             sets = [e.active_set for e in entries]
-            store.save_transitions(
-                sig, {(sets[a], sets[b]): n for (a, b), n in ctrl.export_transitions().items()}
-            )
-        store.save_model(
-            self._estimator_key, self.pos_problem.signature(), self.estimator.to_bytes()
-        )
+            transitions = {
+                (sets[a], sets[b]): n for (a, b), n in ctrl.export_transitions().items()
+            }
+            parts.append((ctrl.problem.signature(), [_stored(e) for e in entries], transitions))
+        model = (self._estimator_key, self.pos_problem.signature(), self.estimator.to_bytes())
+        return StoreSnapshot(tuple(parts), model)
+
+    @staticmethod
+    def write_snapshot(store: LibraryStore, snap: StoreSnapshot) -> None:
+        """Write a :meth:`store_snapshot` (controllers, transitions, estimator): any thread."""
+        for sig, controllers, transitions in snap.controllers:
+            store.save_controllers(sig, controllers)
+            store.save_transitions(sig, transitions)
+        store.save_model(*snap.estimator)
+
+    def save_to(self, store: LibraryStore) -> None:
+        """Snapshot and write at once (on the loops' thread, e.g. at shutdown)."""
+        self.write_snapshot(store, self.store_snapshot())
 
     def load_from(self, store: LibraryStore) -> dict[str, int]:
         """Load the prior library (thesis M_prior) and estimator; returns counts per part.
@@ -482,6 +497,17 @@ class Cascade:
 
     def library_stats(self) -> dict[str, Any]:
         return {"position": _stats(self.position), "attitude": _stats(self.attitude)}
+
+
+@dataclass(frozen=True)
+class StoreSnapshot:
+    """A copy of what the store keeps: per signature (controllers, transitions), and the
+    estimator as (name, signature, blob)."""
+
+    controllers: tuple[
+        tuple[str, list[StoredController], dict[tuple[ActiveSet, ActiveSet], int]], ...
+    ]
+    estimator: tuple[str, str, bytes]
 
 
 def _stored(e: LibraryEntry) -> StoredController:

@@ -36,7 +36,7 @@ from typing import Any, TextIO
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.cascade import AttitudeOutput, Cascade, PositionOutput
+from epc_offboard.cascade import AttitudeOutput, Cascade, PositionOutput, StoreSnapshot
 from epc_offboard.clock import Clock, VehicleClock, WallClock
 from epc_offboard.config import ServiceConfig, load_service_config
 from epc_offboard.configio import ConfigError
@@ -422,7 +422,24 @@ class Service:
                 # nobody publishes them: the store saves the whole library anyway
                 for _name, ctrl in self.cascade.experience_controllers():
                     ctrl.pop_new_entries()
-            await asyncio.to_thread(self._save_library)
+            if self.store is None:
+                continue
+            # the copy on the loop (the library is not thread-safe), the disk off it
+            try:
+                snap = self.cascade.store_snapshot()
+            except Exception as exc:  # never let saving take a loop down
+                self.counters["store_errors"] += 1
+                log.error("snapshotting the library failed: %s", exc)
+                continue
+            await asyncio.to_thread(self._write_library, snap)
+
+    def _write_library(self, snap: StoreSnapshot) -> None:
+        assert self.store is not None
+        try:
+            Cascade.write_snapshot(self.store, snap)
+        except Exception as exc:  # a full disk must not stop the flight
+            self.counters["store_errors"] += 1
+            log.error("saving the library failed: %s", exc)
 
     def _save_library(self) -> None:
         if self.store is None:
