@@ -8,16 +8,19 @@ Position loop (100 Hz), :meth:`Cascade.position_tick`:
 1. learn: the acceleration disturbance measured over the last prediction step,
    ``d = (v_k - v_{k-n}) / dt - mean(a_achieved)``, where ``a_achieved`` is what the measured
    attitude and the commanded thrust produce — so attitude-loop lag is not mistaken for wind;
-   the estimator (LWPR on velocity, a Kalman observer, or none) is updated with it;
-2. predict: ``d_hat`` = the estimator's low-pass-filtered estimate at the current velocity;
+   the estimator (LWPR on velocity, a Kalman observer, or none) is updated with it at the
+   mean velocity over the same window;
+2. predict: ``d_hat`` = the estimator's low-pass-filtered estimate at the current velocity,
+   and ``d_k = d_hat + variation(v_ref[k])`` along the horizon (LWPR's learned d(v) at each
+   stage's reference velocity; no variation for the Kalman observer);
 3. model: x = [p_ned, v_ned, a_ned] with ``a`` the acceleration the attitude and thrust
    produce, following the command u = a_cmd with the inner loop's first-order lag
    ``tau_acc_s`` (:func:`~epc_offboard.models.position_model_lagged`);
    ``x[k+1] = A x[k] + B u[k] + c~`` with ``c~ = c + E d_hat`` (thesis 3.1.1: the
    perturbation enters the affine model; E: how an acceleration disturbance enters v), and
-   per stage ``u_p[k] = u_ff[k] - d_hat``: the reference's feedforward (the command that makes
-   the lagged acceleration follow the reference acceleration) plus the input that cancels
-   the disturbance, so the input penalty fights neither;
+   per stage ``u_p[k]``: the command that makes the lagged acceleration follow
+   ``a_ref - d_k`` — the reference's feedforward plus the input that cancels the disturbance
+   expected at that stage — so the input penalty fights neither;
 4. control: EPC (or PD / MPC-every-tick) over the reference horizon -> ``a_cmd``;
 5. map: ``a_cmd`` -> roll, pitch, yaw, thrust (thesis eq. 3.13, exact inverse, NED).
 
@@ -129,9 +132,25 @@ class AttitudeControlConfig:
 
 
 def _default_lwpr() -> LwprPerturbationConfig:
-    # z = velocity (m/s), p = acceleration disturbance (m/s^2); fields about 0.8 m/s wide
+    # z = velocity (m/s), p = acceleration disturbance (m/s^2).
+    # inputs: each axis's disturbance learned on that axis's velocity (thesis 3.1.1: the
+    #   subspace the disturbance depends on). Drag acts along the airspeed, and a multirotor's
+    #   horizontal drag is the same along north and east, so d_i depends on v_i; a full 3-D
+    #   input makes incremental PLS split each local model over three projections, which
+    #   converges far slower on noisy targets (figure-8: 4-6 cm/s^2 error against 0.4-0.9).
+    # init_d = 4 on these norms: fields about 2 m/s (1 m/s vertically) wide. Drag varies
+    #   smoothly with airspeed, so one local linear model spans the usual envelope and new
+    #   fields grow only beyond it; narrow fields each start from scratch and blend in
+    #   half-trained.
+    # lowpass 5 Hz (time constant 32 ms, below the inner loop's lag): the prediction is a
+    #   function of the measured velocity, not a raw measurement, so it needs little
+    #   smoothing; a 1 Hz filter lagged the figure-8's drag by 0.16 s (3 cm/s^2 error).
     return LwprPerturbationConfig(
-        norm_z=(4.0, 4.0, 2.0), norm_p=(1.0, 1.0, 1.0), lowpass_cutoff_hz=1.0
+        inputs=((0,), (1,), (2,)),
+        norm_z=(4.0, 4.0, 2.0),
+        norm_p=(1.0, 1.0, 1.0),
+        init_d=4.0,
+        lowpass_cutoff_hz=5.0,
     )
 
 
@@ -302,7 +321,10 @@ class Cascade:
             o.acc_achieved_ned_m_s2 for o in self._history if oldest.t_s <= o.t_s < newest.t_s
         ]
         d_meas = (newest.vel_ned_m_s - oldest.vel_ned_m_s) / span - np.mean(window, axis=0)
-        self.estimator.observe(oldest.vel_ned_m_s, d_meas)
+        # d_meas is the mean disturbance over the window: pair it with the mean velocity
+        # over the same window (drag at the window's start would be a 1/2-window lag)
+        z = np.mean([o.vel_ned_m_s for o in self._history if o.t_s >= oldest.t_s], axis=0)
+        self.estimator.observe(z, d_meas)
 
     def feedforward(self, refs: FloatArray) -> FloatArray:
         """(N, 3) commands that make the model's lagged acceleration follow the reference's.
@@ -315,6 +337,12 @@ class Cascade:
         a_now = 2.0 * a_ref[0] - a_ref[1] if len(a_ref) >= 2 else a_ref[0]
         prev = np.vstack([a_now, a_ref[:-1]])
         out: FloatArray = (a_ref - self._acc_alpha * prev) / (1.0 - self._acc_alpha)
+        return out
+
+    def _lag_inverse(self, a: FloatArray) -> FloatArray:
+        """(N, 3) commands that make the lagged acceleration follow ``a`` (N+1, 3), the
+        values at x_0..x_N: ``u_k = (a_{k+1} - alpha a_k) / (1 - alpha)``."""
+        out: FloatArray = (a[1:] - self._acc_alpha * a[:-1]) / (1.0 - self._acc_alpha)
         return out
 
     def achieved_acceleration(self, state: VehicleState) -> FloatArray:
@@ -348,7 +376,13 @@ class Cascade:
             # itself; the nominal input only cancels the disturbance
             u_p = np.broadcast_to(-d_hat, (self.position_horizon, 3))
         else:
-            u_p = self.feedforward(refs) - d_hat
+            # the disturbance at each stage's reference velocity, as the estimator knows it
+            # (LWPR's d(v); zero change for the KF observer): the nominal input that keeps the
+            # lagged acceleration on a_ref - d along the horizon, not only on a_ref - d_hat
+            z_stages = np.vstack([state.vel_ned_m_s, refs[:, 3:6]])  # v of x_0..x_N
+            d_var = self.estimator.variation(state.vel_ned_m_s, z_stages)
+            d_var = np.clip(d_hat + d_var, self.acc_min, self.acc_max) - d_hat
+            u_p = self.feedforward(refs) - d_hat - self._lag_inverse(d_var)
         decision: Decision = self.position.step(
             x0, refs, u_p, perturbation=self._e_dist @ d_hat
         )

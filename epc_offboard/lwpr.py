@@ -301,6 +301,37 @@ class LWPR:
         v = self._active_views()
         return self._predict_normalised(v, self._activations(v, xn), xn) * self.norm_out
 
+    def predict_many(self, xs: ArrayLike) -> FloatArray:
+        """Predictions at the rows of xs (m, n_in): shape (m, n_out), each row equal to
+        ``predict`` at that row, computed in one pass over the fields."""
+        try:
+            arr = np.asarray(xs, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise LwprError(f"xs must be a numeric array of shape (m, {self.n_in}): {exc}") from exc
+        if arr.ndim != 2 or arr.shape[1] != self.n_in:
+            raise LwprError(f"xs must have shape (m, {self.n_in}), got {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise LwprError("xs must be finite")
+        n = self._n
+        if n == 0:
+            return np.zeros((arr.shape[0], self.n_out))
+        v = self._active_views()
+        xn = arr / self.norm_in
+        dx = xn[:, None, :] - v["c"][None]  # (m, n, d)
+        if self.diag_only:
+            q = (dx * dx * v["D_diag"][None]) @ self._ones
+        else:
+            q = np.einsum("mki,kij,mkj->mk", dx, v["D"], dx)
+        w = np.exp(-0.5 * q)  # (m, n)
+        local = v["beta0"] + ((xn[:, None, :] - v["mean_x"][None]) * v["slope"][None]) @ self._ones
+        wu = np.where((w > self.cutoff) & self._trusted[:n], w, 0.0)
+        onehot = np.zeros((n, self.n_out))
+        onehot[np.arange(n), self._out[:n]] = 1.0
+        sw = wu @ onehot
+        swy = (wu * local) @ onehot
+        y: FloatArray = swy / np.where(sw > 0.0, sw, 1.0) * self.norm_out
+        return y
+
     def predict_conf(self, x: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Prediction at x and its confidence bound (one standard deviation), both (n_out,).
 

@@ -7,14 +7,18 @@ has the same protocol, so scenarios can compare them side by side:
 
     est.observe(z, p_measured)   # after each model step: z (n_z,), p_measured (nx,)
     p_hat = est.estimate(z)      # once per control tick, at the current query point: (nx,)
+    dp = est.variation(z, zs)    # (m, nx): how the estimate changes from z to each row of zs
     est.reset()                  # back to the initial state (nothing learned, filter at 0)
     blob = est.to_bytes(); est.load_bytes(blob)   # the learned state, e.g. for a database
 
 ``estimate`` advances the estimator's first-order low-pass filter by one tick (dt_s), so the
 estimate entering the model varies on the dynamics' timescale (thesis 3.1.1); call it once
-per tick. Implementations: ``NoPerturbation`` (zeros), ``LwprPerturbation`` (LWPR on a chosen
-subspace of z, one output per learned state element) and ``KalmanPerturbation`` (a Kalman
-filter disturbance observer for a constant or slowly varying, random-walk disturbance).
+per tick. ``variation`` is what the estimator knows about the perturbation elsewhere, e.g.
+along a prediction horizon: an LWPR model's p(zs) - p(z); zero for estimators whose estimate
+does not depend on z. Implementations: ``NoPerturbation`` (zeros), ``LwprPerturbation``
+(LWPR on a chosen subspace of z, one output per learned state element) and
+``KalmanPerturbation`` (a Kalman filter disturbance observer for a constant or slowly
+varying, random-walk disturbance).
 Pure numerics: no asyncio and no I/O.
 """
 
@@ -50,6 +54,8 @@ class PerturbationEstimator(Protocol):
     def observe(self, z: npt.ArrayLike, p_measured: npt.ArrayLike) -> None: ...
 
     def estimate(self, z: npt.ArrayLike) -> FloatArray: ...
+
+    def variation(self, z: npt.ArrayLike, zs: npt.ArrayLike) -> FloatArray: ...
 
     def reset(self) -> None: ...
 
@@ -176,6 +182,19 @@ def _indices(indices: Sequence[int], n: int, what: str) -> tuple[int, ...]:
     return out
 
 
+def _check_rows(value: npt.ArrayLike, n: int, name: str) -> FloatArray:
+    """``value`` as a finite float array of shape (m, n); else LwprError naming ``name``."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise LwprError(f"{name} must be a numeric array of shape (m, {n}): {exc}") from exc
+    if arr.ndim != 2 or arr.shape[1] != n:
+        raise LwprError(f"{name} must have shape (m, {n}), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise LwprError(f"{name} must be finite")
+    return arr
+
+
 def _dims(nx: int, n_z: int) -> tuple[int, int]:
     for name, value in (("nx", nx), ("n_z", n_z)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -235,6 +254,10 @@ class NoPerturbation:
     def estimate(self, z: npt.ArrayLike) -> FloatArray:
         check_vector(z, self.n_z, "z")
         return np.zeros(self.nx)
+
+    def variation(self, z: npt.ArrayLike, zs: npt.ArrayLike) -> FloatArray:
+        check_vector(z, self.n_z, "z")
+        return np.zeros((len(_check_rows(zs, self.n_z, "zs")), self.nx))
 
     def reset(self) -> None:
         pass
@@ -323,8 +346,22 @@ class LwprPerturbation:
             raw[outs] = model.predict(zv[ins])
         return raw
 
+    def predict_raw_many(self, zs: npt.ArrayLike) -> FloatArray:
+        """The unfiltered LWPR predictions at the rows of zs (m, n_z): shape (m, nx)."""
+        zv = _check_rows(zs, self.n_z, "zs")
+        raw = np.zeros((len(zv), self.nx))
+        for model, (ins, outs) in zip(self.models, self._index, strict=True):
+            raw[:, outs] = model.predict_many(zv[:, ins])
+        return raw
+
     def estimate(self, z: npt.ArrayLike) -> FloatArray:
         return self.filter.step(self.predict_raw(z))
+
+    def variation(self, z: npt.ArrayLike, zs: npt.ArrayLike) -> FloatArray:
+        """How the learned perturbation changes from z to each row of zs: p(zs) - p(z),
+        unfiltered (the low-pass smooths the estimate in time, not its dependence on z)."""
+        out: FloatArray = self.predict_raw_many(zs) - self.predict_raw(z)
+        return out
 
     def reset(self) -> None:
         self.models = self._new_models()
@@ -412,6 +449,11 @@ class KalmanPerturbation:
         raw = np.zeros(self.nx)
         raw[list(self.outputs)] = self.kf.x[:, 0]
         return self.filter.step(raw)
+
+    def variation(self, z: npt.ArrayLike, zs: npt.ArrayLike) -> FloatArray:
+        """Zero: the observer's disturbance does not depend on z."""
+        check_vector(z, self.n_z, "z")
+        return np.zeros((len(_check_rows(zs, self.n_z, "zs")), self.nx))
 
     def reset(self) -> None:
         m = len(self.outputs)

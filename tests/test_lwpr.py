@@ -124,6 +124,25 @@ def test_update_returns_the_prediction_from_before_the_update():
     assert np.any(fit != 0.0)  # trusted fields exist, so this compared real predictions
 
 
+@pytest.mark.parametrize("diag_only", [True, False])
+def test_predict_many_equals_predict_row_by_row(diag_only: bool):
+    rng = np.random.default_rng(8)
+    model = LWPR(2, 2, init_d=25.0, diag_only=diag_only, norm_in=[2.0, 1.0])
+    X = rng.uniform(-2.0, 2.0, (30, 2))  # inside and well outside the trained region
+    np.testing.assert_array_equal(model.predict_many(X), np.zeros((30, 2)))  # no fields yet
+    for _ in range(1500):
+        x = rng.uniform(-1, 1, 2)
+        model.update(x, [np.sin(3 * x[0]) * x[1], x[0] ** 2])
+    assert min(model.num_rfs) > 1
+    rows = np.array([model.predict(x) for x in X])
+    np.testing.assert_allclose(model.predict_many(X), rows, rtol=0.0, atol=1e-12)
+    assert model.predict_many(np.empty((0, 2))).shape == (0, 2)
+    with pytest.raises(LwprError, match=r"shape \(m, 2\)"):
+        model.predict_many(X[:, :1])
+    with pytest.raises(LwprError, match="finite"):
+        model.predict_many([[0.0, np.nan]])
+
+
 def test_max_rfs_caps_the_fields_of_each_output():
     rng = np.random.default_rng(5)
     model = LWPR(2, 1, init_d=200.0, max_rfs=7)

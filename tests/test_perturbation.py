@@ -86,6 +86,29 @@ def test_per_output_input_subspaces():
     assert fly(est, sim, np.zeros(3), 1000) < 0.03
 
 
+def test_variation_is_what_the_learned_model_says_elsewhere():
+    est = drag_estimator()
+    sim = DoubleIntegrator(seed=3)
+    fly(est, sim, np.array([1.5, -0.5, 0.0]), 2000)
+    rng = np.random.default_rng(0)
+    z = rng.uniform(-1, 1, NZ)
+    zs = rng.uniform(-2, 2, (7, NZ))
+    expected = np.array([est.predict_raw(row) - est.predict_raw(z) for row in zs])
+    np.testing.assert_allclose(est.variation(z, zs), expected, rtol=0.0, atol=1e-12)
+    assert np.abs(expected[:, VEL]).max() > 1e-3  # drag depends on the velocity
+    filtered = est.filter.state.copy()
+    est.variation(z, zs)
+    np.testing.assert_array_equal(est.filter.state, filtered)  # no filter step
+    # estimators whose estimate does not depend on z know no variation
+    for other in (NoPerturbation(NX, NZ), KalmanPerturbation(NX, NZ)):
+        other.observe(z, np.ones(NX))
+        np.testing.assert_array_equal(other.variation(z, zs), np.zeros((7, NX)))
+        with pytest.raises(ValueError, match="zs"):
+            other.variation(z, zs[:, :2])
+    with pytest.raises(ValueError, match="zs"):
+        est.variation(z, zs[0])
+
+
 def test_lowpass_step_response_is_first_order():
     cutoff_hz, dt_s = 2.0, 0.01
     lpf = LowPassFilter(2, cutoff_hz, dt_s)
