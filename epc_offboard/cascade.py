@@ -62,7 +62,13 @@ from epc_offboard.perturbation import (
 )
 from epc_offboard.qp import MpcProblem
 from epc_offboard.state import VehicleState
-from epc_offboard.store import ActiveSet, LibraryStore, StoredController
+from epc_offboard.store import (
+    LibrarySnapshot,
+    LibraryStore,
+    SignatureSnapshot,
+    StoredController,
+    Transition,
+)
 
 log = logging.getLogger(__name__)
 
@@ -335,9 +341,7 @@ class Cascade:
         """
         a_ref = refs[:, 6:9]
         a_now = 2.0 * a_ref[0] - a_ref[1] if len(a_ref) >= 2 else a_ref[0]
-        prev = np.vstack([a_now, a_ref[:-1]])
-        out: FloatArray = (a_ref - self._acc_alpha * prev) / (1.0 - self._acc_alpha)
-        return out
+        return self._lag_inverse(np.vstack([a_now, a_ref]))
 
     def _lag_inverse(self, a: FloatArray) -> FloatArray:
         """(N, 3) commands that make the lagged acceleration follow ``a`` (N+1, 3), the
@@ -451,45 +455,44 @@ class Cascade:
 
     # -- experience on disk ---------------------------------------------------------------
 
-    def _epcs(self) -> list[tuple[str, ExperienceController]]:
+    def experience_controllers(self) -> list[tuple[str, ExperienceController]]:
+        """(name, controller) of each EPC problem: what is stored and what the fleet shares.
+        The caller owns ``pop_new_entries`` (the service publishes them, or discards them
+        when not sharing)."""
         out = [("attitude", self.attitude)]
         if isinstance(self.position, ExperienceController):
             out.insert(0, ("position", self.position))
         return out
 
-    def experience_controllers(self) -> list[tuple[str, ExperienceController]]:
-        """(name, controller) of each EPC problem: what the fleet shares. The caller owns
-        ``pop_new_entries`` (the service publishes them, or discards them when not sharing)."""
-        return self._epcs()
+    def store_snapshot(self) -> LibrarySnapshot:
+        """Every controller (importance, uses, transitions) and the estimator, copied now.
 
-    def store_snapshot(self) -> StoreSnapshot:
-        """Everything :meth:`write_snapshot` saves, copied now.
-
-        Take it on the thread that runs the loops (the library is not thread-safe); the
-        copy can then be written to SQLite from a worker thread while the loops fly on.
+        Take it on the thread that runs the loops (the library is not thread-safe); the copy
+        can then be saved (:meth:`LibraryStore.save_snapshot`) from a worker thread while the
+        loops fly on.
         """
-        parts = []
-        for _name, ctrl in self._epcs():
+        parts: dict[str, SignatureSnapshot] = {}
+        for _name, ctrl in self.experience_controllers():
             entries = ctrl.export_library()
             sets = [e.active_set for e in entries]
-            transitions = {
-                (sets[a], sets[b]): n for (a, b), n in ctrl.export_transitions().items()
-            }
-            parts.append((ctrl.problem.signature(), [_stored(e) for e in entries], transitions))
-        model = (self._estimator_key, self.pos_problem.signature(), self.estimator.to_bytes())
-        return StoreSnapshot(tuple(parts), model)
-
-    @staticmethod
-    def write_snapshot(store: LibraryStore, snap: StoreSnapshot) -> None:
-        """Write a :meth:`store_snapshot` (controllers, transitions, estimator): any thread."""
-        for sig, controllers, transitions in snap.controllers:
-            store.save_controllers(sig, controllers)
-            store.save_transitions(sig, transitions)
-        store.save_model(*snap.estimator)
+            parts[ctrl.problem.signature()] = SignatureSnapshot(
+                tuple(_stored(e) for e in entries),
+                tuple(
+                    Transition(sets[a], sets[b], n)
+                    for (a, b), n in ctrl.export_transitions().items()
+                ),
+            )
+        # the estimator is kept under the position problem's signature (also for PD / MPC)
+        pos_sig = self.pos_problem.signature()
+        parts[pos_sig] = replace(
+            parts.get(pos_sig, SignatureSnapshot()),
+            models={self._estimator_key: self.estimator.to_bytes()},
+        )
+        return LibrarySnapshot(parts)
 
     def save_to(self, store: LibraryStore) -> None:
-        """Snapshot and write at once (on the loops' thread, e.g. at shutdown)."""
-        self.write_snapshot(store, self.store_snapshot())
+        """Snapshot and save at once (on the loops' thread, e.g. at shutdown)."""
+        store.save_snapshot(self.store_snapshot())
 
     def load_from(self, store: LibraryStore) -> dict[str, int]:
         """Load the prior library (thesis M_prior) and estimator; returns counts per part.
@@ -498,7 +501,7 @@ class Cascade:
         skipped with a log line, never applied (and, as always, only KKT-checked use).
         """
         loaded: dict[str, int] = {}
-        for name, ctrl in self._epcs():
+        for name, ctrl in self.experience_controllers():
             sig = ctrl.problem.signature()
             stored = store.load_controllers(sig)[: ctrl.max_size]
             entries = [LibraryEntry(e.active_set, e.importance, e.uses) for e in stored]
@@ -531,17 +534,6 @@ class Cascade:
 
     def library_stats(self) -> dict[str, Any]:
         return {"position": _stats(self.position), "attitude": _stats(self.attitude)}
-
-
-@dataclass(frozen=True)
-class StoreSnapshot:
-    """A copy of what the store keeps: per signature (controllers, transitions), and the
-    estimator as (name, signature, blob)."""
-
-    controllers: tuple[
-        tuple[str, list[StoredController], dict[tuple[ActiveSet, ActiveSet], int]], ...
-    ]
-    estimator: tuple[str, str, bytes]
 
 
 def _stored(e: LibraryEntry) -> StoredController:

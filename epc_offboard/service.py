@@ -36,7 +36,7 @@ from typing import Any, TextIO
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.cascade import AttitudeOutput, Cascade, PositionOutput, StoreSnapshot
+from epc_offboard.cascade import AttitudeOutput, Cascade, PositionOutput
 from epc_offboard.clock import Clock, VehicleClock, WallClock
 from epc_offboard.config import ServiceConfig, load_service_config
 from epc_offboard.configio import ConfigError
@@ -53,7 +53,7 @@ from epc_offboard.state import (
     StateTracker,
     VehicleState,
 )
-from epc_offboard.store import LibraryStore
+from epc_offboard.store import LibrarySnapshot, LibraryStore
 from epc_offboard.timing import LoopTiming
 from epc_offboard.trajectories import Trajectory, live_reference_horizon
 
@@ -297,13 +297,14 @@ class Service:
     def _position_tick(self, state: VehicleState, t_s: float) -> PositionOutput:
         try:
             refs = self._live_refs(state)
-            if refs is None and self.trajectory is None:
-                refs = self.cascade.hold_refs(state)
-            elif refs is None and self.trajectory is not None:
-                refs = self.trajectory.horizon(
-                    t_s, self.cascade.position_dt_s, self.cascade.position_horizon
+            if refs is None:
+                refs = (
+                    self.cascade.hold_refs(state)
+                    if self.trajectory is None
+                    else self.trajectory.horizon(
+                        t_s, self.cascade.position_dt_s, self.cascade.position_horizon
+                    )
                 )
-            assert refs is not None
             out = self.cascade.position_tick(
                 state, refs, learn=self.outputs.phase == Phase.OFFBOARD
             )
@@ -433,10 +434,10 @@ class Service:
                 continue
             await asyncio.to_thread(self._write_library, snap)
 
-    def _write_library(self, snap: StoreSnapshot) -> None:
+    def _write_library(self, snap: LibrarySnapshot) -> None:
         assert self.store is not None
         try:
-            Cascade.write_snapshot(self.store, snap)
+            self.store.save_snapshot(snap)
         except Exception as exc:  # a full disk must not stop the flight
             self.counters["store_errors"] += 1
             log.error("saving the library failed: %s", exc)

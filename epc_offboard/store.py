@@ -63,6 +63,11 @@ CREATE TABLE IF NOT EXISTS models (
 
 ActiveSet = tuple[int, ...]
 
+_UPSERT_MODEL = (
+    "INSERT INTO models VALUES (?, ?, ?, ?) ON CONFLICT (name, signature) "
+    "DO UPDATE SET blob = excluded.blob, updated_unix_s = excluded.updated_unix_s"
+)
+
 
 class StoreError(RuntimeError):
     """The library file could not be used."""
@@ -271,11 +276,7 @@ class LibraryStore:
 
     def save_model(self, name: str, signature: str, blob: bytes) -> None:
         with self._lock, self._conn:
-            self._conn.execute(
-                "INSERT INTO models VALUES (?, ?, ?, ?) ON CONFLICT (name, signature) "
-                "DO UPDATE SET blob = excluded.blob, updated_unix_s = excluded.updated_unix_s",
-                (name, signature, sqlite3.Binary(blob), time.time()),
-            )
+            self._conn.execute(_UPSERT_MODEL, (name, signature, sqlite3.Binary(blob), time.time()))
 
     def load_model(self, name: str, signature: str) -> bytes | None:
         with self._lock:
@@ -300,19 +301,27 @@ class LibraryStore:
         out: dict[str, SignatureSnapshot] = {}
         for sig in wanted:
             with self._lock:
-                names = [
-                    str(r[0])
-                    for r in self._conn.execute(
-                        "SELECT name FROM models WHERE signature = ? ORDER BY name", (sig,)
+                models = {
+                    str(name): bytes(blob)
+                    for name, blob in self._conn.execute(
+                        "SELECT name, blob FROM models WHERE signature = ? ORDER BY name", (sig,)
                     )
-                ]
-            models = {n: blob for n in names if (blob := self.load_model(n, sig)) is not None}
+                }
             out[sig] = SignatureSnapshot(
                 tuple(self.load_controllers(sig)),
                 tuple(Transition(a, b, n) for (a, b), n in self.load_transitions(sig).items()),
                 models,
             )
         return LibrarySnapshot(out)
+
+    def save_snapshot(self, snapshot: LibrarySnapshot) -> None:
+        """Save this vehicle's own library: :meth:`save_controllers`, :meth:`save_transitions`
+        and :meth:`save_model` for every signature of ``snapshot`` (any thread)."""
+        for sig, part in snapshot.signatures.items():
+            self.save_controllers(sig, part.controllers)
+            self.save_transitions(sig, {(t.from_set, t.to_set): t.count for t in part.transitions})
+            for name, blob in part.models.items():
+                self.save_model(name, sig, blob)
 
     def write_snapshot(
         self, snapshot: LibrarySnapshot, *, origin: str, models: bool = False
@@ -360,12 +369,7 @@ class LibraryStore:
                 if models:
                     for name, blob in part.models.items():
                         new["models"] += 1
-                        self._conn.execute(
-                            "INSERT INTO models VALUES (?, ?, ?, ?) ON CONFLICT (name, signature) "
-                            "DO UPDATE SET blob = excluded.blob, "
-                            "updated_unix_s = excluded.updated_unix_s",
-                            (name, sig, sqlite3.Binary(blob), now),
-                        )
+                        self._conn.execute(_UPSERT_MODEL, (name, sig, sqlite3.Binary(blob), now))
         return new
 
     # -- inspection ----------------------------------------------------------------------
