@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,15 +27,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.frames import FloatArray
-from epc_offboard.sim import (
-    ScenarioConfig,
-    VehicleResult,
-    analyse,
-    fly,
-    make_report,
-    scenario_for,
-    write_figure,
-)
+from epc_offboard.sim import ScenarioConfig, VehicleResult, fly_and_report, scenario_for
 from epc_offboard.targets import evaluate, method_name, parse_method
 
 
@@ -75,13 +66,9 @@ def fly_method(
     run_dir.mkdir(parents=True, exist_ok=True)
     for old in run_dir.glob("library-*.sqlite*"):  # learn from scratch: reproducible
         old.unlink()
-    runs = fly(run_args, scenario, run_dir)
-    cfg_text = (runs[0].out_dir / "service.toml").read_text()
-    bounds = np.array(tomllib.loads(cfg_text)["position"]["max_vel_m_s"], dtype=np.float64)
-    results = [analyse(r, scenario, bounds) for r in runs]
-    report = make_report(run_args, scenario, results)
-    (run_dir / "report.json").write_text(json.dumps(report, indent=2))
-    write_figure(results, bounds, run_dir / "flight.png", f"{args.scenario}: {method}")
+    report, results, bounds = fly_and_report(
+        run_args, scenario, run_dir, f"{args.scenario}: {method}"
+    )
     return MethodRun(method, report, results), bounds
 
 

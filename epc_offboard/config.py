@@ -6,7 +6,6 @@ the bundled SITL. Every table below maps to a frozen dataclass; the key names ca
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -17,6 +16,7 @@ from epc_offboard.logsetup import LogConfig
 from epc_offboard.offboard import OffboardConfig
 from epc_offboard.state import StateLimits
 from epc_offboard.trajectories import TrajectoryConfig
+from epc_offboard.wire import NAME_RE
 
 
 @dataclass(frozen=True)
@@ -74,9 +74,6 @@ class MissionConfig:
     linger_after_landing: bool = False
 
 
-_NAME_RE = re.compile(r"[A-Za-z0-9_-]{1,32}")
-
-
 @dataclass(frozen=True)
 class SharingConfig:
     """Fleet sharing of controller libraries over Eclipse Zenoh (see ``sharing.py``).
@@ -104,9 +101,9 @@ class SharingConfig:
     query_timeout_s: float = 3.0  # a library snapshot query gives up after this
 
     def __post_init__(self) -> None:
-        if not _NAME_RE.fullmatch(self.fleet):
+        if not NAME_RE.fullmatch(self.fleet):
             raise ValueError(f"fleet must be 1..32 characters of [A-Za-z0-9_-], got {self.fleet!r}")
-        if self.vehicle_id and not _NAME_RE.fullmatch(self.vehicle_id):
+        if self.vehicle_id and not NAME_RE.fullmatch(self.vehicle_id):
             raise ValueError(
                 f"vehicle_id must be 1..32 characters of [A-Za-z0-9_-], got {self.vehicle_id!r}"
             )

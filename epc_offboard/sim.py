@@ -465,6 +465,21 @@ def make_report(
     }
 
 
+def fly_and_report(
+    args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path, title: str
+) -> tuple[dict[str, Any], list[VehicleResult], FloatArray]:
+    """Fly, analyse on ground truth, write ``report.json`` and ``flight.png`` to ``out_dir``;
+    returns (report, results, velocity bounds m/s). RuntimeError if a flight failed."""
+    runs = fly(args, scenario, out_dir)
+    cfg_text = (runs[0].out_dir / "service.toml").read_text()
+    bounds = np.array(tomllib.loads(cfg_text)["position"]["max_vel_m_s"], dtype=np.float64)
+    results = [analyse(r, scenario, bounds) for r in runs]
+    report = make_report(args, scenario, results)
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    write_figure(results, bounds, out_dir / "flight.png", title)
+    return report, results, bounds
+
+
 def scenario_for(args: argparse.Namespace) -> ScenarioConfig:
     """The scenario named by ``--scenario`` with ``--duration`` applied (UsageError if bad)."""
     from epc_offboard.errors import UsageError
@@ -495,23 +510,14 @@ def run_sim_command(args: argparse.Namespace) -> int:
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
-        runs = fly(args, scenario, out_dir)
-        cfg_text = (runs[0].out_dir / "service.toml").read_text()
-        bounds = np.array(tomllib.loads(cfg_text)["position"]["max_vel_m_s"], dtype=np.float64)
-        results = [analyse(r, scenario, bounds) for r in runs]
+        report, _results, _bounds = fly_and_report(
+            args, scenario, out_dir, f"{args.scenario}: {args.controller} + {args.adaptation}"
+        )
     except RuntimeError as exc:
         print(f"epc-offboard sim: {exc}", file=sys.stderr)
         return EXIT_RUNTIME
-    report = make_report(args, scenario, results)
-    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))
-    write_figure(
-        results,
-        bounds,
-        out_dir / "flight.png",
-        f"{args.scenario}: {args.controller} + {args.adaptation}",
-    )
     print_table(report)
     print(f"report: {out_dir / 'report.json'}  figure: {out_dir / 'flight.png'}")
     return EXIT_OK

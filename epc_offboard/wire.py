@@ -58,7 +58,8 @@ MAX_VEHICLE_ID_LEN = 32
 MAX_ENTRIES = 0xFFFF
 MAX_REFERENCE_BYTES = 16384
 MAX_HORIZON_POINTS = 200
-_ID_RE = re.compile(r"[A-Za-z0-9_-]{1,32}")
+# a fleet or vehicle name, in keys and payloads (config.SharingConfig validates with it too)
+NAME_RE = re.compile(rf"[A-Za-z0-9_-]{{1,{MAX_VEHICLE_ID_LEN}}}")
 _SIG_RE = re.compile(r"[0-9a-f]{32}")
 
 _HEADER = struct.Struct("<4sBBBB16sB")  # magic, version, kind, flags, reserved, sig, id length
@@ -95,7 +96,7 @@ class ControllerMessage:
 
 def check_vehicle_id(name: str, what: str = "vehicle id") -> str:
     """``name`` if it is 1..32 characters of [A-Za-z0-9_-] (safe in a Zenoh key), else raise."""
-    if not isinstance(name, str) or not _ID_RE.fullmatch(name):
+    if not isinstance(name, str) or not NAME_RE.fullmatch(name):
         raise WireError(f"{what} must be 1..32 characters of [A-Za-z0-9_-], got {name!r}")
     return name
 
