@@ -11,6 +11,14 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+# numba's on-disk kernel cache: under systemd, the unit's StateDirectory (systemd sets
+# STATE_DIRECTORY), which the service's User= can write; the default location beside the
+# installed package usually is not, and then every start compiles afresh. Set before numba
+# loads; an explicit NUMBA_CACHE_DIR still wins.
+if "STATE_DIRECTORY" in os.environ:
+    _state_dir = os.environ["STATE_DIRECTORY"].split(":")[0]
+    os.environ.setdefault("NUMBA_CACHE_DIR", os.path.join(_state_dir, "numba-cache"))
+
 __version__ = "0.1.0"
 
 __all__ = ["__version__"]

@@ -453,6 +453,28 @@ class Cascade:
         rates = np.clip(self.attitude_cfg.fallback_gain_1_s * (refs[0, :3] - x0[:3]), -rmax, rmax)
         return AttitudeOutput(rates, target.thrust_norm, "fallback")
 
+    def warm_up(self) -> float:
+        """Run both ticks of a scratch cascade with this configuration at hover, so every
+        compiled kernel (numba) is compiled or loaded from its cache now, not inside the
+        first control tick. Leaves this cascade untouched; returns the seconds it took."""
+        t0 = time.perf_counter()
+        scratch = Cascade(
+            self.position_cfg, self.attitude_cfg, self.estimator_cfg, self.loop_period_s
+        )
+        for k in range(3):
+            state = VehicleState(
+                time_s=k * self.loop_period_s,
+                pos_ned_m=np.array([0.0, 0.0, -2.5]),
+                vel_ned_m_s=np.zeros(3),
+                q_ned_frd=np.array([1.0, 0.0, 0.0, 0.0]),
+                rate_frd_rad_s=np.zeros(3),
+                position_age_s=0.0,
+                attitude_age_s=0.0,
+            )
+            target = scratch.position_tick(state, scratch.hold_refs(state), learn=True)
+            scratch.attitude_tick(state, target)
+        return time.perf_counter() - t0
+
     # -- experience on disk ---------------------------------------------------------------
 
     def experience_controllers(self) -> list[tuple[str, ExperienceController]]:

@@ -2,7 +2,8 @@
 
 One asyncio TaskGroup with named tasks:
 
-* ``supervisor``     — the offboard state machine, message-rate requests, commands, mission end;
+* ``supervisor``     — the offboard state machine (the whole flight: arm, takeoff, offboard,
+  failsafe, mission end, landing), message-rate requests and measurement, commands;
 * ``position-loop``  — 100 Hz: state -> reference horizon -> Cascade.position_tick (EPC + LWPR);
 * ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
   or the autopilot's own attitude loop fed quaternion + thrust (``attitude.mode = "autopilot"``);
@@ -30,12 +31,13 @@ import signal
 import sys
 import time
 from collections import Counter
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from epc_offboard import dialect_px4
 from epc_offboard.cascade import AttitudeOutput, Cascade, PositionOutput
 from epc_offboard.clock import Clock, VehicleClock, WallClock
 from epc_offboard.config import ServiceConfig, load_service_config
@@ -44,15 +46,9 @@ from epc_offboard.frames import FloatArray
 from epc_offboard.link import MavlinkLink, TlogWriter, load_signing_key
 from epc_offboard.logsetup import setup_logging
 from epc_offboard.offboard import Action, Inputs, OffboardStateMachine, Outputs, Phase
+from epc_offboard.rates import RateMonitor
 from epc_offboard.sharing import FleetSharing
-from epc_offboard.state import (
-    PX4_AUTO_SUB_LAND,
-    PX4_AUTO_SUB_LOITER,
-    PX4_MAIN_MODE_AUTO,
-    PX4_MAIN_MODE_OFFBOARD,
-    StateTracker,
-    VehicleState,
-)
+from epc_offboard.state import StateTracker, VehicleState
 from epc_offboard.store import LibrarySnapshot, LibraryStore
 from epc_offboard.timing import LoopTiming
 from epc_offboard.trajectories import Trajectory, live_reference_horizon
@@ -65,6 +61,19 @@ _IGNORE_ATTITUDE = 128
 
 _MSG_ATTITUDE_QUATERNION = 31
 _MSG_LOCAL_POSITION_NED = 32
+_RATE_WINDOW_S = 2.0  # received rates are measured over windows this long
+_GLOBAL_MAX_AGE_S = 1.0  # GLOBAL_POSITION_INT older than this is not used
+
+
+@dataclass(frozen=True)
+class _GlobalFix:
+    """The newest GLOBAL_POSITION_INT: what an explicit takeoff altitude is computed from."""
+
+    lat_e7: int
+    lon_e7: int
+    amsl_m: float
+    relative_alt_m: float
+    received_s: float  # loop clock
 
 
 class _Stop(Exception):  # noqa: N818 - control flow, not an error
@@ -77,7 +86,7 @@ class Service:
         self.config_path = config_path
         self.clock: Clock = VehicleClock() if cfg.loops.clock == "vehicle" else WallClock()
         self.tracker = StateTracker(system_id=cfg.link.target_system, limits=cfg.state_limits)
-        self.sm = OffboardStateMachine(cfg.offboard)
+        self.sm = OffboardStateMachine(cfg.offboard, land_at_end=cfg.mission.land_at_end)
         self.cascade = Cascade(
             cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz
         )
@@ -91,16 +100,19 @@ class Service:
         self._exit_code = 0
         self._last_rx_wall = -math.inf
         self._rates_requested_at = -math.inf
+        self.rates = RateMonitor(
+            {
+                "ATTITUDE_QUATERNION": cfg.loops.attitude_rate_hz,
+                "LOCAL_POSITION_NED": cfg.loops.position_rate_hz,
+            }
+        )
+        self._global: _GlobalFix | None = None
+        self._landed_state: int | None = None  # EXTENDED_SYS_STATE, when the autopilot says
         self._ready_sent = False
         self._control_alive_wall = -math.inf
-        self._mission_done = False
         self._lingering = False  # landed, still up for the fleet (mission.linger_after_landing)
-        # Local NED z of the ground at home: taken from the first state seen while disarmed
-        # (PX4's local origin is usually, not always, on the ground at power-up).
-        self._home_down_m = 0.0
-        self._home_known = False
-        self._land_sent_at = -math.inf
         self._last_error_log = -math.inf
+        self._last_ack_log = -math.inf
         self._flight_log: TextIO | None = None
         self._flight_writer: Any = None
         tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
@@ -137,55 +149,101 @@ class Service:
 
     def _on_message(self, msg: Any) -> None:
         self._last_rx_wall = time.monotonic()
-        if self.tracker.handle(msg, received_s=self.clock.now_s()) and isinstance(
-            self.clock, VehicleClock
-        ):
+        now = self.clock.now_s()
+        if self.tracker.handle(msg, received_s=now) and isinstance(self.clock, VehicleClock):
             self.clock.advance(self.tracker.vehicle_time_s)
-        if msg.get_type() == "HEARTBEAT" and isinstance(self.clock, VehicleClock):
+        mtype = msg.get_type()
+        self.rates.record(mtype)
+        if mtype == "HEARTBEAT" and isinstance(self.clock, VehicleClock):
             # In lockstep the heartbeat's age is measured in vehicle time as well.
             hb = self.tracker.heartbeat
             if hb is not None:
                 self.tracker.heartbeat = replace(hb, received_s=self.clock.now_s())
-        elif msg.get_type() == "COMMAND_ACK":
-            self.counters[f"ack_{msg.command}_{msg.result}"] += 1
-            if msg.result != mavlink.MAV_RESULT_ACCEPTED and msg.result != 5:  # 5: in progress
-                log.info("command %d answered with result %d", msg.command, msg.result)
+        elif mtype == "GLOBAL_POSITION_INT":
+            amsl, rel = msg.alt * 1e-3, msg.relative_alt * 1e-3
+            if math.isfinite(amsl) and math.isfinite(rel) and abs(rel) < 1e5:
+                self._global = _GlobalFix(msg.lat, msg.lon, amsl, rel, now)
+        elif mtype == "EXTENDED_SYS_STATE":
+            self._landed_state = int(msg.landed_state)
+        elif mtype == "COMMAND_ACK":
+            # two counters, whatever the wire says: a fuzzing peer cannot grow the dict
+            accepted = msg.result in (mavlink.MAV_RESULT_ACCEPTED, 5)  # 5: in progress
+            self.counters["acks_accepted" if accepted else "acks_refused"] += 1
+            wall = time.monotonic()
+            if not accepted and wall - self._last_ack_log > 1.0:
+                self._last_ack_log = wall
+                log.info(
+                    "command %d answered with result %d (%d refusals so far)",
+                    msg.command, msg.result, self.counters["acks_refused"],
+                )  # fmt: skip
 
-    def _command(self, command: int, *params: float) -> None:
-        p = list(params) + [0.0] * (7 - len(params))
-        self.link.send(
-            self.link.mav.command_long_encode(
-                self.cfg.link.target_system, self.cfg.link.target_component, command, 0, *p
-            )
-        )
+    def _send_command(self, cmd: dialect_px4.Command) -> None:
+        link = self.link
+        sys_id, comp_id = self.cfg.link.target_system, self.cfg.link.target_component
+        p = cmd.params
+        if cmd.int_frame is None:
+            msg = link.mav.command_long_encode(sys_id, comp_id, cmd.command, 0, *p)
+        else:
+            msg = link.mav.command_int_encode(
+                sys_id, comp_id, cmd.int_frame, cmd.command, 0, 0,
+                p[0], p[1], p[2], p[3], round(p[4]), round(p[5]), p[6],
+            )  # fmt: skip
+        link.send(msg)
         self.counters["commands_sent"] += 1
 
-    def _do_action(self, action: Action) -> None:
-        log.info("action: %s", action.value)
-        if action == Action.ARM:
-            self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
-        elif action == Action.TAKEOFF:
-            # NaN altitude: the autopilot's own default takeoff altitude (PX4: MIS_TAKEOFF_ALT)
-            self._command(mavlink.MAV_CMD_NAV_TAKEOFF, *([math.nan] * 7))
-        elif action == Action.REQUEST_OFFBOARD:
-            self._set_mode(PX4_MAIN_MODE_OFFBOARD, 0)
-        elif action == Action.REQUEST_HOLD:
-            self._set_mode(PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER)
-
-    def _set_mode(self, main_mode: int, sub_mode: int) -> None:
-        self._command(
-            mavlink.MAV_CMD_DO_SET_MODE,
-            float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
-            float(main_mode),
-            float(sub_mode),
+    def _do_action(self, action: Action, out: Outputs, state: VehicleState | None) -> None:
+        fix = self._fresh_global()
+        position = (
+            None
+            if fix is None or state is None
+            else dialect_px4.Position(fix.lat_e7, fix.lon_e7, math.degrees(state.yaw_rad))
         )
+        try:
+            cmd = dialect_px4.encode(action, out.takeoff, position)
+        except dialect_px4.EncodeError as exc:
+            self.counters["commands_not_encoded"] += 1
+            log.error("action %s not sent: %s", action.value, exc)
+            return
+        if action == Action.TAKEOFF and out.takeoff is not None:
+            self.counters["takeoffs_sent"] += 1
+            log.info(
+                "action: takeoff to %.2f m above home (%.2f m AMSL)",
+                out.takeoff.above_home_m, out.takeoff.amsl_m,
+            )  # fmt: skip
+        else:
+            log.info("action: %s", action.value)
+        self._send_command(cmd)
+
+    def _fresh_global(self) -> _GlobalFix | None:
+        fix = self._global
+        if fix is None or self.clock.now_s() - fix.received_s > _GLOBAL_MAX_AGE_S:
+            return None
+        return fix
 
     def _request_rates(self) -> None:
         for msg_id, rate in (
             (_MSG_ATTITUDE_QUATERNION, self.cfg.loops.attitude_rate_hz),
             (_MSG_LOCAL_POSITION_NED, self.cfg.loops.position_rate_hz),
         ):
-            self._command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), 1e6 / rate)
+            self._send_command(dialect_px4.message_interval(msg_id, rate))
+
+    def _manage_rates(self, now: float, link_up: bool) -> None:
+        """Ask for the loops' rates when the link comes up, then again (at most every
+        retry_period_s) while a measured stream falls short."""
+        measured = self.rates.sample(now, _RATE_WINDOW_S)
+        if not link_up:
+            return
+        first = self._rates_requested_at == -math.inf
+        short = measured and self.rates.short()
+        if (first or short) and now - self._rates_requested_at >= self.cfg.offboard.retry_period_s:
+            if short:
+                self.counters["rate_requests_repeated"] += 1
+                log.info(
+                    "message rates short of the loops' (%s): asking again",
+                    ", ".join(f"{k} {self.rates.rates_hz[k]:.0f} Hz" for k in short),
+                )
+            self._rates_requested_at = now
+            self._request_rates()
 
     # -- tasks ------------------------------------------------------------------------
 
@@ -197,74 +255,59 @@ class Service:
             hb = None if silent else self.tracker.heartbeat
             age = self.tracker.age_s(now, vehicle_clock=self.clock.vehicle_time)
             state = self.tracker.snapshot()
-            if not self._home_known and state is not None and hb is not None and not hb.armed:
-                self._home_down_m = float(state.pos_ned_m[2])
-                self._home_known = True
-            alt = None if state is None else -float(state.pos_ned_m[2]) - self._home_down_m
-            if self._mission_done:
-                self._finish_mission(hb)
-                out = (
-                    Outputs(Phase.LANDING, False, (), "mission complete: landed, lingering")
-                    if self._lingering
-                    else Outputs(Phase.LANDING, True, (), "mission complete: landing")
+            fix = self._fresh_global()
+            out = self.sm.step(
+                Inputs(
+                    now,
+                    hb,
+                    age,
+                    pos_down_m=None if state is None else float(state.pos_ned_m[2]),
+                    relative_alt_m=None if fix is None else fix.relative_alt_m,
+                    amsl_m=None if fix is None else fix.amsl_m,
+                    landed_state=self._landed_state,
+                    mission_complete=self._mission_complete(now),
                 )
-            else:
-                climb = 0.0 if state is None else -float(state.vel_ned_m_s[2])
-                out = self.sm.step(Inputs(now, hb, age, alt, climb))
-                for action in out.actions:
-                    self._do_action(action)
+            )
+            for action in out.actions:
+                self._do_action(action, out, state)
             if out.phase != self.outputs.phase:
                 log.info(
                     "phase %s -> %s (%s)", self.outputs.phase.value, out.phase.value, out.reason
                 )
                 self._notifier.notify(f"STATUS={out.phase.value}: {out.reason}")
             self.outputs = out
-            if hb is not None and age > self.cfg.offboard.max_state_age_s:
-                wall = time.monotonic()
-                if wall - self._rates_requested_at > self.cfg.offboard.retry_period_s:
-                    self._rates_requested_at = wall
-                    self._request_rates()
+            self._manage_rates(now, link_up=hb is not None)
             if not self._ready_sent and age <= self.cfg.offboard.max_state_age_s:
                 self._ready_sent = True
                 self._notifier.notify("READY=1")
                 log.info("link up and state flowing: ready")
             if out.phase == Phase.OFFBOARD and self.trajectory is None and state is not None:
-                self._start_trajectory(state)
-            self._check_mission_end(now)
+                self._start_trajectory(state, out.altitude_m)
+            if out.phase == Phase.DONE and self.cfg.mission.duration_s > 0:
+                self._mission_over()
             await self._wait(now + period)
 
-    def _start_trajectory(self, state: VehicleState) -> None:
+    def _start_trajectory(self, state: VehicleState, altitude_m: float | None) -> None:
         anchor = state.pos_ned_m.copy()
-        if self.cfg.trajectory_altitude_m is not None:
-            anchor[2] = -(self.cfg.trajectory_altitude_m + self._home_down_m)
+        want = self.cfg.trajectory_altitude_m
+        if want is not None and altitude_m is not None:
+            anchor[2] += altitude_m - want  # down of home = down now + height above home
         self.trajectory = Trajectory(self.cfg.trajectory, anchor, start_s=self.clock.now_s())
         self.cascade.hold_position(anchor)
         log.info("trajectory %s started at %s", self.cfg.trajectory.shape, anchor.round(3).tolist())
 
-    def _check_mission_end(self, now: float) -> None:
+    def _mission_complete(self, now: float) -> bool:
         dur = self.cfg.mission.duration_s
-        if self.trajectory is None or self._mission_done or dur <= 0:
-            return
-        if now - self.trajectory.start_s >= dur:
-            self._mission_done = True
-            log.info("mission complete after %.1f s", dur)
+        return self.trajectory is not None and dur > 0 and now - self.trajectory.start_s >= dur
 
-    def _finish_mission(self, hb: Any) -> None:
-        wall = time.monotonic()
-        if hb is None:
-            return
-        landing = hb.main_mode == PX4_MAIN_MODE_AUTO and hb.sub_mode == PX4_AUTO_SUB_LAND
-        if not self.cfg.mission.land_at_end or not hb.armed:
-            if not self.cfg.mission.linger_after_landing:
-                self._stopping.set()
-            elif not self._lingering:
-                self._lingering = True
-                self._write_stats()  # the flight's figures; rewritten at the stop
-                log.info("mission complete: landed; staying up for the fleet until stopped")
-            return
-        if not landing and wall - self._land_sent_at > self.cfg.offboard.retry_period_s:
-            self._land_sent_at = wall
-            self._command(mavlink.MAV_CMD_NAV_LAND, *([math.nan] * 7))
+    def _mission_over(self) -> None:
+        """The mission's flight is over (landed, or handed over holding): exit, or linger."""
+        if not self.cfg.mission.linger_after_landing:
+            self._stopping.set()
+        elif not self._lingering:
+            self._lingering = True
+            self._write_stats()  # the flight's figures; rewritten at the stop
+            log.info("mission complete: staying up for the fleet until stopped")
 
     async def _wait(self, t_s: float) -> None:
         """Wait for loop time t_s; in lockstep never longer than a wall-clock second."""
@@ -284,10 +327,7 @@ class Service:
             start = self.clock.now_s()
             wall0 = time.perf_counter()
             state = self.tracker.snapshot()
-            if self.outputs.phase == Phase.LANDING and state is not None:
-                # the autopilot lands: keep answering (lockstep needs it) but learn nothing
-                self._position_out = self.cascade.hover(state)
-            elif self.outputs.stream_setpoints and state is not None:
+            if self.outputs.stream_setpoints and state is not None:
                 self._position_out = self._position_tick(state, start)
                 self._control_alive_wall = time.monotonic()
             if self.outputs.stream_setpoints:  # timing of the ticks that control, not idle ones
@@ -509,6 +549,7 @@ class Service:
             self.cfg, trajectory=new.trajectory, mission=new.mission, offboard=new.offboard
         )
         self.sm.config = new.offboard
+        self.sm.land_at_end = new.mission.land_at_end
         if self.trajectory is not None:
             self.trajectory = Trajectory(
                 new.trajectory, self.trajectory.anchor_ned_m, self.clock.now_s()
@@ -517,6 +558,10 @@ class Service:
         log.info("SIGHUP: trajectory, mission and offboard settings reloaded")
 
     async def run(self) -> int:
+        # numba compiles (or loads from its cache) each kernel on first use: 0.2-1 s that,
+        # inside the first tick, stalled the loops into a stale-state failsafe. Done here,
+        # before the link opens, before READY=1 and before any setpoint streams.
+        log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
         self._open_store()
         self._open_flight_log()
         await self._open_sharing()
@@ -564,9 +609,9 @@ class Service:
 
     async def _shutdown(self) -> None:
         self._notifier.notify("STOPPING=1")
-        if self.outputs.phase == Phase.OFFBOARD and not self._mission_done:
+        if self.outputs.phase in (Phase.OFFBOARD, Phase.OFFBOARD_REQUESTED):
             # leave the vehicle holding, not waiting for our setpoints to time out
-            self._set_mode(PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER)
+            self._send_command(dialect_px4.encode(Action.REQUEST_HOLD))
         self._save_library()
         if self.store is not None:
             self.store.close()
@@ -581,6 +626,8 @@ class Service:
     def stats(self) -> dict[str, Any]:
         return {
             "phase": self.outputs.phase.value,
+            "takeoffs_sent": self.sm.takeoffs_sent,
+            "rates_hz": {k: round(v, 1) for k, v in self.rates.rates_hz.items()},
             "library": self.cascade.library_stats(),
             "loops": {
                 "position": self.position_timing.report().as_dict(),
