@@ -44,13 +44,14 @@ from epc_offboard import frames
 from epc_offboard.baselines import MpcController, PdController
 from epc_offboard.decision import Controller, Decision
 from epc_offboard.epc import ExperienceController, LibraryEntry
-from epc_offboard.frames import FloatArray
+from epc_offboard.frames import GRAVITY_M_S2, FloatArray
 from epc_offboard.models import (
     AttitudeThrust,
     accel_to_attitude,
-    acceleration_box,
+    acceleration_limits,
     attitude_model,
     attitude_to_accel,
+    limit_tilt,
     position_model_lagged,
     velocity_disturbance_input,
 )
@@ -91,7 +92,7 @@ class PositionControlConfig:
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     geofence_min_ned_m: Vec3 | None = None  # optional position box
     geofence_max_ned_m: Vec3 | None = None
-    max_tilt_deg: float = 35.0
+    max_tilt_deg: float = 45.0  # PX4's MPC_TILTMAX_AIR default
     hover_thrust_norm: float = 0.5  # PX4's MPC_THR_HOVER
     min_thrust_norm: float = 0.08
     max_thrust_norm: float = 0.95
@@ -237,13 +238,16 @@ class Cascade:
         self.pos_model = position_model_lagged(pc.dt_s, pc.tau_acc_s)
         # a[k+1] = alpha a[k] + (1 - alpha) u[k] per axis: what the feedforward inverts
         self._acc_alpha = np.exp(-pc.dt_s / np.array(pc.tau_acc_s, dtype=np.float64))
-        box = acceleration_box(
+        self.acc_limits = acceleration_limits(
             math.radians(pc.max_tilt_deg),
             pc.min_thrust_norm,
             pc.max_thrust_norm,
             pc.hover_thrust_norm,
         )
-        self.acc_min, self.acc_max = box.u_min, box.u_max
+        box = self.acc_limits
+        # the disturbance estimate is not a command: it is bounded only by what the vehicle
+        # could ever compensate (clipping it to the command limits hid strong wind)
+        self._d_max = GRAVITY_M_S2 * pc.max_thrust_norm / pc.hover_thrust_norm
         inf3 = np.full(3, math.inf)
         vmax = np.array(pc.max_vel_m_s, dtype=np.float64)
         pmin = inf3 * -1 if pc.geofence_min_ned_m is None else np.array(pc.geofence_min_ned_m)
@@ -257,6 +261,7 @@ class Cascade:
             x_max=np.concatenate([pmax, vmax, inf3]),
             u_min=box.u_min,
             u_max=box.u_max,
+            u_poly=(box.P, box.p),
         )
         self.position: Controller
         if pc.controller == "epc":
@@ -373,7 +378,7 @@ class Cascade:
             self._observe(state)
         else:
             self._history.clear()
-        d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), self.acc_min, self.acc_max)
+        d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), -self._d_max, self._d_max)
         x0 = np.concatenate([state.pos_ned_m, state.vel_ned_m_s, self.achieved_acceleration(state)])
         if isinstance(self.position, PdController):
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
@@ -385,12 +390,12 @@ class Cascade:
             # lagged acceleration on a_ref - d along the horizon, not only on a_ref - d_hat
             z_stages = np.vstack([state.vel_ned_m_s, refs[:, 3:6]])  # v of x_0..x_N
             d_var = self.estimator.variation(state.vel_ned_m_s, z_stages)
-            d_var = np.clip(d_hat + d_var, self.acc_min, self.acc_max) - d_hat
+            d_var = np.clip(d_hat + d_var, -self._d_max, self._d_max) - d_hat
             u_p = self.feedforward(refs) - d_hat - self._lag_inverse(d_var)
         decision: Decision = self.position.step(
             x0, refs, u_p, perturbation=self._e_dist @ d_hat
         )
-        acc = np.clip(decision.u, self.acc_min, self.acc_max)
+        acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
         out = self._attitude_target(acc, d_hat, decision.source, refs, t0)
         self._last_thrust_norm = out.thrust_norm
         return out

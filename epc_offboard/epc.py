@@ -131,7 +131,7 @@ class ActiveSetMap:
             l_0 = np.zeros(0)
         # U = -H^-1 (F theta + Ga' lam)   (thesis 3.6)
         U_aug = np.hstack([-geom.hinv_f - E1.T @ L_theta, (-E1.T @ l_0)[:, None]])
-        UX_aug = np.vstack([U_aug, geom.xb_aug + geom.xb_bbar @ U_aug])
+        UX_aug = np.vstack([U_aug, geom.xb_aug + geom.xb_bbar @ U_aug, geom.poly @ U_aug])
         L_aug = np.hstack([L_theta, l_0[:, None]])
         chk = geom.chk_sign[:, None] * UX_aug[geom.chk_rows]
         chk[:, -1] += geom.chk_offset
@@ -168,8 +168,13 @@ class _ProblemGeometry:
         xt[:, c0 : c0 + nx] = problem.Psi[rows]
         self.xb_aug = xt
         self.xb_bbar = problem.Bbar[rows]
-        lo = np.concatenate([np.tile(problem.u_min, N), np.tile(problem.x_min[bounded], N)])
-        hi = np.concatenate([np.tile(problem.u_max, N), np.tile(problem.x_max[bounded], N)])
+        # the input polytope's rows per stage, P u_k <= p: bounded above only
+        self.poly = np.kron(np.eye(N), problem.u_poly_P)
+        n_poly = self.poly.shape[0]
+        lo = np.concatenate([np.tile(problem.u_min, N), np.tile(problem.x_min[bounded], N),
+                             np.full(n_poly, -np.inf)])
+        hi = np.concatenate([np.tile(problem.u_max, N), np.tile(problem.x_max[bounded], N),
+                             np.tile(problem.u_poly_p, N)])
         lo_f, hi_f = np.isfinite(lo), np.isfinite(hi)
         self.chk_rows = np.flatnonzero(lo_f | hi_f)
         lo, hi, lo_f = lo[self.chk_rows], hi[self.chk_rows], lo_f[self.chk_rows]
@@ -627,7 +632,8 @@ class _IntermediateQp:
     """Short-horizon QP with slack on the state bounds: always feasible (thesis 3.1.3).
 
     Variables ``z = [U (Ni nu); s (m_x)]``, cost ``1/2 U'H U + h'U + w/2 |s|² + w 1's``,
-    rows ``Gx U - s <= gamma_x``, ``s >= 0``, ``u_min <= U <= u_max``.
+    rows ``Gx U - s <= gamma_x``, ``s >= 0``, ``u_min <= U <= u_max``, and the input polytope
+    ``Gp U <= gamma_p`` (hard: inputs can always satisfy it).
     """
 
     def __init__(self, full: MpcProblem, horizon: int, slack_weight: float) -> None:
@@ -641,16 +647,20 @@ class _IntermediateQp:
         Gx = p.G[is_x]
         P = sla.block_diag(p.H, slack_weight * np.eye(n_s))
         Au = np.hstack([np.eye(n_u), np.zeros((n_u, n_s))])
+        is_poly = np.array([r.kind == "up" for r in p.rows], dtype=bool)
+        Gp = p.G[is_poly]
         A = np.vstack([
             np.hstack([Gx, -np.eye(n_s)]),
             np.hstack([np.zeros((n_s, n_u)), np.eye(n_s)]),
             Au,
+            np.hstack([Gp, np.zeros((len(Gp), n_s))]),
         ])
         self._solver = OsqpSolver(P, A, polish=False, eps_abs=1e-5, eps_rel=1e-5, max_iter=2000)
         N = p.horizon
         self._l = np.concatenate([np.full(n_s, -np.inf), np.zeros(n_s),
-                                  np.tile(p.u_min, N)])
-        self._u = np.concatenate([np.zeros(n_s), np.full(n_s, np.inf), np.tile(p.u_max, N)])
+                                  np.tile(p.u_min, N), np.full(len(Gp), -np.inf)])
+        self._u = np.concatenate([np.zeros(n_s), np.full(n_s, np.inf), np.tile(p.u_max, N),
+                                  p.g0[is_poly]])
         self._q = np.concatenate([np.zeros(n_u), np.full(n_s, slack_weight)])
         self._n_s = n_s
 

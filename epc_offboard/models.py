@@ -258,6 +258,29 @@ class AccelBox:
     u_max: FloatArray
 
 
+def _specific_thrust_limits(
+    max_tilt_rad: float,
+    min_thrust_norm: float,
+    max_thrust_norm: float,
+    hover_thrust_norm: float,
+    vertical_share: float,
+) -> tuple[float, float]:
+    """(f_min, f_max) m/s² of normalised thrust limits; ModelError when they are unusable."""
+    g = GRAVITY_M_S2
+    f_min = g * min_thrust_norm / hover_thrust_norm
+    f_max = g * max_thrust_norm / hover_thrust_norm
+    if not (0.0 < max_tilt_rad < math.pi / 2):
+        raise ModelError(f"max_tilt_rad must be in (0, pi/2), got {max_tilt_rad}")
+    if not (0.0 < vertical_share < 1.0):
+        raise ModelError(f"vertical_share must be in (0, 1), got {vertical_share}")
+    if not (0.0 <= f_min < g < f_max):
+        raise ModelError(
+            "thrust limits must bracket hover: "
+            f"min {min_thrust_norm} < hover {hover_thrust_norm} < max {max_thrust_norm}"
+        )
+    return f_min, f_max
+
+
 def acceleration_box(
     max_tilt_rad: float,
     min_thrust_norm: float,
@@ -277,17 +300,9 @@ def acceleration_box(
     ``2 h² + f_hi² <= f_max²``. Every point of the box is then flyable.
     """
     g = GRAVITY_M_S2
-    f_min = g * min_thrust_norm / hover_thrust_norm
-    f_max = g * max_thrust_norm / hover_thrust_norm
-    if not (0.0 < max_tilt_rad < math.pi / 2):
-        raise ModelError(f"max_tilt_rad must be in (0, pi/2), got {max_tilt_rad}")
-    if not (0.0 < vertical_share < 1.0):
-        raise ModelError(f"vertical_share must be in (0, 1), got {vertical_share}")
-    if not (0.0 <= f_min < g < f_max):
-        raise ModelError(
-            "thrust limits must bracket hover: "
-            f"min {min_thrust_norm} < hover {hover_thrust_norm} < max {max_thrust_norm}"
-        )
+    f_min, f_max = _specific_thrust_limits(
+        max_tilt_rad, min_thrust_norm, max_thrust_norm, hover_thrust_norm, vertical_share
+    )
     f_hi = g + vertical_share * (f_max - g)
     f_lo = max(f_min, (1.0 - vertical_share) * g)
     h = min(
@@ -298,3 +313,85 @@ def acceleration_box(
         u_min=np.array([-h, -h, g - f_hi]),
         u_max=np.array([h, h, g - f_lo]),
     )
+
+
+@dataclass(frozen=True)
+class AccelLimits:
+    """Input limits of the position loop (NED, m/s²): a box and a polytope ``P a <= p``."""
+
+    u_min: FloatArray  # (3,)
+    u_max: FloatArray  # (3,)
+    P: FloatArray  # (m, 3)
+    p: FloatArray  # (m,)
+
+    def contains(self, a: FloatArray, tol: float = 1e-9) -> bool:
+        return bool(
+            np.all(a >= self.u_min - tol)
+            and np.all(a <= self.u_max + tol)
+            and np.all(self.P @ a <= self.p + tol)
+        )
+
+
+TILT_POLYGON_SIDES = 8
+
+
+def acceleration_limits(
+    max_tilt_rad: float,
+    min_thrust_norm: float,
+    max_thrust_norm: float,
+    hover_thrust_norm: float,
+    *,
+    vertical_share: float = 0.5,
+) -> AccelLimits:
+    """The tilt cone and thrust limits as linear constraints on the commanded acceleration.
+
+    Specific thrust ``f = (-a_x, -a_y, g - a_z)``. Vertically ``f_z`` ranges over
+    ``[f_lo, f_hi]``: ``f_lo = max(f_min, (1 - share) g)``, ``f_hi = min(g + share (f_max - g),
+    f_max cos(tilt))`` (at least a tenth of the spare thrust: a vehicle too weak for the tilt
+    limit gets a smaller tilt). Horizontally the tilt cone ``|f_h| <= tan(tilt) f_z`` is
+    replaced by the regular octagon inscribed in it at every ``f_z``::
+
+        n_j . a_h + cos(pi/8) tan(tilt) a_z <= cos(pi/8) tan(tilt) g,   n_j at j * 45 deg
+
+    — linear in ``a``, so the QP keeps linear rows. Unlike a per-axis box (whose corners
+    must fit the cone, leaving each axis ``1/sqrt(2)`` of it, and which was sized at the
+    lowest vertical thrust), one axis gets 92 % of the cone when the other needs nothing, and
+    the horizontal authority grows with the vertical thrust actually commanded. Every point
+    is flyable: tilt <= max_tilt, and ``|f| <= f_z / cos(tilt) <= f_max``. The box (the
+    horizontal part never active) bounds what a degraded input is clipped to.
+    """
+    g = GRAVITY_M_S2
+    f_min, f_max = _specific_thrust_limits(
+        max_tilt_rad, min_thrust_norm, max_thrust_norm, hover_thrust_norm, vertical_share
+    )
+    # the climb margin is traded for tilt down to a tenth of the spare thrust; beyond that a
+    # vehicle too weak for the tilt limit gets the tilt it can fly
+    f_hi = min(g + vertical_share * (f_max - g), f_max * math.cos(max_tilt_rad))
+    f_hi_min = g + 0.1 * (f_max - g)
+    if f_hi < f_hi_min:
+        f_hi = f_hi_min
+        max_tilt_rad = math.acos(f_hi / f_max)
+    f_lo = max(f_min, (1.0 - vertical_share) * g)
+    k = math.cos(math.pi / TILT_POLYGON_SIDES) * math.tan(max_tilt_rad)
+    angles = 2.0 * math.pi * np.arange(TILT_POLYGON_SIDES) / TILT_POLYGON_SIDES
+    P = np.column_stack([np.cos(angles), np.sin(angles), np.full(TILT_POLYGON_SIDES, k)])
+    P[np.abs(P) < 1e-15] = 0.0
+    h_out = 1.05 * math.tan(max_tilt_rad) * f_hi  # beyond the polygon: never active
+    return AccelLimits(
+        u_min=np.array([-h_out, -h_out, g - f_hi]),
+        u_max=np.array([h_out, h_out, g - f_lo]),
+        P=P,
+        p=np.full(TILT_POLYGON_SIDES, k * g),
+    )
+
+
+def limit_tilt(acc_ned_m_s2: FloatArray, limits: AccelLimits) -> FloatArray:
+    """``acc`` clipped into the box and scaled horizontally into the polygon: whatever a
+    controller (or a degraded tick) asks, what is sent stays within the tilt limit."""
+    a = np.minimum(np.maximum(acc_ned_m_s2, limits.u_min), limits.u_max)
+    slack = limits.p - limits.P[:, 2] * a[2]  # the polygon's reach at this a_z (> 0)
+    reach = limits.P[:, :2] @ a[:2]
+    worst = float(np.max(reach / slack))
+    if worst > 1.0:
+        a[:2] /= worst
+    return a

@@ -5,7 +5,8 @@ predicted states ``X = [x_1; ...; x_N]`` (N nx,)::
 
     X = Phi x0 + Bbar U + Psi c~           Phi = [A; A²; ...], Psi = [I; A + I; ...]
     min_U  1/2 (X - r)' Qbar (X - r) + 1/2 (U - U_p)' Rbar (U - U_p)
-    s.t.   x_min <= x_k <= x_max (k = 1..N),  u_min <= u_k <= u_max (k = 0..N-1)
+    s.t.   x_min <= x_k <= x_max (k = 1..N),  u_min <= u_k <= u_max (k = 0..N-1),
+           P u_k <= p (k = 0..N-1, an optional input polytope)
 
 which condenses to ``min 1/2 U' H U + h' U  s.t.  Gamma U <= gamma``. Everything that varies
 from tick to tick is collected in one parameter vector::
@@ -21,7 +22,7 @@ lets EPC precompute one affine map per active set (thesis 3.6-3.8).
 
 Constraint rows (the "layout" active sets index into), infinite bounds dropped, in order:
 state upper bounds (k = 1..N, i = 0..nx-1), state lower bounds, input upper bounds
-(k = 0..N-1, i = 0..nu-1), input lower bounds.
+(k = 0..N-1, i = 0..nu-1), input lower bounds, input polytope rows (k = 0..N-1, j = 0..m_p-1).
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ class ProblemError(ValueError):
 
 @dataclass(frozen=True)
 class ConstraintRow:
-    """What one row of ``Gamma U <= gamma`` bounds: ``kind`` "x" or "u", stage, index, side."""
+    """What one row of ``Gamma U <= gamma`` bounds: ``kind`` "x", "u" (a bound) or "up" (a row
+    of the input polytope), stage, index (of the state, input or polytope row), side."""
 
     kind: str
     stage: int
@@ -92,7 +94,9 @@ class MpcProblem:
     """The condensed QP of one loop (thesis 3.1.2); immutable once built.
 
     ``Q`` (nx, nx) or its diagonal, ``R`` (nu, nu) or its diagonal; bounds (nx,) / (nu,) with
-    +-inf where unbounded. Matrices: ``H`` (nU, nU), ``F`` (nU, ntheta), ``G`` (m, nU),
+    +-inf where unbounded; ``u_poly = (P (m_p, nu), p (m_p,))`` an input polytope every
+    stage's input must also satisfy (``P u <= p``; e.g. a tilt cone's inner polygon).
+    Matrices: ``H`` (nU, nU), ``F`` (nU, ntheta), ``G`` (m, nU),
     ``g0`` (m,), ``S`` (m, ntheta), with nU = N nu and m the number of finite bounds.
     """
 
@@ -107,6 +111,7 @@ class MpcProblem:
         x_max: npt.ArrayLike | None = None,
         u_min: npt.ArrayLike | None = None,
         u_max: npt.ArrayLike | None = None,
+        u_poly: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
     ) -> None:
         if not isinstance(horizon, int) or horizon < 1:
             raise ProblemError(f"horizon must be an integer >= 1, got {horizon!r}")
@@ -124,6 +129,18 @@ class MpcProblem:
             raise ProblemError("x_min must be <= x_max")
         if np.any(self.u_min > self.u_max):
             raise ProblemError("u_min must be <= u_max (the input box must be non-empty)")
+        self.u_poly_P = np.zeros((0, nu))
+        self.u_poly_p = np.zeros(0)
+        if u_poly is not None:
+            P = np.array(u_poly[0], dtype=np.float64)
+            pv = np.array(u_poly[1], dtype=np.float64).reshape(-1)
+            if P.ndim != 2 or P.shape[1] != nu or pv.shape != (P.shape[0],):
+                raise ProblemError(
+                    f"u_poly must be (P (m, {nu}), p (m,)), got {P.shape} and {pv.shape}"
+                )
+            if not (np.all(np.isfinite(P)) and np.all(np.isfinite(pv))):
+                raise ProblemError("u_poly must be finite")
+            self.u_poly_P, self.u_poly_p = P, pv
         self.n_u = N * nu
         self.n_theta = nx + N * nx + nx + N * nu
         self.i_up = nx + N * nx + nx  # where U_p starts inside theta
@@ -189,6 +206,14 @@ class MpcProblem:
         add_state_rows(self.x_min, -1.0, False)
         add_input_rows(self.u_max, 1.0, True)
         add_input_rows(self.u_min, -1.0, False)
+        for k in range(N):
+            for j, (row, bound) in enumerate(zip(self.u_poly_P, self.u_poly_p, strict=True)):
+                g = np.zeros(N * nu)
+                g[k * nu : (k + 1) * nu] = row
+                rows_g.append(g)
+                rows_s.append(np.zeros(self.n_theta))
+                g0.append(float(bound))
+                labels.append(ConstraintRow("up", k, j, True))
         m = len(labels)
         self.G = np.array(rows_g).reshape(m, N * nu)
         self.S = np.array(rows_s).reshape(m, self.n_theta)
@@ -218,6 +243,7 @@ class MpcProblem:
             x_max=self.x_max,
             u_min=self.u_min,
             u_max=self.u_max,
+            u_poly=(self.u_poly_P, self.u_poly_p) if len(self.u_poly_p) else None,
         )
 
     # -- per tick -------------------------------------------------------------------------
@@ -278,7 +304,8 @@ class MpcProblem:
         return theta[self.i_up :].reshape(self.horizon, self.nu)
 
     def clip_input(self, u: FloatArray) -> FloatArray:
-        """``u`` (nu,) clipped into the input box (a new array)."""
+        """``u`` (nu,) clipped into the input box (a new array); the polytope is the caller's
+        (an exact solution satisfies it; a degraded input is made safe downstream)."""
         out: FloatArray = np.minimum(np.maximum(u, self.u_min), self.u_max)
         return out
 
@@ -333,6 +360,9 @@ class MpcProblem:
                         ("uu", self.u_max)):
             h.update(name.encode())
             h.update(np.isfinite(b).astype("u1").tobytes())
+        if len(self.u_poly_p):  # only problems with a polytope: old signatures stay valid
+            h.update(b"up")
+            h.update(np.round(self.u_poly_P, 12).astype("<f8").tobytes())
         return h.hexdigest()[:32]
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -15,7 +16,7 @@ A_MAX = 3.0
 
 def position_problem(horizon: int = 8, *, constrained: bool = True, dt_s: float = 0.1):
     inf = math.inf
-    kw = {}
+    kw: dict[str, Any] = {}
     if constrained:
         kw = {
             "x_min": [-inf, -inf, -inf, -V_MAX, -V_MAX, -V_MAX],

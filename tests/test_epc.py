@@ -366,3 +366,40 @@ def test_attitude_loop_is_exact_too():
         x = p.model.step(x, d.u)
         assert abs(x[0]) <= 0.4 + 1e-7  # the roll bound holds in closed loop
     assert ctrl.stats.hits > 50
+
+
+def test_hits_are_exact_with_the_tilt_polygon():
+    """Input polytope rows (the position loop's tilt polygon) are constraint rows like any
+    other: hits and solves equal the exact optimum, and every input satisfies P u <= p."""
+    from epc_offboard.cascade import PositionControlConfig
+    from epc_offboard.models import acceleration_limits, position_model_lagged
+
+    pc = PositionControlConfig()
+    lim = acceleration_limits(math.radians(45.0), 0.08, 0.95, 0.5)
+    p = MpcProblem(
+        position_model_lagged(pc.dt_s, pc.tau_acc_s),
+        horizon=8,
+        Q=np.concatenate([pc.q_pos, pc.q_vel, pc.q_acc]),
+        R=np.array(pc.r_acc),
+        x_min=[-np.inf] * 3 + [-3.0] * 3 + [-np.inf] * 3,
+        x_max=[np.inf] * 3 + [3.0] * 3 + [np.inf] * 3,
+        u_min=lim.u_min,
+        u_max=lim.u_max,
+        u_poly=(lim.P, lim.p),
+    )
+    assert sum(r.kind == "up" for r in p.rows) == 8 * len(lim.p)
+    ctrl = ExperienceController(p)
+    rng = np.random.default_rng(3)
+    active_poly = 0
+    for _ in range(60):
+        x0 = np.concatenate([rng.uniform(-6, 6, 3), rng.uniform(-2, 2, 3), np.zeros(3)])
+        refs = np.zeros((p.horizon, p.nx))
+        d = ctrl.step(x0, refs)
+        if d.source not in ("hit", "solved"):
+            continue
+        U = exact_solution(p, p.theta(x0, refs))
+        assert np.allclose(d.u, U[:3], atol=1e-7, rtol=0)
+        assert np.all(lim.P @ d.u <= lim.p + 1e-7)
+        active_poly += bool(np.any(lim.P @ d.u >= lim.p - 1e-6))
+    assert active_poly >= 5  # the polygon was what limited those commands
+    assert ctrl.stats.hits >= 1

@@ -16,8 +16,10 @@ from epc_offboard.models import (
     ModelError,
     accel_to_attitude,
     acceleration_box,
+    acceleration_limits,
     attitude_model,
     attitude_to_accel,
+    limit_tilt,
     position_model,
     position_model_lagged,
     velocity_disturbance_input,
@@ -165,3 +167,50 @@ def test_acceleration_box_corners_are_flyable(tilt_deg):
 def test_acceleration_box_rejects_limits_not_bracketing_hover():
     with pytest.raises(ModelError, match="bracket hover"):
         acceleration_box(0.5, 0.6, 0.9, HOVER)
+
+
+LIMITS_45 = acceleration_limits(math.radians(45.0), 0.08, 0.95, HOVER)
+
+
+def tilt_and_thrust(a):
+    sp = accel_to_attitude(a, 0.3, HOVER)
+    return math.acos(math.cos(sp.roll_rad) * math.cos(sp.pitch_rad)), sp.thrust_norm
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    a=st.tuples(st.floats(-12, 12), st.floats(-12, 12), st.floats(-6, 6)),
+    tilt_deg=st.sampled_from([20.0, 35.0, 45.0, 60.0]),
+)
+def test_every_acceleration_within_the_limits_is_flyable(a, tilt_deg):
+    lim = acceleration_limits(math.radians(tilt_deg), 0.08, 0.95, HOVER)
+    a = np.array(a)
+    if not lim.contains(a):
+        return
+    tilt, thrust = tilt_and_thrust(a)
+    assert tilt <= math.radians(tilt_deg) + 1e-9
+    assert 0.08 - 1e-9 <= thrust <= 0.95 + 1e-9
+
+
+def test_one_axis_gets_the_cone_when_the_other_needs_nothing():
+    """The box of tilt / sqrt(2) per axis gave about 14 deg per axis at 35 deg; the polygon
+    gives an axis 92 % of the cone's reach at hover thrust."""
+    reach = math.tan(math.radians(45.0)) * GRAVITY_M_S2
+    assert LIMITS_45.contains(np.array([0.92 * reach, 0.0, 0.0]))
+    assert LIMITS_45.contains(np.array([0.0, -0.92 * reach, 0.0]))
+    assert LIMITS_45.contains(np.array([0.65 * reach, 0.65 * reach, 0.0]))
+    assert not LIMITS_45.contains(np.array([0.75 * reach, 0.75 * reach, 0.0]))  # > 45 deg
+    old = acceleration_box(math.radians(45.0), 0.08, 0.95, HOVER)
+    assert old.u_max[0] < 0.5 * reach
+
+
+@settings(max_examples=200, deadline=None)
+@given(a=st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-50, 50)))
+def test_limit_tilt_always_lands_inside_and_keeps_what_is_inside(a):
+    a = np.array(a)
+    out = limit_tilt(a, LIMITS_45)
+    assert LIMITS_45.contains(out, tol=1e-9)
+    if LIMITS_45.contains(a):
+        assert np.allclose(out, a)
+    tilt, _ = tilt_and_thrust(out)
+    assert tilt <= math.radians(45.0) + 1e-9
