@@ -226,6 +226,9 @@ class Cascade:
     attitude_cfg: AttitudeControlConfig
     estimator_cfg: EstimatorConfig
     loop_period_s: float = 0.01  # the position loop's period: the estimator's filter step
+    # False: a miss applies the intermediate controller and queues θ for a worker
+    # (miss_solver.MissSolver) instead of solving the full QP inside the tick
+    learn_on_miss: bool = True
     _history: deque[_Observation] = field(default_factory=lambda: deque(maxlen=64))
     _hold_pos: FloatArray | None = None
     _last_thrust_norm: float = math.nan
@@ -265,7 +268,9 @@ class Cascade:
         )
         self.position: Controller
         if pc.controller == "epc":
-            self.position = ExperienceController(self.pos_problem, max_size=pc.library_size)
+            self.position = ExperienceController(
+                self.pos_problem, max_size=pc.library_size, learn_on_miss=self.learn_on_miss
+            )
         elif pc.controller == "mpc":
             self.position = MpcController(self.pos_problem)
         else:
@@ -280,7 +285,9 @@ class Cascade:
             u_min=-rmax,
             u_max=rmax,
         )
-        self.attitude = ExperienceController(self.att_problem, max_size=ac.library_size)
+        self.attitude = ExperienceController(
+            self.att_problem, max_size=ac.library_size, learn_on_miss=self.learn_on_miss
+        )
         ec = self.estimator_cfg
         self.estimator = make_estimator(
             ec.kind,

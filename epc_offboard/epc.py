@@ -418,6 +418,38 @@ class ExperienceController:
         self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses))
         return entry
 
+    def covers(self, theta: FloatArray) -> bool:
+        """Whether a stored controller passes the KKT check at ``theta`` (nθ,): the query,
+        without using it (no importance, transition or counter changes)."""
+        theta_aug = np.append(np.asarray(theta, dtype=np.float64), 1.0)
+        return self._query(theta_aug, np.empty(self.problem.nu)) is not None
+
+    def add_solved(self, theta: FloatArray, active_set: tuple[int, ...]) -> bool:
+        """Add an active set a worker recovered for ``theta`` (the miss path off the loop),
+        only if this controller's own KKT check passes with it at that ``theta``.
+
+        Counted as a QP solve; the entry is new experience (published and stored as
+        "solved"). False, and nothing added, when the set is malformed, dependent or not
+        optimal at ``theta``.
+        """
+        theta_aug = np.append(np.asarray(theta, dtype=np.float64), 1.0)
+        try:
+            amap = self._validated_map(0, LibraryEntry(tuple(active_set), 0.0, 0))
+        except ValueError as exc:
+            logger.debug("worker's active set refused: %s", exc)
+            self._learn_failures += 1
+            return False
+        self._solves += 1
+        if not amap.apply(theta_aug, np.empty(self.problem.nu), self.problem.u_min,
+                          self.problem.u_max):
+            self._learn_failures += 1
+            return False
+        if amap.active in self._by_set:
+            return True
+        entry = self._add(amap)
+        self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses))
+        return True
+
     def _recover_active_set(
         self, theta_aug: FloatArray, y: FloatArray, gamma: FloatArray, u_out: FloatArray
     ) -> ActiveSetMap | None:

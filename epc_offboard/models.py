@@ -357,8 +357,8 @@ def acceleration_limits(
     must fit the cone, leaving each axis ``1/sqrt(2)`` of it, and which was sized at the
     lowest vertical thrust), one axis gets 92 % of the cone when the other needs nothing, and
     the horizontal authority grows with the vertical thrust actually commanded. Every point
-    is flyable: tilt <= max_tilt, and ``|f| <= f_z / cos(tilt) <= f_max``. The box (the
-    horizontal part never active) bounds what a degraded input is clipped to.
+    is flyable: tilt <= max_tilt, and ``|f| <= f_z / cos(tilt) <= f_max``. A degraded input
+    is made flyable by :func:`limit_tilt`.
     """
     g = GRAVITY_M_S2
     f_min, f_max = _specific_thrust_limits(
@@ -376,10 +376,11 @@ def acceleration_limits(
     angles = 2.0 * math.pi * np.arange(TILT_POLYGON_SIDES) / TILT_POLYGON_SIDES
     P = np.column_stack([np.cos(angles), np.sin(angles), np.full(TILT_POLYGON_SIDES, k)])
     P[np.abs(P) < 1e-15] = 0.0
-    h_out = 1.05 * math.tan(max_tilt_rad) * f_hi  # beyond the polygon: never active
+    # horizontally the polygon is the only limit: box rows there would never be active,
+    # only cost every stored controller check rows
     return AccelLimits(
-        u_min=np.array([-h_out, -h_out, g - f_hi]),
-        u_max=np.array([h_out, h_out, g - f_lo]),
+        u_min=np.array([-math.inf, -math.inf, g - f_hi]),
+        u_max=np.array([math.inf, math.inf, g - f_lo]),
         P=P,
         p=np.full(TILT_POLYGON_SIDES, k * g),
     )

@@ -45,6 +45,7 @@ from epc_offboard.configio import ConfigError
 from epc_offboard.frames import FloatArray
 from epc_offboard.link import MavlinkLink, TlogWriter, load_signing_key
 from epc_offboard.logsetup import setup_logging
+from epc_offboard.miss_solver import MissSolver
 from epc_offboard.offboard import Action, Inputs, OffboardStateMachine, Outputs, Phase
 from epc_offboard.rates import RateMonitor
 from epc_offboard.sharing import FleetSharing
@@ -88,8 +89,13 @@ class Service:
         self.tracker = StateTracker(system_id=cfg.link.target_system, limits=cfg.state_limits)
         self.sm = OffboardStateMachine(cfg.offboard, land_at_end=cfg.mission.land_at_end)
         self.cascade = Cascade(
-            cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz
+            cfg.position,
+            cfg.attitude,
+            cfg.estimator,
+            1.0 / cfg.loops.position_rate_hz,
+            learn_on_miss=False,
         )
+        self.misses = MissSolver(dict(self.cascade.experience_controllers()))
         self.counters: Counter[str] = Counter()
         self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
@@ -327,6 +333,9 @@ class Service:
             start = self.clock.now_s()
             wall0 = time.perf_counter()
             state = self.tracker.snapshot()
+            # misses solved by the worker join the library here; in lockstep the tick waits
+            # for the solve in flight, so it joins at the same tick every run
+            self.misses.pump(wait=self.clock.vehicle_time)
             if self.outputs.stream_setpoints and state is not None:
                 self._position_out = self._position_tick(state, start)
                 self._control_alive_wall = time.monotonic()
@@ -398,7 +407,11 @@ class Service:
             state = self.tracker.snapshot()
             if self.outputs.stream_setpoints and state is not None:
                 target = self._position_out or self.cascade.hover(state)
-                self._send_setpoint(state, target)
+                # A late tick or an old attitude sample: body rates computed now would be
+                # flown until the next tick, stale; send the attitude itself instead, which
+                # the autopilot's own attitude loop keeps tracking whatever we do next.
+                late = start - t_next > period or state.attitude_age_s > 2.0 * period
+                self._send_setpoint(state, target, late=late)
             if self.outputs.stream_setpoints:
                 self.attitude_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
             t_next = self._next_tick(t_next, period, "attitude")
@@ -415,9 +428,14 @@ class Service:
             t_next += skipped * period
         return t_next
 
-    def _send_setpoint(self, state: VehicleState, target: PositionOutput) -> None:
+    def _send_setpoint(
+        self, state: VehicleState, target: PositionOutput, *, late: bool = False
+    ) -> None:
         if self.cfg.attitude.mode == "autopilot":
             out = AttitudeOutput(None, target.thrust_norm, "delegated")
+        elif late:
+            self.counters["attitude_late_fallbacks"] += 1
+            out = AttitudeOutput(None, target.thrust_norm, "late")
         else:
             try:
                 out = self.cascade.attitude_tick(state, target)
@@ -425,10 +443,23 @@ class Service:
                 self._loop_error("attitude", exc)
                 out = self.cascade.attitude_fallback(state, target)
         q = [float(v) for v in target.q_target]
+        thrust = float(out.thrust_norm)
         if out.rates_frd_rad_s is None:
             rates, mask = [0.0, 0.0, 0.0], _IGNORE_RATES
         else:
-            rates, mask = [float(v) for v in out.rates_frd_rad_s], _IGNORE_ATTITUDE
+            # bounded to what the vehicle's rate loop can follow, whatever computed them
+            rmax = self.cfg.attitude.max_rate_rad_s
+            rates = [
+                min(max(float(v), -m), m)
+                for v, m in zip(out.rates_frd_rad_s, rmax, strict=True)
+            ]
+            mask = _IGNORE_ATTITUDE
+        if not all(math.isfinite(v) for v in (*q, *rates, thrust)):
+            # never a NaN to the autopilot: level at hover thrust instead, counted
+            self.counters["non_finite_setpoints_replaced"] += 1
+            hover = self.cascade.hover(state)
+            q, rates = [float(v) for v in hover.q_target], [0.0, 0.0, 0.0]
+            thrust, mask = hover.thrust_norm, _IGNORE_RATES
         # time_boot_ms = the vehicle time of the state used: the lockstep SITL's "answered" mark
         stamp_ms = round(state.time_s * 1000.0) & 0xFFFFFFFF
         self.link.send(
@@ -439,7 +470,7 @@ class Service:
                 mask,
                 q,
                 *rates,
-                min(max(float(out.thrust_norm), 0.0), 1.0),
+                min(max(thrust, 0.0), 1.0),
             )
         )
 
@@ -562,6 +593,9 @@ class Service:
         # inside the first tick, stalled the loops into a stale-state failsafe. Done here,
         # before the link opens, before READY=1 and before any setpoint streams.
         log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
+        t0 = time.perf_counter()
+        self.misses.start()
+        log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
         self._open_store()
         self._open_flight_log()
         await self._open_sharing()
@@ -612,6 +646,7 @@ class Service:
         if self.outputs.phase in (Phase.OFFBOARD, Phase.OFFBOARD_REQUESTED):
             # leave the vehicle holding, not waiting for our setpoints to time out
             self._send_command(dialect_px4.encode(Action.REQUEST_HOLD))
+        self.misses.close()
         self._save_library()
         if self.store is not None:
             self.store.close()
@@ -634,6 +669,7 @@ class Service:
                 "attitude": self.attitude_timing.report().as_dict(),
             },
             "counters": dict(self.counters),
+            "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
             "state": dict(self.tracker.counters),
             "sharing": self.sharing.stats() if self.sharing is not None else {},

@@ -1,0 +1,99 @@
+"""EPC's miss path in a real worker process: exact results, once per region, survives SIGKILL."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from epc_offboard.epc import ExperienceController
+from epc_offboard.miss_solver import MissSolver
+from tests.mpc_cases import exact_solution, hover_refs, position_problem
+
+
+@pytest.fixture
+def solver_and_ctrl():
+    ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl})
+    solver.start()
+    yield solver, ctrl
+    solver.close()
+
+
+def miss(ctrl, x0, tgt):
+    p = ctrl.problem
+    refs = hover_refs(p, tgt)
+    return ctrl.step(x0, refs), refs
+
+
+def test_a_miss_is_solved_off_the_loop_then_hits_exactly(solver_and_ctrl):
+    solver, ctrl = solver_and_ctrl
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    d, refs = miss(ctrl, x0, [4.0, -3.0, 1.0])
+    assert d.source == "intermediate"  # applied at once, no full solve in the tick
+    assert len(ctrl.pending) == 1
+    assert solver.pump() == 0  # submitted, not waited for
+    assert solver.pump(wait=True) == 1
+    d = ctrl.step(x0, refs)
+    assert d.source == "hit"
+    U = exact_solution(ctrl.problem, ctrl.problem.theta(x0, refs))
+    assert np.allclose(d.u, U[:3], atol=1e-8)
+    assert ctrl.stats.qp_solves == 1
+    assert [e.active_set for e in ctrl.pop_new_entries()] != []
+
+
+def test_misses_of_one_region_are_solved_once(solver_and_ctrl):
+    solver, ctrl = solver_and_ctrl
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    for _ in range(3):  # the same miss three ticks in a row, before the solve returns
+        miss(ctrl, x0, [4.0, -3.0, 1.0])
+        solver.pump()
+    solver.pump(wait=True)
+    solver.pump(wait=True)
+    assert solver.counters["solves_submitted"] == 1
+    assert solver.counters["misses_already_covered"] == 2
+    assert ctrl.stats.size == 1
+
+
+def test_the_waiting_queue_is_bounded(solver_and_ctrl):
+    solver, ctrl = solver_and_ctrl
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        x0 = np.concatenate([rng.uniform(-1, 1, 3), rng.uniform(-1, 1, 3)])
+        miss(ctrl, x0, rng.uniform(-6, 6, 3))
+        solver.pump()
+    assert len(ctrl.pending) == 0
+    assert solver.counters["misses_dropped"] > 0
+    assert ctrl.stats.size <= 1 + 4  # one in flight and the bounded waiting list at most
+
+
+def test_the_workers_death_is_survived(solver_and_ctrl):
+    solver, ctrl = solver_and_ctrl
+    pid = solver.worker_pid()
+    assert pid is not None
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    miss(ctrl, x0, [4.0, -3.0, 1.0])
+    solver.pump()
+    os.kill(pid, signal.SIGKILL)
+    time.sleep(0.5)
+    solver.pump(wait=True)  # the lost solve is counted, the worker rebuilt
+    assert solver.counters["worker_restarts"] == 1
+    assert solver.worker_pid() not in (None, pid)
+    d, _ = miss(ctrl, x0, [4.0, -3.0, 1.0])
+    assert d.source == "intermediate"
+    solver.pump()
+    assert solver.pump(wait=True) == 1
+    d, _ = miss(ctrl, x0, [4.0, -3.0, 1.0])
+    assert d.source == "hit"
+
+
+def test_a_returned_set_not_optimal_here_is_refused(solver_and_ctrl):
+    _, ctrl = solver_and_ctrl
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    theta = ctrl.problem.theta(x0, hover_refs(ctrl.problem, [4.0, -3.0, 1.0]))
+    # the unconstrained set is not optimal far from the target: the loop's own check refuses
+    assert not ctrl.add_solved(theta, ())
+    assert ctrl.stats.size == 0
