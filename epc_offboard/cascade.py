@@ -78,7 +78,9 @@ Vec3 = tuple[float, float, float]
 
 @dataclass(frozen=True)
 class PositionControlConfig:
-    controller: Literal["epc", "pd", "mpc"] = "epc"
+    # px4: a baseline, the autopilot's own position controller flies the reference
+    # (SET_POSITION_TARGET_LOCAL_NED with position, velocity and acceleration)
+    controller: Literal["epc", "pd", "mpc", "px4"] = "epc"
     horizon: int = 20
     dt_s: float = 0.05  # prediction step, separate from the loop period
     q_pos: Vec3 = (20.0, 20.0, 30.0)

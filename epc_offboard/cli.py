@@ -53,7 +53,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser("sim", help="fly the bundled SITL with the service and report")
     sim.add_argument("--scenario", default="hover", help="hover, circle, zigzag, figure8")
-    sim.add_argument("--controller", choices=["epc", "pd", "mpc"], default="epc")
+    sim.add_argument(
+        "--controller",
+        choices=["epc", "pd", "mpc", "px4"],
+        default="epc",
+        help="position controller: epc (default), pd (thesis A.1), mpc (OSQP every tick), px4 "
+        "(a baseline: the autopilot's own position controller fed position, velocity and "
+        "acceleration setpoints)",
+    )
     sim.add_argument("--adaptation", choices=["lwpr", "kf", "none"], default="lwpr")
     sim.add_argument("--vehicles", type=int, default=1)
     mode = sim.add_mutually_exclusive_group()

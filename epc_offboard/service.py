@@ -35,6 +35,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard import dialect_px4
@@ -343,7 +344,41 @@ class Service:
                 self.position_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
             t_next = self._next_tick(t_next, period, "position")
 
+    @property
+    def _autopilot_positions(self) -> bool:
+        return self.cfg.position.controller == "px4"
+
+    def _send_position_target(self, state: VehicleState, t_s: float) -> None:
+        """The px4 baseline: the reference's position, velocity and acceleration now, to the
+        autopilot's own position controller (as MAVSDK's offboard plugin sends them)."""
+        if self.trajectory is not None:
+            ref = self.trajectory.sample(t_s)
+            pos, vel, acc = ref.pos_ned_m, ref.vel_ned_m_s, ref.acc_ned_m_s2
+        else:
+            pos = self.cascade.hold_refs(state)[0, :3]
+            vel = acc = np.zeros(3)
+        values = [float(v) for v in (*pos, *vel, *acc)]
+        if not all(math.isfinite(v) for v in values):
+            self.counters["non_finite_setpoints_replaced"] += 1
+            return
+        self.link.send(
+            self.link.mav.set_position_target_local_ned_encode(
+                round(state.time_s * 1000.0) & 0xFFFFFFFF,
+                self.cfg.link.target_system,
+                self.cfg.link.target_component,
+                mavlink.MAV_FRAME_LOCAL_NED,
+                mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE,
+                *values,
+                math.radians(self.cfg.position.yaw_deg),
+                0.0,
+            )
+        )
+
     def _position_tick(self, state: VehicleState, t_s: float) -> PositionOutput:
+        if self._autopilot_positions:  # nothing to compute: the log keeps the reference
+            out = self.cascade.hover(state)
+            self._log_tick(state, t_s, out)
+            return out
         try:
             refs = self._live_refs(state)
             if refs is None:
@@ -405,7 +440,9 @@ class Service:
             start = self.clock.now_s()
             wall0 = time.perf_counter()
             state = self.tracker.snapshot()
-            if self.outputs.stream_setpoints and state is not None:
+            if self.outputs.stream_setpoints and state is not None and self._autopilot_positions:
+                self._send_position_target(state, start)
+            elif self.outputs.stream_setpoints and state is not None:
                 target = self._position_out or self.cascade.hover(state)
                 # A late tick or an old attitude sample: body rates computed now would be
                 # flown until the next tick, stale; send the attitude itself instead, which

@@ -30,7 +30,7 @@ from typing import Any, Literal
 Metric = Literal["rmse_m", "max_error_m", "max_speed_m_s", "constraint_violations"]
 Verdict = Literal["PASS", "FAIL", "n/a"]
 
-CONTROLLERS = ("epc", "pd", "mpc")
+CONTROLLERS = ("epc", "pd", "mpc", "px4")
 ADAPTATIONS = ("lwpr", "kf", "none")
 
 
