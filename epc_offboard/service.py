@@ -363,7 +363,7 @@ class Service:
             return
         self.link.send(
             self.link.mav.set_position_target_local_ned_encode(
-                round(state.time_s * 1000.0) & 0xFFFFFFFF,
+                self._stamp_ms(state),
                 self.cfg.link.target_system,
                 self.cfg.link.target_component,
                 mavlink.MAV_FRAME_LOCAL_NED,
@@ -449,6 +449,11 @@ class Service:
                 # the autopilot's own attitude loop keeps tracking whatever we do next.
                 late = start - t_next > period or state.attitude_age_s > 2.0 * period
                 self._send_setpoint(state, target, late=late)
+            elif self.clock.vehicle_time and state is not None:
+                # lockstep: the simulator advances only on an answer for each tick; when no
+                # setpoint streams (before takeoff, landing) the answer is a SYSTEM_TIME with
+                # the tick's stamp (time_unix_usec 0: no autopilot takes it as a clock)
+                self.link.send(self.link.mav.system_time_encode(0, self._stamp_ms(state)))
             if self.outputs.stream_setpoints:
                 self.attitude_timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
             t_next = self._next_tick(t_next, period, "attitude")
@@ -497,8 +502,7 @@ class Service:
             hover = self.cascade.hover(state)
             q, rates = [float(v) for v in hover.q_target], [0.0, 0.0, 0.0]
             thrust, mask = hover.thrust_norm, _IGNORE_RATES
-        # time_boot_ms = the vehicle time of the state used: the lockstep SITL's "answered" mark
-        stamp_ms = round(state.time_s * 1000.0) & 0xFFFFFFFF
+        stamp_ms = self._stamp_ms(state)
         self.link.send(
             self.link.mav.set_attitude_target_encode(
                 stamp_ms,
@@ -510,6 +514,12 @@ class Service:
                 min(max(thrust, 0.0), 1.0),
             )
         )
+
+    @staticmethod
+    def _stamp_ms(state: VehicleState) -> int:
+        """time_boot_ms of what we send: the vehicle time of the state used (the lockstep
+        simulator's "answered" mark)."""
+        return round(state.time_s * 1000.0) & 0xFFFFFFFF
 
     def _loop_error(self, loop: str, exc: Exception) -> None:
         self.counters[f"{loop}_loop_errors"] += 1

@@ -370,6 +370,11 @@ def analyse(run: VehicleRun, scenario: ScenarioConfig, vel_bounds_m_s: FloatArra
             "first_lap_misses": first_lap_misses,
         },
         "loops": stats.get("loops", {}),
+        # what the autopilot actually streamed (the service asks for the loops' rates) and
+        # how many takeoffs the service commanded (one per flight, never in the air)
+        "received_rates_hz": stats.get("rates_hz", {}),
+        "takeoffs_sent": int(stats.get("takeoffs_sent", 0)),
+        "miss_worker": stats.get("miss_worker", {}),
     }
     return VehicleResult(
         run.vehicle_id, report, t_vehicle - start, pos, ref, vel, err, flight["source"]

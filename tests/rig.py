@@ -39,6 +39,8 @@ class Rig:
         service_overrides: dict[str, Any] | None = None,
         sitl_args: tuple[str, ...] = (),
         lockstep: bool = True,
+        speedup: float = 4.0,
+        service_env: dict[str, str] | None = None,
     ) -> None:
         self.tmp = tmp
         self.offboard_port = free_port()
@@ -67,10 +69,11 @@ class Rig:
         self.sitl_args = [
             "--listen-port", str(self.sitl_port), "--offboard-port", str(self.offboard_port),
             "--gcs-port", str(self.gcs_port), "--groundtruth", str(tmp / "groundtruth.csv"),
-            "--speedup", "4", *sitl_args,
+            "--speedup", str(speedup), *sitl_args,
         ]  # fmt: skip
         if lockstep:
             self.sitl_args.append("--lockstep")
+        self.service_env = service_env or {}
         self.sitl: subprocess.Popen[bytes] | None = None
         self.service: subprocess.Popen[bytes] | None = None
         self.gcs: Any = None
@@ -86,7 +89,7 @@ class Rig:
         )
 
     def start_service(self, config_path: Path | None = None) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.service_env)
         self.service = subprocess.Popen(
             [
                 sys.executable,
@@ -154,6 +157,27 @@ class Rig:
     def log(self) -> str:
         path = self.tmp / "service.log"
         return path.read_text(errors="replace")[-4000:] if path.exists() else ""
+
+    def wait_exit(self, timeout_s: float) -> int:
+        """Wait for the service to end its mission and exit by itself."""
+        assert self.service is not None
+        try:
+            return self.service.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired as exc:
+            msg = f"service still running after {timeout_s} s:\n{self.log()}"
+            raise AssertionError(msg) from exc
+
+    def groundtruth(self) -> dict[str, list[float]]:
+        import csv
+
+        with (self.tmp / "groundtruth.csv").open() as fh:
+            rows = list(csv.reader(fh))
+        cols: dict[str, list[float]] = {name: [] for name in rows[0]}
+        for row in rows[1:]:
+            if len(row) == len(rows[0]):
+                for name, value in zip(rows[0], row, strict=True):
+                    cols[name].append(float(value))
+        return cols
 
     def stats(self) -> dict[str, Any]:
         data: dict[str, Any] = json.loads((self.tmp / "stats.json").read_text())
