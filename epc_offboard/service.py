@@ -440,6 +440,10 @@ class Service:
             start = self.clock.now_s()
             wall0 = time.perf_counter()
             state = self.tracker.snapshot()
+            if self.clock.vehicle_time:
+                # lockstep: the answer releases the simulator's next tick, so it goes last,
+                # after whatever the other tasks woken at this tick send (commands)
+                await asyncio.sleep(0)
             if self.outputs.stream_setpoints and state is not None and self._autopilot_positions:
                 self._send_position_target(state, start)
             elif self.outputs.stream_setpoints and state is not None:

@@ -4,10 +4,10 @@ Pure logic and numerics: commands and setpoints come in as method calls stamped 
 time, ``update`` turns the vehicle state into rotor speed commands. No sockets, no MAVLink.
 
 Cascade (each loop's gains are accelerations per unit error, so they are mass-independent):
-position PID -> desired acceleration -> thrust vector + yaw -> attitude quaternion (thesis 3.13,
-without the small-angle linearisation) -> attitude P on the quaternion error -> body rates ->
-rate PI -> torques -> inverse effectiveness (the x-layout generalisation of thesis 3.11) ->
-rotor forces -> rotor speeds.
+position P -> velocity PI -> desired acceleration -> thrust vector + yaw -> attitude
+quaternion (thesis 3.13, without the small-angle linearisation) -> attitude P on the
+quaternion error -> body rates -> rate PI -> torques -> inverse effectiveness (the x-layout
+generalisation of thesis 3.11) -> rotor forces -> rotor speeds.
 
 Thrust normalisation (SET_ATTITUDE_TARGET): ``thrust_norm * 4 k_F w_max^2`` is the collective
 rotor force; 0.52 hovers the default vehicle.
@@ -78,7 +78,8 @@ IGNORE_PITCH_RATE = 2
 IGNORE_YAW_RATE = 4
 IGNORE_THRUST = 64
 IGNORE_ATTITUDE = 128
-FORCE_DISARM_MAGIC = 21196  # PX4's param2 that forces a disarm in the air
+FORCE_DISARM_MAGIC = 21196
+_MAX_INTEGRAL_ACC_M_S2 = 5.0  # PX4's param2 that forces a disarm in the air
 
 
 @dataclass(frozen=True)
@@ -93,11 +94,13 @@ class AttitudeSetpoint:
 
 @dataclass(frozen=True)
 class PositionSetpoint:
-    """An offboard SET_POSITION_TARGET_LOCAL_NED: position and/or velocity, yaw (None = ignore)."""
+    """An offboard SET_POSITION_TARGET_LOCAL_NED: position, velocity, acceleration feedforward
+    and yaw, each None when ignored."""
 
     pos_ned_m: tuple[float, float, float] | None
     vel_ned_m_s: tuple[float, float, float] | None
     yaw_rad: float | None
+    acc_ned_m_s2: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -157,7 +160,12 @@ class Autopilot:
         self.vehicle = vehicle
         self.params = params
         self.mode = HOLD
+        # PX4's "user intended mode": a failsafe changes ``mode`` but not this; once the
+        # failsafe clears (setpoints stream again) PX4 returns to it, armed or not
+        self.intended_mode = HOLD
         self.armed = False
+        self.status_text: str | None = None  # why the last command was refused
+        self._arm_refusals_left = params.arm_refusals_after_boot
         self.landed_state = LandedState.ON_GROUND
         self.failsafe_count = 0
         self._arm_time_s = 0.0
@@ -170,7 +178,7 @@ class Autopilot:
         self._setpoint_times_s: deque[float] = deque(maxlen=64)
         self._att_sp: AttitudeSetpoint | None = None
         self._pos_sp: PositionSetpoint | None = None
-        self._pos_integral = np.zeros(3)
+        self._vel_integral = np.zeros(3)
         self._rate_integral = np.zeros(3)
         self._inertia = np.asarray(vehicle.inertia_diag_kg_m2)
         self._rate_p = np.asarray(params.rate_p_1_s)
@@ -191,7 +199,10 @@ class Autopilot:
         landed = self.landed_state == LandedState.ON_GROUND
         if arm:
             if not landed:
-                return Result.DENIED
+                return self._refuse("Arming denied: not landed")
+            if self._arm_refusals_left > 0:
+                self._arm_refusals_left -= 1
+                return self._refuse("Arming denied: no heading reference")
             self.armed = True
             self._arm_time_s = t_s
             self._has_flown = False
@@ -202,42 +213,52 @@ class Autopilot:
         self._disarm()
         return Result.ACCEPTED
 
+    def _refuse(self, why: str) -> Result:
+        self.status_text = why
+        return Result.DENIED
+
     def set_mode(self, mode: Mode, t_s: float) -> Result:
         if mode not in SETTABLE_MODES:
             return Result.UNSUPPORTED
         if mode == self.mode:
+            self.intended_mode = mode
             return Result.ACCEPTED
         if mode == OFFBOARD:
             if not self.offboard_stream_ok(t_s):
-                return Result.DENIED
+                return self._refuse("Switching to Offboard is currently not available")
         elif mode == TAKEOFF:
             return self.takeoff(None, t_s)
         elif mode == LAND:
             return self.land(t_s)
         else:
             self._capture_hold()
-        self.mode = mode
+        self.mode = self.intended_mode = mode
         return Result.ACCEPTED
 
-    def takeoff(self, altitude_m: float | None, t_s: float) -> Result:
-        """Climb to ``altitude_m`` above home (default from config), then hold there."""
+    def takeoff(self, altitude_above_home_m: float | None, t_s: float) -> Result:
+        """Climb to ``altitude_above_home_m``, then hold there.
+
+        As PX4: with no altitude (NaN) the target is the CURRENT altitude + MIS_TAKEOFF_ALT,
+        every time a takeoff is accepted, in the air as well; a repeated takeoff climbs on.
+        """
         if not self.armed:
-            return Result.DENIED
-        alt = self.params.takeoff_altitude_m if altitude_m is None else altitude_m
-        if not math.isfinite(alt) or alt <= 0.0:
-            alt = self.params.takeoff_altitude_m
+            return self._refuse("Takeoff denied: disarmed")
         pos = self._current_pos()
-        self._takeoff_target_d_m = -alt
+        if altitude_above_home_m is None or not math.isfinite(altitude_above_home_m):
+            self._takeoff_target_d_m = float(pos[2]) - self.params.takeoff_altitude_m
+        else:
+            # never a descent: PX4 says "Already higher than takeoff altitude" and stays
+            self._takeoff_target_d_m = min(-altitude_above_home_m, float(pos[2]))
         self._ref_pos_ned_m = pos.copy()
         self._hold_yaw_rad = self._current_yaw()
-        self.mode = TAKEOFF
+        self.mode = self.intended_mode = TAKEOFF
         return Result.ACCEPTED
 
     def land(self, t_s: float) -> Result:
         if not self.armed:
-            return Result.DENIED
+            return self._refuse("Landing denied: disarmed")
         self._capture_hold()
-        self.mode = LAND
+        self.mode = self.intended_mode = LAND
         return Result.ACCEPTED
 
     def on_attitude_setpoint(self, sp: AttitudeSetpoint, t_s: float) -> None:
@@ -263,8 +284,9 @@ class Autopilot:
         if not times:
             return False
         age_s = t_s - times[-1]
-        return age_s <= min(1.0 / self.params.offboard_min_rate_hz,
-                            self.params.offboard_loss_timeout_s)
+        return age_s <= min(
+            1.0 / self.params.offboard_min_rate_hz, self.params.offboard_loss_timeout_s
+        )
 
     # ---- the periodic update --------------------------------------------------------------
 
@@ -275,6 +297,7 @@ class Autopilot:
         """
         self._last_state = x
         self._supervise(x, t_s)
+        self._return_to_intended(t_s)
         q = x[QUAT]
         if not self.armed:
             self._idle_speed_rad_s = 0.0
@@ -288,7 +311,9 @@ class Autopilot:
             return
         else:
             pos_ref, vel_ref, yaw_ref = self._position_reference(x, dt_s)
-            q_cmd, thrust_norm = self._position_control(x, pos_ref, vel_ref, yaw_ref, dt_s)
+            q_cmd, thrust_norm = self._position_control(
+                x, pos_ref, vel_ref, yaw_ref, dt_s, self._acc_feedforward()
+            )
             rate_cmd = self._attitude_control(q, q_cmd)
         if on_ground(x):
             self._reset_integrators()
@@ -350,7 +375,17 @@ class Autopilot:
             self._hold_pos_ned_m = np.array(
                 [self._ref_pos_ned_m[0], self._ref_pos_ned_m[1], self._takeoff_target_d_m]
             )
-            self.mode = HOLD
+            self.mode = self.intended_mode = HOLD
+
+    def _return_to_intended(self, t_s: float) -> None:
+        """The failsafe clears when setpoints stream again: back to Offboard, armed or not
+        (PX4 does this even after an auto-land has disarmed the vehicle)."""
+        if (
+            self.intended_mode == OFFBOARD
+            and self.mode != OFFBOARD
+            and self.offboard_stream_ok(t_s)
+        ):
+            self.mode = OFFBOARD
 
     def _disarm(self) -> None:
         self.armed = False
@@ -365,7 +400,7 @@ class Autopilot:
     def _capture_hold(self) -> None:
         self._hold_pos_ned_m = self._current_pos()
         self._hold_yaw_rad = self._current_yaw()
-        self._pos_integral[:] = 0.0
+        self._vel_integral[:] = 0.0
 
     def _current_pos(self) -> FloatArray:
         return np.zeros(3) if self._last_state is None else self._last_state[POS].copy()
@@ -374,7 +409,7 @@ class Autopilot:
         return 0.0 if self._last_state is None else quat_to_euler(self._last_state[QUAT])[2]
 
     def _reset_integrators(self) -> None:
-        self._pos_integral[:] = 0.0
+        self._vel_integral[:] = 0.0
         self._rate_integral[:] = 0.0
 
     # ---- controllers ----------------------------------------------------------------------
@@ -402,20 +437,36 @@ class Autopilot:
             return pos, vel, yaw
         return self._hold_pos_ned_m.copy(), zero, self._hold_yaw_rad
 
+    def _acc_feedforward(self) -> FloatArray:
+        sp = self._pos_sp
+        if self.mode != OFFBOARD or sp is None or sp.acc_ned_m_s2 is None:
+            return np.zeros(3)
+        return np.asarray(sp.acc_ned_m_s2, dtype=np.float64)
+
     def _position_control(
-        self, x: FloatArray, pos_ref: FloatArray, vel_ref: FloatArray, yaw_ref: float, dt_s: float
+        self,
+        x: FloatArray,
+        pos_ref: FloatArray,
+        vel_ref: FloatArray,
+        yaw_ref: float,
+        dt_s: float,
+        acc_ff: FloatArray,
     ) -> tuple[FloatArray, float]:
-        """PID on position -> acceleration -> (attitude quaternion, normalised thrust)."""
+        """PX4's cascade: P on position, PI on velocity, plus acceleration feedforward ->
+        acceleration -> (attitude quaternion, normalised thrust)."""
         p = self.params
-        err = pos_ref - x[POS]
-        # Integrate a clipped error: a large step must not wind the integrator up (overshoot),
-        # yet any steady offset (wind) is still trimmed out.
-        self._pos_integral = np.clip(self._pos_integral + np.clip(err, -0.3, 0.3) * dt_s, -2.0, 2.0)
-        acc = (
-            np.asarray(p.position_p_1_s2) * err
-            + np.asarray(p.velocity_d_1_s) * (vel_ref - x[VEL])
-            + np.asarray(p.position_i_1_s3) * self._pos_integral
+        # position P -> velocity setpoint (+ feedforward) -> velocity PI -> acceleration
+        vel_sp = vel_ref + np.asarray(p.position_p_1_s) * (pos_ref - x[POS])
+        vmax = np.asarray(p.max_speed_m_s)
+        vel_err = np.clip(vel_sp, -vmax, vmax) - x[VEL]
+        i_gain = np.asarray(p.velocity_i_1_s2)
+        # the integral's share is bounded in acceleration (anti-windup)
+        self._vel_integral = np.clip(
+            self._vel_integral + vel_err * dt_s,
+            -_MAX_INTEGRAL_ACC_M_S2 / i_gain,
+            _MAX_INTEGRAL_ACC_M_S2 / i_gain,
         )
+        acc = acc_ff + np.asarray(p.velocity_p_1_s) * vel_err + i_gain * self._vel_integral
         # Specific force the rotors must produce (NED): f = a - g.
         f = acc - np.array([0.0, 0.0, GRAVITY_M_S2])
         f[2] = min(f[2], -0.2 * GRAVITY_M_S2)  # never command thrust pointing down

@@ -48,8 +48,20 @@ STREAMS: dict[str, int] = {
     "attitude_quaternion_hz": mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
     "local_position_ned_hz": mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
     "odometry_hz": mavlink.MAVLINK_MSG_ID_ODOMETRY,
+    "global_position_int_hz": mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    "home_position_hz": mavlink.MAVLINK_MSG_ID_HOME_POSITION,
     "attitude_target_hz": mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET,
 }
+# The state a controller runs on: their stamps are what a lockstep answer must reach.
+STATE_STREAMS = frozenset(
+    {
+        mavlink.MAVLINK_MSG_ID_ATTITUDE,
+        mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
+        mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+        mavlink.MAVLINK_MSG_ID_ODOMETRY,
+    }
+)
+EARTH_RADIUS_M = 6_371_000.0
 
 _CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
@@ -91,6 +103,14 @@ class _Capture:
         self.data = bytes(buf)
 
 
+@dataclass(frozen=True)
+class _Sample:
+    """One tick's published estimate and its time: ODOMETRY reports the previous one."""
+
+    time_us: int
+    estimate: StateEstimate
+
+
 def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
@@ -105,13 +125,16 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         telemetry_dests: list[Address],
         counters: Counters,
         signing_key: bytes | None = None,
-        on_attitude_setpoint: Callable[[int], None] | None = None,
+        on_answer: Callable[[int], None] | None = None,
     ) -> None:
         self.sim = sim
         self.sysid = sysid
         self.dests = list(telemetry_dests)
         self.counters = counters
-        self.on_attitude_setpoint = on_attitude_setpoint
+        # a lockstep answer: the time_boot_ms a controller's setpoint (or SYSTEM_TIME) carries
+        self.on_answer = on_answer
+        self.newest_state_stamp_ms = -1  # of the state messages sent so far
+        self._previous: _Sample | None = None
         self.transport: asyncio.DatagramTransport | None = None
         self._sink = _Capture()
         self.mav = mavlink.MAVLink(self._sink, srcSystem=sysid, srcComponent=1)
@@ -137,6 +160,8 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self._attitude_quaternion,
             mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position_ned,
             mavlink.MAVLINK_MSG_ID_ODOMETRY: self._odometry,
+            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position_int,
+            mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
             mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: self._attitude_target,
             mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
         }
@@ -148,6 +173,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             "SET_ATTITUDE_TARGET": self._on_set_attitude_target,
             "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target,
             "TIMESYNC": self._on_timesync,
+            "SYSTEM_TIME": self._on_system_time,
             "PARAM_REQUEST_LIST": self._on_param_request,
             "PARAM_REQUEST_READ": self._on_param_request,
             "PARAM_SET": self._on_param_request,
@@ -191,27 +217,64 @@ class SitlEndpoint(asyncio.DatagramProtocol):
 
     # ---- outgoing ---------------------------------------------------------------------------
 
-    def send(self, msg: Any, extra: Address | None = None) -> None:
-        """Pack ``msg`` once and send it to every telemetry destination (and ``extra``)."""
-        if self.transport is None:
-            return
+    def _pack(self, msg: Any) -> bytes:
         self.mav.send(msg)
-        data = self._sink.data
+        return self._sink.data
+
+    def _send_bytes(self, data: bytes, extra: Address | None = None) -> None:
+        if self.transport is None or not data:
+            return
         for dest in self.dests:
             self.transport.sendto(data, dest)
         if extra is not None and extra not in self.dests:
             self.transport.sendto(data, extra)
 
+    def send(self, msg: Any, extra: Address | None = None) -> None:
+        """Pack ``msg`` once and send it to every telemetry destination (and ``extra``)."""
+        self._send_bytes(self._pack(msg), extra)
+
     def emit(self) -> None:
-        """Send every stream due at the current vehicle time (call once per tick)."""
+        """Send every stream due at the current vehicle time (call once per tick).
+
+        A tick's messages travel in one datagram, as PX4 bundles its streams: a controller
+        decodes the whole tick before it answers, so a lockstep run does not depend on how
+        the scheduler interleaves datagrams.
+        """
+        previous = self._previous
         self._estimate = self.sim.estimate()
         now_us = self.sim.time_us
+        self._previous = _Sample(now_us, self._estimate)
+        batch = bytearray()
         for msg_id, interval in self._interval_us.items():
             if interval <= 0 or now_us < self._next_due_us[msg_id]:
                 continue
             due = self._next_due_us[msg_id] + interval
             self._next_due_us[msg_id] = due if due > now_us else now_us + interval
-            self.send(self._builders[msg_id]())
+            if msg_id == mavlink.MAVLINK_MSG_ID_ODOMETRY:
+                # the estimator's sample time, a tick behind the attitude's (as PX4's)
+                sample = previous or self._previous
+                batch += self._pack(self._odometry(sample))
+                stamp_ms = sample.time_us // 1000
+            else:
+                batch += self._pack(self._builders[msg_id]())
+                stamp_ms = self.sim.time_ms
+            if msg_id in STATE_STREAMS:
+                self.newest_state_stamp_ms = max(self.newest_state_stamp_ms, stamp_ms)
+        self._send_bytes(bytes(batch))
+
+    def announce(self) -> None:
+        """While lockstep waits for a controller to join: the heartbeat and state of the
+        current tick again (same stamps, no new noise), so a controller that starts later
+        finds the vehicle and can answer."""
+        batch = bytearray(self._pack(self._heartbeat()))
+        for msg_id, interval in self._interval_us.items():
+            if interval > 0 and msg_id in STATE_STREAMS:
+                batch += self._pack(
+                    self._odometry(self._previous)
+                    if msg_id == mavlink.MAVLINK_MSG_ID_ODOMETRY
+                    else self._builders[msg_id]()
+                )
+        self._send_bytes(bytes(batch))
 
     # ---- incoming ---------------------------------------------------------------------------
 
@@ -251,10 +314,17 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             ]
         else:  # COMMAND_INT: x, y are scaled integers; only param1-4 and z are used here
             params = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y, msg.z]
+        self.sim.autopilot.status_text = None
         try:
             result, follow_up = self._command_result(msg.command, params)
         except (ValueError, OverflowError):  # NaN or inf where an integer is meant
             result, follow_up = Result.DENIED, None
+        why = self.sim.autopilot.status_text
+        if why is not None:  # PX4 says why it refused, as STATUSTEXT (and an EVENT)
+            self.send(
+                self.mav.statustext_encode(mavlink.MAV_SEVERITY_CRITICAL, why.encode()[:50]),
+                extra=addr,
+            )
         self.send(
             self.mav.command_ack_encode(
                 msg.command, int(result), 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
@@ -276,7 +346,9 @@ class SitlEndpoint(asyncio.DatagramProtocol):
                 return Result.UNSUPPORTED, None
             return ap.set_mode(Mode(int(p[1]), int(p[2])), t), None
         if command == mavlink.MAV_CMD_NAV_TAKEOFF:
-            return ap.takeoff(p[6] if math.isfinite(p[6]) else None, t), None
+            # param7 / COMMAND_INT z: the target altitude AMSL; NaN: PX4's default altitude
+            home_amsl = self.sim.config.sitl.home_amsl_m
+            return ap.takeoff(p[6] - home_amsl if math.isfinite(p[6]) else None, t), None
         if command == mavlink.MAV_CMD_NAV_LAND:
             return ap.land(t), None
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -336,8 +408,15 @@ class SitlEndpoint(asyncio.DatagramProtocol):
                 thrust_norm=min(1.0, max(0.0, thrust)),
             )
             self.sim.autopilot.on_attitude_setpoint(sp, self.sim.time_s)
-        if self.on_attitude_setpoint is not None:
-            self.on_attitude_setpoint(msg.time_boot_ms)
+        self._answered(msg.time_boot_ms)
+
+    def _answered(self, time_boot_ms: int) -> None:
+        if self.on_answer is not None:
+            self.on_answer(time_boot_ms)
+
+    def _on_system_time(self, msg: Any, addr: Address) -> None:
+        """A controller with nothing to command answers a lockstep tick with SYSTEM_TIME."""
+        self._answered(msg.time_boot_ms)
 
     def _on_set_position_target(self, msg: Any, addr: Address) -> None:
         self.counters.setpoints += 1
@@ -349,10 +428,15 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         vel = None if mask & 0b111000 else (msg.vx, msg.vy, msg.vz)
         yaw = None if mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE else msg.yaw
         used = [*(pos or ()), *(vel or ()), *([] if yaw is None else [yaw])]
+        acc = None if mask & 0b111000000 else (msg.afx, msg.afy, msg.afz)
+        used = [*used, *(acc or ())]
         if not used or not _finite(*used):
             self.counters.nan_setpoints += 1
-            return
-        self.sim.autopilot.on_position_setpoint(PositionSetpoint(pos, vel, yaw), self.sim.time_s)
+        else:
+            self.sim.autopilot.on_position_setpoint(
+                PositionSetpoint(pos, vel, yaw, acc), self.sim.time_s
+            )
+        self._answered(msg.time_boot_ms)
 
     def _on_timesync(self, msg: Any, addr: Address) -> None:
         if msg.tc1 == 0:
@@ -448,13 +532,54 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         e = self._est()
         return self.mav.local_position_ned_encode(self.sim.time_ms, *e.pos_ned_m, *e.vel_ned_m_s)
 
-    def _odometry(self) -> Any:
+    def _global_position_int(self) -> Any:
         e = self._est()
+        lat_deg, lon_deg = self._geodetic(e.pos_ned_m)
+        cfg = self.sim.config.sitl
+        down_m = float(e.pos_ned_m[2])
+        yaw_deg = math.degrees(quat_to_euler(e.q_wxyz)[2]) % 360.0
+        vn, ve, vd = (round(float(v) * 100.0) for v in e.vel_ned_m_s)
+        return self.mav.global_position_int_encode(
+            self.sim.time_ms,
+            round(lat_deg * 1e7),
+            round(lon_deg * 1e7),
+            round((cfg.home_amsl_m - down_m) * 1e3),
+            round(-down_m * 1e3),
+            vn,
+            ve,
+            vd,
+            round(yaw_deg * 100.0) % 36000,
+        )
+
+    def _home_position(self) -> Any:
+        cfg = self.sim.config.sitl
+        return self.mav.home_position_encode(
+            round(cfg.home_lat_deg * 1e7),
+            round(cfg.home_lon_deg * 1e7),
+            round(cfg.home_amsl_m * 1e3),
+            0.0, 0.0, 0.0,
+            [1.0, 0.0, 0.0, 0.0],
+            0.0, 0.0, 0.0,
+            self.sim.time_us,
+        )  # fmt: skip
+
+    def _geodetic(self, pos_ned_m: np.ndarray) -> tuple[float, float]:
+        """Latitude and longitude (deg) of a local NED position: flat Earth about home."""
+        cfg = self.sim.config.sitl
+        lat = cfg.home_lat_deg + math.degrees(float(pos_ned_m[0]) / EARTH_RADIUS_M)
+        cos_lat = math.cos(math.radians(cfg.home_lat_deg))
+        lon = cfg.home_lon_deg + math.degrees(float(pos_ned_m[1]) / (EARTH_RADIUS_M * cos_lat))
+        return lat, lon
+
+    def _odometry(self, sample: _Sample | None = None) -> Any:
+        if sample is None:  # asked for (REQUEST_MESSAGE): the newest
+            sample = _Sample(self.sim.time_us, self._est())
+        e = sample.estimate
         # PX4 sends ODOMETRY velocity in the child frame (body FRD).
         vel_frd = quat_to_rotation(e.q_wxyz).T @ e.vel_ned_m_s
         unknown_cov = [math.nan] + [0.0] * 20
         return self.mav.odometry_encode(
-            self.sim.time_us,
+            sample.time_us,
             mavlink.MAV_FRAME_LOCAL_NED,
             mavlink.MAV_FRAME_BODY_FRD,
             *e.pos_ned_m,

@@ -2,16 +2,23 @@
 
 Lockstep protocol (the service implements the other side):
 
-1. advance physics one tick (``lockstep_period_s``), emit the telemetry due at that vehicle time;
-2. wait until a SET_ATTITUDE_TARGET arrives whose ``time_boot_ms`` is >= the current vehicle
-   time in ms (the controller stamps each setpoint with the newest state it used), or until
-   ``lockstep_timeout_s`` of wall time passes: then advance anyway and count a timeout.
+1. advance physics one tick (``lockstep_period_s``) and send the telemetry due at that vehicle
+   time, in one datagram;
+2. wait for the controller's answer to the newest state it was sent: a SET_ATTITUDE_TARGET,
+   SET_POSITION_TARGET_LOCAL_NED or SYSTEM_TIME whose ``time_boot_ms`` reaches the newest
+   state stamp sent (ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY). A tick
+   that sent no new state needs no new answer.
 
-Until the first SET_ATTITUDE_TARGET, and again after ``lockstep_max_timeouts`` consecutive
-timeouts, the clock runs at real-time pace (times ``speedup``) so that a vehicle with no
-controller attached behaves normally; the next setpoint puts it back into waiting mode.
-A peer that sends commands along with its setpoint must send the setpoint last: datagrams are
-handled in arrival order, and the setpoint is what releases the tick.
+Physics never advances without that answer, however slow the controller is, so two runs
+with the same seed and commands are identical. Before the first answer the clock holds at
+its first tick and announces the vehicle (a heartbeat and the tick's telemetry, every
+``ANNOUNCE_PERIOD_S``) until a controller joins. Only a controller that has gone (no answer
+for ``lockstep_timeout_s``, ``lockstep_max_timeouts`` times in a row) lets the clock fall back
+to real-time pace (times ``speedup``); each timeout is counted and reported, and the next
+answer puts the clock back into lockstep.
+
+A peer that sends commands along with its answer must send the answer last: datagrams are
+handled in arrival order, and the answer is what releases the tick.
 """
 
 from __future__ import annotations
@@ -21,13 +28,16 @@ import contextlib
 import time
 from collections.abc import Callable
 
+ANNOUNCE_PERIOD_S = 0.5
+
 
 class LockstepGate:
-    """Tracks the newest setpoint stamp and whether the clock must wait for the controller."""
+    """Tracks the newest answer stamp and whether the clock must wait for the controller."""
 
     def __init__(self, enabled: bool, timeout_s: float, max_timeouts: int) -> None:
         self.enabled = enabled
-        self.waiting = False
+        self.joined = False  # a controller has answered at least once
+        self.waiting = enabled  # lockstep holds from the first tick
         self.timeout_s = timeout_s
         self.max_timeouts = max_timeouts
         self.newest_stamp_ms = -1
@@ -35,16 +45,27 @@ class LockstepGate:
         self._consecutive_timeouts = 0
         self._event = asyncio.Event()
 
-    def on_setpoint(self, time_boot_ms: int) -> None:
+    def on_answer(self, time_boot_ms: int) -> None:
         self.newest_stamp_ms = max(self.newest_stamp_ms, time_boot_ms)
         if self.enabled:
             self.waiting = True
+            self.joined = True
         self._event.set()
 
-    async def wait_for(self, now_ms: int) -> None:
-        """Return once a setpoint stamped >= ``now_ms`` arrived, or after the timeout."""
+    async def _event_or(self, timeout_s: float) -> None:
+        self._event.clear()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._event.wait(), timeout_s)
+
+    async def wait_for(
+        self, stamp_ms: int, announce: Callable[[], None], stop: asyncio.Event
+    ) -> None:
+        """Return once an answer stamped >= ``stamp_ms`` arrived (or the controller is gone)."""
+        while not self.joined and not stop.is_set():
+            announce()
+            await self._event_or(ANNOUNCE_PERIOD_S)
         deadline = time.monotonic() + self.timeout_s
-        while self.newest_stamp_ms < now_ms:
+        while self.newest_stamp_ms < stamp_ms and not stop.is_set():
             remaining = deadline - time.monotonic()
             if remaining <= 0.0:
                 self.timeouts += 1
@@ -53,9 +74,7 @@ class LockstepGate:
                     self.waiting = False
                     self._consecutive_timeouts = 0
                 return
-            self._event.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._event.wait(), remaining)
+            await self._event_or(remaining)
         self._consecutive_timeouts = 0
 
 
@@ -67,12 +86,14 @@ class Clock:
         gate: LockstepGate,
         period_s: float,
         speedup: float,
-        now_ms: Callable[[], int],
+        answer_due_ms: Callable[[], int],
+        announce: Callable[[], None] = lambda: None,
     ) -> None:
         self.gate = gate
         self.period_s = period_s
         self.speedup = speedup
-        self._now_ms = now_ms
+        self._answer_due_ms = answer_due_ms
+        self._announce = announce
 
     async def run(
         self, tick: Callable[[], None], stop: asyncio.Event, duration_s: float | None
@@ -86,8 +107,8 @@ class Clock:
             tick()
             ticks += 1
             if self.gate.waiting:
-                await self.gate.wait_for(self._now_ms())
-                # A setpoint stamped in the future releases ticks without waiting; still let
+                await self.gate.wait_for(self._answer_due_ms(), self._announce, stop)
+                # An answer stamped in the future releases ticks without waiting; still let
                 # the loop read datagrams and signals between ticks.
                 await asyncio.sleep(0)
                 anchor_wall, anchor_ticks = time.monotonic(), ticks

@@ -18,7 +18,7 @@ from epc_offboard.configio import ConfigError
 from sitl.endpoint import Counters, SitlEndpoint
 from sitl.groundtruth import GroundTruthWriter
 from sitl.lockstep import Clock, LockstepGate
-from sitl.params import DEFAULT_VEHICLE_FILE, load_sim_config
+from sitl.params import AUTOPILOTS, DEFAULT_VEHICLE_FILE, load_sim_config
 from sitl.simulation import Simulation
 
 HOST = "127.0.0.1"
@@ -44,6 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
     arg = ap.add_argument
     arg("--instance", type=int, default=0, metavar="I", help="system id I+1, ports +I")
     arg("--lockstep", action="store_true", help="advance only when the controller answered")
+    arg(
+        "--autopilot",
+        choices=sorted(AUTOPILOTS),
+        help="the autopilot personality (default: sitl.autopilot of the config, px4)",
+    )
     arg("--wind", type=_wind, metavar="SPEED_M_S,DIR_DEG", help="towards, CCW from east")
     arg("--seed", type=int, default=0, metavar="S", help="seeds gusts and estimate noise")
     arg("--config", type=Path, default=DEFAULT_VEHICLE_FILE, metavar="FILE", help="vehicle TOML")
@@ -64,6 +69,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     sitl: dict[str, Any] = {}
     if args.wind is not None:
         out["environment"] = {"wind_speed_m_s": args.wind[0], "wind_dir_deg": args.wind[1]}
+    if args.autopilot is not None:
+        sitl["autopilot"] = args.autopilot
     if args.lockstep_period_ms is not None:
         sitl["lockstep_period_s"] = args.lockstep_period_ms / 1000.0
     if args.lockstep_timeout_ms is not None:
@@ -105,10 +112,6 @@ async def run(args: argparse.Namespace) -> Counters:
     gate = LockstepGate(
         args.lockstep, config.sitl.lockstep_timeout_s, config.sitl.lockstep_max_timeouts
     )
-    if args.lockstep and config.sitl.telemetry.attitude_hz * config.sitl.lockstep_period_s < 1:
-        # The controller stamps its answer with the newest state it saw; if no ATTITUDE is
-        # sent on a tick, no answer can match that tick and lockstep degrades to timeouts.
-        print("epc-sitl: warning: ATTITUDE is slower than the lockstep tick", file=sys.stderr)
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -119,7 +122,7 @@ async def run(args: argparse.Namespace) -> Counters:
             writer = GroundTruthWriter(args.groundtruth, config.sitl.groundtruth_flush_s)
             resources.callback(writer.close)
         transport, endpoint = await loop.create_datagram_endpoint(
-            lambda: SitlEndpoint(sim, sysid, dests, counters, key, gate.on_setpoint),
+            lambda: SitlEndpoint(sim, sysid, dests, counters, key, gate.on_answer),
             local_addr=(HOST, listen_port),
         )
         resources.callback(transport.close)
@@ -136,7 +139,13 @@ async def run(args: argparse.Namespace) -> Counters:
             f"telemetry -> {', '.join(f'{h}:{p}' for h, p in dests) or 'none'}",
             flush=True,
         )
-        clock = Clock(gate, config.sitl.lockstep_period_s, args.speedup, lambda: sim.time_ms)
+        clock = Clock(
+            gate,
+            config.sitl.lockstep_period_s,
+            args.speedup,
+            answer_due_ms=lambda: endpoint.newest_state_stamp_ms,
+            announce=endpoint.announce,
+        )
         await clock.run(tick, stop, args.duration)
     counters.lockstep_timeouts = gate.timeouts
     counters.offboard_failsafes = sim.autopilot.failsafe_count

@@ -16,6 +16,8 @@ from typing import Any
 from epc_offboard.configio import load_config
 from epc_offboard.frames import GRAVITY_M_S2
 
+AUTOPILOTS = frozenset({"px4"})  # SITL personalities
+
 # The packaged default vehicle: config/ sits beside sitl/ in the distribution's source tree.
 DEFAULT_VEHICLE_FILE = (
     Path(__file__).resolve().parent.parent / "config" / "vehicles" / "quad_x_1500g.toml"
@@ -131,17 +133,22 @@ class AutopilotParams:
     rate_i_1_s2: tuple[float, float, float] = (10.0, 10.0, 5.0)
     attitude_p_1_s: tuple[float, float, float] = (7.0, 7.0, 3.0)
     rate_max_rad_s: tuple[float, float, float] = (4.0, 4.0, 2.0)
-    position_p_1_s2: tuple[float, float, float] = (1.5, 1.5, 3.0)
-    velocity_d_1_s: tuple[float, float, float] = (2.2, 2.2, 3.0)
-    position_i_1_s3: tuple[float, float, float] = (0.3, 0.3, 0.5)
+    # PX4's position cascade and its defaults: MPC_XY_P / MPC_Z_P, MPC_*_VEL_P_ACC,
+    # MPC_*_VEL_I_ACC (the velocity integrator is what trims out wind)
+    position_p_1_s: tuple[float, float, float] = (0.95, 0.95, 1.0)
+    velocity_p_1_s: tuple[float, float, float] = (1.8, 1.8, 4.0)
+    velocity_i_1_s2: tuple[float, float, float] = (0.4, 0.4, 2.0)
+    max_speed_m_s: tuple[float, float, float] = (12.0, 12.0, 3.0)  # MPC_XY_VEL_MAX, Z
     tilt_max_deg: float = 35.0
     takeoff_altitude_m: float = 2.5
     climb_speed_m_s: float = 1.5
     land_speed_m_s: float = 0.7
-    offboard_loss_timeout_s: float = 0.5
+    offboard_loss_timeout_s: float = 1.0  # PX4's COM_OF_LOSS_T
     offboard_min_rate_hz: float = 2.0  # entry needs a setpoint stream above this rate
     disarm_preflight_s: float = 10.0  # armed on the ground without taking off
     disarm_after_land_s: float = 2.0
+    # PX4 refuses the first arming right after boot ("no heading reference"); a retry succeeds
+    arm_refusals_after_boot: int = 1
 
     def __post_init__(self) -> None:
         _positive(
@@ -154,6 +161,8 @@ class AutopilotParams:
             disarm_preflight_s=self.disarm_preflight_s,
             disarm_after_land_s=self.disarm_after_land_s,
         )
+        if self.arm_refusals_after_boot < 0:
+            raise ValueError("arm_refusals_after_boot must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -176,15 +185,20 @@ class NoiseParams:
 
 @dataclass(frozen=True)
 class TelemetryRates:
-    """Default stream rates (Hz, 0 = off); SET_MESSAGE_INTERVAL changes them at run time."""
+    """Default stream rates (Hz, 0 = off); SET_MESSAGE_INTERVAL changes them at run time.
+
+    The defaults are PX4's on its onboard link: the 100/200 Hz loops must ask for more.
+    """
 
     heartbeat_hz: float = 1.0
     sys_status_hz: float = 5.0
     extended_sys_state_hz: float = 5.0
-    attitude_hz: float = 200.0
-    attitude_quaternion_hz: float = 200.0
-    local_position_ned_hz: float = 100.0
-    odometry_hz: float = 100.0
+    attitude_hz: float = 100.0
+    attitude_quaternion_hz: float = 50.0
+    local_position_ned_hz: float = 30.0
+    odometry_hz: float = 30.0
+    global_position_int_hz: float = 50.0
+    home_position_hz: float = 0.5
     attitude_target_hz: float = 50.0
 
     def __post_init__(self) -> None:
@@ -198,8 +212,15 @@ class SitlParams:
 
     physics_rate_hz: float = 1000.0
     lockstep_period_s: float = 0.005
-    lockstep_timeout_s: float = 0.25
-    lockstep_max_timeouts: int = 20  # consecutive timeouts before falling back to real time
+    # Lockstep waits this long (wall clock) for the controller's answer to a tick; it is a
+    # last resort (a controller gone), counted and reported, never part of a normal run.
+    lockstep_timeout_s: float = 2.0
+    lockstep_max_timeouts: int = 3  # consecutive timeouts before falling back to real time
+    autopilot: str = "px4"  # the personality: what the autopilot does and says
+    # Home: where local NED's origin sits on the globe (PX4 SITL's default, Zurich)
+    home_lat_deg: float = 47.397742
+    home_lon_deg: float = 8.545594
+    home_amsl_m: float = 488.0
     groundtruth_flush_s: float = 1.0  # wall clock
     allowed_source_sysids: tuple[int, ...] = ()  # empty: any
     telemetry: TelemetryRates = field(default_factory=TelemetryRates)
@@ -214,6 +235,11 @@ class SitlParams:
         )
         if self.physics_rate_hz < 500.0:
             raise ValueError(f"physics_rate_hz must be >= 500, got {self.physics_rate_hz}")
+        if self.autopilot not in AUTOPILOTS:
+            known = ", ".join(sorted(AUTOPILOTS))
+            raise ValueError(f"autopilot must be one of {known}, got {self.autopilot!r}")
+        if not (abs(self.home_lat_deg) <= 90.0 and abs(self.home_lon_deg) <= 180.0):
+            raise ValueError(f"home ({self.home_lat_deg}, {self.home_lon_deg}) is not on Earth")
         if self.lockstep_max_timeouts < 1:
             raise ValueError("lockstep_max_timeouts must be >= 1")
         substeps = self.lockstep_period_s * self.physics_rate_hz

@@ -99,15 +99,17 @@ class MavClient:
         setpoint: Callable[[int], tuple[float, tuple[float, float, float, float]]] | None,
         timeout_s: float = 20.0,
     ) -> Any:
-        """Lockstep responder: answer every ATTITUDE with ``setpoint(time_boot_ms)`` (thrust, q),
-        stamped with that ATTITUDE's time, until ``until(msg)`` holds for a received message.
-        ``setpoint=None`` answers nothing (the controller went silent)."""
+        """Lockstep responder: answer every state message with ``setpoint(time_boot_ms)``
+        (thrust, q), stamped with that message's time, until ``until(msg)`` holds for a
+        received message. ``setpoint=None`` answers nothing (the controller went silent)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            for m in self.poll(deadline - time.monotonic()):
-                if setpoint is not None and m.get_type() == "ATTITUDE":
-                    thrust, q = setpoint(m.time_boot_ms)
-                    self.attitude_setpoint(thrust, q, time_boot_ms=m.time_boot_ms)
+            msgs = self.poll(deadline - time.monotonic())
+            stamps = [s for s in map(state_stamp_ms, msgs) if s is not None]
+            if setpoint is not None and stamps:  # a datagram is one tick: answer it whole
+                thrust, q = setpoint(max(stamps))
+                self.attitude_setpoint(thrust, q, time_boot_ms=max(stamps))
+            for m in msgs:
                 if until(m):
                     return m
         raise TimeoutError(f"condition not met within {timeout_s} s")
@@ -129,6 +131,16 @@ class _Sink:
 
     def write(self, buf: bytes) -> None:
         self.data = bytes(buf)
+
+
+def state_stamp_ms(msg: Any) -> int | None:
+    """The vehicle time of a state message (what a lockstep answer must reach), else None."""
+    mtype = msg.get_type()
+    if mtype in ("ATTITUDE", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED"):
+        return int(msg.time_boot_ms)
+    if mtype == "ODOMETRY":
+        return int(msg.time_usec // 1000)
+    return None
 
 
 def custom_main_sub(hb: Any) -> tuple[int, int]:

@@ -32,7 +32,12 @@ from sitl.params import load_sim_config
 from sitl.physics import initial_state
 from sitl.simulation import Simulation
 
-CONFIG = load_sim_config()
+PX4_CONFIG = load_sim_config()
+# most tests arm at once; the refusal after boot has its own test
+CONFIG = dataclasses.replace(
+    PX4_CONFIG, autopilot=dataclasses.replace(PX4_CONFIG.autopilot, arm_refusals_after_boot=0)
+)
+LOSS_S = CONFIG.autopilot.offboard_loss_timeout_s
 LEVEL = (1.0, 0.0, 0.0, 0.0)
 RATES_ONLY = IGNORE_ATTITUDE  # body rates + thrust
 
@@ -83,11 +88,87 @@ def test_offboard_needs_a_stream_above_2_hz_and_fails_safe_to_hold():
     assert ap.set_mode(OFFBOARD, 2.0) == Result.ACCEPTED
     ap.update_outer(x, 2.0, 0.005)
     assert ap.mode == OFFBOARD
-    ap.update_outer(x, 1.75 + 0.49, 0.005)  # last setpoint at 1.75 s, loss timeout 0.5 s
+    ap.update_outer(x, 1.75 + LOSS_S - 0.01, 0.005)  # last setpoint at 1.75 s: COM_OF_LOSS_T
     assert ap.mode == OFFBOARD
-    ap.update_outer(x, 1.75 + 0.51, 0.005)
+    ap.update_outer(x, 1.75 + LOSS_S + 0.01, 0.005)
     assert ap.mode == HOLD
     assert ap.failsafe_count == 1
+    # the failsafe clears when setpoints stream again: back to Offboard, as PX4
+    stream(ap, 3.0, 3.2, hz=50.0)
+    ap.update_outer(x, 3.2, 0.005)
+    assert ap.mode == OFFBOARD
+    # an explicit Hold is the pilot's choice: setpoints no longer bring Offboard back
+    assert ap.set_mode(HOLD, 3.3) == Result.ACCEPTED
+    stream(ap, 3.3, 3.5, hz=50.0)
+    ap.update_outer(x, 3.5, 0.005)
+    assert ap.mode == HOLD
+
+
+def test_px4_refuses_the_first_arming_after_boot_and_says_why():
+    ap = Autopilot(PX4_CONFIG.vehicle, PX4_CONFIG.autopilot)
+    ap.update_outer(initial_state(), 0.0, 0.005)
+    assert PX4_CONFIG.autopilot.arm_refusals_after_boot == 1
+    assert ap.arm(True, 0.0) == Result.DENIED
+    assert ap.status_text is not None
+    assert "Arming denied" in ap.status_text
+    assert not ap.armed
+    assert ap.arm(True, 0.5) == Result.ACCEPTED  # the retry succeeds
+    assert ap.armed
+
+
+def fly(sim: Simulation, seconds: float) -> None:
+    for _ in range(round(seconds / sim.config.sitl.lockstep_period_s)):
+        sim.advance_tick()
+
+
+def test_a_takeoff_without_altitude_climbs_from_the_current_altitude_every_time():
+    """PX4: NaN altitude = current altitude + MIS_TAKEOFF_ALT, each time it is accepted, in
+    the air too. This is what made a repeated takeoff climb to 98 m."""
+    sim = Simulation(CONFIG, seed=0)
+    ap = sim.autopilot
+    step_m = CONFIG.autopilot.takeoff_altitude_m
+    assert ap.arm(True, 0.0) == Result.ACCEPTED
+    for _ in range(3):
+        before_m = -sim.state[2]
+        assert ap.takeoff(None, sim.time_s) == Result.ACCEPTED
+        fly(sim, 2.0 + step_m / CONFIG.autopilot.climb_speed_m_s)
+        assert -sim.state[2] == pytest.approx(before_m + step_m, abs=0.3)
+    assert -sim.state[2] > 3 * step_m - 0.3
+    # an explicit altitude (above home) is where it goes; below the current one it stays
+    assert ap.takeoff(10.0, sim.time_s) == Result.ACCEPTED
+    fly(sim, 6.0)
+    assert -sim.state[2] == pytest.approx(10.0, abs=0.3)
+    assert ap.takeoff(2.0, sim.time_s) == Result.ACCEPTED
+    fly(sim, 3.0)
+    assert -sim.state[2] == pytest.approx(10.0, abs=0.3)
+
+
+def airborne(altitude_m: float, seconds: float) -> tuple[Simulation, Autopilot]:
+    """A simulation armed, taken off to ``altitude_m`` and flown for ``seconds``."""
+    sim = Simulation(CONFIG, seed=0)
+    sim.autopilot.arm(True, 0.0)
+    sim.autopilot.takeoff(altitude_m, 0.0)
+    fly(sim, seconds)
+    return sim, sim.autopilot
+
+
+def test_offboard_returns_after_an_auto_land_disarmed_if_setpoints_stream():
+    sim, ap = airborne(1.0, 3.0)
+    stream(ap, sim.time_s - 0.2, sim.time_s, hz=50.0)
+    assert ap.set_mode(OFFBOARD, sim.time_s) == Result.ACCEPTED
+    fly(sim, LOSS_S + 0.1)  # setpoints stop: failsafe to Hold
+    assert ap.mode == HOLD
+    assert ap.failsafe_count == 1
+    assert ap.intended_mode == OFFBOARD
+    ap.mode = LAND  # the failsafe escalates to a landing (PX4: no RC, no offboard)
+    fly(sim, 8.0)
+    assert not ap.armed
+    assert sim.state[2] == 0.0
+    for _ in range(40):  # setpoints still stream to the disarmed vehicle
+        ap.on_attitude_setpoint(sp(), sim.time_s)
+        sim.advance_tick()
+    assert ap.mode == OFFBOARD
+    assert not ap.armed
 
 
 def test_auto_disarm_after_preflight_timeout_without_takeoff():
@@ -165,6 +246,21 @@ def test_hold_rejects_a_steady_wind():
     assert math.hypot(sim.state[0], sim.state[1]) < 0.3
     roll, _, _ = quat_to_euler(sim.state[6:10])
     assert roll < -0.02  # wind towards east: lean west (roll left) into it
+
+
+def test_acceleration_feedforward_of_a_position_setpoint_is_flown():
+    sim, ap = airborne(2.0, 4.0)
+    here = (float(sim.state[0]), float(sim.state[1]), float(sim.state[2]))
+    target = PositionSetpoint(here, (0.0, 0.0, 0.0), 0.0, acc_ned_m_s2=(2.0, 0.0, 0.0))
+    for _ in range(5):
+        ap.on_position_setpoint(target, sim.time_s)
+        sim.advance_tick()
+    assert ap.set_mode(OFFBOARD, sim.time_s) == Result.ACCEPTED
+    for _ in range(20):
+        ap.on_position_setpoint(target, sim.time_s)
+        sim.advance_tick()
+    _, pitch, _ = quat_to_euler(sim.state[6:10])
+    assert pitch < -0.05  # nose down within 0.1 s: accelerating north as fed forward
 
 
 def test_position_setpoints_fly_the_vehicle_in_offboard():

@@ -11,7 +11,8 @@ from sitl.params import DEFAULT_VEHICLE_FILE, load_sim_config
 def test_default_vehicle_file_loads_strictly():
     cfg = load_sim_config()
     assert cfg.sitl.physics_steps_per_tick == 5
-    assert cfg.autopilot.offboard_loss_timeout_s == 0.5
+    assert cfg.autopilot.offboard_loss_timeout_s == 1.0  # COM_OF_LOSS_T
+    assert cfg.sitl.autopilot == "px4"
 
 
 def test_unknown_config_key_exits_2_naming_key_and_file(tmp_path, capsys):

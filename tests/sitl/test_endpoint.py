@@ -42,29 +42,123 @@ class Peer:
         return out
 
 
-def make(allowed=()):
+def make(allowed=(), on_answer=None, arm_refusals=0):
     cfg = load_sim_config()
     cfg = dataclasses.replace(
-        cfg, sitl=dataclasses.replace(cfg.sitl, allowed_source_sysids=tuple(allowed))
+        cfg,
+        sitl=dataclasses.replace(cfg.sitl, allowed_source_sysids=tuple(allowed)),
+        autopilot=dataclasses.replace(cfg.autopilot, arm_refusals_after_boot=arm_refusals),
     )
     sim = Simulation(cfg, seed=0)
     counters = Counters()
-    ep = SitlEndpoint(sim, 1, [TELEMETRY], counters)
+    ep = SitlEndpoint(sim, 1, [TELEMETRY], counters, on_answer=on_answer)
     transport = RecordingTransport()
     ep.connection_made(transport)  # type: ignore[arg-type]
     return sim, ep, transport, counters
 
 
 def test_replies_go_to_the_sender_and_to_telemetry():
-    sim, ep, transport, _ = make()
+    sim, ep, transport, _ = make(arm_refusals=1)
     peer = Peer()
-    ep.datagram_received(
-        peer.pack(peer.mav.command_int_encode(1, 1, 0, 400, 0, 0, 1, 0, 0, 0, 0, 0, 0)), PEER
-    )
-    acks = [m for m in peer.decode(transport) if m.get_type() == "COMMAND_ACK"]
-    assert [(a.command, a.result, a.target_system) for a in acks] == [(400, 0, 245)]
+    arm = peer.pack(peer.mav.command_int_encode(1, 1, 0, 400, 0, 0, 1, 0, 0, 0, 0, 0, 0))
+    ep.datagram_received(arm, PEER)  # refused once after boot, as PX4, and says why
+    ep.datagram_received(arm, PEER)
+    got = peer.decode(transport)
+    acks = [m for m in got if m.get_type() == "COMMAND_ACK"]
+    assert [(a.command, a.result, a.target_system) for a in acks] == [(400, 2, 245), (400, 0, 245)]
+    texts = [m.text for m in got if m.get_type() == "STATUSTEXT"]
+    assert len(texts) == 1
+    assert texts[0].startswith("Arming denied")
     assert any(dest == TELEMETRY for _, dest in transport.sent)
     assert sim.autopilot.armed
+
+
+def emitted(ep: SitlEndpoint, transport: RecordingTransport) -> list[list[Any]]:
+    """Each telemetry datagram, decoded: one per tick."""
+    rx = mavlink.MAVLink(None)
+    return [rx.parse_buffer(d) or [] for d, dest in transport.sent if dest == TELEMETRY]
+
+
+def test_a_tick_is_one_datagram_with_px4s_streams_and_odometry_a_tick_behind():
+    sim, ep, transport, _ = make()
+    newest = []
+    for _ in range(4):  # 5, 10, 15, 20 ms
+        sim.advance_tick()
+        ep.emit()
+        newest.append(ep.newest_state_stamp_ms)
+    ticks = emitted(ep, transport)
+    assert len(ticks) == 3  # one datagram per tick that has something due (not 15 ms)
+    first = {m.get_type() for m in ticks[0]}
+    assert {"HEARTBEAT", "ATTITUDE", "LOCAL_POSITION_NED", "ODOMETRY"} <= first
+    assert {"GLOBAL_POSITION_INT", "HOME_POSITION"} <= first
+    # PX4's default 100 Hz ATTITUDE on a 200 Hz tick: every other tick only
+    assert [m.get_type() for m in ticks[1]] == ["ATTITUDE"]
+    assert [m.get_type() for m in ticks[2]][:2] == ["ATTITUDE", "ATTITUDE_QUATERNION"]  # 50 Hz
+    assert newest == [5, 10, 10, 20]  # a tick with no new state needs no new answer
+    for _ in range(40):
+        sim.advance_tick()
+        ep.emit()
+    lags_ms = [
+        max(m.time_boot_ms for m in t if hasattr(m, "time_boot_ms")) - o.time_usec // 1000
+        for t in emitted(ep, transport)[1:]
+        for o in t
+        if o.get_type() == "ODOMETRY"
+    ]
+    assert lags_ms
+    assert set(lags_ms) == {5}
+
+
+def test_global_position_is_home_plus_the_local_position():
+    sim, ep, transport, _ = make()
+    cfg = sim.config.sitl
+    sim.state[0:3] = [111.2, 0.0, -10.0]  # ~0.001 deg north, 10 m up
+    sim.advance_tick()
+    ep.emit()
+    msgs = [m for t in emitted(ep, transport) for m in t]
+    gpi = next(m for m in msgs if m.get_type() == "GLOBAL_POSITION_INT")
+    assert gpi.lat * 1e-7 == pytest.approx(cfg.home_lat_deg + 0.001, abs=2e-5)
+    assert gpi.lon * 1e-7 == pytest.approx(cfg.home_lon_deg, abs=1e-6)
+    assert gpi.relative_alt == pytest.approx(10_000, abs=100)
+    assert gpi.alt == pytest.approx((cfg.home_amsl_m + 10.0) * 1e3, abs=100)
+
+
+def test_takeoff_altitude_is_amsl_and_nan_means_px4s_default():
+    sim, ep, _transport, _ = make()
+    peer = Peer()
+    home = sim.config.sitl.home_amsl_m
+    sim.autopilot.arm(True, 0.0)
+    takeoff = peer.mav.command_int_encode(
+        1, 1, mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0,
+        0, 0, 0, 0, 473977420, 85455940, home + 4.0,
+    )  # fmt: skip
+    ep.datagram_received(peer.pack(takeoff), PEER)
+    assert sim.autopilot._takeoff_target_d_m == pytest.approx(-4.0)
+    nan_takeoff = peer.mav.command_long_encode(
+        1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, *([math.nan] * 7)
+    )
+    ep.datagram_received(peer.pack(nan_takeoff), PEER)
+    default_m = sim.config.autopilot.takeoff_altitude_m
+    assert sim.autopilot._takeoff_target_d_m == pytest.approx(-default_m)  # current (0) + 2.5
+
+
+def test_setpoints_and_system_time_answer_a_lockstep_tick():
+    answers: list[int] = []
+    _sim, ep, _transport, _ = make(on_answer=answers.append)
+    peer = Peer()
+    ep.datagram_received(peer.pack(peer.mav.system_time_encode(0, 15)), PEER)
+    ep.datagram_received(
+        peer.pack(peer.mav.set_attitude_target_encode(20, 1, 1, 7, [1, 0, 0, 0], 0, 0, 0, 0.5)),
+        PEER,
+    )
+    ep.datagram_received(
+        peer.pack(
+            peer.mav.set_position_target_local_ned_encode(
+                25, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0, *([0.0] * 11)
+            )
+        ),
+        PEER,
+    )
+    assert answers == [15, 20, 25]
 
 
 def test_set_mode_message_and_position_setpoints_enter_offboard():

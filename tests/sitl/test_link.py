@@ -48,9 +48,12 @@ def test_offboard_flight_with_failsafe_to_hold(client):
         assert client.command(SET_MODE, CUSTOM, 6) != mavlink.MAV_RESULT_ACCEPTED  # no stream
 
         hover = lambda t_ms: (0.5, LEVEL)  # noqa: E731 - ignored outside offboard
+        # as PX4: the first arming after boot is refused, the retry succeeds
+        assert client.command_while_pumping(ARM, (1,), hover) == mavlink.MAV_RESULT_DENIED
         assert client.command_while_pumping(ARM, (1,), hover) == mavlink.MAV_RESULT_ACCEPTED
+        home = client.pump(lambda m: m.get_type() == "GLOBAL_POSITION_INT", hover)
         takeoff = client.command_while_pumping(
-            mavlink.MAV_CMD_NAV_TAKEOFF, (0,) * 6 + (2.0,), hover
+            mavlink.MAV_CMD_NAV_TAKEOFF, (0,) * 6 + (home.alt * 1e-3 + 2.0,), hover
         )
         assert takeoff == mavlink.MAV_RESULT_ACCEPTED
         client.pump(is_mode(4, 3), hover)  # takeoff done, holding
@@ -69,7 +72,7 @@ def test_offboard_flight_with_failsafe_to_hold(client):
         t_silent = client.last["ATTITUDE"].time_boot_ms
         hb = client.pump(is_mode(4, 3), None, timeout_s=15)
         t_hold = client.last["ATTITUDE"].time_boot_ms
-        assert 500 <= t_hold - t_silent <= 1600  # 0.5 s loss timeout + heartbeat period
+        assert 1000 <= t_hold - t_silent <= 2100  # COM_OF_LOSS_T 1 s + heartbeat period
         # holding: the climb is arrested
         client.pump(lambda m: m.get_type() == "ATTITUDE" and m.time_boot_ms > t_hold + 2000, None)
         assert abs(client.last["LOCAL_POSITION_NED"].vz) < 0.3
@@ -79,7 +82,7 @@ def test_offboard_flight_with_failsafe_to_hold(client):
     assert rc == 0
     counters = counters_from(err)
     assert counters["offboard_failsafes"] == 1
-    assert counters["lockstep_timeouts"] >= 20
+    assert counters["lockstep_timeouts"] >= 3  # the controller gone: then real-time pace
 
 
 def test_signing_rejects_unsigned_and_wrongly_signed_commands(tmp_path):
@@ -101,7 +104,9 @@ def test_signing_rejects_unsigned_and_wrongly_signed_commands(tmp_path):
             c.wait("COMMAND_ACK", timeout_s=0.5)
         hb = c.wait("HEARTBEAT", timeout_s=3)
         assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-        assert c.command(ARM, 1) == mavlink.MAV_RESULT_ACCEPTED  # correctly signed
+        # correctly signed: reaches the autopilot (which refuses the first arming, as PX4)
+        assert c.command(ARM, 1) == mavlink.MAV_RESULT_DENIED
+        assert c.command(ARM, 1) == mavlink.MAV_RESULT_ACCEPTED
         hb = c.wait("HEARTBEAT", timeout_s=3)
         assert hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     finally:
@@ -154,26 +159,32 @@ def test_telemetry_rates_intervals_and_requests(client):
             return m.get_type() == "ATTITUDE" and m.time_boot_ms >= t_end
 
         client.pump(collect, None)
-        for name, hz in (("ATTITUDE", 200.0), ("LOCAL_POSITION_NED", 100.0)):
+        # PX4's onboard-link defaults, until SET_MESSAGE_INTERVAL raises them
+        for name, hz in (("ATTITUDE", 100.0), ("LOCAL_POSITION_NED", 30.0)):
             s = stamps[name]
             rate = (len(s) - 1) / ((s[-1] - s[0]) / 1000.0)
-            assert rate == pytest.approx(hz, rel=0.03), name
+            assert rate == pytest.approx(hz, rel=0.05), name
         odo = client.last["ODOMETRY"]
         assert odo.frame_id == mavlink.MAV_FRAME_LOCAL_NED
         assert odo.child_frame_id == mavlink.MAV_FRAME_BODY_FRD
 
+        def intervals_after_request(name: str, msg_id: int, interval_us: int) -> set[int]:
+            assert client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us) == 0
+            client.wait(name)  # the one due under the old rate
+            seen: list[int] = []
+
+            def ten_samples(m):
+                if m.get_type() == name:
+                    seen.append(m.time_boot_ms)
+                return len(seen) == 10
+
+            client.pump(ten_samples, None)
+            return {b - a for a, b in itertools.pairwise(seen)}
+
         lpn_id = mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
-        assert client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, lpn_id, 40000) == 0  # 25 Hz
-        client.wait("LOCAL_POSITION_NED")  # the one due under the old rate
-        seen: list[int] = []
-
-        def ten_samples(m):
-            if m.get_type() == "LOCAL_POSITION_NED":
-                seen.append(m.time_boot_ms)
-            return len(seen) == 10
-
-        client.pump(ten_samples, None)
-        assert {b - a for a, b in itertools.pairwise(seen)} == {40}
+        assert intervals_after_request("LOCAL_POSITION_NED", lpn_id, 40000) == {40}  # 25 Hz
+        att_id = mavlink.MAVLINK_MSG_ID_ATTITUDE
+        assert intervals_after_request("ATTITUDE", att_id, 5000) == {5}  # 200 Hz
 
         version_id = mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION
         assert client.command(mavlink.MAV_CMD_REQUEST_MESSAGE, version_id) == 0

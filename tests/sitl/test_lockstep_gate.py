@@ -17,7 +17,7 @@ def run_clock(gate: LockstepGate, ticks: int, on_tick=lambda k: None) -> float:
             count += 1
             on_tick(count)
 
-        clock = Clock(gate, 0.005, speedup=1.0, now_ms=lambda: count * 5)
+        clock = Clock(gate, 0.005, speedup=1.0, answer_due_ms=lambda: count * 5)
         t0 = time.monotonic()
         await clock.run(tick, asyncio.Event(), duration_s=ticks * 0.005)
         return time.monotonic() - t0
@@ -27,9 +27,10 @@ def run_clock(gate: LockstepGate, ticks: int, on_tick=lambda k: None) -> float:
 
 def test_answered_ticks_run_faster_than_real_time():
     gate = LockstepGate(enabled=True, timeout_s=1.0, max_timeouts=20)
+    gate.on_answer(0)  # the controller has joined
     # the "controller" answers each tick from inside the loop, as a datagram would
     wall = run_clock(
-        gate, 400, on_tick=lambda k: asyncio.get_running_loop().call_soon(gate.on_setpoint, k * 5)
+        gate, 400, on_tick=lambda k: asyncio.get_running_loop().call_soon(gate.on_answer, k * 5)
     )
     assert gate.waiting
     assert gate.timeouts == 0
@@ -38,13 +39,13 @@ def test_answered_ticks_run_faster_than_real_time():
 
 def test_silence_times_out_then_falls_back_to_real_time_and_rejoins():
     gate = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=5)
-    gate.on_setpoint(0)
+    gate.on_answer(0)
     log = []
 
     def on_tick(k: int) -> None:
         log.append(gate.waiting)
         if k == 50:  # the controller comes back
-            asyncio.get_running_loop().call_soon(gate.on_setpoint, k * 5)
+            asyncio.get_running_loop().call_soon(gate.on_answer, k * 5)
 
     run_clock(gate, 60, on_tick)
     assert gate.timeouts >= 5
@@ -53,9 +54,47 @@ def test_silence_times_out_then_falls_back_to_real_time_and_rejoins():
     assert log[50] is True  # a setpoint put it back into waiting mode
 
 
+def test_the_clock_holds_at_its_first_tick_announcing_until_a_controller_answers():
+    async def main() -> tuple[int, int, int]:
+        gate = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=1)
+        announced: list[int] = []
+        count = 0
+
+        def tick() -> None:
+            nonlocal count
+            count += 1
+
+        clock = Clock(gate, 0.005, 1.0, answer_due_ms=lambda: count * 5,
+                      announce=lambda: announced.append(count))  # fmt: skip
+        stop = asyncio.Event()
+        runner = asyncio.create_task(clock.run(tick, stop, duration_s=1.0))
+        await asyncio.sleep(1.2)  # no controller: no physics, whatever the wall clock says
+        held, n_announced, timeouts = count, len(announced), gate.timeouts
+        gate.on_answer(5)  # a controller joins and answers the first tick
+        await asyncio.sleep(0.05)
+        stop.set()
+        await runner
+        assert count > held  # and the clock moves on
+        return held, n_announced, timeouts
+
+    held, n_announced, timeouts = asyncio.run(main())
+    assert held == 1
+    assert n_announced >= 2  # every ANNOUNCE_PERIOD_S
+    assert timeouts == 0  # waiting to be joined is not a timeout
+
+
+def test_a_tick_without_new_state_needs_no_new_answer():
+    gate = LockstepGate(enabled=True, timeout_s=0.5, max_timeouts=20)
+    gate.on_answer(10)
+    # the state sent so far is stamped 10 ms (e.g. a 100 Hz stream on a 200 Hz tick)
+    wall = run_clock(gate, 1, on_tick=lambda k: None)
+    assert gate.timeouts == 0
+    assert wall < 0.1
+
+
 def test_future_stamps_do_not_starve_the_event_loop():
     gate = LockstepGate(enabled=True, timeout_s=1.0, max_timeouts=20)
-    gate.on_setpoint(2**32 - 1)
+    gate.on_answer(2**32 - 1)
     seen: list[int] = []
     seen_by_last_tick: list[int] = []
 
