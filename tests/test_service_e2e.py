@@ -73,9 +73,11 @@ def test_second_run_starts_from_the_saved_library(tmp_path):
 
 
 def test_sim_circle_tracks(tmp_path):
-    report, _ = sim(tmp_path, "--scenario", "circle", "--duration", "10", "--adaptation", "none")
+    # SIH's drag (1 m/s^2 per m/s) is unmodelled: 23 cm without adaptation, LWPR learns it
+    report, _ = sim(tmp_path, "--scenario", "circle", "--duration", "10")
     v = report["vehicles"][0]
     assert v["tracking"]["max_error_m"] < 0.10
+    assert v["takeoffs_sent"] == 1
     assert v["library"]["hit_rate"] > 0.9
 
 
