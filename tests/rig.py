@@ -25,6 +25,13 @@ from epc_offboard.sim import SITL_SERVICE_CONFIG
 from epc_offboard.state import px4_modes
 
 
+def cpu_hog(seconds: float) -> subprocess.Popen[bytes]:
+    """A process that spins one core for ``seconds`` (kill it when done)."""
+    return subprocess.Popen(
+        [sys.executable, "-c", f"import time\nt=time.time()+{seconds}\nwhile time.time()<t: pass"]
+    )
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))

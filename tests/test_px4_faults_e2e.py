@@ -7,12 +7,10 @@ an event-loop stall while numba compiles, a QP solve starving the attitude loop 
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 
 import pytest
 
-from tests.rig import Rig
+from tests.rig import Rig, cpu_hog
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -55,12 +53,6 @@ def test_realtime_start_with_an_empty_kernel_cache_never_fails_safe(tmp_path):
     assert any(cache.iterdir()), "numba wrote no cache where it was told to"
 
 
-def _cpu_hog(seconds: float) -> subprocess.Popen[bytes]:
-    return subprocess.Popen(
-        [sys.executable, "-c", f"import time\nt=time.time()+{seconds}\nwhile time.time()<t: pass"]
-    )
-
-
 def test_windy_flight_under_cpu_load_keeps_the_tilt_limit(tmp_path):
     """Body-rate mode flipped the vehicle in 3 m/s wind when inline QP solves starved the
     attitude loop. Now misses are solved in a worker, late attitude ticks send the attitude
@@ -69,7 +61,7 @@ def test_windy_flight_under_cpu_load_keeps_the_tilt_limit(tmp_path):
         "mission": {"duration_s": 8.0, "land_at_end": True},
         "trajectory": {"shape": "circle", "radius_m": 1.5, "period_s": 6.0},
     }
-    hogs = [_cpu_hog(60.0), _cpu_hog(60.0)]
+    hogs = [cpu_hog(60.0), cpu_hog(60.0)]
     try:
         with Rig(
             tmp_path,
