@@ -187,6 +187,7 @@ class MavlinkLink:
         self._peer_timeout_s = peer_timeout_s
         self._peer_heard = -float("inf")
         self.counters: Counter[str] = Counter()
+        self._last_dispatch_log = -float("inf")
         self.mav = mavlink.MAVLink(_SendFile(self), srcSystem=system_id, srcComponent=component_id)
         self.mav.robust_parsing = True
         if signing_key is not None:
@@ -387,7 +388,17 @@ class MavlinkLink:
             self.mav.buf_index = 0
             self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
         for msg in msgs:
-            self._dispatch(msg, addr)
+            try:
+                self._dispatch(msg, addr)
+            except Exception as exc:  # one bad message costs one counted drop, not the rest
+                self.counters["dispatch_errors"] += 1
+                now = time.monotonic()
+                if now - self._last_dispatch_log > 1.0:
+                    self._last_dispatch_log = now
+                    log.warning(
+                        "%s dropped: %s: %s (%d so far)",
+                        msg.get_type(), type(exc).__name__, exc, self.counters["dispatch_errors"],
+                    )  # fmt: skip
 
     def _dispatch(self, msg: Any, addr: tuple[Any, int]) -> None:
         mtype = msg.get_type()

@@ -13,6 +13,7 @@ requested time, up to ``max_predict_s``, and reports how old the underlying samp
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import Counter
@@ -24,10 +25,13 @@ import numpy as np
 from epc_offboard import frames
 from epc_offboard.frames import FloatArray
 
+log = logging.getLogger(__name__)
+
 MAV_MODE_FLAG_SAFETY_ARMED = 128
 # time_boot_ms is truncated to whole ms while ODOMETRY's time_usec is not: samples of one
 # instant can differ by up to a millisecond and must not count as out of order.
 _ORDER_TOLERANCE_S = 1.5e-3
+_MAX_CANDIDATES = 4  # candidate timelines kept per stream while judging a resync
 MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_LOCAL_FRD = 20
 MAV_FRAME_BODY_FRD = 12
@@ -59,6 +63,13 @@ class StateLimits:
     max_rate_rad_s: float = 50.0
     quat_norm_tolerance: float = 0.05
     max_predict_s: float = 0.2
+    # A stamp may run ahead of the receive clock by this much (link jitter, batching); more
+    # is a spoofed or corrupt stamp, rejected without touching the tracker's vehicle time.
+    max_time_jump_s: float = 1.0
+    # This many consecutive samples of one stream that agree with each other but not with
+    # the tracker's timeline (an autopilot reboot restarting time_boot_ms at 0, or a bad
+    # stamp accepted first) move the tracker to their timeline: a resync, never a lockout.
+    resync_samples: int = 5
 
 
 @dataclass(frozen=True)
@@ -104,8 +115,36 @@ class _Sample:
 
 
 @dataclass
+class _Timeline:
+    """One stream's newest accepted stamp and when it came (the receive clock)."""
+
+    vehicle_s: float
+    received_s: float
+
+    def admits(self, t_s: float, now: float, max_jump_s: float) -> str | None:
+        """None if ``t_s`` continues this timeline, else the reason it does not."""
+        if t_s < self.vehicle_s - _ORDER_TOLERANCE_S:
+            return "rejected_out_of_order"
+        if t_s - self.vehicle_s > (now - self.received_s) + max_jump_s:
+            return "rejected_time_jump"
+        return None
+
+    def continued_by(self, t_s: float, now: float, limits: StateLimits) -> bool:
+        """Whether ``t_s`` advances a candidate timeline: strictly newer (a stream always
+        moves on; a repeated stamp is no evidence) and not too far ahead."""
+        return t_s > self.vehicle_s and self.admits(t_s, now, limits.max_time_jump_s) is None
+
+
+@dataclass
 class StateTracker:
-    """Keeps the newest valid attitude and position samples of one vehicle."""
+    """Keeps the newest valid attitude and position samples of one vehicle.
+
+    Order is judged per stream (ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY
+    each keep their own newest stamp): PX4's ODOMETRY carries the estimator's sample time,
+    which trails ATTITUDE's, and is not out of order. A sample older than the one held from
+    another stream is simply not newer news. Forward jumps are bounded against the receive
+    clock, and a consistent new timeline is adopted after ``resync_samples`` samples.
+    """
 
     system_id: int
     limits: StateLimits = field(default_factory=StateLimits)
@@ -114,6 +153,8 @@ class StateTracker:
     _attitude: _Sample | None = None  # (q, rate)
     _position: _Sample | None = None  # (pos, vel)
     vehicle_time_s: float = 0.0  # newest vehicle timestamp seen in a valid state message
+    _timelines: dict[str, _Timeline] = field(default_factory=dict)  # per stream (4 at most)
+    _candidates: dict[str, list[list[_Timeline]]] = field(default_factory=dict)
 
     def handle(self, msg: Any, received_s: float | None = None) -> bool:
         """Consume one decoded message; True when it updated the state."""
@@ -130,15 +171,23 @@ class StateTracker:
         if mtype == "ATTITUDE_QUATERNION":
             q = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=np.float64)
             rate = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
-            return self._set_attitude(msg.time_boot_ms * 1e-3, now, q, rate)
+            return self._set_attitude(mtype, msg.time_boot_ms * 1e-3, now, q, rate)
         if mtype == "ATTITUDE":
+            # validated before it is converted: NaN or absurd angles are corrupt, not math
+            angles = (msg.roll, msg.pitch, msg.yaw)
+            if not all(math.isfinite(a) for a in angles):
+                self.counters["rejected_nan"] += 1
+                return False
+            if max(abs(a) for a in angles) > 2.0 * math.pi:
+                self.counters["rejected_range"] += 1
+                return False
             q = frames.euler_to_quat(msg.roll, msg.pitch, msg.yaw)
             rate = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
-            return self._set_attitude(msg.time_boot_ms * 1e-3, now, q, rate)
+            return self._set_attitude(mtype, msg.time_boot_ms * 1e-3, now, q, rate)
         if mtype == "LOCAL_POSITION_NED":
             pos = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
             vel = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
-            return self._set_position(msg.time_boot_ms * 1e-3, now, pos, vel)
+            return self._set_position(mtype, msg.time_boot_ms * 1e-3, now, pos, vel)
         if mtype == "ODOMETRY":
             return self._handle_odometry(msg, now)
         return False
@@ -156,8 +205,54 @@ class StateTracker:
             return False
         if msg.child_frame_id == MAV_FRAME_BODY_FRD:
             vel = frames.quat_to_rotation(q) @ vel  # PX4 sends body-frame velocity
-        updated = self._set_attitude(t_s, now, q, rate)
-        return self._set_position(t_s, now, pos, vel) or updated
+        if not self._admit("ODOMETRY", t_s, now):
+            return False
+        updated = self._set_attitude(None, t_s, now, q, rate)
+        return self._set_position(None, t_s, now, pos, vel) or updated
+
+    def _admit(self, stream: str | None, t_s: float, now: float) -> bool:
+        """Whether stamp ``t_s`` of ``stream`` continues its timeline (None: already
+        admitted by the caller). Rejections are counted; a run of them that agree with each
+        other is a new timeline (reboot), adopted: resync."""
+        if stream is None:
+            return True
+        if not math.isfinite(t_s):
+            self.counters["rejected_time_jump"] += 1
+            return False
+        line = self._timelines.get(stream)
+        reason = None if line is None else line.admits(t_s, now, self.limits.max_time_jump_s)
+        if reason is None:
+            # (candidates stay: a bad stamp accepted first must not wipe the evidence
+            # against it; they are bounded and expire by the jump bound)
+            self._timelines[stream] = _Timeline(t_s, now)
+            return True
+        self.counters[reason] += 1
+        # candidate timelines of this stream: a sample extends the one it continues, else
+        # starts one (past _MAX_CANDIDATES the shortest, then stalest, is dropped), so
+        # interleaved garbage can neither break a genuine new timeline nor grow memory
+        runs = self._candidates.setdefault(stream, [])
+        run = next((r for r in runs if r[-1].continued_by(t_s, now, self.limits)), None)
+        if run is None:
+            if len(runs) >= _MAX_CANDIDATES:
+                runs.remove(min(runs, key=lambda r: (len(r), r[-1].received_s)))
+            run = []
+            runs.append(run)
+        run.append(_Timeline(t_s, now))
+        del run[: -self.limits.resync_samples]
+        if len(run) < self.limits.resync_samples:
+            return False
+        # a new timeline: forget the old one everywhere (every stream restarts with it)
+        self.counters["time_resyncs"] += 1
+        log.warning(
+            "%s: %d consecutive samples on another timeline (%.3f s, was %.3f s): "
+            "resynchronised (autopilot reboot or a bad stamp earlier)",
+            stream, len(run), t_s, 0.0 if line is None else line.vehicle_s,
+        )  # fmt: skip
+        self._timelines = {stream: _Timeline(t_s, now)}
+        self._candidates.clear()
+        self._attitude = self._position = None
+        self.vehicle_time_s = t_s
+        return True
 
     def _valid_quat(self, q: FloatArray) -> bool:
         if not np.all(np.isfinite(q)):
@@ -168,7 +263,9 @@ class StateTracker:
             return False
         return True
 
-    def _set_attitude(self, t_s: float, now: float, q: FloatArray, rate: FloatArray) -> bool:
+    def _set_attitude(
+        self, stream: str | None, t_s: float, now: float, q: FloatArray, rate: FloatArray
+    ) -> bool:
         if not self._valid_quat(q):
             return False
         if not np.all(np.isfinite(rate)):
@@ -177,14 +274,17 @@ class StateTracker:
         if float(np.max(np.abs(rate))) > self.limits.max_rate_rad_s:
             self.counters["rejected_range"] += 1
             return False
-        if self._attitude is not None and t_s < self._attitude.vehicle_s - _ORDER_TOLERANCE_S:
-            self.counters["rejected_out_of_order"] += 1
+        if not self._admit(stream, t_s, now):
             return False
+        if self._attitude is not None and t_s < self._attitude.vehicle_s - _ORDER_TOLERANCE_S:
+            return False  # valid, but older than what another stream already gave
         self._attitude = _Sample(t_s, now, (frames.quat_normalize(q), rate))
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
         return True
 
-    def _set_position(self, t_s: float, now: float, pos: FloatArray, vel: FloatArray) -> bool:
+    def _set_position(
+        self, stream: str | None, t_s: float, now: float, pos: FloatArray, vel: FloatArray
+    ) -> bool:
         if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(vel))):
             self.counters["rejected_nan"] += 1
             return False
@@ -194,9 +294,10 @@ class StateTracker:
         ):
             self.counters["rejected_range"] += 1
             return False
-        if self._position is not None and t_s < self._position.vehicle_s - _ORDER_TOLERANCE_S:
-            self.counters["rejected_out_of_order"] += 1
+        if not self._admit(stream, t_s, now):
             return False
+        if self._position is not None and t_s < self._position.vehicle_s - _ORDER_TOLERANCE_S:
+            return False  # valid, but older than what another stream already gave
         self._position = _Sample(t_s, now, (pos, vel))
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
         return True

@@ -10,6 +10,7 @@ import contextlib
 import csv
 import signal
 import socket
+import threading
 import time
 
 import pytest
@@ -24,22 +25,39 @@ OFFBOARD = (PX4_MAIN_MODE_OFFBOARD, 0)
 
 
 class Notify:
+    """systemd's side of NOTIFY_SOCKET. A reader thread drains it all the time, as systemd
+    does: a unix datagram queue holds only net.unix.max_dgram_qlen messages (10 here), and
+    the service, rightly, drops a notification rather than block its loop on a full one."""
+
     def __init__(self, path):
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.bind(str(path))
         self.sock.settimeout(0.05)
         self.lines: list[str] = []
+        self._received: list[str] = []
+        self._lock = threading.Lock()
+        self._closed = threading.Event()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while not self._closed.is_set():
+            with contextlib.suppress(TimeoutError, OSError):
+                lines = self.sock.recv(4096).decode().splitlines()
+                with self._lock:
+                    self._received += lines
 
     def pump(self, seconds: float) -> list[str]:
-        got: list[str] = []
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            with contextlib.suppress(TimeoutError):
-                got += self.sock.recv(4096).decode().splitlines()
+        """Everything received so far plus for ``seconds`` more (added to ``lines``)."""
+        time.sleep(seconds)
+        with self._lock:
+            got, self._received = self._received, []
         self.lines += got
         return got
 
     def close(self):
+        self._closed.set()
+        self._reader.join(timeout=1.0)
         self.sock.close()
 
 

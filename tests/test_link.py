@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import socket
 
 import pytest
@@ -261,3 +262,37 @@ async def _serial_round_trip():
 
 def test_serial_link_over_a_pty_reassembles_frames_and_survives_loss():
     asyncio.run(_serial_round_trip())
+
+
+async def _bad_message_in_a_datagram():
+    delivered: list = []
+    errors = 0
+
+    def on_message(msg):
+        nonlocal errors
+        if msg.get_type() == "ATTITUDE":  # a consumer that chokes on this one message
+            errors += 1
+            raise ValueError("bad attitude")
+        delivered.append(msg.get_type())
+
+    server = MavlinkLink(
+        "udpin://127.0.0.1:0", system_id=255, component_id=191, on_message=on_message
+    )
+    await server.open()
+    port = server.local_address[1]
+    vehicle = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    datagram = bytes(vehicle.attitude_encode(10, math.nan, 0, 0, 0, 0, 0).pack(vehicle)) + bytes(
+        vehicle.local_position_ned_encode(10, 0, 0, -2, 0, 0, 0).pack(vehicle)
+    )
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    raw.sendto(datagram, ("127.0.0.1", port))
+    await settle(lambda: delivered)
+    assert delivered == ["LOCAL_POSITION_NED"]  # the rest of the datagram is not lost
+    assert errors == 1
+    assert server.counters["dispatch_errors"] == 1
+    raw.close()
+    server.close()
+
+
+def test_one_bad_message_costs_one_counted_drop_not_its_datagram():
+    asyncio.run(_bad_message_in_a_datagram())

@@ -169,3 +169,106 @@ def test_heartbeat_decodes_armed_and_mode():
     assert tr.heartbeat is not None
     assert tr.heartbeat.armed
     assert tr.heartbeat.offboard
+
+
+# ---- timestamps from a hostile or rebooting autopilot (issue 16, 1; issue 11, 4) ----------
+
+LEVEL = (1.0, 0.0, 0.0, 0.0)
+
+
+def odometry(t_us, pos, mav=MAV):
+    return decode(
+        mav.odometry_encode(
+            t_us, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD, *pos, list(LEVEL),
+            0, 0, 0, 0, 0, 0, [math.nan] + [0.0] * 20, [math.nan] + [0.0] * 20, 0, 0, 0,
+        ),
+        mav,
+    )
+
+
+def genuine(tr: StateTracker, t_ms: int) -> bool:
+    """One tick of genuine telemetry received at t_ms on the receive clock."""
+    now = t_ms * 1e-3
+    a = tr.handle(att_q(t_ms, LEVEL), received_s=now)
+    p = tr.handle(lpos(t_ms, (0.0, 0.0, -2.0), (0.0, 0.0, 0.0)), received_s=now)
+    return a and p
+
+
+def test_one_spoofed_stamp_does_not_lock_out_telemetry():
+    tr = StateTracker(system_id=1)
+    for t in range(1000, 1100, 10):
+        assert genuine(tr, t)
+    spoof = lpos(0xFFFFFFF0, (50.0, 0.0, -2.0), (0.0, 0.0, 0.0))
+    assert not tr.handle(spoof, received_s=1.1)
+    assert tr.vehicle_time_s == pytest.approx(1.09)  # the spoof never became "now"
+    for t in range(1100, 1300, 10):
+        assert genuine(tr, t)  # every genuine sample after it is accepted
+    assert tr.counters["rejected_time_jump"] == 1
+    assert tr.counters["rejected_out_of_order"] == 0
+    state = tr.snapshot()
+    assert state is not None
+    assert state.pos_ned_m[0] == 0.0
+
+
+def test_an_autopilot_reboot_resynchronises_within_a_few_samples():
+    tr = StateTracker(system_id=1)
+    for t in range(600_000, 600_100, 10):  # ten minutes of uptime
+        assert genuine(tr, t)
+    # the autopilot reboots: time_boot_ms restarts near 0 while our clock runs on
+    accepted_at = None
+    for k in range(20):
+        t_ms = 10 * k
+        now = 600.1 + 0.01 * k
+        ok = tr.handle(att_q(t_ms, LEVEL), received_s=now)
+        tr.handle(lpos(t_ms, (0.0, 0.0, -2.0), (0.0, 0.0, 0.0)), received_s=now)
+        if ok and accepted_at is None:
+            accepted_at = k
+    assert accepted_at is not None
+    assert accepted_at < tr.limits.resync_samples
+    assert tr.counters["time_resyncs"] >= 1
+    assert tr.vehicle_time_s == pytest.approx(0.19)
+    assert tr.snapshot() is not None
+
+
+def test_px4_odometry_trailing_attitude_is_not_out_of_order():
+    """PX4's ODOMETRY carries the estimator's sample time, a few ms behind ATTITUDE's."""
+    tr = StateTracker(system_id=1)
+    for t in range(1000, 1200, 10):
+        now = t * 1e-3
+        assert tr.handle(att_q(t, LEVEL), received_s=now)
+        assert tr.handle(lpos(t, (1.0, 0.0, -2.0), (0.0, 0.0, 0.0)), received_s=now)
+        # the trailing sample is valid, but older than what LOCAL_POSITION_NED gave
+        assert not tr.handle(odometry((t - 5) * 1000, (9.0, 0.0, -2.0)), received_s=now)
+    assert tr.counters["rejected_out_of_order"] == 0
+    state = tr.snapshot()
+    assert state is not None
+    assert state.pos_ned_m[0] == 1.0  # never replaced by the older sample
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_no_sequence_of_spoofed_stamps_locks_out_a_steady_stream(seed):
+    """Property: spoofed samples at random stamps, interleaved with a genuine 100 Hz stream,
+    never keep genuine samples out for longer than the resync allows."""
+    rng = np.random.default_rng(seed)
+    tr = StateTracker(system_id=1)
+    longest_out = out = 0
+    for k in range(400):
+        t_ms = 5000 + 10 * k
+        now = t_ms * 1e-3
+        if rng.random() < 0.3:
+            for _ in range(int(rng.integers(1, 4))):
+                bad = (0, 0xFFFFFFF0, int(rng.integers(0, 2**32 - 1)))[int(rng.integers(0, 3))]
+                tr.handle(lpos(bad, (99.0, 0.0, 0.0), (0.0, 0.0, 0.0)), received_s=now)
+        ok = tr.handle(lpos(t_ms, (0.0, 0.0, -2.0), (0.0, 0.0, 0.0)), received_s=now)
+        out = 0 if ok else out + 1
+        longest_out = max(longest_out, out)
+    assert longest_out <= tr.limits.resync_samples
+    assert tr.handle(lpos(5000 + 10 * 400, (0.0, 0.0, -2.0), (0.0, 0.0, 0.0)), received_s=9.0)
+
+
+@pytest.mark.parametrize("roll", [math.nan, math.inf, 1e30])
+def test_a_bad_attitude_is_rejected_before_it_is_converted(roll):
+    tr = StateTracker(system_id=1)
+    bad = decode(MAV.attitude_encode(1000, roll, 0.0, 0.0, 0.0, 0.0, 0.0))
+    assert not tr.handle(bad)  # no exception from the conversion
+    assert tr.counters["rejected_nan"] + tr.counters["rejected_range"] == 1
