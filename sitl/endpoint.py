@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any, cast
@@ -20,6 +19,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.frames import quat_to_euler, quat_to_rotation
+from epc_offboard.link import enable_signing
 from sitl.autopilot import (
     FORCE_DISARM_MAGIC,
     IGNORE_ATTITUDE,
@@ -35,9 +35,6 @@ from sitl.autopilot import (
 from sitl.simulation import Simulation, StateEstimate
 
 Address = tuple[str, int]
-
-# Seconds between 1970-01-01 and the MAVLink signing epoch 2015-01-01.
-_SIGNING_EPOCH_S = 1420070400
 
 # Telemetry streams: config field -> MAVLink message id.
 STREAMS: dict[str, int] = {
@@ -140,10 +137,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         self.mav = mavlink.MAVLink(self._sink, srcSystem=sysid, srcComponent=1)
         self.mav.robust_parsing = True
         if signing_key is not None:
-            self.mav.signing.secret_key = signing_key
-            self.mav.signing.sign_outgoing = True
-            self.mav.signing.timestamp = int((time.time() - _SIGNING_EPOCH_S) * 1e5)
-            self.mav.signing.allow_unsigned_callback = lambda _mav, _msg_id: False
+            enable_signing(self.mav, signing_key)  # verifies a signature before recording it
         self._allowed_sysids = frozenset(sim.config.sitl.allowed_source_sysids)
         rates = sim.config.sitl.telemetry
         self._default_interval_us = {

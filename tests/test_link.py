@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import math
 import socket
+import time
 
 import pytest
 from pymavlink import mavutil
@@ -139,6 +140,48 @@ async def _signing():
 
 def test_signing_rejects_unsigned_and_accepts_signed():
     asyncio.run(_signing())
+
+
+def forged_now(sysid: int, compid: int, link_id: int = 0) -> bytes:
+    """A frame signed with the WRONG key, stamped with the current time, claiming the
+    stream (link id, system, component) of a genuine peer: the attack of issue 16."""
+    forger = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+    forger.signing.secret_key = bytes(32)
+    forger.signing.link_id = link_id
+    forger.signing.sign_outgoing = True
+    forger.signing.timestamp = int((time.time() - 1420070400) * 1e5) + 100_000  # now + 1 s
+    hb = forger.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0)
+    return bytes(hb.pack(forger))
+
+
+async def _forged_timestamp():
+    server, client, got_server, _ = await pair(server_key=KEY, client_key=KEY)
+    port = server.local_address[1]
+    client.send(heartbeat(client))
+    await settle(lambda: len(got_server) == 1)
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    raw.sendto(forged_now(1, 1), ("127.0.0.1", port))  # the client's own stream
+    await settle(lambda: server.counters["bad_signature"] == 1)
+    for _ in range(20):  # genuine, signed: must keep flowing
+        client.send(heartbeat(client))
+    await settle(lambda: len(got_server) == 21)
+    assert server.counters["bad_signature"] == 1
+    assert server.signature is not None
+    assert server.signature.rejected == {"bad_signature": 1, "replayed": 0, "stale_stream": 0}
+    # a genuine replay is still refused: verified timestamps are recorded as before
+    frame = heartbeat(client).pack(client.mav)
+    raw.sendto(frame, ("127.0.0.1", port))
+    raw.sendto(frame, ("127.0.0.1", port))
+    await settle(lambda: server.counters["bad_signature"] == 2)
+    assert len(got_server) == 22
+    assert server.signature.rejected["replayed"] == 1
+    raw.close()
+    server.close()
+    client.close()
+
+
+def test_a_forged_timestamp_does_not_lock_out_signed_traffic():
+    asyncio.run(_forged_timestamp())
 
 
 def test_signing_key_file(tmp_path):
