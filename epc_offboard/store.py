@@ -61,6 +61,9 @@ CREATE TABLE IF NOT EXISTS models (
 );
 """
 
+_TABLES = frozenset({"meta", "controllers", "transitions", "models"})
+_SET_VERSION = f"INSERT OR IGNORE INTO meta VALUES ('schema_version', '{SCHEMA_VERSION}');"
+
 ActiveSet = tuple[int, ...]
 
 _UPSERT_MODEL = (
@@ -412,15 +415,19 @@ def _connect(path: Path, *, readonly: bool = False) -> sqlite3.Connection:
             raise StoreError("not an epc-offboard library (no meta table)")
         if "meta" in tables:
             row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
-            if row is None or row[0] != str(SCHEMA_VERSION):
+            if row is None and _creation_cut_short(conn, tables, readonly=readonly):
+                log.warning(
+                    "library %s: its creation was cut short (empty tables, no schema "
+                    "version): %s",
+                    path, "read as empty" if readonly else "finished",
+                )  # fmt: skip
+            elif row is None or row[0] != str(SCHEMA_VERSION):
                 raise StoreError(
                     f"schema version {row[0] if row else None}, expected {SCHEMA_VERSION}"
                 )
         if not readonly:
-            conn.executescript("BEGIN;" + _SCHEMA + "COMMIT;")
-            conn.execute(
-                "INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),)
-            )
+            # the schema and its version in ONE transaction: a kill leaves both or neither
+            conn.executescript(f"BEGIN IMMEDIATE;{_SCHEMA}{_SET_VERSION}COMMIT;")
         # Python's sqlite3 with isolation_level=None is in autocommit; `with conn:` below
         # still wraps each batch in one transaction.
         conn.isolation_level = "DEFERRED"
@@ -428,3 +435,17 @@ def _connect(path: Path, *, readonly: bool = False) -> sqlite3.Connection:
         conn.close()
         raise
     return conn
+
+
+def _creation_cut_short(conn: sqlite3.Connection, tables: set[str], *, readonly: bool) -> bool:
+    """Whether an unversioned file is only a library whose creation was killed: nothing but
+    our tables, all empty (before the schema and its version shared one transaction, a
+    kill between the two left that). Such a file is finished, not moved aside; one that
+    holds rows is not ours to guess about. Read-only, it reads as empty only when every
+    table is there."""
+    if not tables <= _TABLES or (readonly and tables != _TABLES):
+        return False
+    # (names from _TABLES only: nothing from the file reaches the SQL text)
+    return all(
+        conn.execute(f"SELECT 1 FROM {name} LIMIT 1").fetchone() is None for name in sorted(tables)
+    )

@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import os
+import random
 import signal
 import sqlite3
 import subprocess
 import sys
 import textwrap
+import time
 
 import pytest
 
 from epc_offboard.store import (
     LibraryStore,
     StoredController,
+    StoreError,
     decode_active_set,
     encode_active_set,
 )
@@ -138,3 +141,107 @@ def test_db_info_command(tmp_path, capsys):
     assert f"{SIG}: 2 controllers" in capsys.readouterr().out
     assert main(["db", "info", str(tmp_path / "missing.sqlite")]) == 2
     assert "no such library" in capsys.readouterr().err
+
+
+# Creates libraries; with a statement number, SIGKILLs itself as SQLite starts that statement
+# of the first creation (every boundary between two statements is a moment a kill can land).
+_CREATOR = """
+import itertools, os, signal, sqlite3, sys
+from epc_offboard.store import LibraryStore
+kill_at = int(sys.argv[2])
+if kill_at:
+    statements = itertools.count(1)
+    connect = sqlite3.connect
+    def traced(*args, **kwargs):
+        conn = connect(*args, **kwargs)
+        def trace(_sql):
+            if next(statements) == kill_at:
+                os.kill(os.getpid(), signal.SIGKILL)
+        conn.set_trace_callback(trace)
+        return conn
+    sqlite3.connect = traced
+print("ready", flush=True)
+for i in itertools.count():
+    LibraryStore.open(sys.argv[1] + f"/lib{i}.sqlite").close()
+    if kill_at:
+        break
+"""
+
+
+def _create_and_kill(folder, kill_at, delay_s=0.0):
+    """Run the creator in ``folder``; SIGKILL at statement ``kill_at`` (0: after delay_s).
+    Returns how the process ended (-SIGKILL when killed)."""
+    folder.mkdir()
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _CREATOR, str(folder), str(kill_at)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None
+    with proc.stdout:
+        assert proc.stdout.readline() == "ready\n"
+        if not kill_at:
+            time.sleep(delay_s)  # not a timing assertion: only where the kill lands
+            os.kill(proc.pid, signal.SIGKILL)
+    return proc.wait(timeout=30)
+
+
+def _assert_every_library_opens(folder):
+    for path in sorted(folder.glob("lib*.sqlite")):
+        with LibraryStore.open(path, repair=False) as store:
+            assert store.signatures() == []
+    assert not list(folder.glob("*.corrupt-*"))
+
+
+def test_kill_9_while_a_library_is_created_leaves_a_file_that_opens(tmp_path):
+    """SIGKILL before each SQL statement of a library's creation in turn, until one runs
+    to the end, then at random moments while libraries are created one after another:
+    every file left opens as it is (nothing refused, nothing moved aside)."""
+    kill_at = 1
+    while _create_and_kill(tmp_path / f"at{kill_at}", kill_at) == -signal.SIGKILL:
+        _assert_every_library_opens(tmp_path / f"at{kill_at}")
+        kill_at += 1
+        assert kill_at < 50  # the creation is a handful of statements
+    assert kill_at > 5
+    rng = random.Random(16)
+    for attempt in range(3):
+        folder = tmp_path / f"random{attempt}"
+        assert _create_and_kill(folder, 0, rng.uniform(0.05, 0.2)) == -signal.SIGKILL
+        assert list(folder.glob("lib*.sqlite"))
+        _assert_every_library_opens(folder)
+
+
+def _drop_version(path):
+    conn = sqlite3.connect(path)
+    conn.execute("DELETE FROM meta")
+    conn.commit()
+    conn.close()
+
+
+def test_an_unversioned_empty_library_is_finished_one_with_rows_refused(tmp_path):
+    """The file an old creation left when killed between its tables and its version is
+    finished, not refused nor moved aside. One that holds rows is not guessed at: refused
+    offline, moved aside by the service, as before."""
+    full = tmp_path / "full.sqlite"
+    with LibraryStore.open(full) as store:
+        store.save_controllers(SIG, [StoredController((1,), 1.0, 1)])
+    _drop_version(full)
+    with pytest.raises(StoreError, match="schema version None"):
+        LibraryStore.open(full, repair=False)
+    with pytest.raises(StoreError, match="schema version None"):
+        LibraryStore.open_readonly(full)
+    with LibraryStore.open(full) as store:
+        assert store.load_controllers(SIG) == []
+    assert list(tmp_path.glob("full.sqlite.corrupt-*"))
+
+    path = tmp_path / "lib.sqlite"
+    LibraryStore.open(path).close()
+    _drop_version(path)
+    with LibraryStore.open_readonly(path) as store:
+        assert store.signatures() == []
+    with LibraryStore.open(path, repair=False) as store:
+        store.save_controllers(SIG, [StoredController((1,), 1.0, 1)])
+    conn = sqlite3.connect(path)
+    assert conn.execute("SELECT value FROM meta").fetchall() == [("1",)]
+    conn.close()
+    assert not list(tmp_path.glob("lib.sqlite.corrupt-*"))
