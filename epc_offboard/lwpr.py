@@ -16,6 +16,14 @@ An update runs every array operation over all fields at once, never a Python loo
 fields (only over the at most n_in PLS projections); a field below the update threshold gets
 weight 0 and forgetting factor 1 in those operations, which leaves it bit-for-bit unchanged.
 
+Two implementations of the same equations: ``LwprReference`` runs them as numpy array
+operations over all fields (above); ``LWPR`` runs the per-sample work (activations,
+prediction, the update of the active fields) as compiled loops over the fields
+(``epc_offboard.lwpr_kernels``, numba), a few microseconds instead of a few hundred numpy
+calls. Both share the field store, the adding and pruning of fields (Python, rare) and the
+file format; the tests hold the compiled one to the reference. Without numba, ``LWPR`` is the
+reference. Call ``warm_up()`` before a control loop, so its first tick does not compile.
+
 Inputs and outputs are divided by ``norm_in`` / ``norm_out`` before learning (as in the
 reference library): choose them near the typical range of each signal, so that ``init_d`` and
 ``penalty`` mean the same thing for every input and output.
@@ -28,12 +36,15 @@ import json
 import math
 import os
 import tempfile
+import time
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
+
+from epc_offboard import lwpr_kernels as kernels
 
 FloatArray = npt.NDArray[np.float64]
 ArrayLike = npt.ArrayLike
@@ -41,8 +52,7 @@ ArrayLike = npt.ArrayLike
 FORMAT_NAME = "epc-offboard-lwpr"
 FORMAT_VERSION = 1
 
-# A field takes part in an update only above this activation (reference library).
-_W_UPDATE_MIN = 0.001
+_W_UPDATE_MIN = kernels.W_UPDATE_MIN  # a field takes part in an update only above this
 _INITIAL_CAPACITY = 16
 
 
@@ -68,6 +78,14 @@ _PROJ = (  # (R,) one value per PLS projection
 # projections as linear maps of the centred input, s_r = g_r'x (see _projection_rows).
 _PROJV = ("U", "P", "sxres_yres", "ssxres", "G")
 _SCALAR = ("beta0", "sum_e2", "ssp")
+# The field store in the order the compiled update takes it (lwpr_kernels.update), and the
+# part the compiled predictions read.
+_UPDATE_ARGS = (
+    "c", "mean_x", "var_x", "slope", "M", "D", "alpha", "meta_b", "meta_h", "ss2", "syres",
+    "beta", "sum_w", "sum_e_cv2", "n_data", "lam", "H", "r", "U", "P", "sxres_yres", "ssxres",
+    "G", "beta0", "sum_e2", "ssp",
+)  # fmt: skip
+_PREDICT_ARGS = ("c", "D", "beta0", "mean_x", "slope")
 
 
 def _schema(n_in: int) -> dict[str, tuple[int, ...]]:
@@ -162,7 +180,12 @@ class LWPR:
     trace of D, is removed. Counters: n_updates, n_pruned (per output), n_dropped (fields
     removed because their statistics overflowed, e.g. on an absurdly large target).
     Bad inputs raise ``LwprError`` (a ``ValueError``) and leave the model unchanged.
+
+    ``update``, ``predict`` and ``predict_many`` run compiled (``compiled`` is True when numba
+    is installed); ``LwprReference`` is the same learner in numpy, its test oracle.
     """
+
+    compiled: ClassVar[bool] = kernels.HAVE_NUMBA
 
     def __init__(
         self,
@@ -263,6 +286,24 @@ class LWPR:
         self.n_updates = 0
         self.n_pruned = np.zeros(self.n_out, dtype=np.int64)
         self.n_dropped = 0  # fields removed because their statistics overflowed
+        cfg = np.zeros(kernels.CFG_SIZE)
+        cfg[kernels.CFG_CUTOFF] = self.cutoff
+        cfg[kernels.CFG_W_GEN] = self.w_gen
+        cfg[kernels.CFG_W_PRUNE] = self.w_prune
+        cfg[kernels.CFG_PEN] = self.penalty / self.n_in
+        cfg[kernels.CFG_TAU_LAMBDA] = self.tau_lambda
+        cfg[kernels.CFG_FINAL_LAMBDA] = self.final_lambda
+        cfg[kernels.CFG_ADD_THRESHOLD] = self.add_threshold
+        cfg[kernels.CFG_META_RATE] = self.meta_rate
+        cfg[kernels.CFG_DIAG_ONLY] = float(self.diag_only)
+        cfg[kernels.CFG_UPDATE_D] = float(self.update_d)
+        cfg[kernels.CFG_META] = float(self.meta)
+        self._cfg = cfg
+        # The compiled kernels' arguments (whole-capacity arrays), rebuilt with the store.
+        self._update_args: tuple[npt.NDArray[Any], ...] = ()
+        self._predict_args: tuple[npt.NDArray[Any], ...] = ()
+        self._w_buf = np.zeros(0)  # activations, (capacity,)
+        self._y_buf = np.zeros(self.n_out)
 
     # ----------------------------------------------------------------- public API
 
@@ -276,28 +317,41 @@ class LWPR:
         """Learn one sample (x (n_in,), y (n_out,)); return the prediction at x before it."""
         xn = check_vector(x, self.n_in, "x") / self.norm_in
         yn = check_vector(y, self.n_out, "y") / self.norm_out
-        v = self._active_views()
-        w = self._activations(v, xn)
-        y_before = self._predict_normalised(v, w, xn)
-        active = w > _W_UPDATE_MIN
-        if active.any():
-            self._update_fields(v, xn, yn, w, active)
-            # A field whose statistics overflowed is dropped rather than left to poison
-            # predictions (not seen in practice; counted in n_dropped).
-            health = v["beta0"] + v["slope"] @ self._ones + v["M_diag"] @ self._ones
-            if not np.isfinite(health).all():
-                broken = np.flatnonzero(~np.isfinite(health))
-                self.n_dropped += broken.size
-                self._remove_fields(broken)
-                self.n_updates += 1
-                return y_before * self.norm_out
-        self._add_or_prune(w, xn, yn)
+        if self.compiled:
+            self._kernel_args()
+            w = self._w_buf[: self._n]
+            status = kernels.update(
+                xn, yn, self._n, self._cfg, self._w_buf, self._y_buf, *self._update_args
+            )
+            y_before = self._y_buf * self.norm_out
+            overflow = bool(status & kernels.STATUS_NOT_FINITE)
+            crowded = bool(status & kernels.STATUS_ADD_OR_PRUNE)
+        else:
+            v = self._active_views()
+            w = self._activations(v, xn)
+            y_before = self._predict_normalised(v, w, xn) * self.norm_out
+            active = w > _W_UPDATE_MIN
+            overflow = bool(active.any())
+            if overflow:
+                self._update_fields(v, xn, yn, w, active)
+            crowded = True  # _add_or_prune checks its fast path itself
         self.n_updates += 1
-        return y_before * self.norm_out
+        # A field whose statistics overflowed is dropped rather than left to poison
+        # predictions (not seen in practice; counted in n_dropped).
+        if overflow and self._drop_overflowed():
+            return y_before
+        if crowded:
+            self._add_or_prune(w, xn, yn)
+        return y_before
 
     def predict(self, x: ArrayLike) -> FloatArray:
         """Prediction at x (n_in,): shape (n_out,); 0 where no trusted field is active."""
         xn = check_vector(x, self.n_in, "x") / self.norm_in
+        if self.compiled:
+            self._kernel_args()
+            y = np.empty((1, self.n_out))
+            kernels.predict_many(xn.reshape(1, -1), self._n, self._cfg, y, *self._predict_args)
+            return y[0] * self.norm_out
         v = self._active_views()
         return self._predict_normalised(v, self._activations(v, xn), xn) * self.norm_out
 
@@ -315,8 +369,14 @@ class LWPR:
         n = self._n
         if n == 0:
             return np.zeros((arr.shape[0], self.n_out))
-        v = self._active_views()
         xn = arr / self.norm_in
+        if self.compiled:
+            self._kernel_args()
+            y_many = np.empty((arr.shape[0], self.n_out))
+            kernels.predict_many(xn, n, self._cfg, y_many, *self._predict_args)
+            y_many *= self.norm_out
+            return y_many
+        v = self._active_views()
         dx = xn[:, None, :] - v["c"][None]  # (m, n, d)
         if self.diag_only:
             q = (dx * dx * v["D_diag"][None]) @ self._ones
@@ -500,6 +560,32 @@ class LWPR:
         return model
 
     # ----------------------------------------------------------------- internals
+
+    def _kernel_args(self) -> None:
+        """(Re)build the compiled kernels' arguments after the store was reallocated."""
+        if self._w_buf.shape[0] == self._out.shape[0]:
+            return
+        store = self._store
+        self._update_args = (
+            *(store[name] for name in _UPDATE_ARGS),
+            self._out,
+            self._nreg,
+            self._trusted,
+            self._nuse,
+        )
+        self._predict_args = (*(store[name] for name in _PREDICT_ARGS), self._trusted, self._out)
+        self._w_buf = np.zeros(self._out.shape[0])
+
+    def _drop_overflowed(self) -> bool:
+        """Remove the fields whose statistics are no longer finite; True if there were any."""
+        v = self._active_views()
+        health = v["beta0"] + v["slope"] @ self._ones + v["M_diag"] @ self._ones
+        broken = np.flatnonzero(~np.isfinite(health))
+        if broken.size == 0:
+            return False
+        self.n_dropped += broken.size
+        self._remove_fields(broken)
+        return True
 
     def _active_views(self) -> dict[str, FloatArray]:
         """Named views of the fields in use (rows [0, n)); writes go to the model."""
@@ -944,3 +1030,29 @@ class LWPR:
         self._trusted[i] = False
         self._n = i + 1
         self._views_n = -1
+
+
+class LwprReference(LWPR):
+    """The numpy implementation of ``LWPR``: every quantity updated as array operations over
+    all fields at once. The oracle of the compiled ``LWPR`` in the tests (same predictions to
+    1e-9 over sample streams), and what ``LWPR`` runs when numba is not installed. Same
+    settings, methods and file format (a file saved by one loads into the other)."""
+
+    compiled: ClassVar[bool] = False
+
+
+def warm_up() -> float:
+    """Compile the LWPR kernels now (or load them from numba's on-disk cache), so that the
+    first ``update`` / ``predict`` / ``predict_many`` of a control loop does not: a model
+    learns a few samples, adding fields, and predicts. Returns the seconds it took (0 without
+    numba). The kernels take the same argument types for every model, so this covers all."""
+    if not LWPR.compiled:
+        return 0.0
+    t0 = time.perf_counter()
+    model = LWPR(2, 2, init_d=4.0, diag_only=False, meta=True)
+    for k in range(40):
+        x = np.array([math.sin(0.3 * k), math.cos(0.7 * k)])
+        model.update(x, [x[0] * x[1], x[0] - x[1]])
+    model.predict(x)
+    model.predict_many(np.zeros((3, 2)))
+    return time.perf_counter() - t0
