@@ -28,6 +28,18 @@ from epc_offboard.frames import FloatArray
 log = logging.getLogger(__name__)
 
 MAV_MODE_FLAG_SAFETY_ARMED = 128
+MAV_COMP_ID_AUTOPILOT1 = 1
+MAV_AUTOPILOT_INVALID = 8  # MAVLink's "not a flight controller"
+# MAV_TYPEs of components that are not a flight controller (antenna tracker, GCS, onboard
+# computer, gimbal, ADS-B, camera, charging station, FLARM, servo, Open Drone ID, battery,
+# parachute, logger, OSD, IMU, GPS, winch, illuminator, gripper): no flight mode in their
+# heartbeat. A type past the dialect's last (49) is not one either.
+_NOT_AUTOPILOT_TYPES = frozenset(
+    {5, 6, 18, 26, 27, 30, 31, 32, 33, 34, 36, 37, 38, 39, 40, 41, 42, 44, 48}
+)
+_MAV_TYPE_END = 49
+_FLAP_LOG_PERIOD_S = 10.0
+_MAX_CLAIMS = 8  # changes being confirmed at once; past it the oldest claim is forgotten
 # time_boot_ms is truncated to whole ms while ODOMETRY's time_usec is not: samples of one
 # instant can differ by up to a millisecond and must not count as out of order.
 _ORDER_TOLERANCE_S = 1.5e-3
@@ -70,6 +82,21 @@ class StateLimits:
     # the tracker's timeline (an autopilot reboot restarting time_boot_ms at 0, or a bad
     # stamp accepted first) move the tracker to their timeline: a resync, never a lockout.
     resync_samples: int = 5
+    # Heartbeats: a mode or arming change that comes sooner than heartbeat_min_interval_s
+    # (half PX4's 1 Hz period) after the heartbeat before it, or is undone within
+    # heartbeat_flap_window_s (a period plus jitter), is a flap: a forged heartbeat between
+    # two genuine ones. Changes are adopted at once until a flap (an early one is held
+    # back, an undoing adopted); for heartbeat_calm_s after the last, a change is adopted
+    # only once it has been claimed for heartbeat_confirm_s (PX4's heartbeat period) with
+    # the mode held not claimed meanwhile: while the vehicle keeps sending the mode held,
+    # no forgery lasts that long; a genuine change then lags a heartbeat, on a calm link none.
+    heartbeat_min_interval_s: float = 0.5
+    heartbeat_flap_window_s: float = 1.5
+    heartbeat_calm_s: float = 10.0
+    heartbeat_confirm_s: float = 1.0
+    # The autopilot's (MAV_TYPE, MAV_AUTOPILOT) is learnt from its first heartbeat, and
+    # learnt again only after this long without one.
+    heartbeat_relearn_s: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -148,6 +175,9 @@ class StateTracker:
 
     system_id: int
     limits: StateLimits = field(default_factory=StateLimits)
+    # whose HEARTBEAT carries the flight mode: the autopilot's (config link.target_component;
+    # 0 accepts any component, the type checks still apply)
+    component_id: int = MAV_COMP_ID_AUTOPILOT1
     counters: Counter[str] = field(default_factory=Counter)
     heartbeat: Heartbeat | None = None
     _attitude: _Sample | None = None  # (q, rate)
@@ -155,6 +185,15 @@ class StateTracker:
     vehicle_time_s: float = 0.0  # newest vehicle timestamp seen in a valid state message
     _timelines: dict[str, _Timeline] = field(default_factory=dict)  # per stream (4 at most)
     _candidates: dict[str, list[list[_Timeline]]] = field(default_factory=dict)
+    _kind: tuple[int, int] | None = None  # the autopilot's (MAV_TYPE, MAV_AUTOPILOT)
+    _mode: tuple[bool, int] | None = None  # (armed, custom_mode) of the heartbeat held
+    _mode_before: tuple[bool, int] | None = None  # what the last adopted change replaced
+    _mode_changed_s: float = -math.inf
+    _mode_heard_s: float = -math.inf  # the last heartbeat accepted
+    _flap_s: float = -math.inf  # the last flap: changes need confirming until calm again
+    # changes claimed since the mode held was last claimed: mode -> first claimed (bounded)
+    _claims: dict[tuple[bool, int], float] = field(default_factory=dict)
+    _flap_logged_s: float = -math.inf
 
     def handle(self, msg: Any, received_s: float | None = None) -> bool:
         """Consume one decoded message; True when it updated the state."""
@@ -163,6 +202,8 @@ class StateTracker:
         now = time.monotonic() if received_s is None else received_s
         mtype = msg.get_type()
         if mtype == "HEARTBEAT":
+            if not self._accept_heartbeat(msg, now):
+                return False
             main, sub = px4_modes(int(msg.custom_mode))
             self.heartbeat = Heartbeat(
                 self.system_id, bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED), main, sub, now
@@ -191,6 +232,70 @@ class StateTracker:
         if mtype == "ODOMETRY":
             return self._handle_odometry(msg, now)
         return False
+
+    def _accept_heartbeat(self, msg: Any, now: float) -> bool:
+        """Whether this HEARTBEAT may replace the one held: the autopilot's (configured
+        component, a flight controller's type, the autopilot's kind) and, while heartbeats
+        flap, a change confirmed. Counted: ignored, flaps, changes held back."""
+        if not self._from_autopilot(msg, now):
+            self.counters["heartbeat_ignored"] += 1
+            return False
+        mode = (bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED), int(msg.custom_mode))
+        held, claims = self._mode, self._claims
+        if held is None or mode == held:
+            if claims:  # changes held back, contradicted: still flapping
+                self._flapped(now)
+                claims.clear()
+            self._mode, self._mode_heard_s = mode, now
+            return True
+        limits = self.limits
+        calm = now - self._flap_s >= limits.heartbeat_calm_s
+        # an undoing restores what the vehicle said before the forgery: adopted
+        undone = (
+            calm
+            and mode == self._mode_before
+            and now - self._mode_changed_s <= limits.heartbeat_flap_window_s
+        )
+        if calm and (undone or now - self._mode_heard_s < limits.heartbeat_min_interval_s):
+            self._flapped(now)
+        if not undone and now - self._flap_s < limits.heartbeat_calm_s:
+            first_s = claims.setdefault(mode, now)
+            if now - first_s < limits.heartbeat_confirm_s:
+                if len(claims) > _MAX_CLAIMS:
+                    del claims[next(iter(claims))]
+                self.counters["heartbeat_changes_held"] += 1
+                return False
+        self._mode_before, self._mode, self._mode_changed_s = held, mode, now
+        self._mode_heard_s = now
+        claims.clear()
+        return True
+
+    def _from_autopilot(self, msg: Any, now: float) -> bool:
+        if self.component_id and msg.get_srcComponent() != self.component_id:
+            return False
+        kind = (int(msg.type), int(msg.autopilot))
+        mav_type, autopilot = kind
+        if (
+            autopilot == MAV_AUTOPILOT_INVALID
+            or mav_type in _NOT_AUTOPILOT_TYPES
+            or mav_type >= _MAV_TYPE_END
+        ):
+            return False
+        hb = self.heartbeat
+        if hb is None or now - hb.received_s > self.limits.heartbeat_relearn_s:
+            self._kind = kind
+        return kind == self._kind
+
+    def _flapped(self, now: float) -> None:
+        self.counters["heartbeat_flaps"] += 1
+        self._flap_s = now
+        if now - self._flap_logged_s >= _FLAP_LOG_PERIOD_S:
+            self._flap_logged_s = now
+            log.warning(
+                "heartbeat mode/arming flapping (%d flaps so far): forged heartbeats? a mode "
+                "change now needs %.1f s to be believed; MAVLink signing stops this",
+                self.counters["heartbeat_flaps"], self.limits.heartbeat_confirm_s,
+            )  # fmt: skip
 
     def _handle_odometry(self, msg: Any, now: float) -> bool:
         if msg.frame_id not in (MAV_FRAME_LOCAL_NED, MAV_FRAME_LOCAL_FRD):

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard import frames
+from epc_offboard.offboard import Inputs, OffboardConfig, OffboardStateMachine, Phase
 from epc_offboard.state import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
@@ -179,8 +183,22 @@ LEVEL = (1.0, 0.0, 0.0, 0.0)
 def odometry(t_us, pos, mav=MAV):
     return decode(
         mav.odometry_encode(
-            t_us, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD, *pos, list(LEVEL),
-            0, 0, 0, 0, 0, 0, [math.nan] + [0.0] * 20, [math.nan] + [0.0] * 20, 0, 0, 0,
+            t_us,
+            mavlink.MAV_FRAME_LOCAL_NED,
+            mavlink.MAV_FRAME_BODY_FRD,
+            *pos,
+            list(LEVEL),
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+            [math.nan] + [0.0] * 20,
+            [math.nan] + [0.0] * 20,
+            0,
+            0,
+            0,
         ),
         mav,
     )
@@ -272,3 +290,111 @@ def test_a_bad_attitude_is_rejected_before_it_is_converted(roll):
     bad = decode(MAV.attitude_encode(1000, roll, 0.0, 0.0, 0.0, 0.0, 0.0))
     assert not tr.handle(bad)  # no exception from the conversion
     assert tr.counters["rejected_nan"] + tr.counters["rejected_range"] == 1
+
+
+# ---- forged heartbeats (issue 16, 4) -------------------------------------------------------
+
+QUAD, PX4 = mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4
+OFFBOARD_ARMED = (True, 6, 0)  # (armed, PX4 main mode, sub mode)
+LOITER_ARMED = (True, 4, 3)
+POSCTL_ARMED = (True, 3, 0)
+POSCTL_DISARMED = (False, 3, 0)
+
+
+def heartbeat(mode=OFFBOARD_ARMED, *, comp=1, mav_type=QUAD, autopilot=PX4, base=None, custom=None):
+    armed, main, sub = mode
+    if base is None:
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
+            mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0
+        )
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=comp)
+    custom = px4_custom_mode(main, sub) if custom is None else custom
+    return decode(mav.heartbeat_encode(mav_type, autopilot, base, custom, 4), mav)
+
+
+def forged_elsewhere(rng) -> object:
+    """A heartbeat from the vehicle's system id with random enums, that is not the
+    autopilot's: another component, or component 1 with a type or autopilot no flight
+    controller sends (GCS, onboard controller, gimbal..., MAV_AUTOPILOT_INVALID, garbage)."""
+    base, custom = int(rng.integers(0, 256)), int(rng.integers(0, 2**32))
+    mav_type, autopilot = int(rng.integers(0, 256)), int(rng.integers(0, 256))
+    how = int(rng.integers(0, 3))
+    if how == 0:  # another component, anything at all
+        comp = int(rng.integers(2, 256))
+    elif how == 1:  # the autopilot's component, a type that is no flight controller
+        comp, mav_type = 1, int(rng.choice([6, 18, 26, 30, 42, 49, 200, 255]))
+    else:  # the autopilot's component, MAV_AUTOPILOT_INVALID
+        comp, autopilot = 1, mavlink.MAV_AUTOPILOT_INVALID
+    return heartbeat(comp=comp, mav_type=mav_type, autopilot=autopilot, base=base, custom=custom)
+
+
+def fly(genuine_modes, forged, *, steps_per_s=20):
+    """Genuine heartbeats at 1 Hz carrying ``genuine_modes[s]`` at second s, the ``forged``
+    (time_s, message) between them, the state machine stepped at 20 Hz on fresh state in
+    the air; returns the tracker and the phase at every step."""
+    tr = StateTracker(system_id=1)
+    sm = OffboardStateMachine(OffboardConfig())
+    forged = sorted(forged, key=lambda e: e[0])
+    phases = []
+    for k in range(len(genuine_modes) * steps_per_s):
+        t = k / steps_per_s
+        if k % steps_per_s == 0:
+            tr.handle(heartbeat(genuine_modes[k // steps_per_s]), received_s=t)
+        while forged and forged[0][0] <= t:
+            tr.handle(forged.pop(0)[1], received_s=t)
+        out = sm.step(
+            Inputs(t, tr.heartbeat, 0.01, pos_down_m=-2.5, relative_alt_m=2.5, amsl_m=490.0)
+        )
+        phases.append(out.phase)
+    return tr, phases
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_heartbeats_of_other_components_and_kinds_do_not_change_the_phase(seed):
+    rng = np.random.default_rng(seed)
+    forged = [(0.05 + 0.1 * k, forged_elsewhere(rng)) for k in range(300)]  # 10 Hz
+    tr, phases = fly([OFFBOARD_ARMED] * 30, forged)
+    assert set(phases[phases.index(Phase.OFFBOARD) :]) == {Phase.OFFBOARD}
+    assert tr.heartbeat is not None
+    assert (tr.heartbeat.armed, tr.heartbeat.main_mode) == (True, 6)
+    assert tr.counters["heartbeat_ignored"] > 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    modes=st.lists(
+        st.sampled_from([OFFBOARD_ARMED, LOITER_ARMED, POSCTL_ARMED, POSCTL_DISARMED]),
+        min_size=3,
+        max_size=25,
+    ),
+    times=st.lists(st.floats(0.0, 25.0), max_size=120),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_forged_heartbeats_interleaved_with_genuine_ones_never_flap_the_phase(modes, times, seed):
+    """Property: whatever the genuine autopilot does, heartbeats that are not its own,
+    at random moments, leave the phase exactly as it is without them."""
+    rng = np.random.default_rng(seed)
+    _, clean = fly(modes, [])
+    _, attacked = fly(modes, [(t, forged_elsewhere(rng)) for t in times])
+    assert attacked == clean
+
+
+def test_forged_autopilot_heartbeats_flap_the_phase_at_most_once():
+    """Forged heartbeats even from the autopilot's own component and kind (without signing
+    they cannot be told apart): a calm link adopts a genuine change at once; once a change
+    is undone within a heartbeat, changes need confirming, so a 3 Hz forger among the 1 Hz
+    genuine heartbeats flips the phase once and back, not on every forgery."""
+    rng = np.random.default_rng(16)
+    modes = [LOITER_ARMED] * 3 + [OFFBOARD_ARMED] * 57
+    forged = [
+        (10.2 + k / 3, heartbeat((bool(rng.integers(0, 2)), int(rng.integers(0, 8)), 0)))
+        for k in range(90)  # 30 s at 3 Hz
+    ]
+    tr, phases = fly(modes, forged)
+    steps = 20
+    assert phases[3 * steps] == Phase.OFFBOARD  # the genuine change: adopted at once
+    during = phases[10 * steps : 45 * steps]
+    assert sum(a != b for a, b in itertools.pairwise(during)) <= 2
+    assert set(phases[45 * steps :]) == {Phase.OFFBOARD}
+    assert tr.counters["heartbeat_flaps"] >= 1
+    assert tr.counters["heartbeat_changes_held"] >= 1
