@@ -122,7 +122,10 @@ class PositionControlConfig:
 
 @dataclass(frozen=True)
 class AttitudeControlConfig:
-    mode: Literal["epc", "autopilot"] = "epc"  # autopilot: quaternion + thrust to its own loop
+    # epc: body rates from the attitude EPC; autopilot: quaternion + thrust to its own loop;
+    # auto: epc on PX4, autopilot on ArduPilot (ArduCopter shapes body-rate targets with
+    # ATC_INPUT_TC, so its rate response is not the identified first-order rate model)
+    mode: Literal["auto", "epc", "autopilot"] = "auto"
     horizon: int = 10
     dt_s: float = 0.01
     rate_time_constant_s: float = 0.03  # the autopilot's rate loop, first order

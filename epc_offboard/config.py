@@ -27,6 +27,8 @@ class LinkConfig:
     system_id: int = 245  # ours: an onboard computer, as MAVSDK does by default
     component_id: int = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
     signing_key_file: str = ""  # 32-byte key: sign outgoing, reject unsigned ("" = off)
+    # the autopilot's dialect: "auto" reads it from HEARTBEAT.autopilot (12 PX4, 3 ArduPilot)
+    autopilot: Literal["auto", "px4", "ardupilot"] = "auto"
 
     def __post_init__(self) -> None:
         for name in ("target_system", "system_id"):

@@ -35,6 +35,12 @@ stale-state gaps and mode lags):
 
 Setpoints always stream before offboard is requested (PX4 refuses offboard otherwise, and
 MAVSDK teaches the same ritual).
+
+The autopilot's dialect (``dialect.py``) says how heartbeat modes read (offboard, takeoff,
+hold, land). ArduCopter's (``offboard_before_arming``) changes one thing: PREFLIGHT selects
+GUIDED before it arms and before the takeoff (ArduCopter cannot take off from STABILIZE),
+and GUIDED + armed on the ground is the takeoff ritual, not offboard flight — control starts
+once the takeoff's altitude is reached. Every invariant above holds for both.
 """
 
 from __future__ import annotations
@@ -43,12 +49,11 @@ import enum
 import math
 from dataclasses import dataclass, field
 
-from epc_offboard.state import (
-    PX4_AUTO_SUB_LAND,
-    PX4_AUTO_SUB_TAKEOFF,
-    PX4_MAIN_MODE_AUTO,
-    Heartbeat,
-)
+from epc_offboard import dialect_px4
+from epc_offboard.dialect import Action, Dialect, FlightMode, TakeoffTarget
+from epc_offboard.state import Heartbeat
+
+__all__ = ["Action", "Inputs", "OffboardConfig", "OffboardStateMachine", "Outputs", "Phase"]
 
 # MAV_LANDED_STATE (EXTENDED_SYS_STATE.landed_state)
 LANDED_STATE_ON_GROUND = 1
@@ -70,14 +75,7 @@ class Phase(enum.Enum):
     DONE = "done"  # the flight is over (landed and disarmed, or handed over holding)
 
 
-class Action(enum.Enum):
-    ARM = "arm"
-    TAKEOFF = "takeoff"
-    REQUEST_OFFBOARD = "request_offboard"
-    REQUEST_HOLD = "request_hold"
-    LAND = "land"
-
-
+_NEEDS_OFFBOARD_MODE = "waiting for the offboard mode (GUIDED) before the takeoff"
 _CONTROLLING = frozenset({Phase.STREAMING, Phase.OFFBOARD_REQUESTED, Phase.OFFBOARD})
 _STREAMING = _CONTROLLING | {Phase.PILOT}
 
@@ -126,14 +124,6 @@ class Inputs:
 
 
 @dataclass(frozen=True)
-class TakeoffTarget:
-    """The one takeoff of a flight: height above home, and the same height AMSL."""
-
-    above_home_m: float
-    amsl_m: float
-
-
-@dataclass(frozen=True)
 class Outputs:
     phase: Phase
     stream_setpoints: bool
@@ -141,14 +131,6 @@ class Outputs:
     reason: str  # why the phase is what it is, for STATUS= and the log
     takeoff: TakeoffTarget | None = None  # set when actions holds TAKEOFF
     altitude_m: float | None = None  # height above home as the machine judges it
-
-
-def _taking_off(hb: Heartbeat) -> bool:
-    return hb.main_mode == PX4_MAIN_MODE_AUTO and hb.sub_mode == PX4_AUTO_SUB_TAKEOFF
-
-
-def _landing(hb: Heartbeat) -> bool:
-    return hb.main_mode == PX4_MAIN_MODE_AUTO and hb.sub_mode == PX4_AUTO_SUB_LAND
 
 
 @dataclass
@@ -179,6 +161,17 @@ class OffboardStateMachine:
     _flight: _Flight = field(default_factory=_Flight)
     _finished: bool = False  # a flight ended in a landing: automate nothing more
     land_at_end: bool = True  # mission.land_at_end: at the mission's end, land (else hold)
+    # how the heartbeat's modes read and whether offboard comes before arming (ArduCopter)
+    dialect: Dialect = dialect_px4.PX4
+
+    def _offboard(self, hb: Heartbeat) -> bool:
+        return self.dialect.mode(hb) == FlightMode.OFFBOARD
+
+    def _taking_off(self, hb: Heartbeat) -> bool:
+        return self.dialect.mode(hb) == FlightMode.TAKEOFF
+
+    def _landing(self, hb: Heartbeat) -> bool:
+        return self.dialect.mode(hb) == FlightMode.LAND
 
     def _enter(self, phase: Phase, now_s: float, reason: str) -> None:
         if phase != self.phase:
@@ -231,7 +224,7 @@ class OffboardStateMachine:
         target = flight.takeoff_target
         if target is not None and alt is not None:
             flight.takeoff_done |= alt >= target.above_home_m - cfg.takeoff_reached_tolerance_m
-        if hb is not None and hb.armed and _landing(hb) and flight.left_ground:
+        if hb is not None and hb.armed and self._landing(hb) and flight.left_ground:
             flight.landing = flight.land_seen = True
         on_ground = (alt is not None and alt < cfg.airborne_altitude_m) and not in_air_reported
         if hb is not None and not hb.armed and on_ground:
@@ -289,7 +282,7 @@ class OffboardStateMachine:
                 self._enter(Phase.FAILSAFE, now, f"state stale ({inp.state_age_s:.3f} s)")
             elif self.phase != Phase.FAILSAFE:
                 self._enter(Phase.WAIT_STATE, now, "waiting for fresh state")
-        elif self.phase == Phase.FAILSAFE and hb is not None and hb.offboard:
+        elif self.phase == Phase.FAILSAFE and hb is not None and self._offboard(hb):
             # Heartbeats come at 1 Hz: give our hold request time to show before deciding the
             # vehicle is (again, by a pilot's choice) in offboard.
             if now - self._phase_since_s >= cfg.hold_confirm_s:
@@ -300,7 +293,8 @@ class OffboardStateMachine:
             self._enter(Phase.PREFLIGHT, now, "state flowing")
 
         if self.phase == Phase.FAILSAFE:
-            if hb_ok and hb is not None and hb.offboard and self._due(Action.REQUEST_HOLD, now):
+            offboard = hb_ok and hb is not None and self._offboard(hb)
+            if offboard and self._due(Action.REQUEST_HOLD, now):
                 actions.append(Action.REQUEST_HOLD)
             return self._out(False, actions, alt)
         if self.phase in (Phase.WAIT_HEARTBEAT, Phase.WAIT_STATE) or hb is None:
@@ -311,21 +305,21 @@ class OffboardStateMachine:
             if takeoff is not None:
                 return self._out(False, actions, alt, takeoff)
         if self.phase == Phase.STREAMING:
-            if hb.offboard:
+            if self._offboard(hb):
                 self._enter(Phase.OFFBOARD, now, "offboard confirmed")
             elif cfg.auto_offboard and now - self._phase_since_s >= cfg.min_stream_s:
                 self._enter(Phase.OFFBOARD_REQUESTED, now, "requesting offboard")
         if self.phase == Phase.OFFBOARD_REQUESTED:
-            if hb.offboard:
+            if self._offboard(hb):
                 self._enter(Phase.OFFBOARD, now, "offboard confirmed")
             elif not hb.armed:
                 self._enter(Phase.PREFLIGHT, now, "disarmed")
             elif self._due(Action.REQUEST_OFFBOARD, now):
                 actions.append(Action.REQUEST_OFFBOARD)
-        if self.phase == Phase.OFFBOARD and not hb.offboard:
+        if self.phase == Phase.OFFBOARD and not self._offboard(hb):
             self._enter(Phase.PILOT, now, "left offboard (pilot or autopilot failsafe)")
         if self.phase == Phase.PILOT:
-            if hb.offboard:
+            if self._offboard(hb):
                 self._enter(Phase.OFFBOARD, now, "offboard re-entered by the pilot")
             elif not hb.armed:
                 self._enter(Phase.PREFLIGHT, now, "disarmed")
@@ -347,10 +341,13 @@ class OffboardStateMachine:
         cfg = self.config
         now = inp.now_s
         flight = self._flight
-        if hb.offboard and hb.armed:
+        before_arming = self.dialect.offboard_before_arming
+        # (ArduCopter: GUIDED + armed on the ground is the takeoff ritual, not offboard flight;
+        # once airborne it streams, and STREAMING sees GUIDED as offboard at once)
+        if self._offboard(hb) and hb.armed and not before_arming:
             self._enter(Phase.OFFBOARD, now, "already in offboard")
             return None
-        if _landing(hb):
+        if self._landing(hb):
             self._reason = "the autopilot is landing"
             return None
         target = flight.takeoff_target
@@ -364,7 +361,7 @@ class OffboardStateMachine:
             else cfg.airborne_altitude_m
         )
         flying = hb.armed and alt is not None and alt >= reached
-        if flying and (target is not None or not _taking_off(hb)):
+        if flying and (target is not None or not self._taking_off(hb)):
             self._enter(Phase.STREAMING, now, "airborne: streaming setpoints")
             return None
         if not hb.armed:
@@ -372,6 +369,11 @@ class OffboardStateMachine:
                 self._reason = "flight over: not re-arming"
             elif flight.left_ground:
                 self._reason = "disarmed in the air?: waiting"  # never re-arm off the ground
+            elif cfg.auto_arm and before_arming and not self._offboard(hb):
+                # ArduCopter cannot take off from the mode it boots in: GUIDED first
+                if self._due(Action.REQUEST_OFFBOARD, now):
+                    actions.append(Action.REQUEST_OFFBOARD)
+                self._reason = "selecting the offboard mode (GUIDED) before arming"
             elif cfg.auto_arm:
                 if self._due(Action.ARM, now):
                     actions.append(Action.ARM)
@@ -385,12 +387,12 @@ class OffboardStateMachine:
         why_not = self._takeoff_blocked(hb, inp, alt)
         if why_not:
             self._reason = why_not
+            if why_not == _NEEDS_OFFBOARD_MODE and self._due(Action.REQUEST_OFFBOARD, now):
+                actions.append(Action.REQUEST_OFFBOARD)
             return None
         assert alt is not None  # _takeoff_blocked checked both
         assert inp.amsl_m is not None
-        target = TakeoffTarget(
-            cfg.takeoff_altitude_m, inp.amsl_m - alt + cfg.takeoff_altitude_m
-        )
+        target = TakeoffTarget(cfg.takeoff_altitude_m, inp.amsl_m - alt + cfg.takeoff_altitude_m)
         flight.takeoff_sent = True
         flight.takeoff_target = target
         self.takeoffs_sent += 1
@@ -413,8 +415,10 @@ class OffboardStateMachine:
             return "in the air: never taking off again"
         if inp.landed_state not in (None, LANDED_STATE_ON_GROUND):
             return "the autopilot says it is not on the ground"
-        if _taking_off(hb):
+        if self._taking_off(hb):
             return "the autopilot is taking off"
+        if self.dialect.offboard_before_arming and not self._offboard(hb):
+            return _NEEDS_OFFBOARD_MODE
         if inp.amsl_m is None or not math.isfinite(inp.amsl_m):
             return "waiting for the altitude AMSL (GLOBAL_POSITION_INT) for an explicit takeoff"
         return ""
@@ -445,7 +449,7 @@ class OffboardStateMachine:
             and not flight.land_seen
             and hb is not None
             and hb.armed
-            and not _landing(hb)
+            and not self._landing(hb)
             and self._due(Action.LAND, inp.now_s)
         ):
             actions.append(Action.LAND)

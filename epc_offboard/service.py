@@ -38,11 +38,19 @@ from typing import Any, TextIO
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard import dialect_px4
 from epc_offboard.cascade import AttitudeOutput, Cascade, PositionOutput
 from epc_offboard.clock import Clock, VehicleClock, WallClock
 from epc_offboard.config import ServiceConfig, load_service_config
 from epc_offboard.configio import ConfigError
+from epc_offboard.dialect import (
+    MAV_AUTOPILOT_INVALID,
+    Command,
+    Dialect,
+    EncodeError,
+    Position,
+    choose,
+    message_interval,
+)
 from epc_offboard.frames import FloatArray
 from epc_offboard.link import MavlinkLink, TlogWriter, load_signing_key
 from epc_offboard.logsetup import setup_logging
@@ -89,6 +97,15 @@ class Service:
         self.clock: Clock = VehicleClock() if cfg.loops.clock == "vehicle" else WallClock()
         self.tracker = StateTracker(system_id=cfg.link.target_system, limits=cfg.state_limits)
         self.sm = OffboardStateMachine(cfg.offboard, land_at_end=cfg.mission.land_at_end)
+        # the autopilot's dialect: forced by link.autopilot, else from its first heartbeat
+        # (until then the state machine sees no heartbeat: nothing is commanded)
+        self.dialect: Dialect | None = choose(cfg.link.autopilot, None)
+        if self.dialect is not None:
+            self.sm.dialect = self.dialect
+        self.params: dict[str, float] = {}  # autopilot parameters read (PARAM_VALUE)
+        self._params_requested_at = -math.inf
+        self._last_refusal_log = -math.inf
+        self._last_autopilot_log = -math.inf
         self.cascade = Cascade(
             cfg.position,
             cfg.attitude,
@@ -161,6 +178,8 @@ class Service:
             self.clock.advance(self.tracker.vehicle_time_s)
         mtype = msg.get_type()
         self.rates.record(mtype)
+        if mtype == "HEARTBEAT" and msg.get_srcSystem() == self.cfg.link.target_system:
+            self._adopt_dialect(int(msg.autopilot))
         if mtype == "HEARTBEAT" and isinstance(self.clock, VehicleClock):
             # In lockstep the heartbeat's age is measured in vehicle time as well.
             hb = self.tracker.heartbeat
@@ -172,6 +191,8 @@ class Service:
                 self._global = _GlobalFix(msg.lat, msg.lon, amsl, rel, now)
         elif mtype == "EXTENDED_SYS_STATE":
             self._landed_state = int(msg.landed_state)
+        elif mtype == "PARAM_VALUE" and msg.get_srcSystem() == self.cfg.link.target_system:
+            self._on_param(msg)
         elif mtype == "COMMAND_ACK":
             # two counters, whatever the wire says: a fuzzing peer cannot grow the dict
             accepted = msg.result in (mavlink.MAV_RESULT_ACCEPTED, 5)  # 5: in progress
@@ -184,7 +205,94 @@ class Service:
                     msg.command, msg.result, self.counters["acks_refused"],
                 )  # fmt: skip
 
-    def _send_command(self, cmd: dialect_px4.Command) -> None:
+    def _adopt_dialect(self, autopilot: int) -> None:
+        """The dialect from HEARTBEAT.autopilot (link.autopilot "auto"), once; a forced one
+        that the heartbeat contradicts is kept, and the contradiction logged and counted."""
+        if autopilot == MAV_AUTOPILOT_INVALID:
+            return  # a camera or gimbal of the vehicle
+        wall = time.monotonic()
+        quiet = wall - self._last_autopilot_log < 10.0
+        if self.dialect is None:
+            dialect = choose("auto", autopilot)
+            if dialect is None:
+                self.counters["heartbeats_unknown_autopilot"] += 1
+                if not quiet:
+                    self._last_autopilot_log = wall
+                    log.error(
+                        "HEARTBEAT.autopilot %d is neither PX4 (12) nor ArduPilot (3): "
+                        "nothing is commanded; set link.autopilot to fly it", autopilot,
+                    )  # fmt: skip
+                return
+            self.dialect = self.sm.dialect = dialect
+            log.info(
+                "autopilot dialect %s (HEARTBEAT.autopilot %d), attitude mode %s",
+                dialect.name, autopilot, self._attitude_mode,
+            )  # fmt: skip
+            if self.cfg.attitude.mode == "epc" and dialect.default_attitude_mode != "epc":
+                log.warning(
+                    "attitude.mode = \"epc\" (body rates) on %s: its shaped rate response is "
+                    "not the identified model; \"auto\" flies quaternion mode", dialect.name,
+                )  # fmt: skip
+        elif autopilot != self.dialect.autopilot:
+            self.counters["heartbeats_other_autopilot"] += 1
+            if not quiet:
+                self._last_autopilot_log = wall
+                log.error(
+                    "link.autopilot = %s but HEARTBEAT.autopilot is %d: speaking %s anyway",
+                    self.cfg.link.autopilot, autopilot, self.dialect.name,
+                )  # fmt: skip
+
+    @property
+    def _attitude_mode(self) -> str:
+        mode = self.cfg.attitude.mode
+        if mode != "auto":
+            return mode
+        return "epc" if self.dialect is None else self.dialect.default_attitude_mode
+
+    def _on_param(self, msg: Any) -> None:
+        name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else ""
+        value = float(msg.param_value)
+        if self.dialect is None or name not in self.dialect.params_to_read:
+            return
+        if self.params.get(name) != value:
+            log.info("autopilot parameter %s = %g", name, value)
+        self.params[name] = value
+        hover = self.cfg.position.hover_thrust_norm
+        if name == "MOT_THST_HOVER" and math.isfinite(value) and abs(value - hover) > 0.05:
+            self.counters["hover_thrust_mismatch"] += 1
+            log.warning(
+                "MOT_THST_HOVER is %.3f but position.hover_thrust_norm is %.3f: set it to "
+                "the autopilot's learned hover throttle", value, hover,
+            )  # fmt: skip
+
+    def _offboard_refusal(self) -> str:
+        """Why offboard must not be requested, nor setpoints sent ("" when they may)."""
+        return "" if self.dialect is None else self.dialect.offboard_refusal(self.params)
+
+    def _manage_params(self, now: float, link_up: bool) -> None:
+        """Read the dialect's parameters at link-up; again (every retry_period_s) while one
+        is missing or while they refuse offboard (the user may be setting it now)."""
+        if not link_up or self.dialect is None:
+            return
+        wanted = [
+            name
+            for name in self.dialect.params_to_read
+            if name not in self.params or self._offboard_refusal()
+        ]
+        if not wanted or now - self._params_requested_at < self.cfg.offboard.retry_period_s:
+            return
+        self._params_requested_at = now
+        for name in wanted:
+            self.link.send(
+                self.link.mav.param_request_read_encode(
+                    self.cfg.link.target_system,
+                    self.cfg.link.target_component,
+                    name.encode(),
+                    -1,
+                )
+            )
+
+    def _send_command(self, cmd: Command) -> None:
         link = self.link
         sys_id, comp_id = self.cfg.link.target_system, self.cfg.link.target_component
         p = cmd.params
@@ -199,15 +307,29 @@ class Service:
         self.counters["commands_sent"] += 1
 
     def _do_action(self, action: Action, out: Outputs, state: VehicleState | None) -> None:
+        if self.dialect is None:
+            return  # (the state machine sees no heartbeat before a dialect is chosen)
+        why = self._offboard_refusal() if action == Action.REQUEST_OFFBOARD else ""
+        if why:
+            self.counters["offboard_refused"] += 1
+            wall = time.monotonic()
+            if wall - self._last_refusal_log > 10.0:
+                self._last_refusal_log = wall
+                log.error(
+                    "not requesting offboard (%s GUIDED) nor sending setpoints: %s "
+                    "(%d refusals so far)", self.dialect.name, why,
+                    self.counters["offboard_refused"],
+                )  # fmt: skip
+            return
         fix = self._fresh_global()
         position = (
             None
             if fix is None or state is None
-            else dialect_px4.Position(fix.lat_e7, fix.lon_e7, math.degrees(state.yaw_rad))
+            else Position(fix.lat_e7, fix.lon_e7, math.degrees(state.yaw_rad))
         )
         try:
-            cmd = dialect_px4.encode(action, out.takeoff, position)
-        except dialect_px4.EncodeError as exc:
+            cmd = self.dialect.encode(action, out.takeoff, position)
+        except EncodeError as exc:
             self.counters["commands_not_encoded"] += 1
             log.error("action %s not sent: %s", action.value, exc)
             return
@@ -232,7 +354,9 @@ class Service:
             (_MSG_ATTITUDE_QUATERNION, self.cfg.loops.attitude_rate_hz),
             (_MSG_LOCAL_POSITION_NED, self.cfg.loops.position_rate_hz),
         ):
-            self._send_command(dialect_px4.message_interval(msg_id, rate))
+            self._send_command(message_interval(msg_id, rate))
+        for msg_id, rate in () if self.dialect is None else self.dialect.extra_streams_hz:
+            self._send_command(message_interval(msg_id, rate))
 
     def _manage_rates(self, now: float, link_up: bool) -> None:
         """Ask for the loops' rates when the link comes up, then again (at most every
@@ -259,7 +383,7 @@ class Service:
         while True:
             now = self.clock.now_s()
             silent = time.monotonic() - self._last_rx_wall > self.cfg.offboard.heartbeat_timeout_s
-            hb = None if silent else self.tracker.heartbeat
+            hb = None if silent or self.dialect is None else self.tracker.heartbeat
             age = self.tracker.age_s(now, vehicle_clock=self.clock.vehicle_time)
             state = self.tracker.snapshot()
             fix = self._fresh_global()
@@ -284,6 +408,7 @@ class Service:
                 self._notifier.notify(f"STATUS={out.phase.value}: {out.reason}")
             self.outputs = out
             self._manage_rates(now, link_up=hb is not None)
+            self._manage_params(now, link_up=hb is not None)
             if not self._ready_sent and age <= self.cfg.offboard.max_state_age_s:
                 self._ready_sent = True
                 self._notifier.notify("READY=1")
@@ -444,9 +569,11 @@ class Service:
                 # lockstep: the answer releases the simulator's next tick, so it goes last,
                 # after whatever the other tasks woken at this tick send (commands)
                 await asyncio.sleep(0)
-            if self.outputs.stream_setpoints and state is not None and self._autopilot_positions:
+            # (ArduPilot without GUID_OPTIONS bit 3 would read our thrust as a climb rate)
+            streaming = self.outputs.stream_setpoints and not self._offboard_refusal()
+            if streaming and state is not None and self._autopilot_positions:
                 self._send_position_target(state, start)
-            elif self.outputs.stream_setpoints and state is not None:
+            elif streaming and state is not None:
                 target = self._position_out or self.cascade.hover(state)
                 # A late tick or an old attitude sample: body rates computed now would be
                 # flown until the next tick, stale; send the attitude itself instead, which
@@ -477,7 +604,7 @@ class Service:
     def _send_setpoint(
         self, state: VehicleState, target: PositionOutput, *, late: bool = False
     ) -> None:
-        if self.cfg.attitude.mode == "autopilot":
+        if self._attitude_mode == "autopilot":
             out = AttitudeOutput(None, target.thrust_norm, "delegated")
         elif late:
             self.counters["attitude_late_fallbacks"] += 1
@@ -506,6 +633,10 @@ class Service:
             hover = self.cascade.hover(state)
             q, rates = [float(v) for v in hover.q_target], [0.0, 0.0, 0.0]
             thrust, mask = hover.thrust_norm, _IGNORE_RATES
+        if self.dialect is not None:
+            # the thrust as the autopilot reads it (ArduCopter adds its own tilt boost)
+            roll, pitch, _ = state.euler_rad
+            thrust = self.dialect.wire_thrust(thrust, math.cos(roll) * math.cos(pitch))
         stamp_ms = self._stamp_ms(state)
         self.link.send(
             self.link.mav.set_attitude_target_encode(
@@ -694,9 +825,12 @@ class Service:
 
     async def _shutdown(self) -> None:
         self._notifier.notify("STOPPING=1")
-        if self.outputs.phase in (Phase.OFFBOARD, Phase.OFFBOARD_REQUESTED):
+        if self.dialect is not None and self.outputs.phase in (
+            Phase.OFFBOARD,
+            Phase.OFFBOARD_REQUESTED,
+        ):
             # leave the vehicle holding, not waiting for our setpoints to time out
-            self._send_command(dialect_px4.encode(Action.REQUEST_HOLD))
+            self._send_command(self.dialect.encode(Action.REQUEST_HOLD))
         self.misses.close()
         self._save_library()
         if self.store is not None:
@@ -712,6 +846,9 @@ class Service:
     def stats(self) -> dict[str, Any]:
         return {
             "phase": self.outputs.phase.value,
+            "autopilot": None if self.dialect is None else self.dialect.name,
+            "attitude_mode": self._attitude_mode,
+            "params": dict(self.params),
             "takeoffs_sent": self.sm.takeoffs_sent,
             "rates_hz": {k: round(v, 1) for k, v in self.rates.rates_hz.items()},
             "library": self.cascade.library_stats(),
