@@ -40,35 +40,83 @@ def parse_wind(text: str) -> tuple[float, float]:
     return speed, direction
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Every flag's help ends with its default, unless it says the default itself or has
+    none (a switch, an optional file)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        shown = action.default not in (None, False, True, argparse.SUPPRESS)
+        if shown and "default" not in text and action.option_strings:
+            text += " (default: %(default)s)"
+        return text
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from epc_offboard import __version__
+    from epc_offboard.sim import SCENARIO_DIR
+
+    fmt = _HelpFormatter
     parser = argparse.ArgumentParser(
         prog="epc-offboard",
         description="MAVLink offboard flight controller running Experience-driven Predictive "
         "Control (EPC) with LWPR model learning.",
+        formatter_class=fmt,
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    run = sub.add_parser("run", help="run the offboard service (daemon)")
-    run.add_argument("--config", required=True, help="service config TOML")
+    run = sub.add_parser("run", help="run the offboard service (daemon)", formatter_class=fmt)
+    run.add_argument(
+        "--config", required=True, metavar="FILE",
+        help="service config TOML (config/default.toml: a real vehicle; config/sitl.toml: "
+        "flies `epc-sitl --instance 0`)",
+    )  # fmt: skip
 
-    sim = sub.add_parser("sim", help="fly the bundled SITL with the service and report")
-    sim.add_argument("--scenario", default="hover", help="hover, circle, zigzag, figure8")
+    sim = sub.add_parser(
+        "sim", help="fly the bundled SITL with the service and report", formatter_class=fmt
+    )
+    scenarios = ", ".join(sorted(p.stem for p in SCENARIO_DIR.glob("*.toml")))
+    sim.add_argument(
+        "--scenario", default="hover", metavar="NAME",
+        help=f"one of {scenarios} (config/scenarios/NAME.toml), or a path to a scenario TOML",
+    )  # fmt: skip
     sim.add_argument(
         "--controller",
         choices=["epc", "pd", "mpc", "px4"],
         default="epc",
-        help="position controller: epc (default), pd (thesis A.1), mpc (OSQP every tick), px4 "
+        help="position controller: epc, pd (thesis A.1), mpc (OSQP every tick), px4 "
         "(a baseline: the autopilot's own position controller fed position, velocity and "
         "acceleration setpoints)",
     )
-    sim.add_argument("--adaptation", choices=["lwpr", "kf", "none"], default="lwpr")
-    sim.add_argument("--vehicles", type=int, default=1)
+    sim.add_argument(
+        "--adaptation", choices=["lwpr", "kf", "none"], default="lwpr",
+        help="disturbance estimate: LWPR (thesis 3.1.1), a Kalman observer, or none",
+    )  # fmt: skip
+    sim.add_argument(
+        "--vehicles", type=int, default=1, metavar="N",
+        help="N SITLs and N services, sharing their libraries over Zenoh",
+    )  # fmt: skip
     mode = sim.add_mutually_exclusive_group()
-    mode.add_argument("--lockstep", dest="lockstep", action="store_true", default=True)
-    mode.add_argument("--realtime", dest="lockstep", action="store_false")
-    sim.add_argument("--wind", type=parse_wind, default=None, metavar="SPEED_M_S,DIR_DEG")
-    sim.add_argument("--seed", type=int, default=0)
-    sim.add_argument("--duration", type=float, default=None, metavar="S")
+    mode.add_argument(
+        "--lockstep", dest="lockstep", action="store_true", default=True,
+        help="the SITL advances only when the controller has answered: deterministic "
+        "(the default)",
+    )  # fmt: skip
+    mode.add_argument(
+        "--realtime", dest="lockstep", action="store_false",
+        help="real time, for timing measurements",
+    )  # fmt: skip
+    sim.add_argument(
+        "--wind", type=parse_wind, default=None, metavar="SPEED_M_S,DIR_DEG",
+        help="wind speed towards DIR degrees, counter-clockwise from east (default: the "
+        "scenario's)",
+    )  # fmt: skip
+    sim.add_argument("--seed", type=int, default=0, help="noise and gust seed")
+    sim.add_argument(
+        "--duration", type=float, default=None, metavar="S",
+        help="seconds on the trajectory (default: the scenario's duration_s)",
+    )  # fmt: skip
     sim.add_argument(
         "--no-share",
         action="store_true",
@@ -82,8 +130,13 @@ def build_parser() -> argparse.ArgumentParser:
         "landed; landed vehicles stay up, answering library queries, until the last lands. "
         "Measures what a vehicle joining after others have flown gains from their library",
     )
-    sim.add_argument("--out", default="out", metavar="DIR")
-    sim.add_argument("--json", default=None, metavar="FILE")
+    sim.add_argument(
+        "--out", default="out", metavar="DIR",
+        help="report.json, flight.png and per-vehicle logs, tlogs and libraries",
+    )  # fmt: skip
+    sim.add_argument(
+        "--json", default=None, metavar="FILE", help="also write the report JSON here"
+    )
     sim.add_argument(
         "--compare",
         nargs="?",
@@ -94,16 +147,21 @@ def build_parser() -> argparse.ArgumentParser:
         "e.g. --compare epc:lwpr,pd:none; writes compare.json and compare.png",
     )
 
-    bench = sub.add_parser("bench", help="compute benchmark: EPC vs OSQP vs DAQP")
-    bench.add_argument("--horizon", type=int, default=20)
-    bench.add_argument("--steps", type=int, default=2000)
-    bench.add_argument("--json", default=None, metavar="FILE")
+    bench = sub.add_parser(
+        "bench", help="compute benchmark: EPC vs OSQP vs DAQP", formatter_class=fmt
+    )
+    bench.add_argument("--horizon", type=int, default=20, metavar="N", help="QP horizon")
+    bench.add_argument(
+        "--steps", type=int, default=2000, metavar="K", help="length of the replayed sequence"
+    )
+    bench.add_argument("--json", default=None, metavar="FILE", help="write the report JSON here")
 
     db = sub.add_parser(
         "db",
         help="the controller library on disk: info, export, import, merge",
         description="Inspect a library file, export it, import an export or merge other "
         "vehicles' library files into it (same problem signature only).",
+        formatter_class=fmt,
     )
     add_db_arguments(db)
     return parser

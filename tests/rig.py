@@ -7,6 +7,7 @@ person watching QGC would, and can break things (cut a message stream) as a real
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -30,6 +31,17 @@ def cpu_hog(seconds: float) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
         [sys.executable, "-c", f"import time\nt=time.time()+{seconds}\nwhile time.time()<t: pass"]
     )
+
+
+# config/epc-offboard.service runs the service at Nice=-5; the SITL stands in for the
+# autopilot, which has a processor of its own. Both get that priority here (when the test may
+# raise it), so a CPU hog beside them loads the machine as it would a companion computer.
+DEPLOYED_NICE = -5
+
+
+def _deployed_priority() -> None:
+    with contextlib.suppress(PermissionError):
+        os.nice(DEPLOYED_NICE)
 
 
 def free_port() -> int:
@@ -90,6 +102,7 @@ class Rig:
             [sys.executable, "-m", "sitl.main", *self.sitl_args],
             stdout=(self.tmp / "sitl.log").open("wb"),
             stderr=subprocess.STDOUT,
+            preexec_fn=_deployed_priority,
         )
         self.gcs = mavutil.mavlink_connection(
             f"udpin:127.0.0.1:{self.gcs_port}", source_system=250, source_component=190
@@ -109,6 +122,7 @@ class Rig:
             stdout=(self.tmp / "service.log").open("ab"),
             stderr=subprocess.STDOUT,
             env=env,
+            preexec_fn=_deployed_priority,
         )
 
     def __enter__(self) -> Rig:

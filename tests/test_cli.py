@@ -1,0 +1,53 @@
+"""The command line a user meets first: --version, and help for every flag of every command."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+
+import pytest
+
+from epc_offboard import __version__
+from epc_offboard.cli import build_parser
+from epc_offboard.sim import SCENARIO_DIR
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    return {}
+
+
+def test_version_prints_the_package_version():
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "--version"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0
+    assert proc.stdout.strip() == f"epc-offboard {__version__}"
+
+
+@pytest.mark.parametrize("command", ["run", "sim", "bench", "db"])
+def test_every_flag_has_help_and_shows_its_default(command):
+    sub = _subparsers(build_parser())[command]
+    text = sub.format_help()
+    for action in sub._actions:
+        if not action.option_strings or action.help == argparse.SUPPRESS:
+            continue
+        flag = action.option_strings[-1]
+        assert action.help, f"{command} {flag}: no help text"
+        if action.default not in (None, False, True, argparse.SUPPRESS):
+            # the rendered help carries the default value itself
+            assert f"default: {action.default}" in " ".join(text.split()) or (
+                "default" in action.help
+            ), f"{command} {flag}: default {action.default!r} not shown"
+
+
+def test_sim_help_lists_every_bundled_scenario():
+    text = " ".join(_subparsers(build_parser())["sim"].format_help().split())
+    names = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+    assert len(names) >= 5
+    for name in names:
+        assert name in text, f"scenario {name} missing from sim --help"
