@@ -106,6 +106,8 @@ class Heartbeat:
     main_mode: int
     sub_mode: int
     received_s: float  # local monotonic time
+    custom_mode: int = 0  # as sent: ArduPilot's plain mode number (PX4's is main/sub above)
+    autopilot: int = 12  # MAV_AUTOPILOT: 12 PX4, 3 ArduPilot
 
     @property
     def offboard(self) -> bool:
@@ -206,7 +208,13 @@ class StateTracker:
                 return False
             main, sub = px4_modes(int(msg.custom_mode))
             self.heartbeat = Heartbeat(
-                self.system_id, bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED), main, sub, now
+                self.system_id,
+                bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
+                main,
+                sub,
+                now,
+                custom_mode=int(msg.custom_mode),
+                autopilot=int(msg.autopilot),
             )
             return False
         if mtype == "ATTITUDE_QUATERNION":
