@@ -543,7 +543,7 @@ class Cascade:
         for name, ctrl in self.experience_controllers():
             sig = ctrl.problem.signature()
             stored = store.load_controllers(sig)[: ctrl.max_size]
-            entries = [LibraryEntry(e.active_set, e.importance, e.uses) for e in stored]
+            entries = [LibraryEntry(e.active_set, e.importance, e.uses, e.origin) for e in stored]
             index = {e.active_set: i for i, e in enumerate(entries)}
             transitions = {
                 (index[a], index[b]): n
@@ -576,4 +576,9 @@ class Cascade:
 
 
 def _stored(e: LibraryEntry) -> StoredController:
-    return StoredController(tuple(int(i) for i in e.active_set), float(e.importance), int(e.uses))
+    """The store's row of a library entry; its origin travels with it (a promoted fleet
+    candidate stays ``shared:<vehicle>``, never becomes this vehicle's "solved")."""
+    return StoredController(
+        tuple(int(i) for i in e.active_set), float(e.importance), int(e.uses),
+        e.origin or "solved",
+    )  # fmt: skip

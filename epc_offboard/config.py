@@ -99,7 +99,11 @@ class SharingConfig:
     burst_messages: int = 40  # per peer, token bucket depth
     queue_size: int = 256  # inbound messages waiting for the event loop; beyond: dropped
     publish_period_s: float = 0.2  # new controllers are batched and published this often
-    import_batch_size: int = 8  # controllers imported per event-loop slice (each factorises)
+    import_slice_s: float = 0.002  # event-loop time per slice of received controllers
+    max_queued_entries: int = 8192  # controllers waiting in the inbound queue; beyond: dropped
+    candidate_pool_size: int = 64  # received controllers waiting to prove optimal here
+    candidates_per_peer: int = 16  # of those, at most this many from one vehicle
+    candidate_slice_s: float = 0.005  # worker CPU time per slice of candidate factorisations
     query_timeout_s: float = 3.0  # a library snapshot query gives up after this
 
     def __post_init__(self) -> None:
@@ -113,10 +117,12 @@ class SharingConfig:
             raise ValueError("vehicle_id must be set when sharing is enabled")
         if self.max_payload_bytes < 64:
             raise ValueError(f"max_payload_bytes must be >= 64, got {self.max_payload_bytes}")
-        for name in ("max_messages_per_s", "publish_period_s", "query_timeout_s"):
+        for name in ("max_messages_per_s", "publish_period_s", "query_timeout_s",
+                     "import_slice_s", "candidate_slice_s"):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("burst_messages", "queue_size", "import_batch_size"):
+        for name in ("burst_messages", "queue_size", "max_queued_entries",
+                     "candidate_pool_size", "candidates_per_peer"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for ep in (*self.listen, *self.connect):

@@ -21,8 +21,14 @@ the KKT system and verified by the same check) and, if that fails, the intermedi
 controller (short horizon, slack on the state bounds, always feasible), then a bounded hover.
 
 Library exchange: entries carry the active set as sorted row indices into the problem's
-layout (:class:`epc_offboard.qp.ConstraintRow` order), their importance and use count.
+layout (:class:`epc_offboard.qp.ConstraintRow` order), their importance, use count and origin.
 Transition counts are exported separately, keyed by pairs of indices into the exported list.
+
+Controllers received from the fleet are candidates, not library entries
+(:class:`CandidatePool`): a bounded pool, at most a quota per sending vehicle, whose maps are
+built in slices bounded by time. A candidate enters the library only when it passes this
+controller's KKT check for a real tick's parameters (a miss that it covers): one that is
+never optimal here never takes a library slot.
 """
 
 from __future__ import annotations
@@ -31,8 +37,8 @@ import itertools
 import logging
 import math
 import time
-from collections import OrderedDict
-from collections.abc import Iterable, Iterator, Sequence
+from collections import Counter, OrderedDict, deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -63,12 +69,15 @@ class LibraryEntry:
 
     ``active_set``: sorted, unique row indices into the problem's constraint layout;
     ``importance``: local last-use tick (0 for imported entries never used here);
-    ``uses``: how many ticks it was applied.
+    ``uses``: how many ticks it was applied; ``origin``: ``solved`` (this vehicle's own solve),
+    ``shared:<vehicle>`` (a fleet candidate that passed the KKT check here), ``prior`` or an
+    offline import's tag (the store's column); empty where not known (the wire carries none).
     """
 
     active_set: tuple[int, ...]
     importance: float = 0.0
     uses: int = 0
+    origin: str = ""
 
 
 @dataclass(frozen=True)
@@ -80,7 +89,8 @@ class EpcStats:
     intermediate: int
     fallback: int
     learn_failures: int
-    received_shared: int = 0  # entries imported from the fleet that were new here
+    received_shared: int = 0  # fleet candidates promoted into the library (KKT-checked here)
+    candidates: int = 0  # fleet candidates waiting in the pool
 
     @property
     def hit_rate(self) -> float:
@@ -191,6 +201,126 @@ class _Entry:
     map: ActiveSetMap
     importance: float
     uses: int
+    origin: str
+
+
+@dataclass
+class _Candidate:
+    origin: str
+    map: ActiveSetMap | None = None  # None until built
+
+
+class CandidatePool:
+    """Received controllers not proven here yet: bounded in number, per origin, and in work.
+
+    At most ``max_size`` candidates and ``max_per_origin`` from one origin: a vehicle past
+    its quota replaces its own oldest; a full pool drops the oldest candidate of the origin
+    holding the most. Memory is therefore bounded by ``max_size`` active sets (each at most
+    N nu rows, checked before it is offered) and as many maps. Maps (one factorisation each)
+    are built by :meth:`build` in slices bounded by time; :meth:`find` KKT-checks the built
+    ones. Active sets offered since the last :meth:`pop_fresh` are kept for a worker that
+    holds its own copy of the pool (:mod:`epc_offboard.miss_solver`).
+    """
+
+    def __init__(self, max_size: int, max_per_origin: int) -> None:
+        if max_size < 1 or max_per_origin < 1:
+            raise ValueError(
+                f"candidate pool sizes must be >= 1, got {max_size} and {max_per_origin}"
+            )
+        self.max_size = max_size
+        self.max_per_origin = max_per_origin
+        self._items: OrderedDict[tuple[int, ...], _Candidate] = OrderedDict()  # oldest first
+        self._per_origin: Counter[str] = Counter()
+        self._fresh: deque[tuple[tuple[int, ...], str]] = deque(maxlen=max_size)
+        self.counters: Counter[str] = Counter()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __contains__(self, active: object) -> bool:
+        return active in self._items
+
+    @property
+    def unbuilt(self) -> int:
+        return sum(c.map is None for c in self._items.values())
+
+    def items(self) -> list[tuple[tuple[int, ...], str]]:
+        """(active set, origin) of every candidate, oldest first."""
+        return [(a, c.origin) for a, c in self._items.items()]
+
+    def offer(self, active: tuple[int, ...], origin: str) -> bool:
+        """Add a candidate (its shape already validated); False if it is here already."""
+        if active in self._items:
+            self.counters["known"] += 1
+            return False
+        if self._per_origin[origin] >= self.max_per_origin:
+            self._drop_oldest_of(origin)
+            self.counters["replaced_over_quota"] += 1
+        elif len(self._items) >= self.max_size:
+            self._drop_oldest_of(max(self._per_origin, key=self._per_origin.__getitem__))
+            self.counters["evicted_pool_full"] += 1
+        self._items[active] = _Candidate(origin)
+        self._per_origin[origin] += 1
+        self._fresh.append((active, origin))
+        self.counters["offered"] += 1
+        return True
+
+    def _drop_oldest_of(self, origin: str) -> None:
+        victim = next(a for a, c in self._items.items() if c.origin == origin)
+        self.take(victim)
+
+    def take(self, active: tuple[int, ...]) -> _Candidate | None:
+        """Remove and return a candidate (promoted, or dropped)."""
+        cand = self._items.pop(active, None)
+        if cand is not None:
+            self._per_origin[cand.origin] -= 1
+            if self._per_origin[cand.origin] <= 0:
+                del self._per_origin[cand.origin]
+        return cand
+
+    def pop_fresh(self) -> list[tuple[tuple[int, ...], str]]:
+        """Candidates offered since the last call that are still in the pool."""
+        out = [(a, o) for a, o in self._fresh if a in self._items]
+        self._fresh.clear()
+        return out
+
+    def build(
+        self, make_map: Callable[[tuple[int, ...]], ActiveSetMap], budget_s: float | None
+    ) -> int:
+        """Build unbuilt maps, oldest first, until ``budget_s`` (None: no limit) of CPU time
+        is spent (at least one per call, so slices always progress); returns how many.
+
+        Dependent sets are dropped. Time, not a count, bounds a slice: a map's cost grows
+        with its active rows."""
+        t0 = time.perf_counter()
+        built = 0
+        for active in [a for a, c in self._items.items() if c.map is None]:
+            if budget_s is not None and built and time.perf_counter() - t0 >= budget_s:
+                break
+            try:
+                self._items[active].map = make_map(active)
+            except DependentActiveSetError:
+                self.take(active)
+                self.counters["rejected_dependent"] += 1
+                continue
+            built += 1
+        self.counters["built"] += built
+        return built
+
+    def find(
+        self, theta_aug: FloatArray, u_out: FloatArray, u_min: FloatArray, u_max: FloatArray
+    ) -> tuple[tuple[int, ...], _Candidate] | None:
+        """The newest built candidate that passes the KKT check at ``theta_aug``, if any."""
+        for active in reversed(self._items):
+            cand = self._items[active]
+            if cand.map is not None and cand.map.apply(theta_aug, u_out, u_min, u_max):
+                return active, cand
+        return None
+
+    def forget_maps(self) -> None:
+        """The model's A or B changed: every map must be built again."""
+        for cand in self._items.values():
+            cand.map = None
 
 
 class ExperienceController:
@@ -201,7 +331,10 @@ class ExperienceController:
     horizon of the slack QP; ``learn_on_miss`` False leaves the full solve to the caller
     (``step`` applies the intermediate controller and queues the parameter vectors in
     :attr:`pending`, for a worker to pass to :meth:`learn_theta`); ``with_prediction`` adds the
-    predicted trajectory to hit decisions (one more mat-vec).
+    predicted trajectory to hit decisions (one more mat-vec); ``max_candidates`` and
+    ``max_candidates_per_origin`` bound the pool of fleet candidates (:class:`CandidatePool`;
+    with ``learn_on_miss`` a miss builds and checks them before solving, without it the
+    worker holds a copy and does both off the loop).
 
     Not thread-safe: ``step``, ``learn`` and the library methods share the solver and the
     library, so a worker running ``learn`` must be serialised with the loop (or hand its
@@ -219,6 +352,8 @@ class ExperienceController:
         learn_on_miss: bool = True,
         with_prediction: bool = False,
         max_pending: int = 8,
+        max_candidates: int = 64,
+        max_candidates_per_origin: int = 16,
     ) -> None:
         if max_size < 1:
             raise ValueError(f"max_size must be >= 1, got {max_size}")
@@ -244,6 +379,7 @@ class ExperienceController:
         self._hits = self._misses = self._solves = 0
         self._intermediate = self._fallback = self._learn_failures = 0
         self._received_shared = 0
+        self.candidates = CandidatePool(max_candidates, max_candidates_per_origin)
         self._setup(problem)
 
     # -- model ------------------------------------------------------------------------------
@@ -269,6 +405,7 @@ class ExperienceController:
             self.problem = self.problem.with_offset(model)
             return
         self._setup(self.problem.with_model(model))
+        self.candidates.forget_maps()
         for key, e in list(self._entries.items()):
             try:
                 e.map = ActiveSetMap(self.problem, e.map.active, self._geom, self.tol)
@@ -303,6 +440,13 @@ class ExperienceController:
             self._use(entry)
             x_pred = self._predict(entry, th_aug) if self.with_prediction else None
             return Decision(u, "hit", (time.perf_counter() - t0) * 1e6, x_pred)
+        if self.learn_on_miss and len(self.candidates):
+            entry = self._promote(th_aug, u, budget_s=None)
+            if entry is not None:  # a fleet candidate, optimal here: exact, no solve
+                self._hits += 1
+                self._use(entry)
+                x_pred = self._predict(entry, th_aug) if self.with_prediction else None
+                return Decision(u, "hit", (time.perf_counter() - t0) * 1e6, x_pred)
         self._misses += 1
         if self.learn_on_miss:
             entry = self._learn(th_aug, u)
@@ -414,8 +558,8 @@ class ExperienceController:
         key = self._by_set.get(amap.active)
         if key is not None:
             return self._entries[key]
-        entry = self._add(amap)
-        self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses))
+        entry = self._add(amap, origin="solved")
+        self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses, "solved"))
         return entry
 
     def covers(self, theta: FloatArray) -> bool:
@@ -424,31 +568,113 @@ class ExperienceController:
         theta_aug = np.append(np.asarray(theta, dtype=np.float64), 1.0)
         return self._query(theta_aug, np.empty(self.problem.nu)) is not None
 
-    def add_solved(self, theta: FloatArray, active_set: tuple[int, ...]) -> bool:
-        """Add an active set a worker recovered for ``theta`` (the miss path off the loop),
-        only if this controller's own KKT check passes with it at that ``theta``.
+    def add_solved(
+        self, theta: FloatArray, active_set: tuple[int, ...], origin: str = "solved"
+    ) -> bool:
+        """Add an active set a worker found for ``theta`` (the miss path off the loop), only
+        if this controller's own KKT check passes with it at that ``theta``.
 
-        Counted as a QP solve; the entry is new experience (published and stored as
-        "solved"). False, and nothing added, when the set is malformed, dependent or not
-        optimal at ``theta``.
+        ``origin`` "solved": the worker solved the QP; counted as a QP solve, the entry is
+        new experience (published and stored as "solved"). Any other origin (a fleet
+        candidate's, ``shared:<vehicle>``): the worker found it in its candidate pool; it is
+        promoted with that origin, counted in ``received_shared``, and not published again.
+        False, and nothing added, when the set is malformed, dependent or not optimal at
+        ``theta``.
         """
         theta_aug = np.append(np.asarray(theta, dtype=np.float64), 1.0)
+        solved = origin == "solved"
+        if not solved:
+            self.candidates.take(tuple(active_set))
         try:
             amap = self._validated_map(0, LibraryEntry(tuple(active_set), 0.0, 0))
         except ValueError as exc:
             logger.debug("worker's active set refused: %s", exc)
             self._learn_failures += 1
             return False
-        self._solves += 1
+        self._solves += solved
         if not amap.apply(theta_aug, np.empty(self.problem.nu), self.problem.u_min,
                           self.problem.u_max):
             self._learn_failures += 1
             return False
         if amap.active in self._by_set:
             return True
-        entry = self._add(amap)
-        self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses))
+        entry = self._add(amap, origin=origin)
+        if solved:
+            self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses, origin))
+        else:
+            self._received_shared += 1
         return True
+
+    # -- fleet candidates ---------------------------------------------------------------------
+
+    def offer_candidates(
+        self, entries: Iterable[LibraryEntry], origin: str, *, signature: str | None = None
+    ) -> int:
+        """Put received controllers in the candidate pool (no factorisation: cheap on the
+        loop); returns how many were new. Malformed ones are counted and skipped; ones in the
+        library already are ignored. ``origin``: ``shared:<vehicle>``, the pool's quota key.
+        """
+        if signature is not None and signature != self.problem.signature():
+            raise ValueError(
+                f"library signature {signature!r} does not match problem "
+                f"{self.problem.signature()!r}"
+            )
+        pool = self.candidates
+        added = 0
+        for n, e in enumerate(entries):
+            try:
+                self._check_entry(n, e)
+            except ValueError:
+                pool.counters["rejected_malformed"] += 1
+                continue
+            if e.active_set in self._by_set:
+                pool.counters["in_library"] += 1
+                continue
+            added += pool.offer(e.active_set, origin)
+        return added
+
+    def limit_candidates(self, max_size: int, max_per_origin: int) -> None:
+        """Resize the candidate pool (its candidates are dropped: call before any arrive)."""
+        self.candidates = CandidatePool(max_size, max_per_origin)
+
+    def build_candidates(self, budget_s: float | None) -> int:
+        """Build candidate maps for up to ``budget_s`` (None: all); returns how many."""
+        return self.candidates.build(self._make_map, budget_s)
+
+    def _make_map(self, active: tuple[int, ...]) -> ActiveSetMap:
+        return ActiveSetMap(self.problem, active, self._geom, self.tol)
+
+    def screen_candidates(
+        self, theta: FloatArray, budget_s: float | None
+    ) -> tuple[tuple[int, ...], str] | None:
+        """A candidate that is optimal at ``theta`` (nθ,), taken out of the pool, with its
+        origin: the worker's half of a promotion (the loop checks it again in
+        :meth:`add_solved`). Builds for up to ``budget_s`` first."""
+        self.build_candidates(budget_s)
+        theta_aug = np.append(np.asarray(theta, dtype=np.float64), 1.0)
+        p = self.problem
+        found = self.candidates.find(theta_aug, np.empty(p.nu), p.u_min, p.u_max)
+        if found is None:
+            return None
+        active, cand = found
+        self.candidates.take(active)
+        return active, cand.origin
+
+    def _promote(
+        self, theta_aug: FloatArray, u_out: FloatArray, budget_s: float | None
+    ) -> _Entry | None:
+        """The miss path's first try with ``learn_on_miss``: a candidate optimal here joins
+        the library (its first input written to ``u_out``)."""
+        self.build_candidates(budget_s)
+        p = self.problem
+        found = self.candidates.find(theta_aug, u_out, p.u_min, p.u_max)
+        if found is None:
+            return None
+        active, cand = found
+        self.candidates.take(active)
+        assert cand.map is not None
+        self._received_shared += 1
+        return self._add(cand.map, origin=cand.origin)
 
     def _recover_active_set(
         self, theta_aug: FloatArray, y: FloatArray, gamma: FloatArray, u_out: FloatArray
@@ -514,10 +740,12 @@ class ExperienceController:
     # -- library ----------------------------------------------------------------------------
 
     def _add(self, amap: ActiveSetMap, importance: float | None = None, uses: int = 0,
-             *, least_important: bool = False) -> _Entry:
+             *, least_important: bool = False, origin: str) -> _Entry:
         key = self._next_key
         self._next_key += 1
-        entry = _Entry(key, amap, float(self._tick) if importance is None else importance, uses)
+        entry = _Entry(key, amap, float(self._tick) if importance is None else importance, uses,
+                       origin)
+        self.candidates.take(amap.active)  # in the library now: no longer a candidate
         self._entries[key] = entry
         self._by_set[amap.active] = key
         if least_important:
@@ -550,6 +778,7 @@ class ExperienceController:
             fallback=self._fallback,
             learn_failures=self._learn_failures,
             received_shared=self._received_shared,
+            candidates=len(self.candidates),
         )
 
     def _ordered(self) -> list[_Entry]:
@@ -558,7 +787,9 @@ class ExperienceController:
 
     def export_library(self) -> list[LibraryEntry]:
         """Entries, most important first; indices of this list key :meth:`export_transitions`."""
-        return [LibraryEntry(e.map.active, e.importance, e.uses) for e in self._ordered()]
+        return [
+            LibraryEntry(e.map.active, e.importance, e.uses, e.origin) for e in self._ordered()
+        ]
 
     def export_transitions(self) -> dict[tuple[int, int], int]:
         """Transition counts ``(from, to) -> count`` over indices into :meth:`export_library`."""
@@ -588,14 +819,17 @@ class ExperienceController:
         signature: str | None = None,
         transitions: dict[tuple[int, int], int] | None = None,
     ) -> int:
-        """Add validated candidates; return how many were new.
+        """Add validated entries to the library (a prior from the store, an offline import:
+        trusted experience); return how many were new. Fleet controllers go through
+        :meth:`offer_candidates` instead.
 
         Everything is validated before the library changes: the problem signature (when
         given), each active set (sorted unique ints in range, at most N nu rows, linearly
         independent), importance and uses, the number of entries (<= max_size) and the
         transition indices and counts. Imported entries are inserted as least important (in
         their given importance order) so local experience wins eviction; they are still
-        applied only when they pass the KKT check.
+        applied only when they pass the KKT check. Each keeps its ``origin`` (``source``
+        when it has none).
         """
         if source not in ("prior", "shared"):
             raise ValueError(f"source must be 'prior' or 'shared', got {source!r}")
@@ -625,7 +859,8 @@ class ExperienceController:
             if existing is not None:
                 keys[i] = existing
                 continue
-            keys[i] = self._add(amap, 0.0, 0, least_important=True).key
+            keys[i] = self._add(amap, 0.0, 0, least_important=True,
+                                origin=e.origin or source).key
             added += 1
         for (a, b), count in (transitions or {}).items():
             ka, kb = keys.get(a), keys.get(b)
@@ -638,6 +873,14 @@ class ExperienceController:
         return added
 
     def _validated_map(self, n: int, e: LibraryEntry) -> ActiveSetMap:
+        self._check_entry(n, e)
+        try:
+            return self._make_map(e.active_set)
+        except DependentActiveSetError as exc:
+            raise ValueError(f"entry {n}: active set rows are linearly dependent") from exc
+
+    def _check_entry(self, n: int, e: LibraryEntry) -> None:
+        """Everything about an entry short of its factorisation (ValueError names it)."""
         p = self.problem
         aset = e.active_set
         if not isinstance(aset, tuple) or not all(
@@ -654,10 +897,6 @@ class ExperienceController:
             raise ValueError(f"entry {n}: importance must be finite")
         if not isinstance(e.uses, int) or e.uses < 0:
             raise ValueError(f"entry {n}: uses must be an int >= 0")
-        try:
-            return ActiveSetMap(p, aset, self._geom, self.tol)
-        except DependentActiveSetError as exc:
-            raise ValueError(f"entry {n}: active set rows are linearly dependent") from exc
 
 
 class _IntermediateQp:

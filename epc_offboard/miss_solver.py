@@ -16,6 +16,14 @@ body-rate mode, flipped the vehicle.
 * ``wait=True`` (lockstep simulation) blocks until the solve in flight has returned, so the
   result enters the library at the same tick every run: deterministic.
 
+Fleet candidates (:class:`~epc_offboard.epc.CandidatePool`) are screened here too, so a
+flood of received controllers costs the loops nothing but bookkeeping: the loop's
+controller keeps the bounded pool of active sets, the worker a copy with their maps, built
+in slices bounded by time (``slice_s``) between solves. A miss is first checked against
+the built candidates; one that passes is handed back with its origin instead of a solve,
+and the loop promotes it after its own KKT check at that θ. Candidates never optimal for a
+real tick stay in the pool until newer ones push them out: they never take library slots.
+
 No asyncio here: :meth:`pump` is called from the position loop's tick.
 """
 
@@ -24,30 +32,50 @@ from __future__ import annotations
 import logging
 import multiprocessing
 from collections import Counter, deque
+from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TypeVar
 
-from epc_offboard.epc import ExperienceController
+from epc_offboard.epc import ExperienceController, LibraryEntry
 from epc_offboard.frames import FloatArray
 from epc_offboard.qp import MpcProblem
 
 log = logging.getLogger(__name__)
+_T = TypeVar("_T")
 
 # worker-process state: one learner per problem, built once by the initializer
 _LEARNERS: dict[str, ExperienceController] = {}
 
+Found = tuple[tuple[int, ...], str]  # an active set and its origin ("solved" or a peer's)
 
-def _init_worker(problems: dict[str, MpcProblem]) -> None:
+
+def _init_worker(problems: dict[str, tuple[MpcProblem, int, int]]) -> None:
     _LEARNERS.clear()
-    for name, problem in problems.items():
-        # the worker only solves: its own library may stay tiny
-        _LEARNERS[name] = ExperienceController(problem, max_size=8)
+    for name, (problem, pool, per_origin) in problems.items():
+        # the worker only solves and screens: its own library may stay tiny
+        _LEARNERS[name] = ExperienceController(
+            problem, max_size=8, max_candidates=pool, max_candidates_per_origin=per_origin
+        )
 
 
-def _solve(name: str, theta: FloatArray) -> tuple[int, ...] | None:
-    entry = _LEARNERS[name].learn_theta(theta)
-    return None if entry is None else entry.active_set
+def _solve(name: str, theta: FloatArray, slice_s: float) -> Found | None:
+    learner = _LEARNERS[name]
+    found = learner.screen_candidates(theta, slice_s)
+    if found is not None:
+        return found
+    entry = learner.learn_theta(theta)
+    return None if entry is None else (entry.active_set, "solved")
+
+
+def _offer(name: str, items: list[tuple[tuple[int, ...], str]], slice_s: float) -> int:
+    """Copy candidates into the worker's pool, build for one slice; returns how many wait."""
+    learner = _LEARNERS[name]
+    for active, origin in items:
+        learner.offer_candidates([LibraryEntry(active)], origin)
+    learner.build_candidates(slice_s)
+    return learner.candidates.unbuilt
 
 
 def _ping() -> bool:
@@ -60,15 +88,25 @@ class _Lane:
 
     ctrl: ExperienceController
     waiting: deque[FloatArray]
-    in_flight: Future[tuple[int, ...] | None] | None = None
+    in_flight: Future[Found | None] | None = None
     in_flight_theta: FloatArray | None = None
+    offer: Future[int] | None = None  # candidates being copied / built in the worker
+    unbuilt: int = 0  # candidate maps the worker still has to build (its last report)
+    resend: list[tuple[tuple[int, ...], str]] = field(default_factory=list)  # after a restart
 
 
 class MissSolver:
+    """``slice_s``: the most CPU time the worker spends building candidate maps before it
+    takes the next solve (a flood must not delay the misses of the flight)."""
+
     def __init__(
-        self, controllers: dict[str, ExperienceController], *, max_waiting: int = 4
+        self,
+        controllers: dict[str, ExperienceController],
+        *,
+        max_waiting: int = 4,
+        slice_s: float = 0.005,
     ) -> None:
-        self._problems = {name: c.problem for name, c in controllers.items()}
+        self._slice_s = slice_s
         self._lanes = {
             name: _Lane(c, deque(maxlen=max_waiting)) for name, c in controllers.items()
         }
@@ -78,11 +116,16 @@ class MissSolver:
     def start(self, timeout_s: float = 30.0) -> None:
         """Start the worker and wait until it has imported and built its learners (before
         READY: a worker that cannot start is an error now, not mid-flight)."""
+        problems = {
+            name: (lane.ctrl.problem, lane.ctrl.candidates.max_size,
+                   lane.ctrl.candidates.max_per_origin)
+            for name, lane in self._lanes.items()
+        }  # fmt: skip
         self._pool = ProcessPoolExecutor(
             max_workers=1,
             mp_context=multiprocessing.get_context("spawn"),  # no fork of a threaded process
             initializer=_init_worker,
-            initargs=(self._problems,),
+            initargs=(problems,),
         )
         self._pool.submit(_ping).result(timeout=timeout_s)
 
@@ -105,8 +148,35 @@ class MissSolver:
                 if len(lane.waiting) == lane.waiting.maxlen:
                     self.counters["misses_dropped"] += 1  # the oldest gives way
                 lane.waiting.append(ctrl.pending.pop(0))
+            self._offer_next(name, lane)  # first: the worker takes tasks in order
             self._submit_next(name, lane)
         return added
+
+    def _offer_next(self, name: str, lane: _Lane) -> None:
+        """Copy new candidates to the worker, or build a slice of waiting ones (one task in
+        flight per lane; the pool's own bounds keep what waits here bounded)."""
+        fut = lane.offer
+        if fut is not None:
+            if not fut.done():
+                return
+            lane.offer = None
+            try:
+                lane.unbuilt = fut.result(timeout=0.0)
+            except BrokenProcessPool:
+                self._restart("the worker died")
+                return
+            except Exception as exc:  # candidates lost; the flight is not
+                self.counters["candidate_errors"] += 1
+                log.warning("%s candidate import failed: %s", name, exc)
+        fresh = lane.resend + lane.ctrl.candidates.pop_fresh()
+        lane.resend = []
+        if not (fresh or lane.unbuilt):
+            return
+        lane.offer = self._submit("candidates", _offer, name, fresh, self._slice_s)
+        if lane.offer is None:
+            return
+        self.counters["candidates_sent"] += len(fresh)
+        self.counters["candidate_slices"] += 1
 
     def _collect(self, name: str, lane: _Lane, wait: bool) -> int:
         fut = lane.in_flight
@@ -127,7 +197,10 @@ class MissSolver:
         if active is None or theta is None:
             self.counters["solves_without_controller"] += 1
             return 0
-        if not lane.ctrl.add_solved(theta, active):
+        aset, origin = active
+        if origin != "solved":
+            self.counters["candidates_found"] += 1
+        if not lane.ctrl.add_solved(theta, aset, origin):
             self.counters["solves_refused_by_kkt_check"] += 1
             return 0
         return 1
@@ -140,20 +213,31 @@ class MissSolver:
             if lane.ctrl.covers(theta):
                 self.counters["misses_already_covered"] += 1  # solved meanwhile: once only
                 continue
-            try:
-                lane.in_flight = self._pool.submit(_solve, name, theta)
-            except (BrokenProcessPool, RuntimeError):
-                self._restart("the worker could not take a solve")
+            lane.in_flight = self._submit("a solve", _solve, name, theta, self._slice_s)
+            if lane.in_flight is None:
                 return
             lane.in_flight_theta = theta
             self.counters["solves_submitted"] += 1
             return
 
+    def _submit(self, what: str, fn: Callable[..., _T], *args: object) -> Future[_T] | None:
+        """Hand ``fn(*args)`` to the worker; None, and the worker restarted, if it cannot."""
+        if self._pool is None:
+            return None
+        try:
+            return self._pool.submit(fn, *args)
+        except (BrokenProcessPool, RuntimeError):
+            self._restart(f"the worker could not take {what}")
+            return None
+
     def _restart(self, why: str) -> None:
         self.counters["worker_restarts"] += 1
         log.error("EPC miss worker: %s; restarting it", why)
         for lane in self._lanes.values():
-            lane.in_flight = lane.in_flight_theta = None
+            lane.in_flight = lane.in_flight_theta = lane.offer = None
+            # the new worker's pool starts empty: send it every candidate again
+            lane.ctrl.candidates.pop_fresh()
+            lane.resend = lane.ctrl.candidates.items()
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
         try:

@@ -113,7 +113,10 @@ class Service:
             1.0 / cfg.loops.position_rate_hz,
             learn_on_miss=False,
         )
-        self.misses = MissSolver(dict(self.cascade.experience_controllers()))
+        self.misses = MissSolver(
+            dict(self.cascade.experience_controllers()),
+            slice_s=cfg.sharing.candidate_slice_s,
+        )
         self.counters: Counter[str] = Counter()
         self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)

@@ -16,14 +16,21 @@ restarting, still exchange what they had).
 
 Threads: Zenoh calls back on its own threads. Those callbacks only check the size, apply
 a per-peer token bucket, decode and validate (``wire``, pure) and hand the message to the
-event loop with ``call_soon_threadsafe`` into a bounded queue (full: dropped and counted).
-:meth:`FleetSharing.run` — the ``library-sharing`` task — is the only code that touches the
-controllers: it imports candidates a few at a time (each costs a factorisation; the 100 and
-200 Hz loops share the event loop), publishes new controllers, and refreshes the encoded
-snapshot that the queryable answers with. Nothing here blocks the control loops on the
-network: ``put`` drops under congestion, queries are answered from a prepared snapshot.
-Received controllers are candidates only: the library applies one only where its own KKT
-check passes.
+event loop with ``call_soon_threadsafe`` into a queue bounded in messages and in entries
+(full: dropped and counted). :meth:`FleetSharing.run` — the ``library-sharing`` task — is the
+only code that touches the controllers: it publishes new controllers, refreshes the encoded
+snapshot that the queryable answers with, and offers what it received to each controller's
+candidate pool, in slices bounded by time. Offering costs no factorisation: the pool
+(:class:`epc_offboard.epc.CandidatePool`) is bounded in total and per peer, its maps are
+built off the loop (the miss worker, :mod:`epc_offboard.miss_solver`), and a candidate
+enters the library only when it passes this vehicle's KKT check for a real tick. A hostile
+or broken peer can therefore fill the pool, never the library, and costs the 100/200 Hz
+loops bookkeeping only. Nothing here blocks the control loops on the network: ``put`` drops
+under congestion, queries are answered from a prepared snapshot.
+
+Rate limits: one token bucket per sending vehicle id. A bucket that has refilled is
+forgotten (a new one is the same), and when the table is full the least recently heard
+sender's is dropped: a flood from many rotating ids never locks a new, legitimate peer out.
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ import json
 import logging
 import threading
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -56,9 +63,8 @@ from epc_offboard.wire import (
 
 log = logging.getLogger(__name__)
 
-_MAX_PEERS = 1024  # token buckets kept; beyond, unknown senders are refused (spoofed keys)
+_MAX_PEERS = 1024  # token buckets and per-sender counts kept (least recently heard dropped)
 _LOG_EVERY_S = 5.0  # at most one log line per reason and peer this often
-_IMPORT_SLICE_S = 0.002  # stop an import slice early after this much event-loop time
 _MAX_REFERENCE_BYTES = 16384
 
 
@@ -81,35 +87,61 @@ class LiveReference:
 
 
 class _TokenBuckets:
-    """Per-peer token buckets (thread-safe: Zenoh delivers on several threads)."""
+    """Per-peer token buckets that expire (thread-safe: Zenoh delivers on several threads).
 
-    def __init__(self, rate_per_s: float, burst: int) -> None:
+    A bucket idle for its refill time (``burst / rate``) is full again, the same as a new
+    one, so it is dropped. At most ``max_peers`` are kept: beyond, the least recently used
+    goes. A sender is never refused for being new: spoofed, rotating ids each get a burst,
+    which the bounded queue and candidate pool absorb.
+    """
+
+    def __init__(self, rate_per_s: float, burst: int, max_peers: int = _MAX_PEERS) -> None:
         self._rate = rate_per_s
         self._burst = float(burst)
-        self._state: dict[str, tuple[float, float]] = {}
+        self._refill_s = burst / rate_per_s
+        self._max_peers = max_peers
+        self._state: OrderedDict[str, tuple[float, float]] = OrderedDict()  # LRU first
         self._lock = threading.Lock()
+        self.evicted = 0  # buckets dropped while not yet refilled (table full)
+
+    def __len__(self) -> int:
+        return len(self._state)
 
     def allow(self, peer: str, now_s: float) -> bool:
         with self._lock:
-            state = self._state.get(peer)
+            state = self._state.pop(peer, None)
             if state is None:
-                if len(self._state) >= _MAX_PEERS:
-                    return False
+                self._expire(now_s)
                 state = (self._burst, now_s)
             tokens, last = state
             tokens = min(self._burst, tokens + (now_s - last) * self._rate)
             ok = tokens >= 1.0
-            self._state[peer] = (tokens - 1.0 if ok else tokens, now_s)
+            self._state[peer] = (tokens - 1.0 if ok else tokens, now_s)  # most recent last
             return ok
+
+    def _expire(self, now_s: float) -> None:
+        """Make room for one more: drop refilled buckets, then the least recently used."""
+        state = self._state
+        while state:
+            peer, (_tokens, last) = next(iter(state.items()))
+            if now_s - last >= self._refill_s:
+                del state[peer]
+            elif len(state) >= self._max_peers:
+                del state[peer]
+                self.evicted += 1
+            else:
+                break
 
 
 class FleetSharing:
     """One Zenoh session shared by the library exchange and the live-reference subscriber.
 
-    ``controllers``: (name, controller) of every EPC problem to share; ``share_library``
-    False opens the session for the reference alone; ``reference`` subscribes to this
-    vehicle's live-reference key. Use as ``async with FleetSharing(...) as sharing`` and
-    run :meth:`run` as a task; controllers are touched only from that task.
+    ``controllers``: (name, controller) of every EPC problem to share (their candidate
+    pools take the sizes of ``cfg``: construct this before the miss worker starts, which
+    copies them); ``share_library`` False opens the session for the reference alone;
+    ``reference`` subscribes to this vehicle's live-reference key. Use as
+    ``async with FleetSharing(...) as sharing`` and run :meth:`run` as a task; controllers
+    are touched only from that task.
     """
 
     def __init__(
@@ -134,12 +166,15 @@ class FleetSharing:
             for name, ctrl in controllers
             for sig in (ctrl.problem.signature(),)
         ]
+        for _name, ctrl in controllers:
+            ctrl.limit_candidates(cfg.candidate_pool_size, cfg.candidates_per_peer)
         self._buckets = _TokenBuckets(cfg.max_messages_per_s, cfg.burst_messages)
         self._lock = threading.Lock()  # counters and log throttle, from Zenoh's threads
         self._last_log: dict[tuple[str, str], float] = {}
         self._queue: asyncio.Queue[tuple[_Problem, ControllerMessage]] = asyncio.Queue(
             maxsize=cfg.queue_size
         )
+        self._queued_entries = 0  # entries in _queue (event loop only)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
@@ -241,6 +276,7 @@ class FleetSharing:
             try:
                 async with asyncio.timeout(wait_s):
                     problem, msg = await self._queue.get()
+                self._queued_entries -= len(msg.entries)
                 await self._import(problem, msg)
             except TimeoutError:
                 pass
@@ -250,49 +286,40 @@ class FleetSharing:
                 await self._refresh_snapshots()
 
     async def _import(self, p: _Problem, msg: ControllerMessage) -> None:
-        """Import ``msg``'s entries a few at a time, yielding to the control loops between."""
+        """Offer ``msg``'s entries to the candidate pool in slices of at most
+        ``import_slice_s`` of event-loop time, yielding to the control loops between.
+
+        Offering is bookkeeping (no factorisation); the pool's bounds, not this loop, cap
+        what a peer can make the vehicle hold."""
         ctrl = p.ctrl
-        fresh = [e for e in msg.entries if not ctrl.contains(e.active_set)]
-        self._count("entries_received", len(msg.entries))
-        self._count("entries_known", len(msg.entries) - len(fresh))
-        batch = self.cfg.import_batch_size
-        added_total = 0
-        i = 0
-        while i < len(fresh):
+        origin = f"shared:{msg.vehicle_id}"
+        entries = msg.entries
+        self._count("entries_received", len(entries))
+        if msg.signature != p.signature:  # the decoder checked it; a second look is free
+            self._count("entries_rejected_by_problem", len(entries))
+            return
+        slice_s = self.cfg.import_slice_s
+        offered = i = 0
+        while i < len(entries):
             t0 = time.perf_counter()
-            for _ in range(batch):
-                if i >= len(fresh):
-                    break
-                e = fresh[i]
+            n = 0
+            while i < len(entries) and (n == 0 or time.perf_counter() - t0 < slice_s):
+                offered += ctrl.offer_candidates(entries[i : i + 1], origin)
                 i += 1
-                if ctrl.stats.size >= ctrl.max_size:
-                    # local experience wins: shared candidates only fill free slots
-                    self._count("entries_dropped_library_full", len(fresh) - i + 1)
-                    i = len(fresh)
-                    break
-                try:
-                    added = ctrl.import_entries([e], "shared", signature=msg.signature)
-                except ValueError as exc:
-                    self._count("entries_rejected_by_problem")
-                    self._log_limited(
-                        "problem", msg.vehicle_id, "controller %s from %s rejected: %s",
-                        e.active_set, msg.vehicle_id, exc,
-                    )  # fmt: skip
-                    continue
-                added_total += added
-                if time.perf_counter() - t0 > _IMPORT_SLICE_S:
-                    break
+                n += 1
+            self._count("import_slices")
             await asyncio.sleep(0)  # let the 100/200 Hz loops run
-        if added_total:
-            p.dirty = True
-            self._count("entries_accepted", added_total)
+        self._count("entries_known", len(entries) - offered)
+        if offered:
+            self._count("entries_offered", offered)
             log.info(
-                "%s: %d new controllers from vehicle %s (%s, library %d)",
+                "%s: %d new controllers from vehicle %s (%s), candidates now %d of %d",
                 p.name,
-                added_total,
+                offered,
                 msg.vehicle_id,
                 msg.kind.name.lower(),
-                ctrl.stats.size,
+                len(ctrl.candidates),
+                ctrl.candidates.max_size,
             )
 
     def publish_new(self) -> int:
@@ -382,7 +409,9 @@ class FleetSharing:
             self._count("rate_limited")
             self._log_limited("rate", sender, "rate-limiting vehicle %s on %s", sender, key)
             return
-        with self._lock:  # bounded: the buckets admit at most _MAX_PEERS senders
+        with self._lock:
+            if sender not in self.received_from and len(self.received_from) >= _MAX_PEERS:
+                del self.received_from[next(iter(self.received_from))]  # oldest heard first
             self.received_from[sender] += 1
         try:
             msg = decode_controllers(
@@ -444,7 +473,10 @@ class FleetSharing:
 
     def _enqueue(self, p: _Problem, msg: ControllerMessage) -> None:
         try:
+            if self._queued_entries + len(msg.entries) > self.cfg.max_queued_entries:
+                raise asyncio.QueueFull
             self._queue.put_nowait((p, msg))
+            self._queued_entries += len(msg.entries)
         except asyncio.QueueFull:
             self._count("dropped_queue_full")
             self._log_limited("queue", "", "inbound queue full: dropped a message from %s",
@@ -488,6 +520,10 @@ class FleetSharing:
         with self._lock:
             out = dict(self.counters)
         out["peers"] = len(set().union(*self.peers.values())) if self.peers else 0
+        out["rate_buckets"] = len(self._buckets)
+        out["rate_buckets_evicted"] = self._buckets.evicted
+        out["candidates"] = sum(len(p.ctrl.candidates) for p in self._problems)
+        out["promoted"] = sum(p.ctrl.stats.received_shared for p in self._problems)
         return out
 
     def _count(self, name: str, n: int = 1) -> None:

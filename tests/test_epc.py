@@ -403,3 +403,75 @@ def test_hits_are_exact_with_the_tilt_polygon():
         active_poly += bool(np.any(lim.P @ d.u >= lim.p - 1e-6))
     assert active_poly >= 5  # the polygon was what limited those commands
     assert ctrl.stats.hits >= 1
+
+
+# -- fleet candidates (issue 16, fault 5) ---------------------------------------------------
+
+
+def test_candidates_enter_the_library_only_where_they_are_optimal():
+    p = position_problem(8)
+    learner = ExperienceController(p)
+    learner.step(np.zeros(6), hover_refs(p, [10.0, 0.0, 0.0]))
+    (saturated,) = learner.export_library()
+    ctrl = ExperienceController(p)
+    junk = [LibraryEntry((i,)) for i in range(10)]
+    assert ctrl.offer_candidates([saturated, *junk], "shared:v2") == 11
+    assert ctrl.stats.size == 0
+    assert ctrl.stats.candidates == 11
+    # at rest the saturated set is not optimal, nor any junk: the tick solves, nothing promoted
+    d = ctrl.step(np.zeros(6), hover_refs(p, [0.0, 0.0, 0.0]))
+    assert d.source == "solved"
+    assert [e.origin for e in ctrl.export_library()] == ["solved"]
+    assert ctrl.stats.received_shared == 0
+    # where it is optimal it is promoted, exact, without a solve
+    d = ctrl.step(np.zeros(6), hover_refs(p, [10.0, 0.0, 0.0]))
+    assert d.source == "hit"
+    U = exact_solution(p, p.theta(np.zeros(6), hover_refs(p, [10.0, 0.0, 0.0])))
+    assert np.allclose(d.u, U[:3], atol=1e-8)
+    assert ctrl.stats.qp_solves == 1
+    assert ctrl.stats.received_shared == 1
+    assert saturated.active_set not in ctrl.candidates
+    lib = {e.active_set: e.origin for e in ctrl.export_library()}
+    assert lib[saturated.active_set] == "shared:v2"
+    assert all(not ctrl.contains(e.active_set) for e in junk)
+
+
+def test_the_candidate_pool_is_bounded_in_total_and_per_origin():
+    p = position_problem(8)
+    ctrl = ExperienceController(p, max_candidates=10, max_candidates_per_origin=4)
+    sets = [(i,) for i in range(40)]
+    assert ctrl.offer_candidates([LibraryEntry(s) for s in sets], "shared:flood") == 40
+    assert ctrl.candidates.items() == [(s, "shared:flood") for s in sets[-4:]]  # its newest
+    for k in range(30):  # rotating ids: the pool stays at its size
+        assert ctrl.offer_candidates([LibraryEntry((50 + k,))], f"shared:id{k}") == 1
+        assert len(ctrl.candidates) <= 10
+    ctrl.offer_candidates([LibraryEntry((0, 1))], "shared:legit")
+    assert ((0, 1), "shared:legit") in ctrl.candidates.items()  # a newcomer gets in
+    # malformed (out of range, unsorted, too many rows) is counted, never pooled
+    bad = [LibraryEntry((p.n_con,)), LibraryEntry((2, 1)), LibraryEntry(tuple(range(p.n_u + 1)))]
+    assert ctrl.offer_candidates(bad, "shared:x") == 0
+    assert ctrl.candidates.counters["rejected_malformed"] == 3
+    assert ctrl.stats.size == 0
+
+
+def test_candidate_maps_are_built_in_slices_bounded_by_time(monkeypatch):
+    """A slice stops when its time budget is spent (at least one map, so slices progress);
+    the clock is the module's, replaced here by one that advances 1 ms per reading."""
+    p = position_problem(8)
+    ctrl = ExperienceController(p)
+    ctrl.offer_candidates([LibraryEntry((i,)) for i in range(12)], "shared:v2")
+    fake_now = [0.0]
+
+    def perf_counter() -> float:
+        fake_now[0] += 1e-3
+        return fake_now[0]
+
+    monkeypatch.setattr("epc_offboard.epc.time.perf_counter", perf_counter)
+    assert ctrl.build_candidates(0.0) == 1
+    # start at t0; after each map a reading: t0 + 1 and + 2 ms go on, + 3 ms stops it
+    assert ctrl.build_candidates(2.5e-3) == 3
+    assert ctrl.candidates.unbuilt == 8
+    monkeypatch.undo()
+    assert ctrl.build_candidates(None) == 8
+    assert ctrl.candidates.unbuilt == 0
+    assert ctrl.stats.size == 0  # built is not promoted

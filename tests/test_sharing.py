@@ -1,7 +1,8 @@
 """Fleet sharing over real Zenoh on loopback: explicit tcp/127.0.0.1 endpoints, no multicast.
 
 Each peer is a FleetSharing session with its own ExperienceController on a small position
-problem; the tests poll with a deadline rather than sleeping.
+problem; the tests poll with a deadline rather than sleeping. A received controller is a
+candidate (``ctrl.candidates``) until a tick it is optimal for promotes it into the library.
 """
 
 from __future__ import annotations
@@ -116,14 +117,18 @@ def test_a_controller_learned_by_one_peer_is_a_hit_for_the_others():
             await until(lambda: all(len(s.stats()) and s.stats()["peers"] == 2 for s in peers),
                         "three peers to see each other")  # fmt: skip
             aset = learn(ctrls[0], TARGETS[0])
-            await until(lambda: ctrls[1].contains(aset) and ctrls[2].contains(aset), "sharing")
+            await until(lambda: aset in ctrls[1].candidates and aset in ctrls[2].candidates,
+                        "sharing")  # fmt: skip
             for c in ctrls[1:]:
+                assert not c.contains(aset)  # a candidate until it proves optimal here
                 assert used_as_hit(c, TARGETS[0])
+                assert c.contains(aset)
+                assert c.export_library()[0].origin == "shared:v1"
                 assert c.stats.received_shared == 1
                 assert c.stats.qp_solves == 0
             # and back: what peer 3 learns reaches peer 1
             aset3 = learn(ctrls[2], TARGETS[1])
-            await until(lambda: ctrls[0].contains(aset3), "sharing from peer 3")
+            await until(lambda: aset3 in ctrls[0].candidates, "sharing from peer 3")
             assert used_as_hit(ctrls[0], TARGETS[1])
             assert peers[0].stats()["entries_published"] == 1
 
@@ -139,10 +144,10 @@ def test_a_late_joiner_gets_the_snapshot():
             await until(lambda: sa.stats().get("entries_published", 0) == 3, "a's batch")
             # nobody heard the batch; the joiner can only learn these from the snapshot
             async with peer(config("late", pc, [pa]), c) as sc:
-                await until(lambda: all(c.contains(s) for s in sets), "the snapshot")
-                assert sc.stats()["entries_accepted"] == 3
-                assert c.stats.received_shared == 3
+                await until(lambda: all(s in c.candidates for s in sets), "the snapshot")
+                assert sc.stats()["entries_offered"] == 3
                 assert all(used_as_hit(c, t) for t in TARGETS[:3])
+                assert c.stats.received_shared == 3
                 assert c.stats.qp_solves == 0
 
     asyncio.run(main())
@@ -160,11 +165,11 @@ def test_a_peer_with_another_problem_signature_is_ignored():
         ):
             learn(d, TARGETS[0])
             aset = learn(a, TARGETS[1])
-            await until(lambda: b.contains(aset), "a -> b")
+            await until(lambda: aset in b.candidates, "a -> b")
             await until(lambda: sd.stats().get("entries_published", 0) == 1, "d publishing")
             await asyncio.sleep(0.2)  # several publish periods: d's batch had every chance
             assert a.stats.size == 1
-            assert b.stats.size == 1
+            assert (b.stats.size, b.stats.candidates) == (0, 1)
             assert d.stats.size == 1
             assert a.stats.received_shared == 0
             assert "d" not in sa.received_from  # a and b never subscribed to d's keys
@@ -220,12 +225,12 @@ def test_malformed_truncated_and_oversized_payloads_are_rejected_and_counted():
                     ),
                     "every bad payload counted",
                 )
-                assert b.stats.size == 0
+                assert b.stats.size == b.stats.candidates == 0
                 assert b.stats.received_shared == 0
                 # the valid one still goes through the same path
                 raw.put(key, good)
-                await until(lambda: b.stats.size == 1, "the valid payload")
-                assert b.contains((0, 1, 2))
+                await until(lambda: b.stats.candidates == 1, "the valid payload")
+                assert (0, 1, 2) in b.candidates
 
     asyncio.run(main())
 
@@ -258,10 +263,10 @@ def test_a_flooding_peer_is_rate_limited():
                         await asyncio.sleep(0.01)
 
                 await asyncio.wait_for(flood(), 10.0)
-                await until(lambda: b.stats.size == 3, "the burst's three imports")
+                await until(lambda: b.stats.candidates == 3, "the burst's three imports")
                 stats = sb.stats()
                 assert stats["rate_limited"] >= 7
-                assert stats["entries_accepted"] == 3
+                assert stats["entries_offered"] == 3
 
     asyncio.run(main())
 
@@ -274,15 +279,15 @@ def test_sharing_survives_a_peer_restart():
             b1 = controller()
             async with peer(config("b", pb, [pa]), b1):
                 s1 = learn(a, TARGETS[0])
-                await until(lambda: b1.contains(s1), "first controller")
+                await until(lambda: s1 in b1.candidates, "first controller")
             await until(lambda: sa.stats()["peers"] == 0, "a to see b leave")
             s2 = learn(a, TARGETS[1])  # learned while b is down
             await until(lambda: sa.stats().get("entries_published", 0) == 2, "a publishing")
             b2 = controller()  # the restarted process starts empty
             async with peer(config("b", pb, [pa]), b2):
-                await until(lambda: b2.contains(s1) and b2.contains(s2), "re-fetch")
+                await until(lambda: s1 in b2.candidates and s2 in b2.candidates, "re-fetch")
                 s3 = learn(a, TARGETS[2])
-                await until(lambda: b2.contains(s3), "live batches resume")
+                await until(lambda: s3 in b2.candidates, "live batches resume")
                 assert all(used_as_hit(b2, t) for t in TARGETS[:3])
 
     asyncio.run(main())
@@ -335,3 +340,241 @@ def test_live_reference_horizon_holds_tracks_and_follows_a_path():
     np.testing.assert_allclose(path[:, 0], [0.2, 0.2, 0.2, 0.2])
     np.testing.assert_allclose(path[:, 1], [0.0, 0.1, 0.2, 0.2])
     np.testing.assert_allclose(path[:, 4], [1.0, 1.0, 0.0, 0.0])
+
+
+# -- a hostile or broken peer (issue 16, fault 5) -----------------------------------------
+
+
+def raw_config(own_port: int, connect_port: int) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint(own_port)]))
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint(connect_port)]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def useless_sets(problem, exclude: tuple[int, ...]) -> list[tuple[int, ...]]:
+    """Well-formed active sets (in range, sorted, at most N nu rows) that are never the
+    optimum of the far-target ticks flown here: one or two rows only."""
+    rows = range(problem.n_con)
+    sets = [(i,) for i in rows] + [(i, j) for i in rows for j in rows if i < j]
+    return [s for s in sets if s != exclude]
+
+
+async def connected(raw: zenoh.Session, sb: FleetSharing, sig: str) -> None:
+    """Probe until the raw peer's puts reach ``sb`` (the route is up)."""
+
+    async def probe() -> None:
+        while sb.stats().get("messages_received", 0) == 0:
+            raw.put(f"epc/{FLEET}/{sig}/ctl/probe", b"probe")
+            await asyncio.sleep(0.05)
+
+    await asyncio.wait_for(probe(), 10.0)
+
+
+async def flood(
+    raw: zenoh.Session, sb: FleetSharing, sig: str, sets, ids: list[str], per_message: int
+) -> None:
+    """One well-formed batch of useless controllers from each id; waits until all arrived
+    and the event loop has dealt with them."""
+    before = sb.stats().get("messages_received", 0)
+    for k, vid in enumerate(ids):
+        chunk = [sets[(k * per_message + j) % len(sets)] for j in range(per_message)]
+        payload = encode_controllers(
+            ControllerMessage(MessageKind.BATCH, sig, vid, tuple(LibraryEntry(s) for s in chunk))
+        )
+        raw.put(f"epc/{FLEET}/{sig}/ctl/{vid}", payload)
+        if k % 100 == 99:
+            await asyncio.sleep(0.01)
+    await until(lambda: sb.stats().get("messages_received", 0) >= before + len(ids), "the flood")
+    await until(lambda: sb._queue.empty(), "the inbound queue to drain")
+    await asyncio.sleep(0.1)  # the last message's import slices
+
+
+@pytest.fixture
+def loop_factorisations(monkeypatch) -> list[int]:
+    """Counts ActiveSetMap factorisations done on the main thread (the event loop's)."""
+    import threading
+
+    from epc_offboard import epc
+
+    count = [0]
+    original = epc.ActiveSetMap.__init__
+
+    def counting(self, *args, **kwargs):
+        if threading.current_thread() is threading.main_thread():
+            count[0] += 1
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(epc.ActiveSetMap, "__init__", counting)
+    return count
+
+
+def test_a_flood_from_rotating_ids_takes_no_library_slot_no_loop_time_and_locks_nobody_out(
+    loop_factorisations,
+):
+    """1,200 vehicle ids each send a batch of well-formed, useless controllers; then a real
+    peer joins. The library stays empty, the event loop factorises nothing, the candidate
+    pool and the rate-limit state stay bounded, and the new peer is heard."""
+
+    async def main() -> None:
+        pb, praw, plegit = free_tcp_port(), free_tcp_port(), free_tcp_port()
+        b = ExperienceController(position_problem(8), max_size=50, learn_on_miss=False)
+        sig = b.problem.signature()
+        legit = controller()
+        legit_set = learn(legit, TARGETS[0])
+        sets = useless_sets(b.problem, legit_set)
+        loop_factorisations[0] = 0  # the teacher's own solve above is not b's
+        async with peer(config("b", pb, []), b) as sb:
+            with zenoh.open(raw_config(praw, pb)) as raw:
+                await connected(raw, sb, sig)
+                await flood(raw, sb, sig, sets, [f"evil{k}" for k in range(1200)], 20)
+                stats = sb.stats()
+                # past the queue (256 messages; beyond: dropped), far more than a pool holds
+                assert stats["entries_received"] > 4000
+                assert b.stats.size == 0, "unproven controllers took library slots"
+                assert loop_factorisations[0] == 0, "the event loop factorised received sets"
+                assert len(sb.received_from) <= 1024
+                assert len(b.candidates) == b.candidates.max_size  # full, and no more
+                assert stats["rate_buckets"] <= 1024
+            # a legitimate vehicle joining now is heard, not rate-limited for good
+            async with peer(config("legit", plegit, [pb]), legit):
+                await until(lambda: legit_set in b.candidates, "the new peer's controller")
+            assert sb.received_from["legit"] >= 1
+            assert b.stats.size == 0
+            assert len(b.candidates) <= b.candidates.max_size
+
+    asyncio.run(main())
+
+
+def test_a_received_controller_joins_the_library_only_when_optimal_for_a_tick_here(
+    loop_factorisations,
+):
+    """Useless controllers flood in beside a real one. In flight (the miss worker screens
+    the candidates), only the real one is promoted, at the tick it is optimal for, with its
+    origin; the flood never enters the library."""
+    from epc_offboard.miss_solver import MissSolver
+
+    async def main() -> None:
+        pb, praw, plegit = free_tcp_port(), free_tcp_port(), free_tcp_port()
+        b = ExperienceController(position_problem(8), max_size=50, learn_on_miss=False)
+        p = b.problem
+        sig = p.signature()
+        legit = controller()
+        legit_set = learn(legit, TARGETS[0])
+        loop_factorisations[0] = 0  # the teacher's own solve above is not b's
+        async with peer(config("b", pb, []), b) as sb:
+            solver = MissSolver({"position": b})  # after FleetSharing sized the pool
+            solver.start()
+            try:
+                with zenoh.open(raw_config(praw, pb)) as raw:
+                    await connected(raw, sb, sig)
+                    sets = useless_sets(p, legit_set)
+                    await flood(raw, sb, sig, sets, ["junk1", "junk2", "junk3"] * 10, 20)
+                async with peer(config("legit", plegit, [pb]), legit):
+                    await until(lambda: sb.received_from["legit"] >= 1, "the real controller")
+                    await until(lambda: sb._queue.empty(), "the inbound queue to drain")
+                    await asyncio.sleep(0.1)  # its import slices
+                assert b.stats.size == 0, "unproven controllers took library slots"
+                # 16 a peer (3 junk ids) and the real one
+                assert len(b.candidates) == 3 * 16 + 1
+                assert legit_set in b.candidates
+                solver.pump()  # the candidates go to the worker
+                d = b.step(np.zeros(p.nx), hover_refs(p, TARGETS[0]))
+                assert d.source == "intermediate"  # a miss: nothing proven here yet
+                solver.pump(wait=True)
+                assert solver.pump(wait=True) == 1
+                assert solver.counters["candidates_found"] == 1
+                assert used_as_hit(b, TARGETS[0])
+                assert [(e.active_set, e.origin) for e in b.export_library()] == [
+                    (legit_set, "shared:legit")
+                ]
+                assert b.stats.qp_solves == 0
+                assert b.stats.received_shared == 1
+                # elsewhere the flood is no answer either: the worker solves
+                b.step(np.zeros(p.nx), hover_refs(p, TARGETS[1]))
+                solver.pump(wait=True)
+                assert solver.pump(wait=True) == 1
+                assert b.stats.qp_solves == 1
+                assert sorted(e.origin for e in b.export_library()) == ["shared:legit", "solved"]
+                assert not any(b.contains(s) for s in sets)
+                # the loop built the two maps it promoted or added, none of the flood's
+                assert loop_factorisations[0] == 2
+            finally:
+                solver.close()
+
+    asyncio.run(main())
+
+
+def test_token_buckets_expire_and_never_refuse_a_new_sender():
+    from epc_offboard.sharing import _TokenBuckets
+
+    buckets = _TokenBuckets(rate_per_s=1.0, burst=2)
+    assert all(buckets.allow(f"evil{k}", 0.0) for k in range(1200))  # one burst each
+    assert len(buckets) <= 1024
+    assert buckets.allow("legit", 0.5)  # a new peer, mid-flood
+    assert buckets.allow("legit", 0.5)
+    assert not buckets.allow("legit", 0.5)  # its own quota still holds
+    assert buckets.allow("late", 10.0)  # after the refill time: every old bucket expired
+    assert len(buckets) == 1
+
+
+def test_origin_is_kept_through_the_store_and_db_info(tmp_path, capsys):
+    """A fleet candidate promoted in flight is stored as shared:<vehicle>, loads back as
+    such, and `db info` does not count it as this vehicle's own solve."""
+    from epc_offboard.cascade import Cascade
+    from epc_offboard.cli import main as cli_main
+    from epc_offboard.config import load_service_config
+    from epc_offboard.state import VehicleState
+    from epc_offboard.store import LibraryStore
+
+    cfg = load_service_config("config/sitl.toml")
+
+    def cascade() -> Cascade:
+        return Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
+
+    state = VehicleState(
+        time_s=0.0,
+        pos_ned_m=np.array([0.0, 0.0, -2.5]),
+        vel_ned_m_s=np.array([1.5, 0.0, 0.0]),
+        q_ned_frd=np.array([1.0, 0.0, 0.0, 0.0]),
+        rate_frd_rad_s=np.zeros(3),
+        position_age_s=0.0,
+        attitude_age_s=0.0,
+    )
+    teacher, pupil = cascade(), cascade()
+    teacher.position_tick(state, teacher.hold_refs(state), learn=True)
+    (taught,) = [e.active_set for e in dict(teacher.experience_controllers())["position"]
+                 .export_library()]  # fmt: skip
+    pupil_pos = dict(pupil.experience_controllers())["position"]
+
+    async def receive() -> None:  # from vehicle v7, over Zenoh, as in flight
+        pp, praw = free_tcp_port(), free_tcp_port()
+        sig = pupil.pos_problem.signature()
+        async with peer(config("pupil", pp, []), pupil_pos) as sp:
+            with zenoh.open(raw_config(praw, pp)) as raw:
+                await connected(raw, sp, sig)
+                await flood(raw, sp, sig, [taught], ["v7"], 1)
+
+    asyncio.run(receive())
+    pupil.position_tick(state, pupil.hold_refs(state), learn=True)
+    assert pupil_pos.stats.qp_solves == 0  # the fleet's controller, not a solve here
+    path = tmp_path / "lib.sqlite"
+    with LibraryStore.open(path) as store:
+        pupil.save_to(store)
+        sig = pupil.pos_problem.signature()
+        assert [(c.active_set, c.origin) for c in store.load_controllers(sig)] == [
+            (taught, "shared:v7")
+        ]
+        again = cascade()
+        again.load_from(store)
+    again_pos = dict(again.experience_controllers())["position"]
+    assert [(e.active_set, e.origin) for e in again_pos.export_library()] == [
+        (taught, "shared:v7")
+    ]
+    capsys.readouterr()
+    assert cli_main(["db", "info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "shared 1" in out
+    assert "solved" not in out.split(sig)[1].splitlines()[0]
