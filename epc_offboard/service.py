@@ -95,7 +95,11 @@ class Service:
         self.cfg = cfg
         self.config_path = config_path
         self.clock: Clock = VehicleClock() if cfg.loops.clock == "vehicle" else WallClock()
-        self.tracker = StateTracker(system_id=cfg.link.target_system, limits=cfg.state_limits)
+        self.tracker = StateTracker(
+            system_id=cfg.link.target_system,
+            component_id=cfg.link.target_component,
+            limits=cfg.state_limits,
+        )
         self.sm = OffboardStateMachine(cfg.offboard, land_at_end=cfg.mission.land_at_end)
         # the autopilot's dialect: forced by link.autopilot, else from its first heartbeat
         # (until then the state machine sees no heartbeat: nothing is commanded)
@@ -176,18 +180,16 @@ class Service:
 
     def _on_message(self, msg: Any) -> None:
         self._last_rx_wall = time.monotonic()
-        now = self.clock.now_s()
+        now = self.clock.now_s()  # in lockstep vehicle time: heartbeat ages are too
+        held = self.tracker.heartbeat
         if self.tracker.handle(msg, received_s=now) and isinstance(self.clock, VehicleClock):
             self.clock.advance(self.tracker.vehicle_time_s)
         mtype = msg.get_type()
         self.rates.record(mtype)
-        if mtype == "HEARTBEAT" and msg.get_srcSystem() == self.cfg.link.target_system:
-            self._adopt_dialect(int(msg.autopilot))
-        if mtype == "HEARTBEAT" and isinstance(self.clock, VehicleClock):
-            # In lockstep the heartbeat's age is measured in vehicle time as well.
-            hb = self.tracker.heartbeat
-            if hb is not None:
-                self.tracker.heartbeat = replace(hb, received_s=self.clock.now_s())
+        hb = self.tracker.heartbeat
+        if mtype == "HEARTBEAT" and hb is not None and hb is not held:
+            # only a heartbeat the tracker accepted (the autopilot's component and kind)
+            self._adopt_dialect(hb.autopilot)
         elif mtype == "GLOBAL_POSITION_INT":
             amsl, rel = msg.alt * 1e-3, msg.relative_alt * 1e-3
             if math.isfinite(amsl) and math.isfinite(rel) and abs(rel) < 1e5:
