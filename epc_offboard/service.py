@@ -73,6 +73,7 @@ _MSG_ATTITUDE_QUATERNION = 31
 _MSG_LOCAL_POSITION_NED = 32
 _RATE_WINDOW_S = 2.0  # received rates are measured over windows this long
 _GLOBAL_MAX_AGE_S = 1.0  # GLOBAL_POSITION_INT older than this is not used
+_LOCKSTEP_SILENCE_FACTOR = 10.0  # lockstep: wall-clock silence tolerated, x heartbeat timeout
 
 
 @dataclass(frozen=True)
@@ -385,9 +386,16 @@ class Service:
 
     async def _supervisor(self) -> None:
         period = 1.0 / self.cfg.loops.supervisor_rate_hz
+        # A silent link (nothing at all received) counts as a lost heartbeat. In lockstep the
+        # heartbeat's age is judged in vehicle time by the state machine; wall-clock silence
+        # only tells a simulator that has gone, and a loaded machine must not look like one
+        # (it failed a lockstep figure-8 safe beside a CPU hog: runs must not depend on load).
+        silence_s = self.cfg.offboard.heartbeat_timeout_s * (
+            _LOCKSTEP_SILENCE_FACTOR if self.clock.vehicle_time else 1.0
+        )
         while True:
             now = self.clock.now_s()
-            silent = time.monotonic() - self._last_rx_wall > self.cfg.offboard.heartbeat_timeout_s
+            silent = time.monotonic() - self._last_rx_wall > silence_s
             hb = None if silent or self.dialect is None else self.tracker.heartbeat
             age = self.tracker.age_s(now, vehicle_clock=self.clock.vehicle_time)
             state = self.tracker.snapshot()
