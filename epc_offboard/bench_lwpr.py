@@ -6,8 +6,10 @@
    flies between random waypoints in wind with drag a_d = -k (v - v_wind), absent from its
    nominal model; an LWPR estimator (velocity in, the three velocity perturbations out)
    learns it. Then the cost of one control tick, ``update`` at the last query point plus
-   ``predict`` at the new one (three outputs), is timed at the field counts reached, as
-   median and 99th percentile in microseconds. Target: median <= 300 us.
+   ``predict`` at the new one (three outputs), and a prediction along a 20-step horizon, are
+   timed at the field counts reached, as median and 99th percentile in microseconds, for the
+   compiled LWPR (new) and the numpy reference (old) in the same state, with their ratio.
+   Targets: median <= 30 us (update + predict) and <= 20 us (horizon).
 2. Cross: the 2-D cross function of the LWPR papers, 500 noisy samples per epoch for 20
    epochs; normalised MSE on a noise-free 41 x 41 grid after each epoch, and field count.
 """
@@ -15,22 +17,29 @@
 from __future__ import annotations
 
 import argparse
+import copy
+import itertools
 import json
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from epc_offboard.lwpr import LWPR
+from epc_offboard.cascade import EstimatorConfig
+from epc_offboard.lwpr import LWPR, LwprReference, warm_up
 from epc_offboard.perturbation import LwprPerturbation
 
 FloatArray = npt.NDArray[np.float64]
 
-TARGET_MEDIAN_US = 300.0
+TARGET_UPDATE_PREDICT_US = 30.0  # per sample, three outputs
+TARGET_HORIZON_US = 20.0  # predictions along the horizon, per tick
+HORIZON = 20  # steps of the position loop's horizon
+# What is timed in each control tick (see _time_one_tick); "<part>_cpu": thread CPU time.
+TICK_PARTS = ("update_predict", "horizon", "estimator_tick", "service_tick")
 DT_S = 0.01  # the position loop's period (100 Hz)
 NX = 6  # p(3), v(3)
 NZ = 9  # z = [x; u], u = acceleration (3)
@@ -85,58 +94,113 @@ def drag_estimator(**overrides: Any) -> LwprPerturbation:
     return LwprPerturbation(NX, NZ, **settings)
 
 
+def _stats_us(samples_s: list[float]) -> dict[str, float]:
+    us = np.asarray(samples_s) * 1e6
+    return {"median": float(np.median(us)), "p99": float(np.percentile(us, 99))}
+
+
+def _time_one_tick(
+    times: dict[str, list[float]],
+    model: LWPR,
+    drag_est: LwprPerturbation,
+    service_est: LwprPerturbation,
+    z: FloatArray,
+    p: FloatArray,
+    z_next: FloatArray,
+    horizon: FloatArray,
+) -> None:
+    """Time one control tick of each kind (seconds, appended to ``times``): ``model`` (a copy
+    of the drag estimator's learner) learns (z, p) and predicts at z_next, then along the
+    horizon (rows of velocity); then each estimator's tick on the same sample."""
+    vel = list(VELOCITY)
+    zi, zn, pi = z[vel], z_next[vel], p[vel]
+    # wall-clock and this thread's CPU time (the cost without time lost to other processes)
+    wall, cpu = time.perf_counter, time.thread_time
+    stamps = [(wall(), cpu())]
+    model.update(zi, pi)
+    model.predict(zn)
+    stamps.append((wall(), cpu()))
+    model.predict_many(horizon)
+    stamps.append((wall(), cpu()))
+    drag_est.observe(z, p)
+    drag_est.estimate(z_next)
+    stamps.append((wall(), cpu()))
+    service_est.observe(zi, pi / DT_S)
+    service_est.estimate(zn)
+    service_est.variation(zn, horizon)
+    stamps.append((wall(), cpu()))
+    for key, (w0, c0), (w1, c1) in zip(TICK_PARTS, stamps[:-1], stamps[1:], strict=True):
+        times[key].append(w1 - w0)
+        times[key + "_cpu"].append(c1 - c0)
+
+
+def _with_reference_models(est: LwprPerturbation) -> LwprPerturbation:
+    """A copy of ``est`` whose learners are the numpy reference (the old LWPR), in the same
+    learned state."""
+    old = copy.deepcopy(est)
+    old.models = [LwprReference.from_bytes(m.to_bytes()) for m in est.models]
+    return old
+
+
+def _service_estimator() -> LwprPerturbation:
+    """The position loop's estimator as the cascade builds it by default: z = velocity,
+    p = acceleration disturbance, one 1-D LWPR per axis."""
+    cfg = replace(EstimatorConfig().lwpr, dt_s=DT_S)
+    return LwprPerturbation.from_config(3, 3, cfg)
+
+
 def bench_tick(train_ticks: int, timed_ticks: int, seed: int = 0) -> dict[str, Any]:
-    """Median / p99 cost of update + predict (three outputs) after ``train_ticks`` of
-    learning, and of the whole estimator tick (observe + low-pass filtered estimate)."""
-    est = drag_estimator()
+    """After ``train_ticks`` of learning, the compiled LWPR ("new") and a copy of it in the
+    numpy reference implementation ("old") are timed on the same following samples, each
+    learning them in turn: median / p99 of update + predict (three outputs), of a prediction
+    along a 20-step horizon (``predict_many``, as ``LwprPerturbation.variation``), of the
+    whole drag estimator tick (observe + estimate), and of the service's default estimator
+    tick (observe + estimate + variation along the horizon; three 1-D learners)."""
+    est, service = drag_estimator(), _service_estimator()
     flight = DragFlight(seed)
     wind = np.array([2.0, -1.0, 0.0])
+    vel = list(VELOCITY)
     errors, truth = [], []
     for _ in range(train_ticks):
         z, p = flight.step(wind)
-        errors.append(est.predict_raw(z)[list(VELOCITY)] - p[list(VELOCITY)])
-        truth.append(p[list(VELOCITY)])
+        errors.append(est.predict_raw(z)[vel] - p[vel])
+        truth.append(p[vel])
         est.observe(z, p)
-    model = est.models[0]
-    vel = list(VELOCITY)
-    lwpr_us, lwpr_cpu_us, estimator_us = [], [], []
-    z, p = flight.step(wind)
-    for _ in range(timed_ticks):  # the learner alone: what the target is about
-        z_next, p_next = flight.step(wind)
-        zi, zn, pi = z[vel], z_next[vel], p[vel]
-        c0, t0 = time.thread_time(), time.perf_counter()
-        model.update(zi, pi)
-        model.predict(zn)
-        t1, c1 = time.perf_counter(), time.thread_time()
-        lwpr_us.append((t1 - t0) * 1e6)
-        lwpr_cpu_us.append((c1 - c0) * 1e6)
-        z, p = z_next, p_next
-    for _ in range(timed_ticks):  # then the whole estimator tick, on the following samples
-        z_next, p_next = flight.step(wind)
-        t0 = time.perf_counter()
-        est.observe(z, p)
-        est.estimate(z_next)
-        estimator_us.append((time.perf_counter() - t0) * 1e6)
-        z, p = z_next, p_next
+        service.observe(z[vel], p[vel] / DT_S)
+    learner = est.models[0].to_bytes()
+    pairs = {
+        "new": (LWPR.from_bytes(learner), est, service),
+        "old": (
+            LwprReference.from_bytes(learner),
+            _with_reference_models(est),
+            _with_reference_models(service),
+        ),
+    }
+    times: dict[str, dict[str, list[float]]] = {
+        k: {part + cpu: [] for part in TICK_PARTS for cpu in ("", "_cpu")} for k in pairs
+    }
+    steps = np.arange(1, HORIZON + 1)[:, None] * DT_S
+    samples = [flight.step(wind) for _ in range(timed_ticks + 1)]
+    # One implementation after the other on the same samples (interleaved, each would run
+    # with the caches the other left).
+    for name, (model, drag_est, service_est) in pairs.items():
+        for (z, p), (z_next, _) in itertools.pairwise(samples):
+            horizon = z_next[vel] + steps * z_next[6:9]  # velocities at constant input
+            _time_one_tick(times[name], model, drag_est, service_est, z, p, z_next, horizon)
     half = len(errors) // 2
+    figures = {name: {k: _stats_us(v) for k, v in t.items()} for name, t in times.items()}
     return {
-        "fields_per_output": list(model.num_rfs),
+        "fields_per_output": list(est.models[0].num_rfs),
+        "service_fields_per_axis": [m.num_rfs[0] for m in service.models],
         "train_ticks": train_ticks,
         "timed_ticks": timed_ticks,
-        "update_predict_us": {
-            "median": float(np.median(lwpr_us)),
-            "p99": float(np.percentile(lwpr_us, 99)),
+        "horizon_steps": HORIZON,
+        "compiled": LWPR.compiled,
+        **figures,
+        "ratio_old_over_new": {
+            k: figures["old"][k]["median"] / figures["new"][k]["median"] for k in figures["new"]
         },
-        # CPU time of this thread: the cost without time lost to other processes
-        "update_predict_cpu_us": {
-            "median": float(np.median(lwpr_cpu_us)),
-            "p99": float(np.percentile(lwpr_cpu_us, 99)),
-        },
-        "estimator_tick_us": {
-            "median": float(np.median(estimator_us)),
-            "p99": float(np.percentile(estimator_us, 99)),
-        },
-        "target_median_us": TARGET_MEDIAN_US,
+        "target_us": {"update_predict": TARGET_UPDATE_PREDICT_US, "horizon": TARGET_HORIZON_US},
         # one-step-ahead, online: each prediction made before its sample was learned
         "drag_nmse_second_half_of_training": float(
             np.mean(np.square(errors[half:])) / np.var(truth[half:])
@@ -186,20 +250,34 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ticks", type=int, default=2000, help="timed control ticks")
     parser.add_argument("--train", type=int, default=3000, help="drag learning ticks first")
     args = parser.parse_args(argv)
+    warm_up()  # compile (or load) the kernels before anything is timed
     tick = bench_tick(args.train, args.ticks)
     cross_result = bench_cross()
     report = {"drag_tick": tick, "cross": cross_result}
-    up, est = tick["update_predict_us"], tick["estimator_tick_us"]
-    print(f"drag: fields per output {tick['fields_per_output']} after {args.train} ticks")
+    labels = {
+        "update_predict": "update + predict, 3 outputs",
+        "horizon": f"predict_many along {HORIZON} steps, 3 outputs",
+        "estimator_tick": "drag estimator tick (observe + estimate)",
+        "service_tick": f"service estimator tick (3 x 1-D: observe, estimate, {HORIZON} steps)",
+    }
+    targets = {"update_predict": TARGET_UPDATE_PREDICT_US, "horizon": TARGET_HORIZON_US}
     print(
-        f"  update + predict, 3 outputs: median {up['median']:.0f} us, p99 {up['p99']:.0f} us "
-        f"(target median <= {TARGET_MEDIAN_US:.0f} us); thread CPU time median "
-        f"{tick['update_predict_cpu_us']['median']:.0f} us"
+        f"drag: fields per output {tick['fields_per_output']} after {args.train} ticks "
+        f"(service estimator: {tick['service_fields_per_axis']} per axis); LWPR compiled: "
+        f"{tick['compiled']}. Median / p99 in us, old (numpy) -> new (compiled):"
     )
-    print(
-        f"  estimator tick (observe + estimate): median {est['median']:.0f} us, "
-        f"p99 {est['p99']:.0f} us; drag nMSE {tick['drag_nmse_second_half_of_training']:.4f}"
-    )
+    for key, label in labels.items():
+        old, new = tick["old"][key], tick["new"][key]
+        cpu_old, cpu_new = tick["old"][key + "_cpu"], tick["new"][key + "_cpu"]
+        target = f" (target median <= {targets[key]:.0f})" if key in targets else ""
+        print(
+            f"  {label}{target}:\n    wall {old['median']:.1f} / {old['p99']:.1f} -> "
+            f"{new['median']:.1f} / {new['p99']:.1f}, "
+            f"{tick['ratio_old_over_new'][key]:.1f}x; thread CPU median "
+            f"{cpu_old['median']:.1f} -> {cpu_new['median']:.1f}, "
+            f"{tick['ratio_old_over_new'][key + '_cpu']:.1f}x"
+        )
+    print(f"  drag nMSE {tick['drag_nmse_second_half_of_training']:.4f}")
     print(f"cross: {cross_result['fields']} fields; nMSE per epoch:")
     print("  " + " ".join(f"{e:.4f}" for e in cross_result["nmse_per_epoch"]))
     if args.json:

@@ -351,7 +351,8 @@ class LWPR:
             self._kernel_args()
             y = np.empty((1, self.n_out))
             kernels.predict_many(xn.reshape(1, -1), self._n, self._cfg, y, *self._predict_args)
-            return y[0] * self.norm_out
+            y_one: FloatArray = y[0] * self.norm_out
+            return y_one
         v = self._active_views()
         return self._predict_normalised(v, self._activations(v, xn), xn) * self.norm_out
 
@@ -371,6 +372,7 @@ class LWPR:
             return np.zeros((arr.shape[0], self.n_out))
         xn = arr / self.norm_in
         if self.compiled:
+            xn = np.ascontiguousarray(xn)  # (the layout numba compiled for, whatever xs's)
             self._kernel_args()
             y_many = np.empty((arr.shape[0], self.n_out))
             kernels.predict_many(xn, n, self._cfg, y_many, *self._predict_args)

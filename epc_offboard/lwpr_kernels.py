@@ -177,27 +177,19 @@ def _update_metric(
     e_cv_r: float,
     e: float,
     cfg: FloatArray,
-    c: FloatArray,
-    M: FloatArray,
-    D: FloatArray,
-    alpha: FloatArray,
-    meta_b: FloatArray,
-    meta_h: FloatArray,
-    ss2: FloatArray,
-    sum_w: FloatArray,
-    sum_e_cv2: FloatArray,
-    sum_e2: FloatArray,
-    n_data: FloatArray,
-    lam: FloatArray,
-    H: FloatArray,
-    r: FloatArray,
-    ps: FloatArray,
-    dx: FloatArray,
-    Mdx: FloatArray,
-    dJdM: FloatArray,
+    metric: tuple[FloatArray, ...],
+    stats: tuple[FloatArray, ...],
+    scratch: tuple[FloatArray, ...],
 ) -> None:
     """Gradient step on M (D = M'M) of field j against the leave-one-out cost, and the
-    update of its cost statistics H, r (LwprReference._update_metric, one field)."""
+    update of its cost statistics H, r (LwprReference._update_metric, one field).
+
+    metric: the store's (c, M, D, alpha, meta_b, meta_h); stats: its (ss2, sum_w, sum_e_cv2,
+    sum_e2, n_data, lam, H, r); scratch: work arrays (d,), (d,), (d,), (d, d).
+    """
+    c, M, D, alpha, meta_b, meta_h = metric
+    ss2, sum_w, sum_e_cv2, sum_e2, n_data, lam, H, r = stats
+    ps, dx, Mdx, dJdM = scratch
     d = xn.shape[0]
     R = d
     # projections with enough data; the metric is adapted only if the first one has
@@ -369,10 +361,9 @@ def update(
     xres = np.empty((R, d))
     cum = np.empty(d)
     T = np.empty((d, d))
-    ps = np.empty(R)
-    dx = np.empty(d)
-    Mdx = np.empty(d)
-    dJdM = np.empty((d, d))
+    metric = (c, M, D, alpha, meta_b, meta_h)
+    stats = (ss2, sum_w, sum_e_cv2, sum_e2, n_data, lam, H, r)
+    scratch = (np.empty(R), np.empty(d), np.empty(d), np.empty((d, d)))
     status = 0
     for j in range(n):
         wj = w[j]
@@ -480,10 +471,7 @@ def update(
             trusted[j] = True
 
         if update_d:
-            _update_metric(
-                j, xn, wj, nr, i_cv, s_new, e_cv_r, e, cfg, c, M, D, alpha, meta_b, meta_h,
-                ss2, sum_w, sum_e_cv2, sum_e2, n_data, lam, H, r, ps, dx, Mdx, dJdM,
-            )
+            _update_metric(j, xn, wj, nr, i_cv, s_new, e_cv_r, e, cfg, metric, stats, scratch)
 
         # A new PLS projection where the newest one cut the leave-one-out error enough.
         last = nr - 1

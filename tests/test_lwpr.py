@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import io
 import zipfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epc_offboard.lwpr import LWPR, LwprError
+from epc_offboard.bench_lwpr import DragFlight
+from epc_offboard.lwpr import LWPR, LwprError, LwprReference, warm_up
 
 
 def cross(X: np.ndarray) -> np.ndarray:
@@ -307,3 +310,121 @@ def test_fields_whose_statistics_overflow_are_dropped_not_kept():
         x = rng.uniform(-0.3, 0.5, 2)
         model.update(x, [x.sum()])
     assert model.predict([0.1, 0.1])[0] == pytest.approx(0.2, abs=0.05)
+
+
+# ------------------------------------------------ the compiled learner against numpy's
+
+
+def cross_stream(n: int, seed: int = 0):
+    """(x, y) samples of the cross demo: uniform in [-1, 1]^2, noise 0.1."""
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        x = rng.uniform(-1, 1, 2)
+        yield x, cross(x[None])[0:1] + 0.1 * rng.standard_normal(1)
+
+
+def drag_stream(n: int):
+    """(velocity, velocity perturbation per tick) of bench_lwpr's drag flight in wind."""
+    flight = DragFlight(seed=0)
+    wind = np.array([2.0, -1.0, 0.0])
+    for _ in range(n):
+        z, p = flight.step(wind)
+        yield z[3:6], p[3:6]
+
+
+DRAG = {
+    "init_d": 4.0,
+    "init_lambda": 0.995,
+    "final_lambda": 0.999,
+    "tau_lambda": 0.999,
+    "norm_in": [3.0] * 3,
+    "norm_out": [0.01] * 3,
+}
+CROSS = {"init_d": 50.0, "init_alpha": 250.0}
+ORACLE_CASES: dict[str, tuple[int, int, Callable[[], Iterator[Any]], dict[str, Any]]] = {
+    "cross": (2, 1, lambda: cross_stream(10_000), CROSS),
+    "cross-full-metric": (2, 1, lambda: cross_stream(2000, 1), {**CROSS, "diag_only": False}),
+    "cross-meta": (2, 1, lambda: cross_stream(2000, 2), {**CROSS, "meta": True}),
+    "cross-full-meta-pruning": (
+        2, 1, lambda: cross_stream(2000, 3),
+        {**CROSS, "diag_only": False, "meta": True, "w_prune": 0.5},
+    ),
+    "drag": (3, 3, lambda: drag_stream(3000), DRAG),
+    "drag-per-axis": (1, 1, lambda: ((x[:1], y[:1]) for x, y in drag_stream(3000)), DRAG | {
+        "norm_in": [3.0], "norm_out": [0.01]}),
+}  # fmt: skip
+
+
+@pytest.mark.skipif(not LWPR.compiled, reason="numba is not installed: LWPR is the reference")
+@pytest.mark.parametrize("case", ORACLE_CASES)
+def test_compiled_learner_follows_the_numpy_reference(case: str):
+    """Same stream into both: every prediction-before-update, the fields, and predictions
+    on a grid (predict, predict_many, predict_conf) agree to 1e-9 all along."""
+    n_in, n_out, stream, kwargs = ORACLE_CASES[case]
+    assert not LwprReference.compiled
+    fast, ref = LWPR(n_in, n_out, **kwargs), LwprReference(n_in, n_out, **kwargs)
+    norm_in = np.asarray(kwargs.get("norm_in", np.ones(n_in)))
+    norm_out = np.asarray(kwargs.get("norm_out", np.ones(n_out)))
+    probe = np.random.default_rng(12).uniform(-1.5, 1.5, (20, n_in)) * norm_in
+    worst = 0.0
+
+    def agree(a: np.ndarray, b: np.ndarray) -> float:
+        """The largest difference in normalised output units; fails above 1e-9."""
+        diff = float(np.max(np.abs(a - b) / norm_out, initial=0.0))
+        assert diff <= 1e-9, diff
+        return diff
+
+    for k, (x, y) in enumerate(stream()):
+        worst = max(worst, agree(fast.update(x, y), ref.update(x, y)))
+        if k % 500 == 499:
+            assert fast.num_rfs == ref.num_rfs
+            np.testing.assert_array_equal(fast._nreg[: fast._n], ref._nreg[: ref._n])
+            worst = max(worst, agree(fast.predict_many(probe), ref.predict_many(probe)))
+            for xp in probe[:5]:
+                worst = max(worst, agree(fast.predict(xp), ref.predict(xp)))
+                (y_fast, conf_fast), (y_ref, conf_ref) = fast.predict_conf(xp), ref.predict_conf(xp)
+                agree(y_fast, y_ref)
+                agree(conf_fast, conf_ref)  # a square root of a difference: absolute only
+    print(f"{case}: largest difference {worst:.1e} (normalised output units)")
+    assert fast.n_updates == ref.n_updates
+    np.testing.assert_array_equal(fast.n_pruned, ref.n_pruned)
+    assert any(fast.num_rfs)
+    assert np.any(fast.predict_many(probe) != 0.0)
+    if "w_prune" in kwargs:
+        assert fast.n_pruned.sum() > 0  # the pruning path ran, and agreed
+
+
+@pytest.mark.skipif(not LWPR.compiled, reason="numba is not installed: LWPR is the reference")
+def test_compiled_and_reference_models_share_the_file_format():
+    """A model saved by either loads into the other and goes on learning the same way."""
+    fast = LWPR(3, 2, init_d=[10.0, 20.0, 5.0], norm_out=[2.0, 1.0])
+    rng = np.random.default_rng(13)
+    for _ in range(400):
+        x = rng.uniform(-1, 1, 3)
+        fast.update(x, [x @ [1.0, -2.0, 0.5], np.sin(2 * x[0]) * x[2]])
+    ref = LwprReference.from_bytes(fast.to_bytes())
+    assert isinstance(ref, LwprReference)
+    assert ref.num_rfs == fast.num_rfs
+    for x in rng.uniform(-1, 1, (300, 3)):
+        y = [x.sum(), x[0] ** 2]
+        np.testing.assert_allclose(fast.update(x, y), ref.update(x, y), rtol=0, atol=1e-9)
+    back = LWPR.from_bytes(ref.to_bytes())
+    X = rng.uniform(-1, 1, (50, 3))
+    np.testing.assert_allclose(back.predict_many(X), fast.predict_many(X), rtol=0, atol=1e-9)
+
+
+def test_warm_up_compiles_the_kernels_and_leaves_lwpr_usable():
+    took_s = warm_up()
+    assert took_s > 0.0 if LWPR.compiled else took_s == 0.0
+    if LWPR.compiled:
+        from epc_offboard import lwpr_kernels
+
+        model = trained(n=200)  # inputs in other layouts reuse the compiled kernels
+        X = np.random.default_rng(14).uniform(-1, 1, (20, 3))
+        np.testing.assert_array_equal(model.predict_many(np.asfortranarray(X)),
+                                      model.predict_many(X))  # fmt: skip
+        np.testing.assert_array_equal(model.predict(X.T.copy().T[0]), model.predict(X[0]))
+        model.update(X[:, ::-1][0], np.ones(2))
+        for kernel in (lwpr_kernels.update, lwpr_kernels.predict_many):
+            assert len(kernel.signatures) == 1  # type: ignore[union-attr]
+
