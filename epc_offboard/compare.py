@@ -11,8 +11,8 @@ and a fresh estimator, so the comparison is reproducible. Written to ``--out``:
   the reference, the tracking error over time, and the velocity against its bound;
 * one directory per method with that flight's report.json, flight.png and logs.
 
-Exit code 0 when every flight completed (a FAIL verdict is reported, not an error), 1 when a
-flight failed.
+Exit code 0 when every flight completed and no declared target failed; 1 when a flight failed
+or a target did (the failed targets are named on stderr).
 """
 
 from __future__ import annotations
@@ -27,7 +27,13 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.frames import FloatArray
-from epc_offboard.sim import ScenarioConfig, VehicleResult, fly_and_report, scenario_for
+from epc_offboard.sim import (
+    ScenarioConfig,
+    VehicleResult,
+    fly_and_report,
+    scenario_for,
+    targets_exit_code,
+)
 from epc_offboard.targets import evaluate, method_name, parse_method
 
 
@@ -73,7 +79,7 @@ def fly_method(
 
 
 def run_compare_command(args: argparse.Namespace) -> int:
-    from epc_offboard.errors import EXIT_OK, EXIT_RUNTIME
+    from epc_offboard.errors import EXIT_RUNTIME
 
     scenario = scenario_for(args)
     methods = methods_for(args, scenario)
@@ -106,7 +112,7 @@ def run_compare_command(args: argparse.Namespace) -> int:
     write_compare_figure(flown, bounds, out_dir / "compare.png", scenario, args.scenario, wind)
     print_compare(summary)
     print(f"report: {out_dir / 'compare.json'}  figure: {out_dir / 'compare.png'}")
-    return EXIT_OK
+    return targets_exit_code(verdicts)
 
 
 # -- output ---------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ import math
 import signal
 import sys
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO
@@ -73,6 +73,7 @@ _MSG_ATTITUDE_QUATERNION = 31
 _MSG_LOCAL_POSITION_NED = 32
 _RATE_WINDOW_S = 2.0  # received rates are measured over windows this long
 _GLOBAL_MAX_AGE_S = 1.0  # GLOBAL_POSITION_INT older than this is not used
+_MAX_PHASE_EVENTS = 200  # phase transitions kept for the stats
 _LOCKSTEP_SILENCE_FACTOR = 10.0  # lockstep: wall-clock silence tolerated, x heartbeat timeout
 
 
@@ -145,6 +146,9 @@ class Service:
         self._lingering = False  # landed, still up for the fleet (mission.linger_after_landing)
         self._last_error_log = -math.inf
         self._last_ack_log = -math.inf
+        # phase transitions on the loop clock, the newest _MAX_PHASE_EVENTS (a flapping link
+        # cannot grow it)
+        self.phase_events: deque[dict[str, Any]] = deque(maxlen=_MAX_PHASE_EVENTS)
         self._flight_log: TextIO | None = None
         self._flight_writer: Any = None
         tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
@@ -415,10 +419,7 @@ class Service:
             for action in out.actions:
                 self._do_action(action, out, state)
             if out.phase != self.outputs.phase:
-                log.info(
-                    "phase %s -> %s (%s)", self.outputs.phase.value, out.phase.value, out.reason
-                )
-                self._notifier.notify(f"STATUS={out.phase.value}: {out.reason}")
+                self._phase_changed(now, out)
             self.outputs = out
             self._manage_rates(now, link_up=hb is not None)
             self._manage_params(now, link_up=hb is not None)
@@ -431,6 +432,17 @@ class Service:
             if out.phase == Phase.DONE and self.cfg.mission.duration_s > 0:
                 self._mission_over()
             await self._wait(now + period)
+
+    def _phase_changed(self, now: float, out: Outputs) -> None:
+        """Log, tell systemd, count failsafes and keep the transition for the stats (the sim
+        report marks them where they happened)."""
+        log.info("phase %s -> %s (%s)", self.outputs.phase.value, out.phase.value, out.reason)
+        self._notifier.notify(f"STATUS={out.phase.value}: {out.reason}")
+        if out.phase == Phase.FAILSAFE:
+            self.counters["failsafes"] += 1
+        self.phase_events.append(
+            {"t_s": round(now, 4), "phase": out.phase.value, "reason": out.reason}
+        )
 
     def _start_trajectory(self, state: VehicleState, altitude_m: float | None) -> None:
         anchor = state.pos_ned_m.copy()
@@ -859,6 +871,7 @@ class Service:
     def stats(self) -> dict[str, Any]:
         return {
             "phase": self.outputs.phase.value,
+            "phase_events": list(self.phase_events),
             "autopilot": None if self.dialect is None else self.dialect.name,
             "attitude_mode": self._attitude_mode,
             "params": dict(self.params),

@@ -322,6 +322,54 @@ class VehicleResult:
 
 _MISS_SOURCES = ("solved", "intermediate", "fallback")  # EPC ticks that were not hits
 
+# What a user must see without opening a log: service counters (stats.json "counters") and
+# SITL counters (its closing "counters" line) that mean the flight was not clean.
+_SERVICE_WARNINGS = {
+    "failsafes": "failsafes",
+    "position_loop_errors": "position loop errors",
+    "attitude_loop_errors": "attitude loop errors",
+    "position_ticks_skipped": "position ticks skipped",
+    "attitude_ticks_skipped": "attitude ticks skipped",
+    "attitude_late_fallbacks": "late attitude ticks (attitude sent instead of rates)",
+    "clock_wait_timeouts": "loop clock waits timed out",
+    "non_finite_setpoints_replaced": "non-finite setpoints replaced",
+    "commands_not_encoded": "commands not encoded",
+    "store_errors": "library store errors",
+}
+_SITL_WARNINGS = {
+    "lockstep_timeouts": "SITL lockstep timeouts",
+    "offboard_failsafes": "SITL offboard-loss failsafes",
+    "handler_errors": "SITL message handler errors",
+    "nan_setpoints": "non-finite setpoints received by the SITL",
+}
+
+
+def sitl_counters(log_path: Path) -> dict[str, int]:
+    """The counters the SITL prints when it stops (``epc-sitl: counters k=v ...``)."""
+    try:
+        lines = log_path.read_text(errors="replace").splitlines()
+    except OSError:
+        return {}
+    for line in reversed(lines):
+        if line.startswith("epc-sitl: counters "):
+            pairs = (kv.split("=", 1) for kv in line.split()[2:] if "=" in kv)
+            return {k: int(v) for k, v in pairs if v.lstrip("-").isdigit()}
+    return {}
+
+
+def flight_warnings(stats: dict[str, Any], sitl: dict[str, int]) -> dict[str, int]:
+    """Everything that went wrong in a flight, by readable name, with its count (0s left out);
+    stale-state failsafes are named on their own."""
+    counters = stats.get("counters", {})
+    out = {name: int(counters.get(key, 0)) for key, name in _SERVICE_WARNINGS.items()}
+    out["stale-state failsafes"] = sum(
+        1
+        for e in stats.get("phase_events", [])
+        if e.get("phase") == "failsafe" and "stale" in str(e.get("reason", ""))
+    )
+    out.update({name: int(sitl.get(key, 0)) for key, name in _SITL_WARNINGS.items()})
+    return {k: v for k, v in out.items() if v}
+
 
 def analyse(run: VehicleRun, scenario: ScenarioConfig, vel_bounds_m_s: FloatArray) -> VehicleResult:
     flight = _read_csv(run.flight_log)
@@ -375,6 +423,11 @@ def analyse(run: VehicleRun, scenario: ScenarioConfig, vel_bounds_m_s: FloatArra
         "received_rates_hz": stats.get("rates_hz", {}),
         "takeoffs_sent": int(stats.get("takeoffs_sent", 0)),
         "miss_worker": stats.get("miss_worker", {}),
+        "warnings": flight_warnings(stats, sitl_counters(run.out_dir / "sitl.log")),
+        # phase transitions, seconds since offboard was entered (negative: before)
+        "phase_events": [
+            {**e, "t_s": round(float(e["t_s"]) - start, 3)} for e in stats.get("phase_events", [])
+        ],
     }
     return VehicleResult(
         run.vehicle_id, report, t_vehicle - start, pos, ref, vel, err, flight["source"]
@@ -404,6 +457,13 @@ def write_figure(
         solved = np.cumsum(np.isin(r.sources, _MISS_SOURCES))
         ax_lib.plot(r.t_s, hits, label=f"hits {label}")
         ax_lib.plot(r.t_s, solved, label=f"misses {label}")
+        # failsafes where they happened, on every time axis
+        for i, e in enumerate(x for x in r.report["phase_events"] if x["phase"] == "failsafe"):
+            for ax in (ax_err, ax_vel, ax_lib):
+                ax.axvline(
+                    e["t_s"], color="r", lw=1.5, alpha=0.7,
+                    label=f"failsafe {label}" if i == 0 and ax is ax_err else None,
+                )  # fmt: skip
     ax_path.set(xlabel="east [m]", ylabel="north [m]", title="path (top view)", aspect="equal")
     ax_err.set(
         xlabel="time since offboard [s]",
@@ -451,6 +511,10 @@ def print_table(report: dict[str, Any]) -> None:
             f"{att.get('rate_hz', 0.0):.1f}",
         )
     Console(stderr=False).print(table)
+    for v in report["vehicles"]:
+        warnings = v.get("warnings", {})
+        text = ", ".join(f"{name} {n}" for name, n in warnings.items()) or "none"
+        print(f"vehicle {v['id']} warnings: {text}")
 
 
 def make_report(
@@ -505,7 +569,7 @@ def scenario_for(args: argparse.Namespace) -> ScenarioConfig:
 
 
 def run_sim_command(args: argparse.Namespace) -> int:
-    from epc_offboard.errors import EXIT_OK, EXIT_RUNTIME
+    from epc_offboard.errors import EXIT_RUNTIME
 
     if getattr(args, "compare", None) is not None:
         from epc_offboard.compare import run_compare_command
@@ -521,8 +585,29 @@ def run_sim_command(args: argparse.Namespace) -> int:
     except RuntimeError as exc:
         print(f"epc-offboard sim: {exc}", file=sys.stderr)
         return EXIT_RUNTIME
+    from epc_offboard.targets import evaluate, method_name
+
+    # the scenario's declared targets that this one method can be judged on
+    method = method_name(args.controller, args.adaptation)
+    report["targets"] = [
+        v for v in evaluate(scenario.targets, {method: report}) if v["verdict"] != "n/a"
+    ]
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))
     print_table(report)
+    for t in report["targets"]:
+        print(f"target {t['verdict']}: {t['target']} ({t['value']:.4g} <= {t['bound']:.4g})")
     print(f"report: {out_dir / 'report.json'}  figure: {out_dir / 'flight.png'}")
+    return targets_exit_code(report["targets"])
+
+
+def targets_exit_code(verdicts: list[dict[str, Any]]) -> int:
+    """0 when no declared target failed, else 1 (named on stderr)."""
+    from epc_offboard.errors import EXIT_OK, EXIT_RUNTIME
+
+    failed = [v["target"] for v in verdicts if v["verdict"] == "FAIL"]
+    if failed:
+        print(f"epc-offboard sim: targets failed: {'; '.join(failed)}", file=sys.stderr)
+        return EXIT_RUNTIME
     return EXIT_OK

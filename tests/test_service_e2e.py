@@ -55,6 +55,34 @@ def test_sim_hover_holds_within_5_cm(tmp_path):
     loops = v["loops"]
     assert loops["position"]["rate_hz"] == pytest.approx(100.0, rel=0.05)
     assert loops["attitude"]["rate_hz"] == pytest.approx(200.0, rel=0.05)
+    # what went wrong is in the report, not only in the logs: here, nothing that matters
+    assert "failsafes" not in v["warnings"]
+    assert "SITL lockstep timeouts" not in v["warnings"]
+    assert [e["phase"] for e in v["phase_events"]][-1] == "done"
+    # the offboard entry is where the report's time axis starts (within a supervisor tick)
+    assert any(e["phase"] == "offboard" and abs(e["t_s"]) < 0.06 for e in v["phase_events"])
+
+
+def test_sim_fails_with_the_targets_it_missed_named(tmp_path):
+    scenario = tmp_path / "strict_hover.toml"
+    scenario.write_text(
+        'description = "a hover judged on an impossible target"\n'
+        "duration_s = 3.0\nsettle_s = 1.0\n"
+        '[trajectory]\nshape = "hover"\n'
+        '[[targets]]\ndescription = "RMSE of exactly zero"\n'
+        'method = "epc:none"\nmetric = "rmse_m"\nmax = 0.0\n'
+    )
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", str(scenario),
+         "--adaptation", "none", "--out", str(out)],
+        capture_output=True, text=True, timeout=220, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "targets failed: RMSE of exactly zero" in proc.stderr
+    assert "target FAIL: RMSE of exactly zero" in proc.stdout
+    report = json.loads((out / "report.json").read_text())
+    assert [t["verdict"] for t in report["targets"]] == ["FAIL"]
 
 
 def test_second_run_starts_from_the_saved_library(tmp_path):
