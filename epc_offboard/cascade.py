@@ -40,7 +40,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from epc_offboard import frames
+from epc_offboard import frames, lwpr
 from epc_offboard.baselines import MpcController, PdController
 from epc_offboard.decision import Controller, Decision
 from epc_offboard.epc import ExperienceController, LibraryEntry
@@ -475,6 +475,8 @@ class Cascade:
         compiled kernel (numba) is compiled or loaded from its cache now, not inside the
         first control tick. Leaves this cascade untouched; returns the seconds it took."""
         t0 = time.perf_counter()
+        if self.estimator_cfg.kind == "lwpr":
+            lwpr.warm_up()  # every LWPR kernel, whatever the few scratch ticks exercise
         scratch = Cascade(
             self.position_cfg, self.attitude_cfg, self.estimator_cfg, self.loop_period_s
         )

@@ -4,6 +4,8 @@ and rejection of bad inputs with the model left untouched."""
 from __future__ import annotations
 
 import io
+import subprocess
+import sys
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -428,3 +430,23 @@ def test_warm_up_compiles_the_kernels_and_leaves_lwpr_usable():
         for kernel in (lwpr_kernels.update, lwpr_kernels.predict_many):
             assert len(kernel.signatures) == 1  # type: ignore[union-attr]
 
+
+
+@pytest.mark.skipif(not LWPR.compiled, reason="numba is not installed: nothing to compile")
+def test_the_cascade_warm_up_compiles_every_lwpr_kernel_before_the_first_tick():
+    """In a fresh interpreter (this one has compiled them already): after Cascade.warm_up,
+    the service's READY point, update and predict_many need no compilation (the scratch
+    ticks alone would not learn, and leave update to the first tick in flight)."""
+    code = (
+        "from epc_offboard import lwpr_kernels as k\n"
+        "from epc_offboard.cascade import (AttitudeControlConfig, Cascade, EstimatorConfig,\n"
+        "    PositionControlConfig)\n"
+        "c = Cascade(PositionControlConfig(), AttitudeControlConfig(), EstimatorConfig())\n"
+        "before = (len(k.update.signatures), len(k.predict_many.signatures))\n"
+        "c.warm_up()\n"
+        "print(*before, len(k.update.signatures), len(k.predict_many.signatures))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=240, check=True
+    )
+    assert done.stdout.split() == ["0", "0", "1", "1"]
