@@ -5,16 +5,21 @@
     db import LIBRARY IN.json               add an exported library to LIBRARY
     db merge  LIBRARY OTHER.sqlite [...]    add other vehicles' library files to LIBRARY
 
-``--signature SIG`` (repeatable) limits any of them to some problem signatures. With
-``--config SERVICE.toml``, import and merge take only the signatures of that service's
-problems, and every controller is first validated against its problem (index ranges, size,
-linearly independent rows) — exactly what the service checks when it loads a library; what
-fails is reported and left out. Learned models (LWPR) describe one airframe, so import and
-merge bring them only with ``--models``.
+``--signature SIG`` (repeatable) limits any of them to some problem signatures. Import and
+merge need ``--config SERVICE.toml``: they take only the signatures of that service's
+problems, and every controller is first validated against its problem (active-set rows in
+range, at most N nu rows, linearly independent) — exactly what the service checks when it
+loads a library. Without the problem an active set's row indices cannot be checked (a
+signature is a hash, and a library file does not hold its problem), so import and merge
+refuse to run without ``--config`` rather than write what they cannot check. Learned
+models (LWPR) describe one airframe, so import and merge bring them only with ``--models``.
 
-Everything read is validated before anything is written, and the write is one transaction:
-a bad file changes nothing and the message names the file and what was wrong. Source files
-are opened read-only and never moved or repaired.
+Everything or nothing: everything read is validated before anything is written, and the
+write is one transaction. One invalid controller (or a file that does not parse) fails the
+command with exit 2, naming the file, signature and controller, and nothing is written;
+``--skip-invalid`` instead leaves the invalid controllers out, reports each, and writes the
+rest. Source files are opened read-only, never moved or repaired, and nothing (no
+``-wal``/``-shm``) is left beside them.
 """
 
 from __future__ import annotations
@@ -27,8 +32,9 @@ import math
 import sys
 import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from epc_offboard.errors import EXIT_OK, UsageError
 from epc_offboard.store import (
@@ -41,6 +47,9 @@ from epc_offboard.store import (
     Transition,
     active_set_from_list,
 )
+
+if TYPE_CHECKING:
+    from epc_offboard.mpc import MpcProblem
 
 EXPORT_FORMAT = "epc-offboard-library"
 EXPORT_VERSION = 1
@@ -212,28 +221,43 @@ def select(snapshot: LibrarySnapshot, signatures: Iterable[str] | None) -> Libra
     return LibrarySnapshot({s: p for s, p in snapshot.signatures.items() if s in wanted})
 
 
-def validate_against_config(
-    snapshot: LibrarySnapshot, config_path: str
-) -> tuple[LibrarySnapshot, list[str]]:
-    """Keep the signatures of the service's problems, and in them the controllers that are
-    valid for the problem (as the service checks on load); returns (kept, reasons dropped)."""
+@dataclass(frozen=True)
+class Validated:
+    """One source checked against a service's problems."""
+
+    kept: LibrarySnapshot  # the config's signatures, only their valid controllers
+    invalid: tuple[str, ...]  # "signature S: controller [rows]: why", one per bad controller
+    not_taken: tuple[str, ...]  # signatures that are not the config's problems
+
+
+def config_problems(config_path: str) -> dict[str, MpcProblem]:
+    """signature -> MpcProblem of the service configured by ``config_path``."""
     from epc_offboard.cascade import Cascade
     from epc_offboard.config import load_service_config
     from epc_offboard.configio import ConfigError
-    from epc_offboard.epc import ExperienceController, LibraryEntry
 
     try:
         cfg = load_service_config(config_path)
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz)
-    problems = {p.signature(): p for p in (cascade.pos_problem, cascade.att_problem)}
-    dropped: list[str] = []
+    return {p.signature(): p for p in (cascade.pos_problem, cascade.att_problem)}
+
+
+def validate_against_problems(
+    snapshot: LibrarySnapshot, problems: dict[str, MpcProblem], config_path: str
+) -> Validated:
+    """Check every controller of the problems' signatures as the service does on load.
+    Transitions are kept only between valid controllers of the same source."""
+    from epc_offboard.epc import ExperienceController, LibraryEntry
+
+    invalid: list[str] = []
+    not_taken: list[str] = []
     kept: dict[str, SignatureSnapshot] = {}
     for sig, part in snapshot.signatures.items():
         problem = problems.get(sig)
         if problem is None:
-            dropped.append(f"signature {sig}: not a problem of {config_path}")
+            not_taken.append(f"signature {sig}: not a problem of {config_path}")
             continue
         checker = ExperienceController(problem, max_size=1)
         ok: list[StoredController] = []
@@ -241,7 +265,7 @@ def validate_against_config(
             try:
                 checker.import_entries([LibraryEntry(c.active_set, c.importance, c.uses)])
             except ValueError as exc:
-                dropped.append(f"signature {sig}: controller {list(c.active_set)}: {exc}")
+                invalid.append(f"signature {sig}: controller {list(c.active_set)}: {exc}")
                 continue
             ok.append(c)
         sets = {c.active_set for c in ok}
@@ -249,7 +273,7 @@ def validate_against_config(
             t for t in part.transitions if t.from_set in sets and t.to_set in sets
         )
         kept[sig] = SignatureSnapshot(tuple(ok), transitions, part.models)
-    return LibrarySnapshot(kept), dropped
+    return Validated(LibrarySnapshot(kept), tuple(invalid), tuple(not_taken))
 
 
 # -- the command --------------------------------------------------------------------------
@@ -264,12 +288,20 @@ def add_db_arguments(db: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     db.add_argument(
         "--config", default=None, metavar="FILE",
-        help="import/merge: only this service config's problems, each controller validated",
+        help="import/merge (required): only this service config's problems, each controller "
+        "validated against its problem",
+    )  # fmt: skip
+    db.add_argument(
+        "--skip-invalid", action="store_true",
+        help="import/merge: leave invalid controllers out (each reported) and write the rest; "
+        "by default one invalid controller fails the command and nothing is written",
     )  # fmt: skip
     db.add_argument(
         "--models", action="store_true", help="import/merge: also the learned models (LWPR)"
     )
 
+
+_MAX_LISTED = 20  # invalid controllers listed per source; the rest are counted
 
 _USAGE = {
     "info": "epc-offboard db info LIBRARY.sqlite",
@@ -285,8 +317,17 @@ def run_db_command(args: argparse.Namespace) -> int:
         raise UsageError(f"usage: {_USAGE[args.action]}")
     if args.action == "merge" and n < 2:
         raise UsageError(f"usage: {_USAGE['merge']}")
-    if args.action in ("info", "export") and (args.config or args.models):
-        raise UsageError(f"--config and --models apply to import and merge, not {args.action}")
+    if args.action in ("info", "export") and (args.config or args.models or args.skip_invalid):
+        raise UsageError(
+            f"--config, --models and --skip-invalid apply to import and merge, not {args.action}"
+        )
+    if args.action in ("import", "merge") and not args.config:
+        raise UsageError(
+            f"db {args.action} needs --config SERVICE.toml: every controller is checked "
+            "against that service's problems (active-set rows in range, at most N nu rows, "
+            "linearly independent) before anything is written, and a library or export file "
+            "does not hold its problems, so without --config nothing can be checked"
+        )
     library = Path(args.paths[0])
     try:
         if args.action == "info":
@@ -296,21 +337,40 @@ def run_db_command(args: argparse.Namespace) -> int:
         if args.action == "import":
             sources = [(args.paths[1], read_export_file(Path(args.paths[1])))]
         else:
-            sources = [(p, _read_library(Path(p))) for p in args.paths[1:]]
+            sources = [(p, read_library(Path(p))[0]) for p in args.paths[1:]]
         return _write(library, sources, args)
     except StoreError as exc:
         raise UsageError(str(exc)) from exc
 
 
-def _read_library(path: Path) -> LibrarySnapshot:
+def read_library(path: Path) -> tuple[LibrarySnapshot, int]:
+    """The whole library file and its count of unreadable rows, leaving nothing beside it.
+
+    A WAL-mode file opened read-only the ordinary way gets ``-wal`` and ``-shm`` files that
+    a read-only connection cannot remove. With no ``-wal`` beside it no process has the file
+    open and all of it is in the main file, so it is read as immutable (nothing created);
+    if a ``-wal`` appeared or the file changed meanwhile (a service started writing), it is
+    read again through the writer's WAL, whose files are then the writer's.
+    """
+    wal = Path(f"{path}-wal")
+    if not wal.exists() and path.is_file():
+        before = _file_identity(path)
+        with LibraryStore.open_readonly(path, immutable=True) as store:
+            snap, skipped = store.snapshot(), store.skipped_rows
+        if not wal.exists() and _file_identity(path) == before:
+            return snap, skipped
     with LibraryStore.open_readonly(path) as store:
-        return store.snapshot()
+        return store.snapshot(), store.skipped_rows
+
+
+def _file_identity(path: Path) -> tuple[int, int, int]:
+    st = path.stat()
+    return st.st_ino, st.st_size, st.st_mtime_ns
 
 
 def _info(path: Path, signatures: list[str] | None) -> int:
-    with LibraryStore.open_readonly(path) as store:
-        snap = select(store.snapshot(), signatures)
-        skipped = store.skipped_rows
+    whole, skipped = read_library(path)
+    snap = select(whole, signatures)
     print(f"{path}: {len(snap.signatures)} problem signature(s)")
     for sig, part in sorted(snap.signatures.items()):
         origins: dict[str, int] = {}
@@ -329,7 +389,7 @@ def _info(path: Path, signatures: list[str] | None) -> int:
 
 
 def _export(path: Path, out: Path, signatures: list[str] | None) -> int:
-    snap = select(_read_library(path), signatures)
+    snap = select(read_library(path)[0], signatures)
     text = json.dumps(snapshot_to_json(snap, path.name), indent=1)
     if str(out) == "-":
         sys.stdout.write(text + "\n")
@@ -348,14 +408,25 @@ def _export(path: Path, out: Path, signatures: list[str] | None) -> int:
 def _write(
     library: Path, sources: list[tuple[str, LibrarySnapshot]], args: argparse.Namespace
 ) -> int:
+    problems = config_problems(args.config)
     prepared = []
+    invalid = 0
     for name, snap in sources:  # validate everything before touching the library
-        snap = select(snap, args.signature)
-        if args.config:
-            snap, dropped = validate_against_config(snap, args.config)
-            for reason in dropped:
-                print(f"{name}: left out: {reason}", file=sys.stderr)
-        prepared.append((name, snap))
+        checked = validate_against_problems(select(snap, args.signature), problems, args.config)
+        for reason in checked.not_taken:
+            print(f"{name}: not taken: {reason}", file=sys.stderr)
+        verb = "left out" if args.skip_invalid else "invalid"
+        for reason in checked.invalid[:_MAX_LISTED]:
+            print(f"{name}: {verb}: {reason}", file=sys.stderr)
+        if len(checked.invalid) > _MAX_LISTED:
+            print(f"{name}: ... and {len(checked.invalid) - _MAX_LISTED} more", file=sys.stderr)
+        invalid += len(checked.invalid)
+        prepared.append((name, checked.kept))
+    if invalid and not args.skip_invalid:
+        raise UsageError(
+            f"{invalid} invalid controller(s) (listed above): nothing written to {library}; "
+            "--skip-invalid writes the rest and leaves these out"
+        )
     with LibraryStore.open(library, repair=False) as store:
         for name, snap in prepared:
             new = store.write_snapshot(
@@ -366,4 +437,6 @@ def _write(
                 f"{new['transitions']} new transitions"
                 + (f", {new['models']} models" if args.models else "")
             )
+    if invalid:
+        print(f"{library}: {invalid} invalid controller(s) left out (--skip-invalid)")
     return EXIT_OK

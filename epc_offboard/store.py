@@ -171,13 +171,18 @@ class LibraryStore:
             return cls(p, _conn=_connect(p))
 
     @classmethod
-    def open_readonly(cls, path: str | Path) -> LibraryStore:
-        """Open an existing library for reading only; :class:`StoreError` if it is unusable."""
+    def open_readonly(cls, path: str | Path, *, immutable: bool = False) -> LibraryStore:
+        """Open an existing library for reading only; :class:`StoreError` if it is unusable.
+
+        ``immutable``: SQLite's ``immutable=1``, which creates no ``-wal``/``-shm`` beside
+        the file but ignores any WAL and any concurrent writer: only for a file no process
+        has open (no ``-wal`` beside it); :func:`epc_offboard.db.read_library` checks that.
+        """
         p = Path(path)
         if not p.is_file():
             raise StoreError(f"{p}: no such library file")
         try:
-            return cls(p, _conn=_connect(p, readonly=True))
+            return cls(p, _conn=_connect(p, readonly=True, immutable=immutable))
         except (sqlite3.DatabaseError, StoreError) as exc:
             raise StoreError(f"{p}: not a usable library: {exc}") from exc
 
@@ -395,11 +400,12 @@ class LibraryStore:
         return out
 
 
-def _connect(path: Path, *, readonly: bool = False) -> sqlite3.Connection:
+def _connect(
+    path: Path, *, readonly: bool = False, immutable: bool = False
+) -> sqlite3.Connection:
     if readonly:
-        conn = sqlite3.connect(
-            f"file:{path}?mode=ro", uri=True, check_same_thread=False, isolation_level=None
-        )
+        uri = path.resolve().as_uri() + "?mode=ro" + ("&immutable=1" if immutable else "")
+        conn = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
     else:
         conn = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
     try:

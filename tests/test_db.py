@@ -3,15 +3,23 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
-from epc_offboard.cli import main
+from epc_offboard.cascade import Cascade
+from epc_offboard.cli import build_parser, main
+from epc_offboard.config import load_service_config
 from epc_offboard.store import LibraryStore, StoredController
 
-SIG = "a" * 32
-OTHER = "b" * 32
 SITL_CONFIG = "config/sitl.toml"
+# import and merge check every controller against the problems of a service config: the
+# libraries here hold the SITL service's position (SIG) and attitude (OTHER) problems
+_CFG = load_service_config(SITL_CONFIG)
+_CASCADE = Cascade(_CFG.position, _CFG.attitude, _CFG.estimator, 1.0 / _CFG.loops.position_rate_hz)
+POS_PROBLEM = _CASCADE.pos_problem
+SIG, OTHER = POS_PROBLEM.signature(), _CASCADE.att_problem.signature()
+CFG = ["--config", SITL_CONFIG]
 
 
 def _library(path, controllers, transitions=None, model=None, sig=SIG):
@@ -43,7 +51,7 @@ def test_export_import_round_trip_models_only_on_request(tmp_path, capsys):
     assert exported["signatures"][SIG]["transitions"] == [{"from": [], "to": [1, 4], "count": 6}]
 
     dst = tmp_path / "v2.sqlite"
-    assert main(["db", "import", str(dst), str(out)]) == 0
+    assert main(["db", "import", str(dst), str(out), *CFG]) == 0
     got = _contents(dst).signatures[SIG]
     assert {(c.active_set, c.importance, c.uses) for c in got.controllers} == {
         ((1, 4), 5.0, 9),
@@ -53,7 +61,7 @@ def test_export_import_round_trip_models_only_on_request(tmp_path, capsys):
     assert [(t.from_set, t.to_set, t.count) for t in got.transitions] == [((), (1, 4), 6)]
     assert dict(got.models) == {}  # a model is one airframe's: only with --models
 
-    assert main(["db", "import", str(dst), str(out), "--models"]) == 0
+    assert main(["db", "import", str(dst), str(out), "--models", *CFG]) == 0
     assert dict(_contents(dst).signatures[SIG].models) == {"estimator.lwpr": b"\x00lwpr\xff"}
     assert "0 new controllers" in capsys.readouterr().out  # second import added nothing
 
@@ -68,7 +76,7 @@ def test_merge_is_a_union_and_idempotent(tmp_path):
     v3 = _library(tmp_path / "v3.sqlite", [StoredController((9,), 1.0, 1)], sig=OTHER)
     fleet = tmp_path / "fleet.sqlite"
     for _ in range(2):  # merging the same files again changes nothing
-        assert main(["db", "merge", str(fleet), str(v1), str(v2), str(v3)]) == 0
+        assert main(["db", "merge", str(fleet), str(v1), str(v2), str(v3), *CFG]) == 0
         snap = _contents(fleet)
         got = {c.active_set: (c.importance, c.uses) for c in snap.signatures[SIG].controllers}
         assert got == {(1,): (7.0, 2), (2, 5): (1.0, 1)}
@@ -142,7 +150,7 @@ def test_bad_export_is_rejected_naming_the_field_and_changes_nothing(
     before = _contents(lib)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(edit(_valid_export())))
-    assert main(["db", "import", str(lib), str(bad)]) == 2
+    assert main(["db", "import", str(lib), str(bad), *CFG]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err
     assert named in err
@@ -154,7 +162,7 @@ def test_export_that_is_not_json_is_rejected(tmp_path, capsys, text):
     lib = _library(tmp_path / "lib.sqlite", [StoredController((3,), 1.0, 1)])
     bad = tmp_path / "bad.json"
     bad.write_text(text)
-    assert main(["db", "import", str(lib), str(bad)]) == 2
+    assert main(["db", "import", str(lib), str(bad), *CFG]) == 2
     assert "not a JSON library export" in capsys.readouterr().err
     assert [c.active_set for c in _contents(lib).signatures[SIG].controllers] == [(3,)]
 
@@ -164,11 +172,11 @@ def test_corrupt_files_are_reported_and_never_moved(tmp_path, capsys):
     before = _contents(good)
     garbage = tmp_path / "garbage.sqlite"
     garbage.write_bytes(b"this is not a database" * 200)
-    assert main(["db", "merge", str(good), str(garbage)]) == 2
+    assert main(["db", "merge", str(good), str(garbage), *CFG]) == 2
     assert "garbage.sqlite: not a usable library" in capsys.readouterr().err
     assert main(["db", "info", str(garbage)]) == 2
     assert main(["db", "export", str(garbage), str(tmp_path / "x.json")]) == 2
-    assert main(["db", "merge", str(garbage), str(good)]) == 2  # a corrupt destination too
+    assert main(["db", "merge", str(garbage), str(good), *CFG]) == 2  # a corrupt destination
     assert garbage.read_bytes() == b"this is not a database" * 200
     assert not list(tmp_path.glob("*.corrupt-*"))
     assert not (tmp_path / "x.json").exists()
@@ -181,39 +189,108 @@ def test_usage_errors(tmp_path, capsys):
     assert "usage: epc-offboard db export" in capsys.readouterr().err
     assert main(["db", "merge", str(lib)]) == 2
     assert main(["db", "info", str(lib), "--models"]) == 2
-    assert main(["db", "import", str(lib), str(tmp_path / "missing.json")]) == 2
+    assert main(["db", "import", str(lib), str(tmp_path / "missing.json"), *CFG]) == 2
     assert "no such export file" in capsys.readouterr().err
 
 
-def test_config_keeps_only_its_problems_and_valid_controllers(tmp_path, capsys):
-    from epc_offboard.cascade import Cascade
-    from epc_offboard.config import load_service_config
-
-    cfg = load_service_config(SITL_CONFIG)
-    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
-    problem = cascade.pos_problem
-    sig = problem.signature()
+def _mixed_source(tmp_path, action):
+    """A library (merge) or export (import) of 2 valid controllers, 2 invalid ones and a
+    signature that is not the SITL service's; returns (path, the invalid active sets)."""
+    # a row out of range; more rows than the problem has inputs
+    bad = [(POS_PROBLEM.n_con + 5,), tuple(range(POS_PROBLEM.n_u + 1))]
     src = _library(
         tmp_path / "v1.sqlite",
-        [
-            StoredController((), 3.0, 1),  # unconstrained: valid for any problem
-            StoredController((problem.n_con + 5,), 2.0, 1),  # row out of range
-            StoredController(tuple(range(problem.n_u + 1)), 1.0, 1),  # more rows than inputs
-        ],
-        {((), (problem.n_con + 5,)): 2},
-        sig=sig,
+        [StoredController((), 3.0, 1), StoredController((1,), 2.0, 1)]
+        + [StoredController(a, 1.0, 1) for a in bad],
+        {((), (1,)): 4, ((), bad[0]): 2},
     )
     _library(src, [StoredController((), 1.0, 1)], sig="f" * 32)  # another vehicle's problem
-    dst = tmp_path / "v2.sqlite"
-    assert main(["db", "merge", str(dst), str(src), "--config", SITL_CONFIG]) == 0
+    if action == "merge":
+        return src, bad
+    out = tmp_path / "v1.json"
+    assert main(["db", "export", str(src), str(out)]) == 0
+    return out, bad
+
+
+@pytest.mark.parametrize("action", ["import", "merge"])
+def test_one_invalid_controller_fails_the_command_and_writes_nothing(tmp_path, capsys, action):
+    src, bad = _mixed_source(tmp_path, action)
+    dst = _library(tmp_path / "v2.sqlite", [StoredController((7,), 1.0, 1)])
+    before = _contents(dst)
+    capsys.readouterr()
+    assert main(["db", action, str(dst), str(src), *CFG]) == 2
     err = capsys.readouterr().err
+    for active_set in bad:  # each named with its file and signature
+        assert f"{src}: invalid: signature {SIG}: controller {list(active_set)}" in err
     assert "out of range" in err
-    assert "exceed" in err
-    assert f"signature {'f' * 32}: not a problem of" in err
+    assert "2 invalid controller(s)" in err
+    assert "nothing written" in err
+    assert "--skip-invalid" in err
+    assert _contents(dst) == before
+
+
+@pytest.mark.parametrize("action", ["import", "merge"])
+def test_skip_invalid_writes_the_rest_and_reports_what_it_left_out(tmp_path, capsys, action):
+    src, bad = _mixed_source(tmp_path, action)
+    dst = tmp_path / "v2.sqlite"
+    capsys.readouterr()
+    assert main(["db", action, str(dst), str(src), *CFG, "--skip-invalid"]) == 0
+    captured = capsys.readouterr()
+    for active_set in bad:
+        assert f"{src}: left out: signature {SIG}: controller {list(active_set)}" in captured.err
+    assert f"{src}: not taken: signature {'f' * 32}: not a problem of" in captured.err
+    assert "2 invalid controller(s) left out" in captured.out
     snap = _contents(dst)
-    assert list(snap.signatures) == [sig]
-    assert [c.active_set for c in snap.signatures[sig].controllers] == [()]
-    assert snap.signatures[sig].transitions == ()  # it pointed at a dropped controller
+    assert list(snap.signatures) == [SIG]
+    assert {c.active_set for c in snap.signatures[SIG].controllers} == {(), (1,)}
+    # the transition to a left-out controller goes with it
+    assert [(t.from_set, t.to_set) for t in snap.signatures[SIG].transitions] == [((), (1,))]
+
+
+@pytest.mark.parametrize("action", ["import", "merge"])
+def test_without_config_nothing_is_written_and_the_message_names_config(
+    tmp_path, capsys, action
+):
+    # an out-of-range row cannot be seen without the problem: refused, not written
+    src, _ = _mixed_source(tmp_path, action)
+    dst = tmp_path / "v2.sqlite"
+    capsys.readouterr()
+    assert main(["db", action, str(dst), str(src)]) == 2
+    assert f"db {action} needs --config SERVICE.toml" in capsys.readouterr().err
+    assert not dst.exists()
+
+
+@pytest.mark.parametrize("action", ["info", "export"])
+def test_reading_a_library_leaves_nothing_beside_it(tmp_path, action):
+    lib = _library(tmp_path / "lib.sqlite", [StoredController((1,), 1.0, 1)])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lib.sqlite"]
+    mtime_ns = lib.stat().st_mtime_ns
+    args = [str(tmp_path / "out.json")] if action == "export" else []
+    assert main(["db", action, str(lib), *args]) == 0
+    assert not list(tmp_path.glob("lib.sqlite-*"))  # no -wal, no -shm
+    assert lib.stat().st_mtime_ns == mtime_ns
+
+
+def test_a_library_open_by_a_writer_is_read_through_its_wal(tmp_path, capsys):
+    # a running service holds the file open; what it committed is still only in its WAL
+    lib = _library(tmp_path / "lib.sqlite", [StoredController((1,), 1.0, 1)])
+    writer = LibraryStore.open(lib)
+    try:
+        writer.save_controllers(SIG, [StoredController((2,), 1.0, 1)])
+        assert (tmp_path / "lib.sqlite-wal").exists()
+        assert main(["db", "info", str(lib)]) == 0
+        assert f"{SIG}: 2 controllers" in capsys.readouterr().out
+    finally:
+        writer.close()
+
+
+def test_sitl_config_keeps_its_library_apart_from_the_demos():
+    demo_out = Path(build_parser().parse_args(["sim"]).out)
+    path = Path(load_service_config(SITL_CONFIG).store.path)
+    # sim writes DIR/library-K.sqlite and DIR/vehicleK/: the service of config/sitl.toml
+    # must not load (and then overwrite) a demo vehicle's library
+    assert path.parent != demo_out
+    assert not path.is_relative_to(demo_out / "vehicle1")
 
 
 def test_info_lists_signatures_and_origins(tmp_path, capsys):
