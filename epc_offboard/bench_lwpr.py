@@ -216,26 +216,32 @@ def cross(X: FloatArray) -> FloatArray:
     return out
 
 
-def bench_cross(epochs: int = 20, seed: int = 0) -> dict[str, Any]:
-    """nMSE on the 41 x 41 grid after each epoch (the reference library's demo settings)."""
+def bench_cross(
+    epochs: int = 20, seed: int = 0, learner: type[LWPR] = LWPR
+) -> dict[str, Any]:
+    """nMSE on the 41 x 41 grid after each epoch (the reference library's demo settings),
+    and the median cost of one update (one 2-D sample)."""
     rng = np.random.default_rng(seed)
     axis = np.linspace(-1.0, 1.0, 41)
     grid = np.stack(np.meshgrid(axis, axis), -1).reshape(-1, 2)
     truth = cross(grid)
-    model = LWPR(2, 1, init_d=50.0, init_alpha=250.0)
-    nmse = []
+    model = learner(2, 1, init_d=50.0, init_alpha=250.0)
+    nmse, update_s = [], []
     t0 = time.perf_counter()
     for _ in range(epochs):
         X = rng.uniform(-1.0, 1.0, (500, 2))
         Y = cross(X) + 0.1 * rng.standard_normal(500)
         for x, y in zip(X, Y, strict=True):
+            t_update = time.perf_counter()
             model.update(x, [y])
-        pred = np.array([model.predict(g)[0] for g in grid])
+            update_s.append(time.perf_counter() - t_update)
+        pred = model.predict_many(grid)[:, 0]
         nmse.append(float(np.mean((pred - truth) ** 2) / np.var(truth)))
     return {
         "epochs": epochs,
         "nmse_per_epoch": nmse,
         "fields": model.num_rfs[0],
+        "update_us": _stats_us(update_s),
         "seconds": time.perf_counter() - t0,
     }
 
@@ -253,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     warm_up()  # compile (or load) the kernels before anything is timed
     tick = bench_tick(args.train, args.ticks)
     cross_result = bench_cross()
-    report = {"drag_tick": tick, "cross": cross_result}
+    cross_old = bench_cross(learner=LwprReference)
+    report = {"drag_tick": tick, "cross": cross_result, "cross_old": cross_old}
     labels = {
         "update_predict": "update + predict, 3 outputs",
         "horizon": f"predict_many along {HORIZON} steps, 3 outputs",
@@ -280,6 +287,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  drag nMSE {tick['drag_nmse_second_half_of_training']:.4f}")
     print(f"cross: {cross_result['fields']} fields; nMSE per epoch:")
     print("  " + " ".join(f"{e:.4f}" for e in cross_result["nmse_per_epoch"]))
+    old_us, new_us = cross_old["update_us"], cross_result["update_us"]
+    nmse_gap = np.subtract(cross_old["nmse_per_epoch"], cross_result["nmse_per_epoch"])
+    print(
+        f"  update, one 2-D sample: {old_us['median']:.1f} / {old_us['p99']:.1f} -> "
+        f"{new_us['median']:.1f} / {new_us['p99']:.1f} us, "
+        f"{old_us['median'] / new_us['median']:.1f}x; largest nMSE difference to the numpy "
+        f"reference {np.max(np.abs(nmse_gap)):.1e}"
+    )
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0

@@ -144,7 +144,8 @@ def check_vector(value: ArrayLike, n: int, name: str) -> FloatArray:
         raise LwprError(f"{name} must be a numeric array of shape ({n},): {exc}") from exc
     if arr.shape != (n,):
         raise LwprError(f"{name} must have shape ({n},), got {arr.shape}")
-    if not np.isfinite(arr).all():
+    # (for the few values of a sample, 1/6 of the cost of numpy's isfinite + all)
+    if not all(map(math.isfinite, arr.tolist())):
         raise LwprError(f"{name} must be finite, got {arr}")
     return arr
 
