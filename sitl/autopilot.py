@@ -154,7 +154,17 @@ def attitude_from_thrust(thrust_dir_ned: FloatArray, yaw_rad: float) -> FloatArr
 
 
 class Autopilot:
-    """Mode state machine plus the cascaded controllers. Times are vehicle seconds."""
+    """Mode state machine plus the cascaded controllers. Times are vehicle seconds.
+
+    This is the PX4 personality; ``sitl.ardupilot.ArduCopter`` is ArduCopter's. What the
+    MAVLink endpoint asks of a personality: the ``custom_mode`` and ``mav_autopilot`` of its
+    heartbeat, whether it streams by default, its parameters, and the ``*_command`` methods
+    that read a command's parameters as that autopilot does.
+    """
+
+    mav_autopilot = 12  # MAV_AUTOPILOT_PX4
+    streams_by_default = True  # PX4 streams its onboard link's messages unasked
+    sends_odometry = True
 
     def __init__(self, vehicle: VehicleParams, params: AutopilotParams) -> None:
         self.vehicle = vehicle
@@ -190,6 +200,41 @@ class Autopilot:
         self._last_thrust_norm = vehicle.hover_thrust_norm
         self._target: tuple[FloatArray, float, FloatArray] | None = None  # rate, thrust, q
         self._idle_speed_rad_s = 0.0
+
+    # ---- what the endpoint asks ---------------------------------------------------------------
+
+    @property
+    def custom_mode(self) -> int:
+        return self.mode.custom_mode
+
+    def set_mode_command(self, custom_mode: int, sub_mode: int, t_s: float) -> Result:
+        """MAV_CMD_DO_SET_MODE(custom mode enabled, param2, param3): PX4's main and sub mode."""
+        return self.set_mode(Mode(custom_mode, sub_mode), t_s)
+
+    def set_mode_message(self, custom_mode: int, t_s: float) -> Result:
+        """SET_MODE's custom_mode: main << 16 | sub << 24."""
+        return self.set_mode(Mode((custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF), t_s)
+
+    def takeoff_command(self, param7: float, home_amsl_m: float, t_s: float) -> Result:
+        """MAV_CMD_NAV_TAKEOFF: param7 (COMMAND_INT z) is the target altitude AMSL; NaN is
+        PX4's default altitude (MIS_TAKEOFF_ALT above the current one)."""
+        return self.takeoff(param7 - home_amsl_m if math.isfinite(param7) else None, t_s)
+
+    def parameters(self) -> list[tuple[str, float]]:
+        """A read-only view of the config under PX4's parameter names, for ground stations."""
+        ap = self.params
+        return [
+            ("COM_DISARM_LAND", ap.disarm_after_land_s),
+            ("COM_DISARM_PRFLT", ap.disarm_preflight_s),
+            ("COM_OF_LOSS_T", ap.offboard_loss_timeout_s),
+            ("MIS_TAKEOFF_ALT", ap.takeoff_altitude_m),
+            ("MPC_LAND_SPEED", ap.land_speed_m_s),
+            ("MPC_TKO_SPEED", ap.climb_speed_m_s),
+        ]
+
+    def set_parameter(self, name: str, value: float) -> bool:
+        """PARAM_SET: False (unchanged) here; PX4's view is read-only."""
+        return False
 
     # ---- commands -------------------------------------------------------------------------
 

@@ -28,7 +28,6 @@ from sitl.autopilot import (
     IGNORE_THRUST,
     IGNORE_YAW_RATE,
     AttitudeSetpoint,
-    Mode,
     PositionSetpoint,
     Result,
 )
@@ -143,7 +142,16 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         self._default_interval_us = {
             STREAMS[name]: _interval_us(getattr(rates, name)) for name in STREAMS
         }
+        ap = sim.autopilot
+        if not ap.sends_odometry:  # (ArduPilot: SET_MESSAGE_INTERVAL for it is denied)
+            del self._default_interval_us[mavlink.MAVLINK_MSG_ID_ODOMETRY]
+        if not ap.streams_by_default:  # ArduPilot: nothing but HEARTBEAT until asked
+            for msg_id in self._default_interval_us:
+                if msg_id != mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+                    self._default_interval_us[msg_id] = 0
         self._interval_us = dict(self._default_interval_us)
+        # byte-stream peers (a ground station on TCP): each gets all telemetry and replies
+        self.stream_peers: dict[Address, Callable[[bytes], None]] = {}
         self._next_due_us = dict.fromkeys(self._interval_us, 0)
         self._estimate: StateEstimate | None = None
         self._builders: dict[int, Callable[[], Any]] = {
@@ -203,6 +211,15 @@ class SitlEndpoint(asyncio.DatagramProtocol):
                 # never dies on what a peer sends.
                 self.counters.handler_errors += 1
 
+    def stream_received(self, msgs: list[Any], addr: Address) -> None:
+        """Messages a byte-stream peer (TCP) sent, already parsed: handled as a datagram's."""
+        self.counters.received += 1
+        for msg in msgs:
+            try:
+                self._dispatch(msg, addr)
+            except Exception:
+                self.counters.handler_errors += 1
+
     def _reset_parser(self) -> None:
         self.mav.buf = bytearray()
         self.mav.buf_index = 0
@@ -220,7 +237,9 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             return
         for dest in self.dests:
             self.transport.sendto(data, dest)
-        if extra is not None and extra not in self.dests:
+        for write in list(self.stream_peers.values()):
+            write(data)
+        if extra is not None and extra not in self.dests and extra not in self.stream_peers:
             self.transport.sendto(data, extra)
 
     def send(self, msg: Any, extra: Address | None = None) -> None:
@@ -338,11 +357,11 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         if command == mavlink.MAV_CMD_DO_SET_MODE:
             if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or not _finite(p[1], p[2]):
                 return Result.UNSUPPORTED, None
-            return ap.set_mode(Mode(int(p[1]), int(p[2])), t), None
+            return ap.set_mode_command(int(p[1]), int(p[2]), t), None
         if command == mavlink.MAV_CMD_NAV_TAKEOFF:
-            # param7 / COMMAND_INT z: the target altitude AMSL; NaN: PX4's default altitude
-            home_amsl = self.sim.config.sitl.home_amsl_m
-            return ap.takeoff(p[6] - home_amsl if math.isfinite(p[6]) else None, t), None
+            # param7 / COMMAND_INT z, as the personality reads it (PX4: AMSL, NaN = default;
+            # ArduPilot: above home, NaN denied)
+            return ap.takeoff_command(p[6], self.sim.config.sitl.home_amsl_m, t), None
         if command == mavlink.MAV_CMD_NAV_LAND:
             return ap.land(t), None
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -371,9 +390,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
     def _on_set_mode(self, msg: Any, addr: Address) -> None:
         self.counters.commands += 1
         if msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            main = (msg.custom_mode >> 16) & 0xFF
-            sub = (msg.custom_mode >> 24) & 0xFF
-            self.sim.autopilot.set_mode(Mode(main, sub), self.sim.time_s)
+            self.sim.autopilot.set_mode_message(msg.custom_mode, self.sim.time_s)
 
     def _on_set_attitude_target(self, msg: Any, addr: Address) -> None:
         self.counters.setpoints += 1
@@ -436,21 +453,12 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         if msg.tc1 == 0:
             self.send(self.mav.timesync_encode(self.sim.time_us * 1000, msg.ts1), extra=addr)
 
-    def _parameters(self) -> list[tuple[str, float]]:
-        """A read-only view of the config under PX4's parameter names, for ground stations."""
-        ap = self.sim.config.autopilot
-        return [
-            ("COM_DISARM_LAND", ap.disarm_after_land_s),
-            ("COM_DISARM_PRFLT", ap.disarm_preflight_s),
-            ("COM_OF_LOSS_T", ap.offboard_loss_timeout_s),
-            ("MIS_TAKEOFF_ALT", ap.takeoff_altitude_m),
-            ("MPC_LAND_SPEED", ap.land_speed_m_s),
-            ("MPC_TKO_SPEED", ap.climb_speed_m_s),
-        ]
-
     def _on_param_request(self, msg: Any, addr: Address) -> None:
-        """PARAM_REQUEST_LIST sends all; READ and SET answer one (SET changes nothing)."""
-        params = self._parameters()
+        """PARAM_REQUEST_LIST sends all; READ and SET answer one (SET changes what the
+        personality lets change: ArduPilot's parameters; PX4's view is read-only)."""
+        if msg.get_type() == "PARAM_SET" and math.isfinite(msg.param_value):
+            self.sim.autopilot.set_parameter(msg.param_id, float(msg.param_value))
+        params = self.sim.autopilot.parameters()
         wanted = range(len(params))
         if msg.get_type() != "PARAM_REQUEST_LIST":
             index = getattr(msg, "param_index", -1)
@@ -490,7 +498,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         state = mavlink.MAV_STATE_ACTIVE if ap.armed else mavlink.MAV_STATE_STANDBY
         return self.mav.heartbeat_encode(
-            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, ap.mode.custom_mode, state
+            mavlink.MAV_TYPE_QUADROTOR, ap.mav_autopilot, base, ap.custom_mode, state
         )
 
     def _sys_status(self) -> Any:

@@ -20,6 +20,7 @@ from sitl.groundtruth import GroundTruthWriter
 from sitl.lockstep import Clock, LockstepGate
 from sitl.params import AUTOPILOTS, DEFAULT_VEHICLE_FILE, load_sim_config
 from sitl.simulation import Simulation
+from sitl.tcp import GcsTcpServer
 
 HOST = "127.0.0.1"
 
@@ -39,7 +40,8 @@ def _wind(text: str) -> tuple[float, float]:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="epc-sitl",
-        description="Simulated quadrotor speaking MAVLink 2 over UDP like a PX4 SITL instance.",
+        description="Simulated quadrotor speaking MAVLink 2 like a PX4 (default) or an "
+        "ArduCopter SITL instance.",
     )
     arg = ap.add_argument
     arg("--instance", type=int, default=0, metavar="I", help="system id I+1, ports +I")
@@ -57,7 +59,21 @@ def build_parser() -> argparse.ArgumentParser:
     arg("--speedup", type=float, default=1.0, metavar="X", help="pace = wall clock x this")
     arg("--listen-port", type=int, metavar="P", help="default 14580+I; 0 = any free port")
     arg("--offboard-port", type=int, metavar="P", help="telemetry to 127.0.0.1:P, 14540+I")
-    arg("--gcs-port", type=int, default=14550, metavar="P", help="ground station, 0 = off")
+    arg(
+        "--gcs-port",
+        type=int,
+        metavar="P",
+        help="ground station, 0 = off: px4 sends to udp 14550; ardupilot listens on tcp "
+        "5760+10*I, as ArduPilot SITL",
+    )
+    arg(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="set an autopilot parameter at start (ardupilot: GUID_OPTIONS, GUID_TIMEOUT, "
+        "ATC_INPUT_TC), as ArduPilot SITL's --defaults; repeatable",
+    )
     arg("--lockstep-period-ms", type=float, metavar="MS", help="sitl.lockstep_period_s")
     arg("--lockstep-timeout-ms", type=float, metavar="MS", help="sitl.lockstep_timeout_s")
     arg("--duration", type=float, metavar="S", help="exit after S seconds of vehicle time")
@@ -81,10 +97,38 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def link_addresses(args: argparse.Namespace) -> tuple[int, list[tuple[str, int]]]:
-    """PX4 SITL port plan: listen on 14580+I, telemetry to 14540+I and the GCS port (0 = off)."""
+    """PX4 SITL port plan: listen on 14580+I, telemetry to 14540+I and the GCS port (0 = off).
+    The ardupilot personality keeps the UDP offboard link (as ``--serial1 udpclient:...``
+    gives ArduPilot SITL one) and serves its ground station on TCP (:func:`gcs_tcp_port`)."""
     listen_port = 14580 + args.instance if args.listen_port is None else args.listen_port
     offboard_port = 14540 + args.instance if args.offboard_port is None else args.offboard_port
-    return listen_port, [(HOST, p) for p in (offboard_port, args.gcs_port) if p]
+    gcs_udp = 0 if _personality(args) == "ardupilot" else args.gcs_port
+    gcs_udp = 14550 if gcs_udp is None else gcs_udp
+    return listen_port, [(HOST, p) for p in (offboard_port, gcs_udp) if p]
+
+
+def gcs_tcp_port(args: argparse.Namespace) -> int:
+    """ArduPilot SITL's ground-station port: TCP 5760 + 10 * instance (0: none)."""
+    if _personality(args) != "ardupilot":
+        return 0
+    return 5760 + 10 * int(args.instance) if args.gcs_port is None else int(args.gcs_port)
+
+
+def _personality(args: argparse.Namespace) -> str:
+    return str(getattr(args, "personality", None) or args.autopilot or "px4")
+
+
+def _params(text: list[str]) -> list[tuple[str, float]]:
+    out = []
+    for item in text:
+        name, sep, value = item.partition("=")
+        try:
+            out.append((name.strip().upper(), float(value)))
+        except ValueError:
+            sep = ""
+        if not sep or not name.strip():
+            raise UsageError(f"--param wants NAME=VALUE, got {item!r}")
+    return out
 
 
 def _signing_key(path: Path | None) -> bytes | None:
@@ -103,11 +147,18 @@ async def run(args: argparse.Namespace) -> Counters:
     if args.instance < 0 or args.speedup <= 0.0:
         raise UsageError("--instance must be >= 0 and --speedup > 0")
     config = load_sim_config(args.config, _overrides(args))
+    args.personality = config.sitl.autopilot
     key = _signing_key(args.signing_key)
     sysid = args.instance + 1
     listen_port, dests = link_addresses(args)
 
     sim = Simulation(config, seed=args.seed)
+    for name, value in _params(args.param):
+        if not sim.autopilot.set_parameter(name, value):
+            raise UsageError(
+                f"--param {name}={value:g}: not a parameter the {config.sitl.autopilot} "
+                "personality lets you set"
+            )
     counters = Counters()
     gate = LockstepGate(
         args.lockstep, config.sitl.lockstep_timeout_s, config.sitl.lockstep_max_timeouts
@@ -126,6 +177,12 @@ async def run(args: argparse.Namespace) -> Counters:
             local_addr=(HOST, listen_port),
         )
         resources.callback(transport.close)
+        tcp_port = gcs_tcp_port(args)
+        gcs_tcp = None
+        if tcp_port:
+            gcs_tcp = GcsTcpServer(endpoint, key)
+            tcp_port = await gcs_tcp.start(HOST, tcp_port)
+            resources.callback(gcs_tcp.close)
 
         def tick() -> None:
             sim.advance_tick()
@@ -136,7 +193,9 @@ async def run(args: argparse.Namespace) -> Counters:
         port = transport.get_extra_info("sockname")[1]
         print(
             f"epc-sitl: instance {args.instance}, sysid {sysid}, listening udp {HOST}:{port}, "
-            f"telemetry -> {', '.join(f'{h}:{p}' for h, p in dests) or 'none'}",
+            f"telemetry -> {', '.join(f'{h}:{p}' for h, p in dests) or 'none'}"
+            + (f", ground station tcp {HOST}:{tcp_port}" if gcs_tcp is not None else "")
+            + f", autopilot {config.sitl.autopilot}",
             flush=True,
         )
         clock = Clock(

@@ -1,9 +1,10 @@
 """Configuration of the bundled SITL: vehicle, environment, autopilot and link.
 
-One TOML file (``config/vehicles/*.toml``) holds four tables, ``[vehicle]``, ``[environment]``,
-``[autopilot]`` and ``[sitl]``; it is loaded strictly by :func:`epc_offboard.configio.load_config`
-so an unknown or misspelt key is an error naming the key and the file. Every key carries its
-unit. Range checks live in ``__post_init__``.
+One TOML file (``config/vehicles/*.toml``) holds the tables ``[vehicle]``, ``[environment]``,
+``[autopilot]``, ``[sitl]`` and ``[ardupilot]`` (the ArduCopter personality's parameters);
+it is loaded strictly by :func:`epc_offboard.configio.load_config` so an unknown or misspelt
+key is an error naming the key and the file. Every key carries its unit. Range checks live
+in ``__post_init__``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Any
 from epc_offboard.configio import load_config
 from epc_offboard.frames import GRAVITY_M_S2
 
-AUTOPILOTS = frozenset({"px4"})  # SITL personalities
+AUTOPILOTS = frozenset({"px4", "ardupilot"})  # SITL personalities
 
 # The packaged default vehicle: config/ sits beside sitl/ in the distribution's source tree.
 DEFAULT_VEHICLE_FILE = (
@@ -166,6 +167,31 @@ class AutopilotParams:
 
 
 @dataclass(frozen=True)
+class ArduPilotParams:
+    """The ArduCopter personality's parameters, under their ArduPilot names (PARAM_SET /
+    PARAM_REQUEST_READ reach them by those names; ``--param NAME=VALUE`` sets them at start,
+    as ArduPilot SITL's ``--defaults`` file does). Defaults are ArduCopter's."""
+
+    guid_options: int = 0  # GUID_OPTIONS; bit 3 (8): SET_ATTITUDE_TARGET thrust is throttle
+    guid_timeout_s: float = 3.0  # GUID_TIMEOUT: setpoints lost this long -> hold position
+    input_tc_s: float = 0.15  # ATC_INPUT_TC: time constant of the attitude input shaping
+    pilot_speed_up_m_s: float = 2.5  # PILOT_SPEED_UP: climb rate at thrust 1 (climb-rate mode)
+    pilot_speed_dn_m_s: float = 1.5  # PILOT_SPEED_DN: descent rate at thrust 0
+    disarm_delay_s: float = 10.0  # DISARM_DELAY: armed on the ground, not flying
+
+    def __post_init__(self) -> None:
+        _positive(
+            guid_timeout_s=self.guid_timeout_s,
+            input_tc_s=self.input_tc_s,
+            pilot_speed_up_m_s=self.pilot_speed_up_m_s,
+            pilot_speed_dn_m_s=self.pilot_speed_dn_m_s,
+            disarm_delay_s=self.disarm_delay_s,
+        )
+        if not 0 <= self.guid_options < 2**16:
+            raise ValueError(f"guid_options must be in 0..65535, got {self.guid_options}")
+
+
+@dataclass(frozen=True)
 class NoiseParams:
     """Standard deviations of the seeded Gaussian noise on the published state estimate."""
 
@@ -260,6 +286,7 @@ class SimConfig:
     environment: EnvironmentParams = field(default_factory=EnvironmentParams)
     autopilot: AutopilotParams = field(default_factory=AutopilotParams)
     sitl: SitlParams = field(default_factory=SitlParams)
+    ardupilot: ArduPilotParams = field(default_factory=ArduPilotParams)
 
 
 def load_sim_config(

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from epc_offboard.frames import FloatArray, euler_to_quat, quat_multiply, quat_normalize
+from sitl.ardupilot import ArduCopter
 from sitl.autopilot import ActuatorCommand, Autopilot
 from sitl.params import SimConfig
 from sitl.physics import POS, QUAT, RATE, VEL, Environment, QuadrotorModel, initial_state
@@ -35,7 +36,11 @@ class Simulation:
         env_rng, self._noise_rng = np.random.default_rng(seed).spawn(2)
         self.model = QuadrotorModel(config.vehicle)
         self.environment = Environment(config.environment, env_rng)
-        self.autopilot = Autopilot(config.vehicle, config.autopilot)
+        self.autopilot: Autopilot = (
+            ArduCopter(config.vehicle, config.autopilot, config.ardupilot)
+            if config.sitl.autopilot == "ardupilot"
+            else Autopilot(config.vehicle, config.autopilot)
+        )
         self.state = initial_state()
         self.tick = 0
         self._dt_s = 1.0 / config.sitl.physics_rate_hz

@@ -1,0 +1,257 @@
+"""The ArduCopter personality: what ArduCopter does wherever it changes what a client does.
+
+Pure logic and numerics, like the PX4 personality it extends (``sitl.autopilot``): the same
+vehicle, cascade and rate loop, with ArduCopter's modes, commands, parameters and guided
+control (observed on ArduCopter 4.7 / 4.8-dev SITL, see ../shared/DESIGN.md):
+
+* HEARTBEAT autopilot 3, custom_mode a plain mode number (STABILIZE 0, GUIDED 4, LOITER 5,
+  RTL 6, LAND 9, BRAKE 17, GUIDED_NOGPS 20). DO_SET_MODE(1, 6, 0) — PX4's Offboard — is RTL
+  here, and counted (``rtl_count``): a client that sends it flies home, not offboard;
+* nothing but HEARTBEAT streams until SET_MESSAGE_INTERVAL; ODOMETRY is never sent;
+* arming only in GUIDED (this SITL refuses it in modes that cannot take off by command);
+  MAV_CMD_NAV_TAKEOFF only in GUIDED, armed and on the ground, with a finite altitude above
+  home in param7: a NaN is DENIED (the real SITL crashed on it);
+* SET_ATTITUDE_TARGET is obeyed only in GUIDED / GUIDED_NOGPS (and overrides a takeoff in
+  progress, as ArduCopter's guided angle control does); body rates all three or none;
+* thrust: a CLIMB RATE by default (0.5 holds altitude; PILOT_SPEED_UP / _DN at 1 / 0), or
+  with GUID_OPTIONS bit 3 throttle, divided by the current tilt's cosine (angle boost);
+* targets pass ArduCopter's input shaping: body rates through a first-order filter of time
+  constant ATC_INPUT_TC integrated into an attitude target, quaternions approached with the
+  same time constant — a slower response than PX4's rate loop;
+* GUID_TIMEOUT (3 s) without setpoints: guided control stops and the vehicle holds position,
+  still in GUIDED; new setpoints take control again;
+* LOITER and BRAKE hold, LAND lands, RTL (simplified) lands where it is.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from epc_offboard.frames import (
+    GRAVITY_M_S2,
+    FloatArray,
+    quat_multiply,
+    quat_normalize,
+    quat_to_rotation,
+)
+from sitl.autopilot import (
+    HOLD,
+    IGNORE_ATTITUDE,
+    IGNORE_PITCH_RATE,
+    IGNORE_ROLL_RATE,
+    IGNORE_YAW_RATE,
+    OFFBOARD,
+    AttitudeSetpoint,
+    Autopilot,
+    LandedState,
+    Result,
+)
+from sitl.params import ArduPilotParams, AutopilotParams, VehicleParams
+from sitl.physics import QUAT, VEL, on_ground
+
+STABILIZE = 0
+GUIDED = 4
+LOITER = 5
+RTL = 6
+LAND = 9
+BRAKE = 17
+GUIDED_NOGPS = 20
+GUIDED_MODES = frozenset({GUIDED, GUIDED_NOGPS})
+_RATES = IGNORE_ROLL_RATE | IGNORE_PITCH_RATE | IGNORE_YAW_RATE
+GUID_OPTIONS_THRUST_AS_THROTTLE = 8
+
+
+class ArduCopter(Autopilot):
+    """ArduCopter's behaviour over the PX4-like cascade (internal modes: OFFBOARD = guided
+    attitude control, HOLD = holding position, TAKEOFF, LAND)."""
+
+    mav_autopilot = 3  # MAV_AUTOPILOT_ARDUPILOTMEGA
+    streams_by_default = False
+    sends_odometry = False
+
+    def __init__(
+        self, vehicle: VehicleParams, params: AutopilotParams, ardupilot: ArduPilotParams
+    ) -> None:
+        super().__init__(
+            vehicle,
+            replace(
+                params,
+                offboard_loss_timeout_s=ardupilot.guid_timeout_s,
+                disarm_preflight_s=ardupilot.disarm_delay_s,
+                arm_refusals_after_boot=0,
+            ),
+        )
+        self.ardupilot = ardupilot
+        self.number = STABILIZE  # the mode number the heartbeat shows
+        self.rtl_count = 0  # RTLs entered: a client that meant something else
+        self.ignored_setpoints = 0  # outside GUIDED, or rates neither all nor none
+        self._hover_throttle = vehicle.hover_thrust_norm  # MOT_THST_HOVER
+        self._outer_dt_s = 0.005
+        self._att_target: FloatArray | None = None  # the shaped attitude target
+        self._shaped_rate = np.zeros(3)
+        self._climb_integral = 0.0  # m: the climb-rate loop's integral (GUID_OPTIONS 0)
+
+    # ---- what the endpoint asks ---------------------------------------------------------------
+
+    @property
+    def custom_mode(self) -> int:
+        return self.number
+
+    def set_mode_command(self, custom_mode: int, sub_mode: int, t_s: float) -> Result:
+        return self.set_number(custom_mode, t_s)
+
+    def set_mode_message(self, custom_mode: int, t_s: float) -> Result:
+        return self.set_number(custom_mode, t_s)
+
+    def takeoff_command(self, param7: float, home_amsl_m: float, t_s: float) -> Result:
+        """param7 is the altitude ABOVE HOME; NaN or no climb is denied, as is a takeoff
+        outside GUIDED, disarmed, or in the air."""
+        if not math.isfinite(param7) or param7 <= 0.0:
+            return self._refuse("Takeoff: altitude must be a finite height above home")
+        if self.number not in GUIDED_MODES or not self.armed:
+            return self._refuse("Takeoff: needs GUIDED and armed")
+        if self.landed_state != LandedState.ON_GROUND:
+            return self._refuse("Takeoff: already flying")
+        return self.takeoff(param7, t_s)
+
+    def parameters(self) -> list[tuple[str, float]]:
+        ap = self.ardupilot
+        return [
+            ("ATC_INPUT_TC", ap.input_tc_s),
+            ("DISARM_DELAY", ap.disarm_delay_s),
+            ("GUID_OPTIONS", float(ap.guid_options)),
+            ("GUID_TIMEOUT", ap.guid_timeout_s),
+            ("MOT_THST_HOVER", self._hover_throttle),
+            ("PILOT_SPEED_DN", ap.pilot_speed_dn_m_s * 100.0),  # cm/s, as ArduPilot's
+            ("PILOT_SPEED_UP", ap.pilot_speed_up_m_s * 100.0),
+        ]
+
+    def set_parameter(self, name: str, value: float) -> bool:
+        """GUID_OPTIONS, GUID_TIMEOUT and ATC_INPUT_TC can be set in flight, as on ArduCopter."""
+        ap = self.ardupilot
+        try:
+            if name == "GUID_OPTIONS" and 0 <= value < 2**16:
+                self.ardupilot = replace(ap, guid_options=int(value))
+            elif name == "GUID_TIMEOUT":
+                self.ardupilot = replace(ap, guid_timeout_s=value)
+                self.params = replace(self.params, offboard_loss_timeout_s=value)
+            elif name == "ATC_INPUT_TC":
+                self.ardupilot = replace(ap, input_tc_s=value)
+            else:
+                return False
+        except ValueError:  # out of range: the parameter keeps its value
+            return False
+        return True
+
+    # ---- modes and commands -------------------------------------------------------------------
+
+    def set_number(self, number: int, t_s: float) -> Result:
+        """Select ArduCopter mode ``number``."""
+        airborne = self.landed_state != LandedState.ON_GROUND
+        if number in GUIDED_MODES:
+            if self.number not in GUIDED_MODES:
+                self._capture_hold()
+                self.mode = HOLD  # holds position until setpoints stream (or a takeoff)
+            self.intended_mode = OFFBOARD
+        elif number in (LOITER, BRAKE):
+            self._capture_hold()
+            self.mode = self.intended_mode = HOLD
+        elif number == LAND:
+            if self.armed:
+                self.land(t_s)
+            else:
+                self.mode = self.intended_mode = HOLD
+        elif number == RTL:
+            self.rtl_count += 1
+            if self.armed and airborne:
+                self.land(t_s)  # (simplified: home is where it took off, so: down)
+            else:
+                self.mode = self.intended_mode = HOLD
+        elif number == STABILIZE:
+            if self.armed and airborne:
+                return self._refuse("Mode change: no pilot for STABILIZE in this SITL")
+            self.mode = self.intended_mode = HOLD
+        else:
+            return Result.UNSUPPORTED
+        self.number = number
+        return Result.ACCEPTED
+
+    def arm(self, arm: bool, t_s: float, force: bool = False) -> Result:
+        if arm and not self.armed and self.number not in GUIDED_MODES:
+            return self._refuse("Arm: select GUIDED first (no takeoff from this mode)")
+        result = super().arm(arm, t_s, force)
+        if arm and result == Result.ACCEPTED and self.number in GUIDED_MODES:
+            self.mode, self.intended_mode = HOLD, OFFBOARD
+        return result
+
+    def on_attitude_setpoint(self, sp: AttitudeSetpoint, t_s: float) -> None:
+        rates_ignored = sp.type_mask & _RATES
+        if self.number not in GUIDED_MODES or rates_ignored not in (0, _RATES):
+            self.ignored_setpoints += 1
+            return
+        super().on_attitude_setpoint(sp, t_s)
+        self.intended_mode = OFFBOARD  # guided attitude control, even over a takeoff
+
+    # ---- the periodic update ------------------------------------------------------------------
+
+    def update_outer(self, x: FloatArray, t_s: float, dt_s: float) -> None:
+        self._outer_dt_s = dt_s
+        super().update_outer(x, t_s, dt_s)
+        if self.mode != OFFBOARD:
+            self._att_target = None  # shaping starts again from the attitude flown
+            self._shaped_rate[:] = 0.0
+            self._climb_integral = 0.0
+
+    def _supervise(self, x: FloatArray, t_s: float) -> None:
+        super()._supervise(x, t_s)
+        if self.number in GUIDED_MODES and self.intended_mode == HOLD:
+            # a finished takeoff holds in GUIDED: setpoints take control again
+            self.intended_mode = OFFBOARD
+
+    def _offboard_attitude(
+        self, x: FloatArray, sp: AttitudeSetpoint
+    ) -> tuple[FloatArray, FloatArray, float]:
+        """ArduCopter's input shaping, then its attitude controller; thrust as it reads it."""
+        q = x[QUAT]
+        alpha = min(1.0, self._outer_dt_s / self.ardupilot.input_tc_s)
+        target = q.copy() if self._att_target is None else self._att_target
+        if sp.type_mask & IGNORE_ATTITUDE:
+            # body rates: filtered, integrated into the attitude target it tracks
+            self._shaped_rate += alpha * (np.asarray(sp.rate_frd_rad_s) - self._shaped_rate)
+            half = 0.5 * self._outer_dt_s * self._shaped_rate
+            target = quat_normalize(quat_multiply(target, np.array([1.0, *half])))
+            rate = self._shaped_rate + self._attitude_control(q, target)
+        else:
+            q_sp = np.asarray(sp.q_wxyz)
+            if float(target @ q_sp) < 0.0:
+                q_sp = -q_sp
+            target = quat_normalize(target + alpha * (q_sp - target))
+            rate = self._attitude_control(q, target)
+        self._att_target = target
+        lim = np.asarray(self.params.rate_max_rad_s)
+        return target, np.clip(rate, -lim, lim), self._thrust(x, sp.thrust_norm)
+
+    def _thrust(self, x: FloatArray, thrust: float) -> float:
+        """SET_ATTITUDE_TARGET's thrust as the collective thrust this vehicle produces."""
+        cos_tilt = float(quat_to_rotation(x[QUAT])[2, 2])
+        if self.ardupilot.guid_options & GUID_OPTIONS_THRUST_AS_THROTTLE:
+            # throttle plus ArduCopter's angle boost (1 / cos of the tilt, floored at 0.1)
+            return min(1.0, thrust / min(max(cos_tilt, 0.1), 1.0))
+        # a climb rate: 0.5 holds altitude, 1 climbs at PILOT_SPEED_UP, 0 sinks at _DN
+        ap = self.ardupilot
+        speed = ap.pilot_speed_up_m_s if thrust >= 0.5 else ap.pilot_speed_dn_m_s
+        climb_m_s = (thrust - 0.5) * 2.0 * speed
+        if on_ground(x) and climb_m_s <= 0.0:
+            return 0.0
+        err_m_s = climb_m_s + float(x[VEL][2])  # (NED: up is -vz)
+        integral = self._climb_integral + err_m_s * self._outer_dt_s
+        self._climb_integral = min(max(integral, -2.0), 2.0)
+        acc_up = (
+            self.params.velocity_p_1_s[2] * err_m_s
+            + self.params.velocity_i_1_s2[2] * self._climb_integral
+        )
+        thrust_norm = self._hover_throttle * (1.0 + acc_up / GRAVITY_M_S2) / max(cos_tilt, 0.1)
+        return min(1.0, max(0.0, thrust_norm))

@@ -1,0 +1,294 @@
+"""The SITL's ArduCopter personality: what the service depends on, behaviour by behaviour
+(in-process: the simulation and its endpoint with a recording transport)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from sitl.ardupilot import BRAKE, GUIDED, LAND, LOITER, RTL, STABILIZE, ArduCopter
+from sitl.autopilot import HOLD, IGNORE_ATTITUDE, OFFBOARD, AttitudeSetpoint, Result
+from sitl.endpoint import Counters, SitlEndpoint
+from sitl.params import load_sim_config
+from sitl.physics import RATE
+from sitl.simulation import Simulation
+from tests.sitl.test_endpoint import PEER, TELEMETRY, Peer, RecordingTransport, emitted
+
+LEVEL = (1.0, 0.0, 0.0, 0.0)
+PX4_CFG = load_sim_config()
+
+
+def config(guid_options: int = 0):
+    cfg = load_sim_config(None, {"sitl": {"autopilot": "ardupilot"}})
+    return dataclasses.replace(
+        cfg, ardupilot=dataclasses.replace(cfg.ardupilot, guid_options=guid_options)
+    )
+
+
+def sim_ap(guid_options: int = 0) -> tuple[Simulation, ArduCopter]:
+    sim = Simulation(config(guid_options), seed=0)
+    assert isinstance(sim.autopilot, ArduCopter)
+    return sim, sim.autopilot
+
+
+def fly(sim: Simulation, seconds: float, setpoint: AttitudeSetpoint | None = None) -> None:
+    for k in range(round(seconds / sim.config.sitl.lockstep_period_s)):
+        if setpoint is not None and k % 4 == 0:  # 50 Hz
+            sim.autopilot.on_attitude_setpoint(setpoint, sim.time_s)
+        sim.advance_tick()
+
+
+def sp(thrust=0.5, q=LEVEL, rates=(0.0, 0.0, 0.0), mask=0b111):
+    return AttitudeSetpoint(type_mask=mask, q_wxyz=q, rate_frd_rad_s=rates, thrust_norm=thrust)
+
+
+def airborne(guid_options: int = 8, altitude_m: float = 3.0) -> tuple[Simulation, ArduCopter]:
+    sim, ap = sim_ap(guid_options)
+    assert ap.set_number(GUIDED, 0.0) == Result.ACCEPTED
+    assert ap.arm(True, 0.0) == Result.ACCEPTED
+    assert ap.takeoff_command(altitude_m, 0.0, 0.0) == Result.ACCEPTED
+    fly(sim, 2.0 + altitude_m / sim.config.autopilot.climb_speed_m_s)
+    assert -sim.state[2] == pytest.approx(altitude_m, abs=0.15)
+    assert ap.number == GUIDED  # a guided takeoff stays in GUIDED
+    return sim, ap
+
+
+def test_plain_mode_numbers_and_px4s_offboard_is_rtl():
+    _sim, ap = sim_ap()
+    assert (ap.mav_autopilot, ap.custom_mode) == (3, STABILIZE)
+    for number in (GUIDED, LOITER, BRAKE, LAND, STABILIZE):
+        assert ap.set_mode_command(number, 0, 0.0) == Result.ACCEPTED
+        assert ap.custom_mode == number
+    assert ap.set_mode_command(99, 0, 0.0) == Result.UNSUPPORTED
+    # what PX4's dialect sends for Offboard: (1, 6, 0) is RTL here, and counted
+    assert ap.set_mode_command(6, 0, 0.0) == Result.ACCEPTED
+    assert (ap.custom_mode, ap.rtl_count) == (RTL, 1)
+
+
+def test_arming_needs_guided_and_takeoff_needs_a_finite_altitude():
+    sim, ap = sim_ap()
+    assert ap.arm(True, 0.0) == Result.DENIED  # STABILIZE: the old service's mistake
+    assert ap.status_text is not None
+    assert "GUIDED" in ap.status_text
+    ap.set_number(GUIDED, 0.0)
+    assert ap.takeoff_command(2.5, 0.0, 0.0) == Result.DENIED  # disarmed
+    assert ap.arm(True, 0.0) == Result.ACCEPTED
+    assert ap.takeoff_command(math.nan, 0.0, 0.0) == Result.DENIED  # the SITL crash, denied
+    assert ap.takeoff_command(0.0, 0.0, 0.0) == Result.DENIED
+    ap.set_number(LOITER, 0.0)
+    assert ap.takeoff_command(2.5, 0.0, 0.0) == Result.DENIED  # not GUIDED
+    ap.set_number(GUIDED, 0.0)
+    assert ap.takeoff_command(2.5, 0.0, 0.0) == Result.ACCEPTED
+    fly(sim, 3.0)
+    assert ap.takeoff_command(5.0, 0.0, sim.time_s) == Result.DENIED  # already flying
+
+
+def test_setpoints_obeyed_only_in_guided_and_rates_all_or_none():
+    sim, ap = airborne()
+    ap.set_number(LOITER, sim.time_s)
+    fly(sim, 0.5, sp(thrust=0.9))  # ignored: LOITER holds
+    assert ap.mode == HOLD
+    assert ap.ignored_setpoints > 0
+    ap.set_number(GUIDED, sim.time_s)
+    ignored = ap.ignored_setpoints
+    ap.on_attitude_setpoint(sp(mask=IGNORE_ATTITUDE | 0b001), sim.time_s)  # one rate ignored
+    assert ap.ignored_setpoints == ignored + 1
+    fly(sim, 0.2, sp(thrust=sim.config.vehicle.hover_thrust_norm))
+    assert ap.mode == OFFBOARD
+
+
+@pytest.mark.parametrize("guid_options", [0, 8])
+def test_thrust_is_a_climb_rate_or_throttle_by_guid_options(guid_options):
+    sim, _ap = airborne(guid_options)
+    hover = sim.config.vehicle.hover_thrust_norm
+    z0 = float(sim.state[2])
+    # 0.5 holds altitude as a climb rate; the hover throttle holds it as throttle
+    fly(sim, 3.0, sp(thrust=0.5 if guid_options == 0 else hover))
+    assert float(sim.state[2]) == pytest.approx(z0, abs=0.15)
+    fly(sim, 2.0, sp(thrust=0.75))  # climb rate: (0.75-0.5)*2*2.5 = 1.25 m/s up
+    climb_m_s = -float(sim.state[5])
+    if guid_options == 0:
+        assert climb_m_s == pytest.approx(1.25, abs=0.2)
+    else:
+        assert climb_m_s > 2.0  # throttle 0.75 far above hover: accelerating up
+
+
+def test_throttle_gets_an_angle_boost():
+    sim, _ap = airborne(8)
+    hover = sim.config.vehicle.hover_thrust_norm
+    tilt = 0.3
+    q = (math.cos(tilt / 2), math.sin(tilt / 2), 0.0, 0.0)  # rolled 0.3 rad
+    fly(sim, 1.0, sp(thrust=hover, q=q))
+    # hover throttle at a tilt: ArduCopter divides by cos(tilt), so height is (nearly) held
+    assert sim.last_command.thrust_norm == pytest.approx(hover / math.cos(tilt), rel=0.03)
+
+
+def test_guid_timeout_holds_position_in_guided_and_setpoints_resume():
+    sim, ap = airborne()
+    hover = sim.config.vehicle.hover_thrust_norm
+    fly(sim, 1.0, sp(thrust=hover))
+    assert ap.mode == OFFBOARD
+    fly(sim, 2.5)  # within GUID_TIMEOUT (3 s): still under guided control
+    assert (ap.mode, ap.failsafe_count) == (OFFBOARD, 0)
+    fly(sim, 1.0)
+    assert (ap.mode, ap.number, ap.failsafe_count) == (HOLD, GUIDED, 1)
+    fly(sim, 0.2, sp(thrust=hover))
+    assert ap.mode == OFFBOARD
+
+
+def _roll_rate_after(sim: Simulation, seconds: float) -> float:
+    rates = sp(rates=(2.0, 0.0, 0.0), mask=IGNORE_ATTITUDE,
+               thrust=sim.config.vehicle.hover_thrust_norm)  # fmt: skip
+    fly(sim, seconds, rates)
+    return float(sim.state[RATE][0])
+
+
+def test_body_rates_are_shaped_slower_than_px4s_rate_loop():
+    sim, _ap = airborne()
+    ardupilot_rate = _roll_rate_after(sim, 0.06)
+    px4 = Simulation(dataclasses.replace(PX4_CFG, autopilot=dataclasses.replace(
+        PX4_CFG.autopilot, arm_refusals_after_boot=0)), seed=0)  # fmt: skip
+    px4.autopilot.arm(True, 0.0)
+    px4.autopilot.takeoff(3.0, 0.0)
+    fly(px4, 4.0)
+    for k in range(10):
+        px4.autopilot.on_attitude_setpoint(sp(), px4.time_s + k * 0.01)
+    px4.autopilot.set_mode(OFFBOARD, px4.time_s)
+    px4_rate = _roll_rate_after(px4, 0.06)
+    assert px4_rate > 1.0
+    assert ardupilot_rate < 0.6 * px4_rate  # ATC_INPUT_TC 0.15 s
+
+
+def test_land_loiter_and_disarm_on_touchdown():
+    sim, ap = airborne()
+    assert ap.set_number(LAND, sim.time_s) == Result.ACCEPTED
+    fly(sim, 8.0)
+    assert not ap.armed
+    assert ap.custom_mode == LAND
+
+
+# -- the endpoint with the ArduCopter personality -------------------------------------------
+
+
+def make(guid_options: int = 0):
+    sim = Simulation(config(guid_options), seed=0)
+    ep = SitlEndpoint(sim, 1, [TELEMETRY], Counters())
+    transport = RecordingTransport()
+    ep.connection_made(transport)  # type: ignore[arg-type]
+    return sim, ep, transport
+
+
+def test_nothing_but_heartbeat_until_asked_and_no_odometry():
+    sim, ep, transport = make()
+    for _ in range(400):  # 2 s
+        sim.advance_tick()
+        ep.emit()
+    kinds = {m.get_type() for batch in emitted(ep, transport) for m in batch}
+    assert kinds == {"HEARTBEAT"}
+    hb = next(m for batch in emitted(ep, transport) for m in batch)
+    assert (hb.autopilot, hb.custom_mode) == (3, STABILIZE)
+    peer = Peer()
+    for msg_id, result in ((mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, 0),
+                           (mavlink.MAVLINK_MSG_ID_ODOMETRY, 2)):  # fmt: skip
+        ep.datagram_received(
+            peer.pack(peer.mav.command_long_encode(1, 1, 511, 0, msg_id, 5000, 0, 0, 0, 0, 0)),
+            PEER,
+        )
+        ack = [m for m in peer.decode(transport) if m.get_type() == "COMMAND_ACK"][-1]
+        assert ack.result == result
+    transport.sent.clear()
+    for _ in range(40):
+        sim.advance_tick()
+        ep.emit()
+    sent = [m.get_type() for batch in emitted(ep, transport) for m in batch]
+    assert sent.count("ATTITUDE_QUATERNION") == 40  # 200 Hz, as asked
+    assert "ODOMETRY" not in sent
+
+
+def test_takeoff_nan_is_denied_on_the_wire_and_params_read_and_set():
+    sim, ep, transport = make()
+    peer = Peer()
+    ep.datagram_received(
+        peer.pack(peer.mav.command_long_encode(1, 1, 176, 0, 1, 4, 0, 0, 0, 0, 0)), PEER
+    )
+    ep.datagram_received(
+        peer.pack(peer.mav.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)), PEER
+    )
+    nan = [math.nan] * 7
+    ep.datagram_received(peer.pack(peer.mav.command_long_encode(1, 1, 22, 0, *nan)), PEER)
+    acks = [(m.command, m.result) for m in peer.decode(transport) if m.get_type() == "COMMAND_ACK"]
+    assert acks == [(176, 0), (400, 0), (22, mavlink.MAV_RESULT_DENIED)]
+    assert sim.autopilot.custom_mode == GUIDED
+    transport.sent.clear()
+    ep.datagram_received(
+        peer.pack(peer.mav.param_request_read_encode(1, 1, b"GUID_OPTIONS", -1)), PEER
+    )
+    ep.datagram_received(peer.pack(peer.mav.param_set_encode(1, 1, b"GUID_OPTIONS", 8.0, 9)), PEER)
+    values = [(m.param_id, m.param_value) for m in peer.decode(transport)
+              if m.get_type() == "PARAM_VALUE"]  # fmt: skip
+    assert values == [("GUID_OPTIONS", 0.0), ("GUID_OPTIONS", 8.0)]
+    assert isinstance(sim.autopilot, ArduCopter)
+    assert sim.autopilot.ardupilot.guid_options == 8
+
+
+def test_a_real_px4_dialect_flight_attempt_fails_here():
+    """The old service's ritual (arm in STABILIZE, takeoff of NaNs, DO_SET_MODE(1, 6, 0))
+    gets nowhere and selects RTL: the personality can catch the issue's bugs."""
+    sim, ap = sim_ap()
+    assert ap.arm(True, 0.0) == Result.DENIED
+    assert ap.takeoff_command(math.nan, 488.0, 0.0) == Result.DENIED
+    ap.set_mode_command(6, 0, 0.0)
+    assert ap.custom_mode == RTL
+    fly(sim, 1.0)
+    assert not ap.armed
+    assert np.allclose(sim.state[2], 0.0, atol=0.01)
+
+
+def test_ground_station_over_tcp_gets_telemetry_and_commands_work():
+    """A real TCP client on loopback, as MAVProxy connects to ArduPilot SITL's 5760: it gets
+    the heartbeat, reads a parameter and sets the mode; a message split across two writes
+    is still parsed (a byte stream, not datagrams)."""
+    import asyncio
+
+    from sitl.tcp import GcsTcpServer
+
+    async def run() -> list:
+        sim, ep, _ = make()
+        server = GcsTcpServer(ep)
+        port = await server.start("127.0.0.1", 0)
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        peer = Peer()
+        await asyncio.sleep(0.05)  # the server registers the client
+        ep.emit()
+        msg = peer.pack(peer.mav.param_request_read_encode(1, 1, b"GUID_TIMEOUT", -1))
+        writer.write(msg[:5])
+        await writer.drain()
+        await asyncio.sleep(0.02)
+        writer.write(msg[5:] + peer.pack(peer.mav.set_mode_encode(1, 1, GUIDED)))
+        await writer.drain()
+        got: list = []
+        for _ in range(50):
+            try:
+                data = await asyncio.wait_for(reader.read(4096), 0.1)
+            except TimeoutError:
+                continue
+            got += peer.rx.parse_buffer(data) or []
+            if any(m.get_type() == "PARAM_VALUE" for m in got):
+                break
+        assert sim.autopilot.custom_mode == GUIDED
+        assert server.connections == 1
+        writer.close()
+        await asyncio.sleep(0.05)
+        assert ep.stream_peers == {}  # the client left: nothing written to it any more
+        server.close()
+        return got
+
+    got = asyncio.run(run())
+    kinds = [m.get_type() for m in got]
+    assert "HEARTBEAT" in kinds
+    value = next(m for m in got if m.get_type() == "PARAM_VALUE")
+    assert (value.param_id, value.param_value) == ("GUID_TIMEOUT", 3.0)
