@@ -351,6 +351,9 @@ ORACLE_CASES: dict[str, tuple[int, int, Callable[[], Iterator[Any]], dict[str, A
         2, 1, lambda: cross_stream(2000, 3),
         {**CROSS, "diag_only": False, "meta": True, "w_prune": 0.5},
     ),
+    "cross-fixed-metric-capped": (
+        2, 1, lambda: cross_stream(2000, 4), {**CROSS, "update_d": False, "max_rfs": 12},
+    ),
     "drag": (3, 3, lambda: drag_stream(3000), DRAG),
     "drag-per-axis": (1, 1, lambda: ((x[:1], y[:1]) for x, y in drag_stream(3000)), DRAG | {
         "norm_in": [3.0], "norm_out": [0.01]}),
@@ -394,6 +397,8 @@ def test_compiled_learner_follows_the_numpy_reference(case: str):
     assert np.any(fast.predict_many(probe) != 0.0)
     if "w_prune" in kwargs:
         assert fast.n_pruned.sum() > 0  # the pruning path ran, and agreed
+    if "max_rfs" in kwargs:
+        assert fast.num_rfs == (kwargs["max_rfs"],)  # the cap was reached, and agreed
 
 
 @pytest.mark.skipif(not LWPR.compiled, reason="numba is not installed: LWPR is the reference")
