@@ -23,6 +23,7 @@ _COMMANDS = {
     "sim": "epc_offboard.sim:run_sim_command",
     "bench": "epc_offboard.bench:run_bench_command",
     "db": "epc_offboard.db:run_db_command",
+    "log": "epc_offboard.logexport:run_log_command",
 }
 
 
@@ -164,6 +165,18 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=fmt,
     )
     add_db_arguments(db)
+
+    log_cmd = sub.add_parser(
+        "log",
+        help="export a per-tick flight log for plotting tools",
+        description="Write a flight log (the service's flight_log_path CSV; sim: "
+        "DIR/vehicleK/flight.csv) as MCAP with a JSON schema, which Foxglove Studio and "
+        "PlotJuggler open.",
+        formatter_class=fmt,
+    )
+    log_cmd.add_argument("format", choices=["mcap"], help="the output format")
+    log_cmd.add_argument("flight_csv", metavar="FLIGHT.csv", help="the per-tick flight log")
+    log_cmd.add_argument("out", metavar="OUT.mcap", help="the file to write (replaced)")
     return parser
 
 
