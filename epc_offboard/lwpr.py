@@ -351,9 +351,10 @@ class LWPR:
         if self.compiled:
             self._kernel_args()
             y = np.empty((1, self.n_out))
-            kernels.predict_many(xn.reshape(1, -1), self._n, self._cfg, y, *self._predict_args)
-            y_one: FloatArray = y[0] * self.norm_out
-            return y_one
+            # (False only if x is finite but too large for norm_in: numpy's answer, below)
+            if kernels.predict_many(xn.reshape(1, -1), self._n, self._cfg, y, *self._predict_args):
+                y_one: FloatArray = y[0] * self.norm_out
+                return y_one
         v = self._active_views()
         return self._predict_normalised(v, self._activations(v, xn), xn) * self.norm_out
 
@@ -366,19 +367,21 @@ class LWPR:
             raise LwprError(f"xs must be a numeric array of shape (m, {self.n_in}): {exc}") from exc
         if arr.ndim != 2 or arr.shape[1] != self.n_in:
             raise LwprError(f"xs must have shape (m, {self.n_in}), got {arr.shape}")
-        if not np.isfinite(arr).all():
-            raise LwprError("xs must be finite")
         n = self._n
-        if n == 0:
-            return np.zeros((arr.shape[0], self.n_out))
         xn = arr / self.norm_in
-        if self.compiled:
+        if self.compiled and n > 0:
             xn = np.ascontiguousarray(xn)  # (the layout numba compiled for, whatever xs's)
             self._kernel_args()
             y_many = np.empty((arr.shape[0], self.n_out))
-            kernels.predict_many(xn, n, self._cfg, y_many, *self._predict_args)
-            y_many *= self.norm_out
-            return y_many
+            # The kernel checks that xn is finite; if not, xs is not, or it is too large for
+            # norm_in (then numpy's answer, below).
+            if kernels.predict_many(xn, n, self._cfg, y_many, *self._predict_args):
+                y_many *= self.norm_out
+                return y_many
+        if not np.isfinite(arr).all():
+            raise LwprError("xs must be finite")
+        if n == 0:
+            return np.zeros((arr.shape[0], self.n_out))
         v = self._active_views()
         dx = xn[:, None, :] - v["c"][None]  # (m, n, d)
         if self.diag_only:

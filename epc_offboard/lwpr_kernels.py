@@ -135,13 +135,19 @@ def predict_many(
     slope: FloatArray,
     trusted: Any,
     out: Any,
-) -> None:
-    """Predictions at the rows of xn (m, d) into the rows of y (m, n_out)."""
+) -> bool:
+    """Predictions at the rows of xn (m, d) into the rows of y (m, n_out); False, and y
+    untouched, if a value of xn is not finite (checked here: cheaper than numpy's check)."""
+    for row in range(xn.shape[0]):
+        for i in range(xn.shape[1]):
+            if not math.isfinite(xn[row, i]):
+                return False
     w = np.empty(n)
     diag_only = cfg[CFG_DIAG_ONLY] != 0.0
     for row in range(xn.shape[0]):
         activations(xn[row], n, c, D, diag_only, w)
         predict_from(xn[row], n, w, cfg[CFG_CUTOFF], beta0, mean_x, slope, trusted, out, y[row])
+    return True
 
 
 @_jit
