@@ -212,13 +212,14 @@ def _stats(ctrl: Controller | None) -> dict[str, Any]:
             "intermediate": int(s.intermediate),
             "fallback": int(s.fallback),
             "received_shared": int(getattr(s, "received_shared", 0)),
+            "candidates": int(s.candidates),
         }
     return {}
 
 
 @dataclass
 class _Observation:
-    t_s: float
+    t_s: float  # when the velocity was measured (vehicle time of its position sample)
     vel_ned_m_s: FloatArray
     acc_achieved_ned_m_s2: FloatArray
 
@@ -321,14 +322,26 @@ class Cascade:
         return out
 
     def _observe(self, state: VehicleState) -> None:
-        """Feed the estimator the disturbance measured over the last prediction step."""
+        """Feed the estimator the disturbance measured over the last prediction step.
+
+        Velocities are taken on their own sample times, once per new position sample: a
+        velocity repeated while its stream lags (or stops, as when an estimator drops out)
+        would read as a disturbance cancelling the whole commanded acceleration. A sample
+        older than a prediction step clears the history: nothing is learnt across a gap.
+        """
+        if state.position_age_s > self.position_dt_s:
+            self._history.clear()
+            return
+        t_vel = state.time_s - state.position_age_s
+        if self._history and t_vel <= self._history[-1].t_s + 1e-9:
+            return  # no new velocity sample since the last observation
         if not math.isnan(self._last_thrust_norm):
             roll, pitch, yaw = state.euler_rad
             achieved = attitude_to_accel(
                 AttitudeThrust(roll, pitch, yaw, self._last_thrust_norm),
                 self.position_cfg.hover_thrust_norm,
             )
-            self._history.append(_Observation(state.time_s, state.vel_ned_m_s.copy(), achieved))
+            self._history.append(_Observation(t_vel, state.vel_ned_m_s.copy(), achieved))
         if len(self._history) < 2:
             return
         newest = self._history[-1]

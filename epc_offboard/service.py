@@ -8,8 +8,10 @@ One asyncio TaskGroup with named tasks:
 * ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
   or the autopilot's own attitude loop fed quaternion + thrust (``attitude.mode = "autopilot"``);
 * ``library-saver``  — new controllers and learned models to SQLite, off the event loop;
-* ``library-sharing`` — with ``[sharing] enabled``: imports controllers received from the
-  fleet a few at a time, publishes new ones, keeps the snapshot peers query (``sharing.py``);
+* ``library-sharing`` — with ``[sharing] enabled``: offers controllers received from the
+  fleet to the candidate pools (the miss worker screens them; only a candidate optimal for
+  a real tick joins the library), publishes new ones, keeps the snapshot peers query
+  (``sharing.py``);
 * ``systemd``        — READY=1 once state flows, WATCHDOG=1 only while the control loop ticks.
 
 MAVLink arrives through callbacks of the link's DatagramProtocol (no task, no blocking read).
@@ -619,6 +621,11 @@ class Service:
         if it mattered (while streaming: before that the loops idle)."""
         t_next += period
         now = self.clock.now_s()
+        if t_next - now > period:
+            # the wait timed out: the clock did not move (lockstep, before an autopilot that
+            # streams nothing until asked sends state): run on from the clock, never ahead
+            # of it (ahead, every tick would cost a wait timeout)
+            t_next = now + period
         if now - t_next > period:
             skipped = int((now - t_next) / period)
             if self.outputs.stream_setpoints:

@@ -268,7 +268,8 @@ class FleetSharing:
     # -- the event-loop task --------------------------------------------------------------
 
     async def run(self) -> None:
-        """Import received candidates, publish new controllers, refresh snapshots. Forever."""
+        """Offer received controllers to the candidate pools, publish new controllers,
+        refresh snapshots. Forever."""
         period = self.cfg.publish_period_s
         next_publish = time.monotonic() + period
         while True:
