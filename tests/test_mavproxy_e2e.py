@@ -1,0 +1,121 @@
+"""MAVProxy, the ground station pilots script, sees `epc-sitl` as it sees a PX4 SITL.
+
+Real processes, real UDP: `epc-sitl` sends its ground-station stream to the port MAVProxy
+listens on (`--master=udpin:...`, as QGroundControl on 14550); MAVProxy runs headless
+(`--non-interactive`, stdin closed, as in CI) and prints what it decodes. The test plays a
+second operator on the SITL's command port (arm, take off) and reads MAVProxy's output for
+the vehicle, its PX4 mode by name and its position.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import queue
+import re
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.sim import _stop as stop_process
+from tests.rig import free_port
+
+MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent))
+
+pytestmark = [
+    pytest.mark.timeout(60),
+    pytest.mark.skipif(MAVPROXY is None, reason="MAVProxy not installed (pip install -e '.[dev]')"),
+]
+
+_ANNOUNCE_HOLDOFF_S = 2.5
+_POSITION = re.compile(r"LOCAL_POSITION_NED \{.*\bz : (?P<z>-?[\d.e+-]+)")
+
+
+class _Lines:
+    """MAVProxy's stdout, line by line, read on a thread (no blocking read in the test)."""
+
+    def __init__(self, proc: subprocess.Popen[bytes]) -> None:
+        self.seen: list[str] = []
+        self._queue: queue.Queue[str] = queue.Queue()
+        assert proc.stdout is not None
+        threading.Thread(target=self._read, args=(proc.stdout,), daemon=True).start()
+
+    def _read(self, stdout: Iterable[bytes]) -> None:
+        for line in stdout:
+            self._queue.put(line.decode(errors="replace"))
+
+    def wait_for(self, pattern: str, deadline: float) -> re.Match[str]:
+        regex = re.compile(pattern)
+        for line in self.seen:
+            if m := regex.search(line):
+                return m
+        while time.monotonic() < deadline:
+            try:
+                line = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            self.seen.append(line)
+            if m := regex.search(line):
+                return m
+        shown = [s for s in self.seen if "LOCAL_POSITION_NED {" not in s] + self.seen[-3:]
+        raise AssertionError(f"MAVProxy never printed {pattern!r}; it printed:\n{''.join(shown)}")
+
+
+def test_mavproxy_shows_the_vehicle_its_mode_and_position(tmp_path):
+    gcs_port, listen_port, offboard_port = free_port(), free_port(), free_port()
+    sitl = subprocess.Popen(
+        [sys.executable, "-m", "sitl.main", "--gcs-port", str(gcs_port),
+         "--listen-port", str(listen_port), "--offboard-port", str(offboard_port),
+         "--speedup", "1"],
+        stdout=(tmp_path / "sitl.log").open("wb"), stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+    )  # fmt: skip
+    assert MAVPROXY is not None
+    mavproxy = subprocess.Popen(
+        [sys.executable, MAVPROXY, f"--master=udpin:127.0.0.1:{gcs_port}", "--non-interactive",
+         "--cmd", "watch LOCAL_POSITION_NED"],
+        cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )  # fmt: skip
+    operator = mavutil.mavlink_connection(
+        f"udpout:127.0.0.1:{listen_port}", source_system=245, source_component=190
+    )
+    try:
+        out = _Lines(mavproxy)
+        deadline = time.monotonic() + 25.0
+        out.wait_for(r"Detected vehicle 1:1 on link 0", deadline)
+        out.wait_for(r"Mode LOITER", deadline)  # PX4's Hold (AUTO_LOITER) at boot, by name
+        # MAVProxy announces a mode at most every 2 s: let the next one through
+        time.sleep(_ANNOUNCE_HOLDOFF_S)
+
+        # PX4 refuses the first arming after boot; a retry is accepted
+        for _ in range(2):
+            operator.mav.command_long_send(
+                1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0
+            )
+            time.sleep(0.3)
+        out.wait_for(r"^ARMED", deadline)
+        operator.mav.command_long_send(
+            1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan, math.nan, math.nan
+        )
+        out.seen.clear()
+        out.wait_for(r"Mode TAKEOFF", deadline)
+        out.seen.clear()
+        while True:  # its position climbing (NED: up is negative)
+            z = float(out.wait_for(_POSITION.pattern, deadline)["z"])
+            out.seen.clear()
+            if z < -1.0:
+                break
+        out.wait_for(r"Mode LOITER", deadline)  # Hold again at the takeoff altitude
+    finally:
+        operator.close()
+        for proc in (mavproxy, sitl):
+            stop_process(proc)
