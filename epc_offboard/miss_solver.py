@@ -163,8 +163,7 @@ class MissSolver:
             try:
                 lane.unbuilt = fut.result(timeout=0.0)
             except BrokenProcessPool:
-                self._restart("the worker died")
-                return
+                self._restart("the worker died")  # then the new one gets the pool, below
             except Exception as exc:  # candidates lost; the flight is not
                 self.counters["candidate_errors"] += 1
                 log.warning("%s candidate import failed: %s", name, exc)

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from epc_offboard.epc import ExperienceController
+from epc_offboard.epc import ExperienceController, LibraryEntry
 from epc_offboard.miss_solver import MissSolver
 from tests.mpc_cases import exact_solution, hover_refs, position_problem
 
@@ -97,3 +97,36 @@ def test_a_returned_set_not_optimal_here_is_refused(solver_and_ctrl):
     # the unconstrained set is not optimal far from the target: the loop's own check refuses
     assert not ctrl.add_solved(theta, ())
     assert ctrl.stats.size == 0
+
+
+def test_fleet_candidates_are_screened_in_the_worker_and_survive_its_death(solver_and_ctrl):
+    """A received controller is found by the worker for the miss it is optimal at (no QP
+    solve), also after the worker was killed (the new one gets the pool again)."""
+    solver, ctrl = solver_and_ctrl
+    p = ctrl.problem
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    teacher = ExperienceController(p)
+    teacher.step(x0, hover_refs(p, [4.0, -3.0, 1.0]))
+    (taught,) = teacher.export_library()
+    junk = [LibraryEntry((i,)) for i in range(10)]
+    assert ctrl.offer_candidates([*junk, taught], "shared:v2") == 11
+    solver.pump()  # copied to the worker
+    pid = solver.worker_pid()
+    assert pid is not None
+    os.kill(pid, signal.SIGKILL)
+    time.sleep(0.5)
+    for _ in range(3):  # the tick that finds the pool broken, the resend, the solve
+        d, _ = miss(ctrl, x0, [4.0, -3.0, 1.0])
+        assert d.source == "intermediate"
+        solver.pump(wait=True)
+        if solver.pump(wait=True):
+            break
+    assert solver.counters["worker_restarts"] == 1
+    assert solver.counters["candidates_found"] == 1
+    d, _ = miss(ctrl, x0, [4.0, -3.0, 1.0])
+    assert d.source == "hit"
+    assert ctrl.stats.qp_solves == 0
+    assert [(e.active_set, e.origin) for e in ctrl.export_library()] == [
+        (taught.active_set, "shared:v2")
+    ]
+    assert len(ctrl.candidates) == 10  # the junk waits, bounded; it is no library entry
