@@ -2,8 +2,8 @@
 
     db info   LIBRARY                       what a library file holds, per problem signature
     db export LIBRARY OUT.json              the library as a portable, versioned JSON file
-    db import LIBRARY IN.json               add an exported library to LIBRARY
-    db merge  LIBRARY OTHER.sqlite [...]    add other vehicles' library files to LIBRARY
+    db import LIBRARY IN.json --config F            add an exported library to LIBRARY
+    db merge  LIBRARY OTHER.sqlite [...] --config F add other vehicles' library files to it
 
 ``--signature SIG`` (repeatable) limits any of them to some problem signatures. Import and
 merge need ``--config SERVICE.toml``: they take only the signatures of that service's
@@ -306,8 +306,8 @@ _MAX_LISTED = 20  # invalid controllers listed per source; the rest are counted
 _USAGE = {
     "info": "epc-offboard db info LIBRARY.sqlite",
     "export": "epc-offboard db export LIBRARY.sqlite OUT.json",
-    "import": "epc-offboard db import LIBRARY.sqlite IN.json",
-    "merge": "epc-offboard db merge LIBRARY.sqlite OTHER.sqlite [OTHER.sqlite ...]",
+    "import": "epc-offboard db import LIBRARY.sqlite IN.json --config SERVICE.toml",
+    "merge": "epc-offboard db merge LIBRARY.sqlite OTHER.sqlite [...] --config SERVICE.toml",
 }
 
 
