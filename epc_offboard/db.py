@@ -1,9 +1,9 @@
 """`epc-offboard db info | export | import | merge`: move experience between vehicles offline.
 
-    db info   LIBRARY                       what a library file holds, per problem signature
-    db export LIBRARY OUT.json              the library as a portable, versioned JSON file
-    db import LIBRARY IN.json --config F            add an exported library to LIBRARY
-    db merge  LIBRARY OTHER.sqlite [...] --config F add other vehicles' library files to it
+    db info   LIBRARY                         what a library file holds, per signature
+    db export LIBRARY OUT.json                the library as a portable, versioned JSON file
+    db import LIBRARY IN.json --config F      add an exported library to LIBRARY
+    db merge  LIBRARY OTHER.sqlite [...] --config F    add other vehicles' library files
 
 ``--signature SIG`` (repeatable) limits any of them to some problem signatures. Import and
 merge need ``--config SERVICE.toml``: they take only the signatures of that service's
