@@ -115,6 +115,11 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     sim.add_argument("--seed", type=int, default=0, help="noise and gust seed")
     sim.add_argument(
+        "--autopilot", choices=["px4", "ardupilot"], default="px4",
+        help="the SITL's autopilot personality; ardupilot starts it with GUID_OPTIONS=8 "
+        "(thrust as throttle), as the README asks of a real ArduCopter",
+    )  # fmt: skip
+    sim.add_argument(
         "--duration", type=float, default=None, metavar="S",
         help="seconds on the trajectory (default: the scenario's duration_s)",
     )  # fmt: skip

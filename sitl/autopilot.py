@@ -165,6 +165,7 @@ class Autopilot:
     mav_autopilot = 12  # MAV_AUTOPILOT_PX4
     streams_by_default = True  # PX4 streams its onboard link's messages unasked
     sends_odometry = True
+    rtl_count = 0  # RTLs entered (PX4's RTL is not modelled: always 0 here)
 
     def __init__(self, vehicle: VehicleParams, params: AutopilotParams) -> None:
         self.vehicle = vehicle

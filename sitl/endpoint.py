@@ -84,6 +84,7 @@ class Counters:
     send_errors: int = 0
     lockstep_timeouts: int = 0
     offboard_failsafes: int = 0
+    rtl_entered: int = 0  # ArduCopter personality: RTLs selected (PX4's offboard is RTL there)
 
     def summary(self) -> str:
         return " ".join(f"{f.name}={getattr(self, f.name)}" for f in fields(self))

@@ -208,6 +208,7 @@ async def run(args: argparse.Namespace) -> Counters:
         await clock.run(tick, stop, args.duration)
     counters.lockstep_timeouts = gate.timeouts
     counters.offboard_failsafes = sim.autopilot.failsafe_count
+    counters.rtl_entered = sim.autopilot.rtl_count
     return counters
 
 
