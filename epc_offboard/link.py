@@ -1,4 +1,4 @@
-"""MAVLink 2 over UDP or serial for asyncio: pymavlink's sans-IO codec driven by the loop.
+"""MAVLink 2 over UDP, TCP or serial for asyncio: pymavlink's sans-IO codec driven by the loop.
 
 No blocking ``recv_match`` anywhere: datagrams (a DatagramProtocol) or serial bytes (a
 non-blocking tty watched by ``loop.add_reader``) arrive on the event loop, are fed to
@@ -18,6 +18,11 @@ Connection URLs (as MAVSDK and mavutil spell them):
   read (a datagram's leftover, by contrast, is garbage). Writes never block the loop: what
   the tty cannot take at once is queued (bounded) and written when it is writable. A device
   that goes away (USB unplugged) is reopened every second until it is back.
+* ``tcp://HOST:PORT`` — a TCP client (ArduPilot SITL's 5760 + 10 * instance, a MAVProxy or
+  mavlink-router TCP output). A byte stream, like serial: partial frames are kept. When the
+  connection cannot be made or drops, it is made again every ``TCP_RECONNECT_PERIOD_S``
+  (counted, logged); until then sends are dropped and counted. Writes never block: past
+  ``TCP_MAX_PENDING_BYTES`` unsent, a frame is dropped (a stale setpoint is worse than none).
 """
 
 from __future__ import annotations
@@ -51,11 +56,13 @@ MessageHandler = Callable[[Any], None]
 SERIAL_DEFAULT_BAUD = 57600
 SERIAL_REOPEN_PERIOD_S = 1.0
 SERIAL_MAX_PENDING_BYTES = 8192  # ~90 ms at 921600 baud: beyond that, a setpoint is stale
+TCP_RECONNECT_PERIOD_S = 1.0
+TCP_MAX_PENDING_BYTES = 65536
 
 
 @dataclass(frozen=True)
 class Endpoint:
-    mode: Literal["udpin", "udpout", "serial"]
+    mode: Literal["udpin", "udpout", "serial", "tcp"]
     host: str = ""
     port: int = 0
     device: str = ""  # serial only
@@ -63,14 +70,14 @@ class Endpoint:
 
 
 def parse_url(url: str) -> Endpoint:
-    """Parse ``udpin://HOST:PORT``, ``udpout://HOST:PORT`` or ``serial:///dev/DEV[:BAUD]``;
-    anything else is a ConfigError naming what is wrong."""
+    """Parse ``udpin://HOST:PORT``, ``udpout://HOST:PORT``, ``tcp://HOST:PORT`` or
+    ``serial:///dev/DEV[:BAUD]``; anything else is a ConfigError naming what is wrong."""
     parts = urlsplit(url)
     if parts.scheme == "serial":
         return _parse_serial(url)
-    if parts.scheme not in ("udpin", "udpout"):
+    if parts.scheme not in ("udpin", "udpout", "tcp"):
         raise ConfigError(
-            f"connection url {url!r}: scheme must be udpin://, udpout:// or serial://"
+            f"connection url {url!r}: scheme must be udpin://, udpout://, tcp:// or serial://"
         )
     try:
         port = parts.port
@@ -78,6 +85,8 @@ def parse_url(url: str) -> Endpoint:
         raise ConfigError(f"connection url {url!r}: bad port") from exc
     if not parts.hostname or port is None:
         raise ConfigError(f"connection url {url!r}: expected {parts.scheme}://HOST:PORT")
+    if parts.scheme == "tcp":
+        return Endpoint("tcp", parts.hostname, port)
     mode: Literal["udpin", "udpout"] = "udpin" if parts.scheme == "udpin" else "udpout"
     return Endpoint(mode, parts.hostname, port)
 
@@ -228,8 +237,22 @@ class _Protocol(asyncio.DatagramProtocol):
         log.debug("udp error: %s", exc)
 
 
+class _StreamProtocol(asyncio.Protocol):
+    """A TCP connection's bytes to the link (a stream: frames may be split anywhere)."""
+
+    def __init__(self, link: MavlinkLink) -> None:
+        self._link = link
+
+    def data_received(self, data: bytes) -> None:
+        link = self._link
+        link._on_bytes(data, (link.endpoint.host, link.endpoint.port), stream=True)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._link._tcp_lost(self, "closed by the peer" if exc is None else str(exc))
+
+
 class MavlinkLink:
-    """One MAVLink 2 connection over UDP.
+    """One MAVLink 2 connection over UDP, TCP or serial.
 
     ``on_message`` is called on the event loop for every valid message that passed the
     system-id filter (``accept_system_ids``; None accepts all). ``counters`` counts what was
@@ -257,6 +280,9 @@ class MavlinkLink:
             (self.endpoint.host, self.endpoint.port) if self.endpoint.mode == "udpout" else None
         )
         self._fd: int | None = None  # serial
+        self._tcp: asyncio.Transport | None = None  # tcp, while connected
+        self._tcp_protocol: _StreamProtocol | None = None
+        self._tcp_task: asyncio.Task[None] | None = None
         self._pending = bytearray()  # serial bytes the tty has not taken yet
         self._reopen: asyncio.TimerHandle | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -290,6 +316,10 @@ class MavlinkLink:
         if self.endpoint.mode == "serial":
             self._open_serial(loop)
             return
+        if self.endpoint.mode == "tcp":
+            # an autopilot not up yet is not an error: the link connects when it is
+            await self._connect_tcp()
+            return
         if self.endpoint.mode == "udpin":
             transport, _ = await loop.create_datagram_endpoint(
                 lambda: _Protocol(self), local_addr=(self.endpoint.host, self.endpoint.port)
@@ -308,6 +338,12 @@ class MavlinkLink:
         if self._reopen is not None:
             self._reopen.cancel()
             self._reopen = None
+        if self._tcp_task is not None:
+            self._tcp_task.cancel()
+            self._tcp_task = None
+        if self._tcp is not None:
+            self._tcp.close()
+            self._tcp = None
         self._close_serial()
         if self._tlog is not None:
             self._tlog.flush()
@@ -316,6 +352,10 @@ class MavlinkLink:
         """Encode and send ``msg``; False (and counted) when there is no peer or socket yet."""
         if self.endpoint.mode == "serial":
             if self._fd is None:
+                self.counters["send_no_peer"] += 1
+                return False
+        elif self.endpoint.mode == "tcp":
+            if self._tcp is None:
                 self.counters["send_no_peer"] += 1
                 return False
         elif self._transport is None or self._peer is None:
@@ -328,6 +368,13 @@ class MavlinkLink:
         if self.endpoint.mode == "serial":
             if not self._write_serial(frame):
                 return
+        elif self.endpoint.mode == "tcp":
+            if self._tcp is None or self._tcp.is_closing():
+                return
+            if self._tcp.get_write_buffer_size() + len(frame) > TCP_MAX_PENDING_BYTES:
+                self.counters["send_dropped"] += 1  # the peer does not read: drop, never block
+                return
+            self._tcp.write(frame)
         else:
             if self._transport is None or self._peer is None:
                 return
@@ -439,6 +486,57 @@ class MavlinkLink:
             self.counters["serial_reopen_failed"] += 1
             log.debug("serial reopen failed: %s", exc)
             self._schedule_reopen()
+
+    # -- tcp ------------------------------------------------------------------------------
+
+    async def _connect_tcp(self) -> None:
+        """One connection attempt; on failure the next is scheduled."""
+        loop = asyncio.get_running_loop()
+        host, port = self.endpoint.host, self.endpoint.port
+        try:
+            transport, protocol = await loop.create_connection(
+                lambda: _StreamProtocol(self), host, port
+            )
+        except OSError as exc:
+            self.counters["tcp_connect_failed"] += 1
+            if self.counters["tcp_connect_failed"] == 1:
+                log.warning("tcp %s:%d: cannot connect (%s): retrying", host, port, exc)
+            self._schedule_tcp_connect()
+            return
+        if self._closed:
+            transport.close()
+            return
+        self._reset_parser()  # a stream cut mid-frame: the old connection's bytes are void
+        self._tcp, self._tcp_protocol = transport, protocol
+        self._peer = (host, port)
+        self.counters["tcp_connects"] += 1
+        log.info("tcp link connected to %s:%d", host, port)
+
+    def _schedule_tcp_connect(self) -> None:
+        if self._closed or self._loop is None:
+            return
+
+        def start() -> None:
+            if not self._closed:
+                self._tcp_task = asyncio.ensure_future(self._connect_tcp())
+
+        self._reopen = self._loop.call_later(TCP_RECONNECT_PERIOD_S, start)
+
+    def _tcp_lost(self, protocol: _StreamProtocol, why: str) -> None:
+        if protocol is not self._tcp_protocol:
+            return  # an old connection's late notice
+        self._tcp = self._tcp_protocol = None
+        if self._closed:
+            return
+        self.counters["tcp_lost"] += 1
+        host, port = self.endpoint.host, self.endpoint.port
+        log.error("tcp link to %s:%d lost (%s): reconnecting", host, port, why)
+        self._schedule_tcp_connect()
+
+    def _reset_parser(self) -> None:
+        self.mav.buf = bytearray()
+        self.mav.buf_index = 0
+        self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
 
     # -- receiving ------------------------------------------------------------------------
 

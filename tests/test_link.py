@@ -61,7 +61,7 @@ def test_parse_url():
     with pytest.raises(ConfigError, match="HOST:PORT"):
         parse_url("udpin://:14540")
     with pytest.raises(ConfigError, match="scheme must be"):
-        parse_url("tcp://127.0.0.1:5760")
+        parse_url("tcpin://127.0.0.1:5760")  # (tcp:// is a client: tests/test_link_tcp.py)
 
 
 def test_parse_serial_url():
