@@ -8,10 +8,14 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
 import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.sim import sitl_counters
+from tests.rig import Rig
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -46,3 +50,38 @@ def test_sim_circle_against_ardupilot(tmp_path):
     assert order == sorted(order)
     stats = json.loads((out / "vehicle1" / "stats.json").read_text())
     assert stats["params"]["GUID_OPTIONS"] == 8.0
+
+
+def _wait_for_log(path, text: str, timeout_s: float) -> str:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        log = path.read_text(errors="replace") if path.exists() else ""
+        if text in log:
+            return log
+        time.sleep(0.2)
+    raise AssertionError(f"{text!r} not in {path} after {timeout_s} s")
+
+
+def test_guid_options_refused_until_a_ground_station_sets_it_over_tcp(tmp_path):
+    """GUID_OPTIONS 0 (ArduCopter's default): the service refuses GUIDED, arms nothing and
+    says why; a ground station on the SITL's TCP port (as MAVProxy on 5760) sets it to 8,
+    the service reads it again and flies: GUIDED, arm, one takeoff."""
+    with Rig(tmp_path, sitl_args=("--autopilot", "ardupilot")) as rig:
+        service_log = tmp_path / "service.log"
+        _wait_for_log(service_log, "GUID_OPTIONS is 0: bit 3 (value 8) must be set", 60.0)
+        assert "action: arm" not in service_log.read_text()
+        gcs = mavutil.mavlink_connection(
+            f"tcp:127.0.0.1:{rig.gcs_port}", source_system=250, source_component=190
+        )
+        try:
+            assert gcs.wait_heartbeat(timeout=20) is not None
+            assert gcs.messages["HEARTBEAT"].autopilot == 3
+            gcs.mav.param_set_send(1, 1, b"GUID_OPTIONS", 8.0, mavlink.MAV_PARAM_TYPE_REAL32)
+            log = _wait_for_log(service_log, "action: takeoff to 2.50 m", 60.0)
+        finally:
+            gcs.close()
+    assert log.index("GUID_OPTIONS = 8") < log.index("action: request_offboard")
+    assert log.index("action: request_offboard") < log.index("action: arm")
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert stats["counters"]["offboard_refused"] >= 1
+    assert stats["takeoffs_sent"] == 1
