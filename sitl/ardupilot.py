@@ -18,8 +18,9 @@ control (observed on ArduCopter 4.7 / 4.8-dev SITL, see ../shared/DESIGN.md):
 * targets pass ArduCopter's input shaping: body rates through a first-order filter of time
   constant ATC_INPUT_TC integrated into an attitude target, quaternions approached with the
   same time constant — a slower response than PX4's rate loop;
-* GUID_TIMEOUT (3 s) without setpoints: guided control stops and the vehicle holds position,
-  still in GUIDED; new setpoints take control again;
+* GUID_TIMEOUT (3 s) without setpoints: ArduCopter's guided angle control levels the vehicle
+  (yaw kept) and holds altitude (climb rate 0), still in GUIDED — it does not hold position:
+  in wind it drifts. New setpoints take control again;
 * LOITER and BRAKE hold, LAND lands, RTL (simplified) lands where it is.
 """
 
@@ -88,6 +89,7 @@ class ArduCopter(Autopilot):
         self.number = STABILIZE  # the mode number the heartbeat shows
         self.rtl_count = 0  # RTLs entered: a client that meant something else
         self.ignored_setpoints = 0  # outside GUIDED, or rates neither all nor none
+        self._timed_out = False  # GUID_TIMEOUT passed: level, climb rate 0, until setpoints
         self._hover_throttle = vehicle.hover_thrust_norm  # MOT_THST_HOVER
         self._outer_dt_s = 0.005
         self._att_target: FloatArray | None = None  # the shaped attitude target
@@ -193,6 +195,7 @@ class ArduCopter(Autopilot):
             self.ignored_setpoints += 1
             return
         super().on_attitude_setpoint(sp, t_s)
+        self._timed_out = False
         self.intended_mode = OFFBOARD  # guided attitude control, even over a takeoff
 
     # ---- the periodic update ------------------------------------------------------------------
@@ -210,6 +213,18 @@ class ArduCopter(Autopilot):
         if self.number in GUIDED_MODES and self.intended_mode == HOLD:
             # a finished takeoff holds in GUIDED: setpoints take control again
             self.intended_mode = OFFBOARD
+
+    def _setpoints_lost(self, t_s: float) -> None:
+        """GUID_TIMEOUT: level (yaw kept) at climb rate 0, in GUIDED, until setpoints return
+        (counted once per loss). Not a position hold."""
+        if self._timed_out:
+            return
+        self._timed_out = True
+        self.failsafe_count += 1
+        yaw = self._current_yaw()
+        level = (math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0))
+        # (mask: rates ignored; thrust 0.5 read as a climb rate of 0 while timed out)
+        self._att_sp = AttitudeSetpoint(_RATES, level, (0.0, 0.0, 0.0), 0.5)
 
     def _offboard_attitude(
         self, x: FloatArray, sp: AttitudeSetpoint
@@ -237,7 +252,8 @@ class ArduCopter(Autopilot):
     def _thrust(self, x: FloatArray, thrust: float) -> float:
         """SET_ATTITUDE_TARGET's thrust as the collective thrust this vehicle produces."""
         cos_tilt = float(quat_to_rotation(x[QUAT])[2, 2])
-        if self.ardupilot.guid_options & GUID_OPTIONS_THRUST_AS_THROTTLE:
+        as_throttle = self.ardupilot.guid_options & GUID_OPTIONS_THRUST_AS_THROTTLE
+        if as_throttle and not self._timed_out:
             # throttle plus ArduCopter's angle boost (1 / cos of the tilt, floored at 0.1)
             return min(1.0, thrust / min(max(cos_tilt, 0.1), 1.0))
         # a climb rate: 0.5 holds altitude, 1 climbs at PILOT_SPEED_UP, 0 sinks at _DN

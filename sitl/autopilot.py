@@ -414,14 +414,18 @@ class Autopilot:
             not self._setpoint_times_s
             or t_s - self._setpoint_times_s[-1] > self.params.offboard_loss_timeout_s
         ):
-            self.failsafe_count += 1
-            self._capture_hold()
-            self.mode = HOLD
+            self._setpoints_lost(t_s)
         if self.mode == TAKEOFF and abs(x[2] - self._takeoff_target_d_m) < 0.1:
             self._hold_pos_ned_m = np.array(
                 [self._ref_pos_ned_m[0], self._ref_pos_ned_m[1], self._takeoff_target_d_m]
             )
             self.mode = self.intended_mode = HOLD
+
+    def _setpoints_lost(self, t_s: float) -> None:
+        """COM_OF_LOSS_T without a setpoint in Offboard: PX4's failsafe holds position."""
+        self.failsafe_count += 1
+        self._capture_hold()
+        self.mode = HOLD
 
     def _return_to_intended(self, t_s: float) -> None:
         """The failsafe clears when setpoints stream again: back to Offboard, armed or not

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from epc_offboard.frames import quat_to_euler
 from sitl.ardupilot import BRAKE, GUIDED, LAND, LOITER, RTL, STABILIZE, ArduCopter
 from sitl.autopilot import HOLD, IGNORE_ATTITUDE, OFFBOARD, AttitudeSetpoint, Result
 from sitl.endpoint import Counters, SitlEndpoint
 from sitl.params import load_sim_config
-from sitl.physics import RATE
+from sitl.physics import QUAT, RATE
 from sitl.simulation import Simulation
 from tests.sitl.test_endpoint import PEER, TELEMETRY, Peer, RecordingTransport, emitted
 
@@ -127,17 +128,28 @@ def test_throttle_gets_an_angle_boost():
     assert sim.last_command.thrust_norm == pytest.approx(hover / math.cos(tilt), rel=0.03)
 
 
-def test_guid_timeout_holds_position_in_guided_and_setpoints_resume():
+def test_guid_timeout_levels_and_holds_altitude_in_guided_and_setpoints_resume():
     sim, ap = airborne()
     hover = sim.config.vehicle.hover_thrust_norm
-    fly(sim, 1.0, sp(thrust=hover))
+    tilt = 0.2
+    q = (math.cos(tilt / 2), math.sin(tilt / 2), 0.0, 0.0)
+    fly(sim, 1.0, sp(thrust=hover, q=q))  # rolled, moving east
     assert ap.mode == OFFBOARD
-    fly(sim, 2.5)  # within GUID_TIMEOUT (3 s): still under guided control
+    fly(sim, 2.5)  # within GUID_TIMEOUT (3 s): still flying the last setpoint
     assert (ap.mode, ap.failsafe_count) == (OFFBOARD, 0)
-    fly(sim, 1.0)
-    assert (ap.mode, ap.number, ap.failsafe_count) == (HOLD, GUIDED, 1)
-    fly(sim, 0.2, sp(thrust=hover))
+    z0, east0_m = float(sim.state[2]), float(sim.state[1])
+    fly(sim, 3.0)
+    # ArduCopter's timeout: still GUIDED, levelled, climb rate 0 (counted once), no position
+    # hold: the speed it had carries it on (only drag slows it)
+    assert (ap.number, ap.failsafe_count) == (GUIDED, 1)
+    roll, pitch, _ = quat_to_euler(sim.state[QUAT])
+    assert abs(roll) < 0.02
+    assert abs(pitch) < 0.02
+    assert float(sim.state[2]) == pytest.approx(z0, abs=0.3)
+    assert float(sim.state[1]) - east0_m > 0.5  # drifted on east: not a position hold
+    fly(sim, 0.5, sp(thrust=hover))
     assert ap.mode == OFFBOARD
+    assert ap.failsafe_count == 1
 
 
 def _roll_rate_after(sim: Simulation, seconds: float) -> float:
