@@ -135,11 +135,6 @@ def service_config_for(
         },
     }
     flags["sharing"] = _sharing_flags(args, vehicle_id)
-    if getattr(args, "autopilot", "px4") == "ardupilot":
-        # the attitude response the position model lags by: ArduCopter's input shaping
-        # (ATC_INPUT_TC 0.15 s) before its attitude loop makes it twice PX4's (63 % of an
-        # attitude step in 0.305 s against 0.150 s, measured on the personality)
-        flags["position"]["tau_acc_s"] = [0.3, 0.3, 0.03]
     if getattr(args, "stagger", False):
         flags["mission"]["linger_after_landing"] = True
     return merge_dicts(merge_dicts(base, scenario.service), flags)

@@ -34,6 +34,7 @@ import numpy as np
 from epc_offboard.frames import (
     GRAVITY_M_S2,
     FloatArray,
+    quat_conjugate,
     quat_multiply,
     quat_normalize,
     quat_to_rotation,
@@ -240,11 +241,16 @@ class ArduCopter(Autopilot):
             target = quat_normalize(quat_multiply(target, np.array([1.0, *half])))
             rate = self._shaped_rate + self._attitude_control(q, target)
         else:
+            # a quaternion: the target approaches it with time constant ATC_INPUT_TC, and its
+            # rotation rate is fed forward (ATC_RATE_FF_ENAB, on by default) to the rate loop
             q_sp = np.asarray(sp.q_wxyz)
             if float(target @ q_sp) < 0.0:
                 q_sp = -q_sp
-            target = quat_normalize(target + alpha * (q_sp - target))
-            rate = self._attitude_control(q, target)
+            previous = target
+            target = quat_normalize(previous + alpha * (q_sp - previous))
+            step = quat_multiply(quat_conjugate(previous), target)
+            feedforward = (2.0 / self._outer_dt_s) * (step[1:] if step[0] >= 0.0 else -step[1:])
+            rate = feedforward + self._attitude_control(q, target)
         self._att_target = target
         lim = np.asarray(self.params.rate_max_rad_s)
         return target, np.clip(rate, -lim, lim), self._thrust(x, sp.thrust_norm)
