@@ -135,12 +135,21 @@ class AttitudeControlConfig:
     max_rate_rad_s: Vec3 = (4.0, 4.0, 2.0)
     fallback_gain_1_s: float = 6.0  # P on angle error when the attitude EPC cannot answer
     library_size: int = 200
+    # The attitude EPC is linearised about hover (Euler angles, body rates). Beyond this tilt,
+    # or this far from its attitude target, its body rates are not to be trusted (in a soak
+    # under CPU load it chattered between +-max rate at 60 deg and flipped the vehicle): the
+    # attitude goes to the autopilot's own (quaternion) attitude loop until back inside.
+    rates_max_tilt_deg: float = 55.0
+    rates_max_error_deg: float = 35.0
 
     def __post_init__(self) -> None:
         if self.horizon < 1 or self.dt_s <= 0.0 or self.rate_time_constant_s <= 0.0:
             raise ValueError("horizon >= 1, dt_s > 0 and rate_time_constant_s > 0 are required")
         if any(v <= 0.0 for v in self.max_rate_rad_s):
             raise ValueError(f"max_rate_rad_s must be > 0, got {self.max_rate_rad_s}")
+        for name in ("rates_max_tilt_deg", "rates_max_error_deg"):
+            if not 0.0 < getattr(self, name) <= 180.0:
+                raise ValueError(f"{name} must be in (0, 180], got {getattr(self, name)}")
 
 
 def _default_lwpr() -> LwprPerturbationConfig:
@@ -460,6 +469,15 @@ class Cascade:
         )
 
     # -- attitude loop ------------------------------------------------------------------
+
+    def rates_trusted(self, state: VehicleState, target: PositionOutput) -> bool:
+        """Whether the attitude is where the body-rate EPC's hover linearisation holds: tilt
+        and distance to the attitude target within ``rates_max_tilt_deg`` /
+        ``rates_max_error_deg``. Outside, the attitude goes to the autopilot's own loop."""
+        acfg = self.attitude_cfg
+        tilt = frames.tilt_deg(state.q_ned_frd)
+        error = frames.angle_between_deg(state.q_ned_frd, target.q_target)
+        return tilt <= acfg.rates_max_tilt_deg and error <= acfg.rates_max_error_deg
 
     def _attitude_refs(
         self, state: VehicleState, target: PositionOutput

@@ -127,3 +127,18 @@ def quat_to_euler(q: npt.ArrayLike) -> tuple[float, float, float]:
 def wrap_pi(angle_rad: float) -> float:
     """Wrap an angle to [-pi, pi)."""
     return (angle_rad + math.pi) % (2 * math.pi) - math.pi
+
+
+def tilt_deg(q: npt.ArrayLike) -> float:
+    """Angle (deg) between body z (FRD down) and world down of attitude ``q`` [w, x, y, z]."""
+    w, x, y, z = (float(v) for v in np.asarray(q, dtype=np.float64))
+    norm2 = w * w + x * x + y * y + z * z
+    cos_tilt = 1.0 - 2.0 * (x * x + y * y) / norm2
+    return math.degrees(math.acos(min(1.0, max(-1.0, cos_tilt))))
+
+
+def angle_between_deg(p: npt.ArrayLike, q: npt.ArrayLike) -> float:
+    """The smallest rotation (deg) from attitude ``p`` to attitude ``q`` (sign-agnostic)."""
+    a, b = quat_normalize(p), quat_normalize(q)
+    dot = abs(float(np.dot(a, b)))
+    return math.degrees(2.0 * math.acos(min(1.0, dot)))

@@ -641,6 +641,9 @@ class Service:
         elif late:
             self.counters["attitude_late_fallbacks"] += 1
             out = AttitudeOutput(None, target.thrust_norm, "late")
+        elif not self.cascade.rates_trusted(state, target):
+            self.counters["attitude_envelope_fallbacks"] += 1
+            out = AttitudeOutput(None, target.thrust_norm, "envelope")
         else:
             try:
                 out = self.cascade.attitude_tick(state, target)

@@ -78,3 +78,22 @@ def test_quat_normalize_rejects_zero_and_nan():
 @pytest.mark.parametrize(("a", "w"), [(0.0, 0.0), (math.pi, -math.pi), (3 * math.pi, -math.pi)])
 def test_wrap_pi(a, w):
     assert frames.wrap_pi(a) == pytest.approx(w)
+
+
+def test_tilt_and_angle_between_attitudes():
+    import math
+
+    from epc_offboard.frames import angle_between_deg, euler_to_quat, tilt_deg
+
+    assert tilt_deg(euler_to_quat(0.0, 0.0, 1.2)) == pytest.approx(0.0, abs=1e-9)
+    assert tilt_deg(euler_to_quat(math.radians(30), 0.0, 0.7)) == pytest.approx(30.0)
+    assert tilt_deg(euler_to_quat(math.radians(170), 0.0, 0.0)) == pytest.approx(170.0)
+    # roll then pitch: the tilt is the angle of body z from world down
+    q = euler_to_quat(math.radians(30), math.radians(40), 0.0)
+    assert tilt_deg(q) == pytest.approx(
+        math.degrees(math.acos(math.cos(math.radians(30)) * math.cos(math.radians(40))))
+    )
+    a = euler_to_quat(0.0, 0.0, 0.1)
+    assert angle_between_deg(a, a) == pytest.approx(0.0, abs=1e-6)
+    assert angle_between_deg(a, -a) == pytest.approx(0.0, abs=1e-6)  # same attitude
+    assert angle_between_deg(a, euler_to_quat(0.0, math.radians(50), 0.1)) == pytest.approx(50.0)
