@@ -30,6 +30,7 @@ from epc_offboard.offboard import (
     Phase,
 )
 from epc_offboard.state import Heartbeat
+from tests.test_offboard import fault_schedules
 
 AUTO = OffboardConfig(auto_arm=True, auto_takeoff=True, auto_offboard=True)
 HOME_AMSL_M = 488.0
@@ -257,19 +258,9 @@ class _ArduCopterLike:
             self.hb = Heartbeat(1, self.armed, 0, 0, self.t, custom_mode=self.mode, autopilot=3)
 
 
-faults = st.lists(
-    st.tuples(
-        st.floats(0.0, 40.0),
-        st.floats(0.05, 4.0),
-        st.sampled_from(["stale", "hb_loss", "push_up", "push_down", "no_global", "pilot"]),
-    ),
-    max_size=8,
-)
-
-
 @settings(max_examples=60, deadline=None)
 @given(
-    faults=faults,
+    faults=fault_schedules("pilot"),  # and the pilot takes over with an RC switch
     hb_lag_s=st.floats(0.0, 0.9),
     mission_s=st.one_of(st.none(), st.floats(2.0, 30.0)),
     landed_state_known=st.booleans(),

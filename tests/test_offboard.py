@@ -364,14 +364,20 @@ class _Px4Like:
             self.hb = Heartbeat(1, self.armed, *self.mode, self.t)
 
 
-faults = st.lists(
-    st.tuples(
-        st.floats(0.0, 40.0),  # start s
-        st.floats(0.05, 4.0),  # length s
-        st.sampled_from(["stale", "hb_loss", "push_up", "push_down", "no_global"]),
-    ),
-    max_size=8,
-)
+def fault_schedules(*extra_kinds: str) -> st.SearchStrategy[list[tuple[float, float, str]]]:
+    """Up to 8 (start s, length s, kind) faults over a 45 s flight."""
+    kinds = ["stale", "hb_loss", "push_up", "push_down", "no_global", *extra_kinds]
+    return st.lists(
+        st.tuples(
+            st.floats(0.0, 40.0),  # start s
+            st.floats(0.05, 4.0),  # length s
+            st.sampled_from(kinds),
+        ),
+        max_size=8,
+    )
+
+
+faults = fault_schedules()
 
 
 @settings(max_examples=60, deadline=None)
