@@ -304,3 +304,33 @@ def test_ground_station_over_tcp_gets_telemetry_and_commands_work():
     assert "HEARTBEAT" in kinds
     value = next(m for m in got if m.get_type() == "PARAM_VALUE")
     assert (value.param_id, value.param_value) == ("GUID_TIMEOUT", 3.0)
+
+
+def test_command_line_ports_and_params(capsys):
+    from sitl.main import build_parser, gcs_tcp_port, link_addresses, main
+
+    args = build_parser().parse_args(["--instance", "2", "--autopilot", "ardupilot"])
+    # ArduPilot SITL's ground station: TCP 5760 + 10 * I; no UDP 14550 for this personality
+    assert gcs_tcp_port(args) == 5780
+    assert link_addresses(args) == (14582, [("127.0.0.1", 14542)])
+    px4 = build_parser().parse_args(["--instance", "2"])
+    assert gcs_tcp_port(px4) == 0
+    assert link_addresses(px4) == (14582, [("127.0.0.1", 14542), ("127.0.0.1", 14550)])
+    assert main(["--listen-port", "0", "--param", "GUID_OPTIONS=8"]) == 2  # px4: none
+    assert "GUID_OPTIONS" in capsys.readouterr().err
+    assert main(["--autopilot", "ardupilot", "--listen-port", "0", "--param", "NOPE=1"]) == 2
+    assert main(["--autopilot", "ardupilot", "--listen-port", "0", "--param", "GUID_OPTIONS"]) == 2
+    assert "NAME=VALUE" in capsys.readouterr().err
+
+
+def test_link_autopilot_is_validated_naming_the_key(tmp_path):
+    from epc_offboard.config import load_service_config
+    from epc_offboard.configio import ConfigError
+
+    path = tmp_path / "service.toml"
+    path.write_text('[link]\nautopilot = "apm"\n')
+    with pytest.raises(ConfigError, match=r"link\.autopilot") as info:
+        load_service_config(path)
+    assert str(path) in str(info.value)
+    path.write_text('[link]\nautopilot = "ardupilot"\nurl = "tcp://127.0.0.1:5762"\n')
+    assert load_service_config(path).link.autopilot == "ardupilot"
