@@ -22,7 +22,7 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -100,6 +100,7 @@ def run_compare_command(args: argparse.Namespace) -> int:
     summary = {
         "scenario": args.scenario,
         "description": scenario.description,
+        "note": scenario.note,
         "methods": list(methods),
         "reports": [r.report for r in flown],
         "targets": verdicts,
@@ -118,15 +119,16 @@ def run_compare_command(args: argparse.Namespace) -> int:
 # -- output ---------------------------------------------------------------------------------
 
 
-def print_compare(summary: dict[str, Any]) -> None:
-    from rich.console import Console
-    from rich.table import Table
+COMPARE_COLUMNS = ("method", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "lap-1 misses",
+                   "QPs", "us med", "us p99", "pos Hz", "att Hz")  # fmt: skip
 
-    console = Console(width=max(Console().width, 118))  # the table is wider than 80 columns
-    table = Table(title=f"{summary['scenario']}: methods side by side (ground truth)")
-    for col in ("method", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "QPs",
-                "us med", "us p99", "pos Hz", "att Hz"):  # fmt: skip
-        table.add_column(col, justify="right")
+
+def print_compare(summary: dict[str, Any], file: TextIO | None = None) -> None:
+    """The methods side by side and the targets' verdicts (values in the metric's unit):
+    rich tables on a terminal, plain aligned text when piped."""
+    from epc_offboard.tables import format_metric, print_table
+
+    rows = []
     for rep in summary["reports"]:
         for v in rep["vehicles"]:
             pos = v.get("loops", {}).get("position", {})
@@ -135,31 +137,33 @@ def print_compare(summary: dict[str, Any]) -> None:
             if len(rep["vehicles"]) > 1:
                 name += f" #{v['id']}"
             lib = v["library"]
-            table.add_row(
+            epc = lib["hits"] + lib["misses"] > 0
+            rows.append([
                 name,
                 f"{v['tracking']['rmse_m'] * 100:.2f}",
                 f"{v['tracking']['max_error_m'] * 100:.2f}",
                 f"{v['max_speed_m_s']:.2f}",
                 str(v["constraint_violations"]),
-                f"{lib['hit_rate'] * 100:.1f}%" if lib["hits"] + lib["misses"] else "-",
+                f"{lib['hit_rate'] * 100:.1f}%" if epc else "-",
+                str(lib.get("first_lap_misses", "-")) if epc else "-",
                 str(lib["qp_solves"]),
                 f"{pos.get('compute_us_median', 0.0):.0f}",
                 f"{pos.get('compute_us_p99', 0.0):.0f}",
                 f"{pos.get('rate_hz', 0.0):.1f}",
                 f"{att.get('rate_hz', 0.0):.1f}",
-            )
-    console.print(table)
+            ])  # fmt: skip
+    title = f"{summary['scenario']}: methods side by side (ground truth)"
+    print_table(title, COMPARE_COLUMNS, rows, left=1, file=file, min_width=118)
+    if summary.get("note"):
+        print(f"note: {summary['note']}", file=file)
     if summary["targets"]:
-        tt = Table(title="targets")
-        for col in ("target", "value", "bound", "verdict"):
-            tt.add_column(col, justify="left" if col == "target" else "right")
-        for t in summary["targets"]:
-            fmt = "{:.0f}" if t["metric"] == "constraint_violations" else "{:.4f}"
-            value = "-" if t["value"] is None else fmt.format(t["value"])
-            bound = "-" if t["bound"] is None else fmt.format(t["bound"])
-            style = {"PASS": "green", "FAIL": "bold red"}.get(t["verdict"], "yellow")
-            tt.add_row(t["target"], value, bound, f"[{style}]{t['verdict']}[/{style}]")
-        console.print(tt)
+        target_rows = [
+            [t["target"], format_metric(t["metric"], t["value"]),
+             format_metric(t["metric"], t["bound"]), t["verdict"]]
+            for t in summary["targets"]
+        ]  # fmt: skip
+        print_table("targets", ("target", "value", "bound", "verdict"), target_rows,
+                    left=1, file=file)  # fmt: skip
 
 
 def write_compare_figure(
@@ -170,51 +174,90 @@ def write_compare_figure(
     name: str,
     wind: tuple[float, float],
 ) -> None:
-    """Thesis figs. 3.4-3.7 in one: paths vs reference, error over time, velocity vs bound."""
+    """Thesis figs. 3.4-3.7 in one: paths vs reference, error over time, velocity vs bound;
+    the window the RMSE is measured over shaded, one legend for the whole figure."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
 
-    fig, (ax_path, ax_err, ax_vel) = plt.subplots(1, 3, figsize=(16, 4.8))
+    from epc_offboard.figures import (
+        PHASE_COLOURS,
+        VEHICLE_COLOURS,
+        mark_events,
+        vehicle_colour,
+        vehicle_style,
+    )
+
+    fig, (ax_path, ax_err, ax_vel) = plt.subplots(1, 3, figsize=(17, 5.6), layout="constrained")
     # the horizontal axis the reference moves along most: the velocity panel's axis
     first = flown[0].results[0]
     axis = int(np.argmax(np.ptp(first.ref_ned_m[:, :2], axis=0)))
     axis_name = "NE"[axis]
-    ref_drawn = False
-    for run in flown:
-        for r in run.results:
-            after = r.t_s >= scenario.settle_s
-            if not ref_drawn:
-                ax_path.plot(r.ref_ned_m[after, 1], r.ref_ned_m[after, 0], "k--", lw=1.2,
-                             label="reference")
-                ref_v = np.gradient(r.ref_ned_m[:, axis], r.t_s)
-                ax_vel.plot(r.t_s, ref_v, "k--", lw=1, label="reference")
-                ref_drawn = True
-            label = run.method if len(run.results) == 1 else f"{run.method} #{r.vehicle_id}"
-            ax_path.plot(r.pos_ned_m[after, 1], r.pos_ned_m[after, 0], lw=1.3, label=label)
-            ax_err.plot(r.t_s, r.error_m * 100.0, lw=1, label=label)
-            ax_vel.plot(r.t_s, r.vel_ned_m_s[:, axis], lw=1, label=label)
+    settle = scenario.settle_s
+    window_max = 0.0
+    outside_max = 0.0
+    curves = [(run, r) for run in flown for r in run.results]
+    for i, (run, r) in enumerate(curves):
+        after = r.t_s >= settle
+        label = run.method if len(run.results) == 1 else f"{run.method} #{r.vehicle_id}"
+        label += f": RMSE {r.report['tracking']['rmse_m'] * 100:.2f} cm"
+        colour, ls = vehicle_colour(i), vehicle_style(i // len(VEHICLE_COLOURS))
+        ax_path.plot(r.pos_ned_m[after, 1], r.pos_ned_m[after, 0], color=colour, ls=ls,
+                     lw=1.3, label=label)  # fmt: skip
+        ax_err.plot(r.t_s, r.error_m * 100.0, color=colour, ls=ls, lw=1.2)
+        ax_vel.plot(r.t_s, r.vel_ned_m_s[:, axis], color=colour, ls=ls, lw=1.2)
+        if np.any(after):
+            window_max = max(window_max, float(np.max(r.error_m[after])) * 100.0)
+        if np.any(~after):
+            outside_max = max(outside_max, float(np.max(r.error_m[~after])) * 100.0)
+    # the reference last, thin and dashed over the flown paths: seen where they cover it
+    after = first.t_s >= settle
+    ax_path.plot(first.ref_ned_m[after, 1], first.ref_ned_m[after, 0], color="black",
+                 ls=(0, (4, 3)), lw=1.0, zorder=10, label="reference")  # fmt: skip
+    # under offboard only: before it the reference is where the vehicle was, and its jump
+    # to the trajectory at entry is no velocity
+    moving = first.t_s > 0.05
+    ref_v = np.gradient(first.ref_ned_m[moving, axis], first.t_s[moving])
+    ax_vel.plot(first.t_s[moving], ref_v, color="black", ls=(0, (4, 3)), lw=1.0, zorder=10)
     ax_path.set(xlabel="east [m]", ylabel="north [m]", title="path after settling (top view)")
     ax_path.set_aspect("equal", adjustable="datalim")
-    ax_err.axvline(scenario.settle_s, color="grey", ls=":", lw=1)
-    ax_err.set(xlabel="time since offboard [s]", ylabel="|position error| [cm]",
-               title="tracking error (ground truth)")
-    top = max(float(np.percentile(r.error_m[r.t_s >= scenario.settle_s], 99.5))
-              for run in flown for r in run.results if np.any(r.t_s >= scenario.settle_s))
-    ax_err.set_ylim(0.0, 1.3 * top * 100.0)
+    t_lo = min(float(r.t_s[0]) for _, r in curves)
+    t_hi = max(float(r.t_s[-1]) for _, r in curves)
+    for ax in (ax_err, ax_vel):
+        if t_lo < 0.0:
+            ax.axvspan(t_lo, 0.0, color=PHASE_COLOURS["to offboard"], alpha=0.6, lw=0, zorder=0)
+        ax.axvspan(0.0, settle, color=PHASE_COLOURS["settle"], alpha=0.6, lw=0, zorder=0)
+        ax.axvspan(settle, t_hi, color=PHASE_COLOURS["RMSE window"], alpha=0.6, lw=0, zorder=0)
+        ax.set_xlim(t_lo, t_hi)
+    mark_events([ax_err, ax_vel], [r for _, r in curves])
+    top = 1.15 * window_max if window_max > 0 else max(outside_max, 1.0)
+    ax_err.set_ylim(0.0, max(top, 1.05 * outside_max) if outside_max <= 1.5 * top else top)
+    if outside_max > 1.5 * top:
+        ax_err.text(0.99, 0.97, f"clipped at {top:.3g} cm: the settle transient reaches "
+                    f"{outside_max:.3g} cm", transform=ax_err.transAxes, ha="right", va="top",
+                    fontsize=8, bbox={"fc": "white", "ec": "0.7", "alpha": 0.9})  # fmt: skip
+    ax_err.set(xlabel="time since offboard entry [s]", ylabel="|position error| [cm]",
+               title="tracking error (ground truth)")  # fmt: skip
     bound = float(vel_bounds_m_s[axis])
+    handles, labels = ax_path.get_legend_handles_labels()
     if np.isfinite(bound):
         for b in (bound, -bound):
             ax_vel.axhline(b, color="r", ls=":", lw=1.2)
-        ax_vel.text(0.0, bound, f" bound {bound:g} m/s", color="r", va="bottom", fontsize=8)
-    ax_vel.set(xlabel="time since offboard [s]", ylabel=f"v_{axis_name} [m/s]",
-               title=f"{axis_name} velocity vs state constraint (ground truth)")
+        handles.append(ax_vel.lines[-1])
+        labels.append(f"velocity bound ±{bound:g} m/s")
+    handles += [Patch(color=PHASE_COLOURS["to offboard"], alpha=0.6),
+                Patch(color=PHASE_COLOURS["settle"], alpha=0.6),
+                Patch(color=PHASE_COLOURS["RMSE window"], alpha=0.6)]  # fmt: skip
+    labels += ["entering offboard", f"settle (first {settle:g} s)", "RMSE window"]
+    ax_vel.set(xlabel="time since offboard entry [s]", ylabel=f"v_{axis_name} [m/s]",
+               title=f"{axis_name} velocity vs state constraint (ground truth)")  # fmt: skip
     for ax in (ax_path, ax_err, ax_vel):
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7)
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 5),
+               fontsize=8, frameon=False)  # fmt: skip
     wind_text = f", wind {wind[0]:g} m/s towards {wind[1]:g} deg" if wind[0] > 0 else ", no wind"
     fig.suptitle(f"{name}{wind_text}")
-    fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

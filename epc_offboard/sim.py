@@ -26,11 +26,12 @@ import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
 from epc_offboard.configio import ConfigError, dump_toml, from_dict, merge_dicts
+from epc_offboard.figures import write_figure
 from epc_offboard.frames import FloatArray
 from epc_offboard.targets import CompareConfig, TargetConfig
 from epc_offboard.trajectories import TrajectoryConfig
@@ -43,6 +44,7 @@ SITL_SERVICE_CONFIG = CONFIG_DIR / "sitl.toml"
 @dataclass(frozen=True)
 class ScenarioConfig:
     description: str = ""
+    note: str = ""  # printed under the report's table: e.g. why an error is large by design
     duration_s: float = 20.0  # flight under offboard control, from the trajectory's start
     settle_s: float = 3.0  # metrics ignore the first settle_s of the trajectory
     lap_s: float = 0.0  # one lap of the trajectory, for first-lap library figures (0: whole)
@@ -88,6 +90,7 @@ class VehicleRun:
     out_dir: Path
     sitl: subprocess.Popen[bytes] | None = None
     service: subprocess.Popen[bytes] | None = None
+    offboard_entry_s: float | None = None  # vehicle time offboard began (the progress bar)
 
     @property
     def groundtruth(self) -> Path:
@@ -178,23 +181,42 @@ def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 5.0) -> None:
         proc.wait()
 
 
-def _last_time_s(path: Path) -> float:
-    """The t_s of the last complete line of a growing CSV (0 when none yet)."""
+def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
+    """(phase label, seconds flown under offboard) of a running vehicle, from the tail of its
+    growing flight log: "takeoff" until the service streams, "offboard 3.2/10 s", "landing"
+    once the offboard part is over (the log stops), "landed" when its stats are written."""
+    if run.stats.exists():
+        return "landed", duration_s
     try:
-        with path.open("rb") as fh:
+        with run.flight_log.open("rb") as fh:
+            header = fh.readline().decode(errors="replace").strip().split(",")
             fh.seek(0, os.SEEK_END)
             size = fh.tell()
             fh.seek(max(0, size - 4096))
-            lines = fh.read().decode(errors="replace").splitlines()
+            tail = fh.read().decode(errors="replace").splitlines()
     except OSError:
-        return 0.0
-    for line in reversed(lines[:-1] if lines and not lines[-1].endswith("\n") else lines):
-        head = line.split(",", 1)[0]
-        try:
-            return float(head)
-        except ValueError:
-            continue
-    return 0.0
+        return "takeoff", 0.0
+    if "phase" not in header or "vehicle_t_s" not in header:
+        return "takeoff", 0.0
+    i_phase, i_t = header.index("phase"), header.index("vehicle_t_s")
+    rows = [r.split(",") for r in tail[1:] if r.count(",") == len(header) - 1]
+    if not rows:
+        return "takeoff", 0.0
+    phase, t_s = rows[-1][i_phase], float(rows[-1][i_t])
+    if phase != "offboard":
+        if run.offboard_entry_s is not None:  # offboard is over: the log has stopped
+            return "landing", duration_s
+        return "entering offboard", 0.0
+    if run.offboard_entry_s is None:  # the first offboard row, read once
+        with run.flight_log.open(newline="") as fh:
+            for row in csv.DictReader(fh):
+                if row.get("phase") == "offboard":
+                    run.offboard_entry_s = float(row["vehicle_t_s"])
+                    break
+    done_s = min(max(t_s - (run.offboard_entry_s or t_s), 0.0), duration_s)
+    if done_s >= duration_s - 0.05:
+        return "landing", duration_s
+    return f"offboard {done_s:.1f}/{duration_s:g} s", done_s
 
 
 def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> list[VehicleRun]:
@@ -252,16 +274,19 @@ def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> li
     expected_s = scenario.duration_s + 20.0  # takeoff, offboard entry, landing
     flights = args.vehicles if stagger else 1
     deadline = time.monotonic() + flights * max(120.0, 20.0 * expected_s)
+    # the bar counts the scenario's seconds under offboard, the only ones the scenario names;
+    # takeoff and landing show as the phase in its label
+    total_s = scenario.duration_s * (args.vehicles if stagger else 1)
     try:
         with Progress(
             TextColumn("[bold]{task.description}"),
             BarColumn(),
-            TextColumn("{task.completed:.0f}/{task.total:.0f} s vehicle time"),
+            TextColumn("{task.completed:.1f}/{task.total:.0f} s offboard"),
             TimeElapsedColumn(),
             transient=False,
             disable=not sys.stderr.isatty(),
         ) as progress:
-            task = progress.add_task(f"{args.scenario}", total=expected_s * flights)
+            task = progress.add_task(f"{args.scenario}: takeoff", total=total_s)
             while any(r.service is not None and r.service.poll() is None for r in runs):
                 if time.monotonic() > deadline:
                     raise RuntimeError("the flight did not finish in time (see the vehicle logs)")
@@ -273,13 +298,14 @@ def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> li
                     else:
                         for r in runs:
                             _stop(r.service)
-                if stagger:
-                    t = sum(min(_last_time_s(r.groundtruth), expected_s) for r in runs)
-                else:
-                    t = min(_last_time_s(r.groundtruth) for r in runs)
-                progress.update(task, completed=min(t, expected_s * flights))
+                states = [flight_progress(r, scenario.duration_s) for r in runs]
+                done_s = sum(s[1] for s in states) if stagger else min(s[1] for s in states)
+                phase = states[-1][0] if stagger else states[0][0]
+                who = f" vehicle {len(runs)}/{args.vehicles}" if args.vehicles > 1 else ""
+                label = f"{args.scenario}{who}: {phase}"
+                progress.update(task, completed=min(done_s, total_s), description=label)
                 time.sleep(0.2)
-            progress.update(task, completed=expected_s * flights)
+            progress.update(task, completed=total_s, description=f"{args.scenario}: landed")
     finally:
         for r in runs:
             _stop(r.service)
@@ -323,6 +349,10 @@ class VehicleResult:
     vel_ned_m_s: FloatArray
     error_m: FloatArray
     sources: np.ndarray
+    # the SITL's ground truth over the whole flight (takeoff to landing), t since offboard
+    truth_t_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    truth_pos_ned_m: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    truth_vel_ned_m_s: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 _MISS_SOURCES = ("solved", "intermediate", "fallback")  # EPC ticks that were not hits
@@ -439,92 +469,68 @@ def analyse(run: VehicleRun, scenario: ScenarioConfig, vel_bounds_m_s: FloatArra
             {**e, "t_s": round(float(e["t_s"]) - start, 3)} for e in stats.get("phase_events", [])
         ],
     }
+    every = slice(None, None, max(1, len(tt) // 4000))  # enough samples to draw
     return VehicleResult(
-        run.vehicle_id, report, t_vehicle - start, pos, ref, vel, err, flight["source"]
-    )
+        run.vehicle_id, report, t_vehicle - start, pos, ref, vel, err, flight["source"],
+        truth_t_s=tt[every] - start,
+        truth_pos_ned_m=np.column_stack([truth[f"pos_{a}_m"][every] for a in "ned"]),
+        truth_vel_ned_m_s=np.column_stack([truth[f"vel_{a}_m_s"][every] for a in "ned"]),
+    )  # fmt: skip
 
 
-def write_figure(
-    results: list[VehicleResult], vel_bounds_m_s: FloatArray, path: Path, title: str
-) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
-    ax_path, ax_err, ax_vel, ax_lib = axes.ravel()
-    for r in results:
-        label = f"vehicle {r.vehicle_id}"
-        ax_path.plot(
-            r.ref_ned_m[:, 1], r.ref_ned_m[:, 0], "k--", lw=1, label=f"reference {r.vehicle_id}"
-        )
-        ax_path.plot(r.pos_ned_m[:, 1], r.pos_ned_m[:, 0], lw=1.5, label=f"flown {r.vehicle_id}")
-        ax_err.plot(r.t_s, r.error_m * 100.0, lw=1, label=label)
-        for i, axis in enumerate("NE"):
-            ax_vel.plot(r.t_s, r.vel_ned_m_s[:, i], lw=1, label=f"v_{axis} {label}")
-        hits = np.cumsum(r.sources == "hit")
-        solved = np.cumsum(np.isin(r.sources, _MISS_SOURCES))
-        ax_lib.plot(r.t_s, hits, label=f"hits {label}")
-        ax_lib.plot(r.t_s, solved, label=f"misses {label}")
-        # failsafes where they happened, on every time axis
-        for i, e in enumerate(x for x in r.report["phase_events"] if x["phase"] == "failsafe"):
-            for ax in (ax_err, ax_vel, ax_lib):
-                ax.axvline(
-                    e["t_s"], color="r", lw=1.5, alpha=0.7,
-                    label=f"failsafe {label}" if i == 0 and ax is ax_err else None,
-                )  # fmt: skip
-    ax_path.set(xlabel="east [m]", ylabel="north [m]", title="path (top view)", aspect="equal")
-    ax_err.set(
-        xlabel="time since offboard [s]",
-        ylabel="|error| [cm]",
-        title="tracking error (ground truth)",
-    )
-    for b in (vel_bounds_m_s[0], -vel_bounds_m_s[0]):
-        ax_vel.axhline(b, color="r", ls=":", lw=1)
-    ax_vel.set(xlabel="time since offboard [s]", ylabel="[m/s]", title="velocity vs bounds")
-    ax_lib.set(
-        xlabel="time since offboard [s]",
-        ylabel="ticks",
-        title="EPC library: cumulative hits and misses",
-    )
-    for ax in axes.ravel():
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+REPORT_COLUMNS = ("id", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "lap-1 misses",
+                  "QPs", "received", "pos Hz", "pos p99 us", "att Hz")  # fmt: skip
 
 
-def print_table(report: dict[str, Any]) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title=f"{report['scenario']}: {report['controller']} + {report['adaptation']}")
-    for col in ("id", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "QPs",
-                "pos Hz", "pos p99 us", "att Hz"):  # fmt: skip
-        table.add_column(col, justify="right")
+def report_rows(report: dict[str, Any]) -> list[list[str]]:
+    """One row per vehicle of REPORT_COLUMNS: errors in cm, as the columns say."""
+    rows = []
     for v in report["vehicles"]:
         loops = v.get("loops", {})
         pos, att = loops.get("position", {}), loops.get("attitude", {})
-        table.add_row(
+        lib = v["library"]
+        epc = lib["hits"] + lib["misses"] > 0
+        rows.append([
             str(v["id"]),
             f"{v['tracking']['rmse_m'] * 100:.2f}",
             f"{v['tracking']['max_error_m'] * 100:.2f}",
             f"{v['max_speed_m_s']:.2f}",
             str(v["constraint_violations"]),
-            f"{v['library']['hit_rate'] * 100:.1f} %",
-            str(v["library"]["qp_solves"]),
+            f"{lib['hit_rate'] * 100:.1f}%" if epc else "-",
+            str(lib.get("first_lap_misses", "-")) if epc else "-",
+            str(lib["qp_solves"]) if epc else "-",
+            str(lib.get("received_shared", 0)) if epc else "-",
             f"{pos.get('rate_hz', 0.0):.1f}",
             f"{pos.get('compute_us_p99', 0.0):.0f}",
             f"{att.get('rate_hz', 0.0):.1f}",
-        )
-    Console(stderr=False).print(table)
+        ])  # fmt: skip
+    return rows
+
+
+def print_table(report: dict[str, Any], file: TextIO | None = None) -> None:
+    """The report's table (rich on a terminal, plain aligned text when piped), the scenario's
+    note when it has one, and each vehicle's warnings."""
+    from epc_offboard.tables import print_table as print_any_table
+
+    out = file if file is not None else sys.stdout
+    title = f"{report['scenario']}: {report['controller']} + {report['adaptation']}"
+    print_any_table(title, REPORT_COLUMNS, report_rows(report), file=out)
+    if report.get("note"):
+        print(f"note: {report['note']}", file=out)
     for v in report["vehicles"]:
         warnings = v.get("warnings", {})
         text = ", ".join(f"{name} {n}" for name, n in warnings.items()) or "none"
-        print(f"vehicle {v['id']} warnings: {text}")
+        print(f"vehicle {v['id']} warnings: {text}", file=out)
+
+
+def print_targets(verdicts: list[dict[str, Any]], file: TextIO | None = None) -> None:
+    """One line per target verdict, values in the metric's unit (errors in cm)."""
+    from epc_offboard.tables import format_metric
+
+    for t in verdicts:
+        value = format_metric(t["metric"], t["value"])
+        bound = format_metric(t["metric"], t["bound"])
+        print(f"target {t['verdict']}: {t['target']} ({value} <= {bound})", file=file)
 
 
 def make_report(
@@ -539,6 +545,7 @@ def make_report(
         "wind": {"speed_m_s": wind[0], "dir_deg": wind[1]},
         "duration_s": scenario.duration_s,
         "seed": args.seed,
+        "note": scenario.note,
         "lockstep": bool(args.lockstep),
         "vehicles": [r.report for r in results],
     }
@@ -555,7 +562,7 @@ def fly_and_report(
     results = [analyse(r, scenario, bounds) for r in runs]
     report = make_report(args, scenario, results)
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
-    write_figure(results, bounds, out_dir / "flight.png", title)
+    write_figure(results, bounds, out_dir / "flight.png", title, settle_s=scenario.settle_s)
     return report, results, bounds
 
 
@@ -606,8 +613,7 @@ def run_sim_command(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))
     print_table(report)
-    for t in report["targets"]:
-        print(f"target {t['verdict']}: {t['target']} ({t['value']:.4g} <= {t['bound']:.4g})")
+    print_targets(report["targets"])
     print(f"report: {out_dir / 'report.json'}  figure: {out_dir / 'flight.png'}")
     return targets_exit_code(report["targets"])
 
