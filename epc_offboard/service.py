@@ -468,16 +468,23 @@ class Service:
             self._write_stats()  # the flight's figures; rewritten at the stop
             log.info("mission complete: staying up for the fleet until stopped")
 
-    async def _wait(self, t_s: float) -> None:
-        """Wait for loop time t_s; in lockstep never longer than a wall-clock second."""
-        try:
-            async with asyncio.timeout(1.0):
-                await self.clock.wait_until(t_s)
-        except TimeoutError:
-            # (not before the vehicle clock has started: an autopilot that streams nothing
-            # until asked, as ArduCopter, gives no time until the loops' rates are requested)
-            if self.clock.now_s() > 0.0:
-                self.counters["clock_wait_timeouts"] += 1
+    async def _wait(self, t_s: float, *, until_reached: bool = False) -> None:
+        """Wait for loop time t_s; in lockstep never longer than a wall-clock second, unless
+        ``until_reached``: the control loops then wait for the vehicle clock however long a
+        loaded machine takes (a tick run early, at a stale vehicle time, would make two
+        identical lockstep runs differ), checking for a stop every second."""
+        while True:
+            try:
+                async with asyncio.timeout(1.0):
+                    await self.clock.wait_until(t_s)
+                break
+            except TimeoutError:
+                # (not before the vehicle clock has started: an autopilot that streams nothing
+                # until asked, as ArduCopter, gives no time until the loops' rates are requested)
+                if self.clock.now_s() > 0.0:
+                    self.counters["clock_wait_timeouts"] += 1
+            if not until_reached or self._stopping.is_set():
+                break
         if self._stopping.is_set():
             raise _Stop
 
@@ -485,7 +492,7 @@ class Service:
         period = 1.0 / self.cfg.loops.position_rate_hz
         t_next = self.clock.now_s()
         while True:
-            await self._wait(t_next)
+            await self._wait(t_next, until_reached=True)
             start = self.clock.now_s()
             wall0 = time.perf_counter()
             state = self.tracker.snapshot()
@@ -591,7 +598,7 @@ class Service:
         period = 1.0 / self.cfg.loops.attitude_rate_hz
         t_next = self.clock.now_s()
         while True:
-            await self._wait(t_next)
+            await self._wait(t_next, until_reached=True)
             start = self.clock.now_s()
             wall0 = time.perf_counter()
             state = self.tracker.snapshot()

@@ -60,7 +60,12 @@ class LockstepGate:
     async def wait_for(
         self, stamp_ms: int, announce: Callable[[], None], stop: asyncio.Event
     ) -> None:
-        """Return once an answer stamped >= ``stamp_ms`` arrived (or the controller is gone)."""
+        """Return once an answer stamped >= ``stamp_ms`` arrived (or the controller is gone).
+
+        A slow answer is waited for, however long: each ``timeout_s`` without one is counted,
+        but physics does not advance. Only ``max_timeouts`` in a row mean the controller has
+        gone, and the clock falls back to real-time pace (a single timeout that advanced
+        physics made two lockstep runs on a loaded machine differ)."""
         while not self.joined and not stop.is_set():
             announce()
             await self._event_or(ANNOUNCE_PERIOD_S)
@@ -73,7 +78,9 @@ class LockstepGate:
                 if self._consecutive_timeouts >= self.max_timeouts:
                     self.waiting = False
                     self._consecutive_timeouts = 0
-                return
+                    return
+                deadline = time.monotonic() + self.timeout_s
+                continue
             await self._event_or(remaining)
         self._consecutive_timeouts = 0
 

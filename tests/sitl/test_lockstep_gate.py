@@ -49,9 +49,35 @@ def test_silence_times_out_then_falls_back_to_real_time_and_rejoins():
 
     run_clock(gate, 60, on_tick)
     assert gate.timeouts >= 5
-    assert log[0:5] == [True] * 5
-    assert log[5] is False  # after 5 consecutive timeouts: real-time pace
-    assert log[50] is True  # a setpoint put it back into waiting mode
+    # the 5 consecutive timeouts are all spent waiting on the first tick (physics does not
+    # advance without an answer); then the controller counts as gone: real-time pace
+    assert log[0] is True
+    assert log[1] is False
+    assert log[50] is True  # an answer put it back into waiting mode
+
+
+def test_a_slow_answer_is_waited_for_and_physics_does_not_advance_meanwhile():
+    """Under load an answer took longer than the timeout: the clock used to advance a tick
+    without it, and two identical lockstep runs differed."""
+    gate = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=50)
+    gate.on_answer(0)
+    ticks_before_answer = []
+
+    def on_tick(k: int) -> None:
+        if k == 1:  # the answer to tick 1 comes only after 4 timeouts
+            loop = asyncio.get_running_loop()
+            loop.call_later(0.045, gate.on_answer, 5)
+            loop.call_later(0.044, lambda: ticks_before_answer.append(k_seen[-1]))
+        else:
+            asyncio.get_running_loop().call_soon(gate.on_answer, k * 5)
+        k_seen.append(k)
+
+    k_seen: list[int] = []
+    run_clock(gate, 10, on_tick)
+    assert gate.timeouts >= 3  # counted...
+    assert ticks_before_answer == [1]  # ...but no tick ran before the answer arrived
+    assert gate.waiting  # and the clock is still in lockstep
+    assert k_seen == list(range(1, 11))
 
 
 def test_the_clock_holds_at_its_first_tick_announcing_until_a_controller_answers():
