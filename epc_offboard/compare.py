@@ -184,7 +184,6 @@ def write_compare_figure(
 
     from epc_offboard.figures import (
         PHASE_COLOURS,
-        VEHICLE_COLOURS,
         mark_events,
         vehicle_colour,
         vehicle_style,
@@ -203,11 +202,13 @@ def write_compare_figure(
         after = r.t_s >= settle
         label = run.method if len(run.results) == 1 else f"{run.method} #{r.vehicle_id}"
         label += f": RMSE {r.report['tracking']['rmse_m'] * 100:.2f} cm"
-        colour, ls = vehicle_colour(i), vehicle_style(i // len(VEHICLE_COLOURS))
+        # colour, dashes and width all differ, each drawn narrower over the earlier ones:
+        # identical methods (EPC + KF equals MPC + KF) both stay visible
+        colour, ls, lw = vehicle_colour(i), vehicle_style(i), max(0.9, 2.6 - 0.35 * i)
         ax_path.plot(r.pos_ned_m[after, 1], r.pos_ned_m[after, 0], color=colour, ls=ls,
-                     lw=1.3, label=label)  # fmt: skip
-        ax_err.plot(r.t_s, r.error_m * 100.0, color=colour, ls=ls, lw=1.2)
-        ax_vel.plot(r.t_s, r.vel_ned_m_s[:, axis], color=colour, ls=ls, lw=1.2)
+                     lw=lw, label=label)  # fmt: skip
+        ax_err.plot(r.t_s, r.error_m * 100.0, color=colour, ls=ls, lw=lw)
+        ax_vel.plot(r.t_s, r.vel_ned_m_s[:, axis], color=colour, ls=ls, lw=lw)
         if np.any(after):
             window_max = max(window_max, float(np.max(r.error_m[after])) * 100.0)
         if np.any(~after):
