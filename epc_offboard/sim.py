@@ -181,30 +181,34 @@ def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 5.0) -> None:
         proc.wait()
 
 
-def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
-    """(phase label, seconds flown under offboard) of a running vehicle, from the tail of its
-    growing flight log: "takeoff" until the service streams, "offboard 3.2/10 s", "landing"
-    once the offboard part is over (the log stops), "landed" when its stats are written."""
-    if run.stats.exists():
-        return "landed", duration_s
+def _last_row(path: Path) -> tuple[list[str], list[str]]:
+    """(header, last complete row) of a growing CSV; empty lists when none yet."""
     try:
-        with run.flight_log.open("rb") as fh:
+        with path.open("rb") as fh:
             header = fh.readline().decode(errors="replace").strip().split(",")
             fh.seek(0, os.SEEK_END)
             size = fh.tell()
             fh.seek(max(0, size - 4096))
             tail = fh.read().decode(errors="replace").splitlines()
     except OSError:
-        return "takeoff", 0.0
-    if "phase" not in header or "vehicle_t_s" not in header:
-        return "takeoff", 0.0
-    i_phase, i_t = header.index("phase"), header.index("vehicle_t_s")
+        return [], []
     rows = [r.split(",") for r in tail[1:] if r.count(",") == len(header) - 1]
-    if not rows:
+    return (header, rows[-1]) if rows and rows[-1] != header else (header, [])
+
+
+def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
+    """(phase label, seconds flown under offboard) of a running vehicle, from the tails of its
+    growing flight log and ground truth: "takeoff" until the service streams, "offboard
+    3.2/10 s", "landing" once the offboard part is over (the log stops while the vehicle's
+    clock runs on), "landed" when its stats are written."""
+    if run.stats.exists():
+        return "landed", duration_s
+    header, last = _last_row(run.flight_log)
+    if not last or "phase" not in header or "vehicle_t_s" not in header:
         return "takeoff", 0.0
-    phase, t_s = rows[-1][i_phase], float(rows[-1][i_t])
+    phase, t_s = last[header.index("phase")], float(last[header.index("vehicle_t_s")])
     if phase != "offboard":
-        if run.offboard_entry_s is not None:  # offboard is over: the log has stopped
+        if run.offboard_entry_s is not None:  # offboard is over
             return "landing", duration_s
         return "entering offboard", 0.0
     if run.offboard_entry_s is None:  # the first offboard row, read once
@@ -214,7 +218,9 @@ def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
                     run.offboard_entry_s = float(row["vehicle_t_s"])
                     break
     done_s = min(max(t_s - (run.offboard_entry_s or t_s), 0.0), duration_s)
-    if done_s >= duration_s - 0.05:
+    truth_header, truth_last = _last_row(run.groundtruth)
+    truth_t_s = float(truth_last[0]) if truth_last and truth_header[0] == "t_s" else t_s
+    if done_s >= duration_s - 0.05 or truth_t_s > t_s + 2.0:  # the log has stopped
         return "landing", duration_s
     return f"offboard {done_s:.1f}/{duration_s:g} s", done_s
 
@@ -237,6 +243,8 @@ def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> li
         run_dir.mkdir(parents=True, exist_ok=True)
         run = VehicleRun(k, run_dir)
         run.stats.unlink(missing_ok=True)  # with --stagger its appearance means "landed"
+        for stale in (run.flight_log, run.groundtruth):  # the progress bar reads their tails
+            stale.unlink(missing_ok=True)
         offboard_port = _free_udp_port()
         listen_port = _free_udp_port()
         library = out_dir / f"library-{k}.sqlite"

@@ -177,6 +177,13 @@ def test_progress_labels_the_phases(tmp_path: Path) -> None:
     rows = "".join(f"{t:.2f},{t:.2f},offboard,hit\n" for t in np.arange(6.0, 16.0, 0.01))
     run.flight_log.write_text(header + rows)
     assert flight_progress(run, 10.0)[0] == "landing"
+    # the log stopped short of the duration while the vehicle's clock ran on: landing
+    rows = "".join(f"{t:.2f},{t:.2f},offboard,hit\n" for t in np.arange(6.0, 12.0, 0.01))
+    run.flight_log.write_text(header + rows)
+    run.groundtruth.write_text("t_s,pos_n_m\n11.99,0\n")
+    assert flight_progress(run, 10.0)[0] == "offboard 6.0/10 s"
+    run.groundtruth.write_text("t_s,pos_n_m\n11.99,0\n14.5,0\n")
+    assert flight_progress(run, 10.0)[0] == "landing"
     run.stats.write_text("{}")
     assert flight_progress(run, 10.0) == ("landed", 10.0)
 
