@@ -97,6 +97,8 @@ class SharingConfig:
     max_payload_bytes: int = 262_144  # larger payloads are dropped before decoding
     max_messages_per_s: float = 20.0  # per peer, token bucket refill
     burst_messages: int = 40  # per peer, token bucket depth
+    fleet_messages_per_s: float = 100.0  # all peers together, checked before decoding
+    fleet_burst_messages: int = 200
     queue_size: int = 256  # inbound messages waiting for the event loop; beyond: dropped
     publish_period_s: float = 0.2  # new controllers are batched and published this often
     import_slice_s: float = 0.002  # event-loop time per slice of received controllers
@@ -118,11 +120,11 @@ class SharingConfig:
         if self.max_payload_bytes < 64:
             raise ValueError(f"max_payload_bytes must be >= 64, got {self.max_payload_bytes}")
         for name in ("max_messages_per_s", "publish_period_s", "query_timeout_s",
-                     "import_slice_s", "candidate_slice_s"):
+                     "import_slice_s", "candidate_slice_s", "fleet_messages_per_s"):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("burst_messages", "queue_size", "max_queued_entries",
-                     "candidate_pool_size", "candidates_per_peer"):
+                     "candidate_pool_size", "candidates_per_peer", "fleet_burst_messages"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for ep in (*self.listen, *self.connect):

@@ -169,6 +169,12 @@ class FleetSharing:
         for _name, ctrl in controllers:
             ctrl.limit_candidates(cfg.candidate_pool_size, cfg.candidates_per_peer)
         self._buckets = _TokenBuckets(cfg.max_messages_per_s, cfg.burst_messages)
+        # all peers together: rotating ids each get a fresh burst, so without a fleet-wide
+        # limit a flood is decoded in full on Zenoh's threads, which hold the GIL the
+        # control loops need (a flood of 1,200 ids cost the attitude loop 15 % of its ticks)
+        self._fleet_bucket = _TokenBuckets(
+            cfg.fleet_messages_per_s, cfg.fleet_burst_messages, max_peers=1
+        )
         self._lock = threading.Lock()  # counters and log throttle, from Zenoh's threads
         self._last_log: dict[tuple[str, str], float] = {}
         self._queue: asyncio.Queue[tuple[_Problem, ControllerMessage]] = asyncio.Queue(
@@ -406,7 +412,13 @@ class FleetSharing:
             self._log_limited("size", sender, "dropped a %d-byte payload from %s (limit %d)",
                               len(payload), sender, self.cfg.max_payload_bytes)  # fmt: skip
             return
-        if not self._buckets.allow(sender, time.monotonic()):
+        now = time.monotonic()
+        if not self._fleet_bucket.allow("fleet", now):
+            self._count("fleet_rate_limited")
+            self._log_limited("fleet-rate", "fleet", "rate-limiting the fleet: %s on %s",
+                              sender, key)  # fmt: skip
+            return
+        if not self._buckets.allow(sender, now):
             self._count("rate_limited")
             self._log_limited("rate", sender, "rate-limiting vehicle %s on %s", sender, key)
             return
