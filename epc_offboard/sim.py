@@ -568,6 +568,10 @@ def fly_and_report(
     cfg_text = (runs[0].out_dir / "service.toml").read_text()
     bounds = np.array(tomllib.loads(cfg_text)["position"]["max_vel_m_s"], dtype=np.float64)
     results = [analyse(r, scenario, bounds) for r in runs]
+    from epc_offboard.logexport import flight_csv_to_mcap
+
+    for r in runs:  # the per-tick log for Foxglove Studio and PlotJuggler, beside the CSV
+        flight_csv_to_mcap(r.flight_log, r.flight_log.with_suffix(".mcap"))
     report = make_report(args, scenario, results)
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
     write_figure(results, bounds, out_dir / "flight.png", title, settle_s=scenario.settle_s)

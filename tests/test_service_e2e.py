@@ -52,6 +52,7 @@ def test_sim_hover_holds_within_5_cm(tmp_path):
     assert v["library"]["hits"] > 0
     assert (out / "flight.png").stat().st_size > 10_000
     assert (out / "vehicle1" / "session.tlog").stat().st_size > 10_000
+    assert (out / "vehicle1" / "flight.mcap").stat().st_size > 10_000  # beside flight.csv
     loops = v["loops"]
     assert loops["position"]["rate_hz"] == pytest.approx(100.0, rel=0.05)
     assert loops["attitude"]["rate_hz"] == pytest.approx(200.0, rel=0.05)
