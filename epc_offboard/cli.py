@@ -115,6 +115,13 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     sim.add_argument("--seed", type=int, default=0, help="noise and gust seed")
     sim.add_argument(
+        "--gcs-port", type=int, default=None, metavar="PORT",
+        help="where QGroundControl or MAVProxy watch the flight (udpin:127.0.0.1:PORT): the "
+        "SITLs send their ground-station stream there, as PX4 SITL does to 14550 (default "
+        "with --autopilot px4); with ardupilot, vehicle k serves TCP on PORT + 10 (k - 1) "
+        "(default: none); 0: no stream",
+    )  # fmt: skip
+    sim.add_argument(
         "--autopilot", choices=["px4", "ardupilot"], default="px4",
         help="the SITL's autopilot personality; ardupilot starts it with GUID_OPTIONS=8 "
         "(thrust as throttle), as the README asks of a real ArduCopter",

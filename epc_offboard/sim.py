@@ -225,6 +225,17 @@ def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
     return f"offboard {done_s:.1f}/{duration_s:g} s", done_s
 
 
+def _gcs_port(args: argparse.Namespace, vehicle_id: int) -> int:
+    """The ground-station port of vehicle k's SITL, as PX4 and ArduPilot SITL number them: PX4
+    sends UDP to one port (14550 by default) for every vehicle, told apart by system id;
+    ArduPilot serves TCP on its own port (base + 10 (k - 1)), only when a base is given (a
+    listening port of a concurrent run could clash). 0: no ground-station stream."""
+    port = getattr(args, "gcs_port", None)
+    if getattr(args, "autopilot", "px4") == "ardupilot":
+        return 0 if not port else int(port) + 10 * (vehicle_id - 1)
+    return 14550 if port is None else int(port)
+
+
 def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> list[VehicleRun]:
     """Start every SITL and service, wait for the services to finish, stop the SITLs.
 
@@ -253,7 +264,7 @@ def fly(args: argparse.Namespace, scenario: ScenarioConfig, out_dir: Path) -> li
         sitl_cmd = [
             sys.executable, "-m", "sitl.main", "--instance", str(k - 1),
             "--listen-port", str(listen_port), "--offboard-port", str(offboard_port),
-            "--gcs-port", "0", "--groundtruth", str(run.groundtruth),
+            "--gcs-port", str(_gcs_port(args, k)), "--groundtruth", str(run.groundtruth),
             "--seed", str(args.seed + k - 1), "--wind", f"{wind[0]},{wind[1]}",
         ]  # fmt: skip
         if args.lockstep:

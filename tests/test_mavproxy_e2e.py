@@ -119,3 +119,30 @@ def test_mavproxy_shows_the_vehicle_its_mode_and_position(tmp_path):
         operator.close()
         for proc in (mavproxy, sitl):
             stop_process(proc)
+
+
+def test_mavproxy_watches_a_running_sim_fly_offboard(tmp_path):
+    """`epc-offboard sim --gcs-port P` streams to a ground station as PX4 SITL does to 14550:
+    MAVProxy sees the vehicle, the service's takeoff and its Offboard flight, by name."""
+    gcs_port = free_port()
+    mavproxy = subprocess.Popen(
+        [sys.executable, str(MAVPROXY), f"--master=udpin:127.0.0.1:{gcs_port}",
+         "--non-interactive"],
+        cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )  # fmt: skip
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "hover", "--duration", "6",
+         "--adaptation", "none", "--gcs-port", str(gcs_port), "--out", str(tmp_path / "out")],
+        stdin=subprocess.DEVNULL, stdout=(tmp_path / "sim.log").open("wb"),
+        stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    try:
+        out = _Lines(mavproxy)
+        deadline = time.monotonic() + 45.0
+        out.wait_for(r"Detected vehicle 1:1 on link 0", deadline)
+        out.wait_for(r"Mode OFFBOARD", deadline)  # the service flying, by PX4's mode name
+        assert sim.wait(timeout=60) == 0, (tmp_path / "sim.log").read_text()
+    finally:
+        for proc in (sim, mavproxy):
+            stop_process(proc)
