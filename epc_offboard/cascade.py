@@ -40,7 +40,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from epc_offboard import frames, lwpr
+from epc_offboard import frames, kernels, lwpr
 from epc_offboard.baselines import MpcController, PdController
 from epc_offboard.decision import Controller, Decision
 from epc_offboard.epc import ExperienceController, LibraryEntry
@@ -100,6 +100,9 @@ class PositionControlConfig:
     max_thrust_norm: float = 0.95
     yaw_deg: float = 0.0  # heading held while tracking
     library_size: int = 400
+    # a library query's worst-case cost: bounds the candidates a miss checks (the most
+    # likely first: the last controller, its successors, then by importance)
+    query_budget_us: float = 400.0
     pd_kp: Vec3 = (6.0, 6.0, 8.0)
     pd_kd: Vec3 = (4.5, 4.5, 5.0)
 
@@ -118,6 +121,8 @@ class PositionControlConfig:
             raise ValueError("need 0 < min_thrust_norm < hover_thrust_norm < max_thrust_norm <= 1")
         if self.library_size < 1:
             raise ValueError(f"library_size must be >= 1, got {self.library_size}")
+        if not self.query_budget_us > 0.0:
+            raise ValueError(f"query_budget_us must be > 0, got {self.query_budget_us}")
 
 
 @dataclass(frozen=True)
@@ -135,6 +140,7 @@ class AttitudeControlConfig:
     max_rate_rad_s: Vec3 = (4.0, 4.0, 2.0)
     fallback_gain_1_s: float = 6.0  # P on angle error when the attitude EPC cannot answer
     library_size: int = 200
+    query_budget_us: float = 200.0  # as position.query_budget_us
     # The attitude EPC is linearised about hover (Euler angles, body rates). Beyond this tilt,
     # or this far from its attitude target, its body rates are not to be trusted (in a soak
     # under CPU load it chattered between +-max rate at 60 deg and flipped the vehicle): the
@@ -147,6 +153,8 @@ class AttitudeControlConfig:
             raise ValueError("horizon >= 1, dt_s > 0 and rate_time_constant_s > 0 are required")
         if any(v <= 0.0 for v in self.max_rate_rad_s):
             raise ValueError(f"max_rate_rad_s must be > 0, got {self.max_rate_rad_s}")
+        if not self.query_budget_us > 0.0:
+            raise ValueError(f"query_budget_us must be > 0, got {self.query_budget_us}")
         for name in ("rates_max_tilt_deg", "rates_max_error_deg"):
             if not 0.0 < getattr(self, name) <= 180.0:
                 raise ValueError(f"{name} must be in (0, 180], got {getattr(self, name)}")
@@ -256,6 +264,10 @@ class Cascade:
         self.pos_model = position_model_lagged(pc.dt_s, pc.tau_acc_s)
         # a[k+1] = alpha a[k] + (1 - alpha) u[k] per axis: what the feedforward inverts
         self._acc_alpha = np.exp(-pc.dt_s / np.array(pc.tau_acc_s, dtype=np.float64))
+        self._one_minus_alpha = 1.0 - self._acc_alpha
+        # the tick's scratch arrays (not kept by anything the tick returns)
+        self._z_stages = np.empty((pc.horizon + 1, 3))  # estimator query: v of x_0..x_N
+        self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
         self.acc_limits = acceleration_limits(
             math.radians(pc.max_tilt_deg),
             pc.min_thrust_norm,
@@ -283,9 +295,11 @@ class Cascade:
         )
         self.position: Controller
         if pc.controller == "epc":
-            self.position = ExperienceController(
+            epc = ExperienceController(
                 self.pos_problem, max_size=pc.library_size, learn_on_miss=self.learn_on_miss
             )
+            epc.max_checks = epc.checks_within(pc.query_budget_us)
+            self.position = epc
         elif pc.controller == "mpc":
             self.position = MpcController(self.pos_problem)
         else:
@@ -303,6 +317,7 @@ class Cascade:
         self.attitude = ExperienceController(
             self.att_problem, max_size=ac.library_size, learn_on_miss=self.learn_on_miss
         )
+        self.attitude.max_checks = self.attitude.checks_within(ac.query_budget_us)
         ec = self.estimator_cfg
         self.estimator = make_estimator(
             ec.kind,
@@ -330,8 +345,9 @@ class Cascade:
         out: FloatArray = np.tile(row, (self.position_horizon, 1))
         return out
 
-    def _observe(self, state: VehicleState) -> None:
-        """Feed the estimator the disturbance measured over the last prediction step.
+    def _observe(self, state: VehicleState, achieved: FloatArray) -> None:
+        """Feed the estimator the disturbance measured over the last prediction step;
+        ``achieved`` (3,): :meth:`achieved_acceleration` at this state.
 
         Velocities are taken on their own sample times, once per new position sample: a
         velocity repeated while its stream lags (or stops, as when an estimator drops out)
@@ -345,11 +361,7 @@ class Cascade:
         if self._history and t_vel <= self._history[-1].t_s + 1e-9:
             return  # no new velocity sample since the last observation
         if not math.isnan(self._last_thrust_norm):
-            roll, pitch, yaw = state.euler_rad
-            achieved = attitude_to_accel(
-                AttitudeThrust(roll, pitch, yaw, self._last_thrust_norm),
-                self.position_cfg.hover_thrust_norm,
-            )
+            # ``achieved``: the measured attitude with the last commanded thrust
             self._history.append(_Observation(t_vel, state.vel_ned_m_s.copy(), achieved))
         if len(self._history) < 2:
             return
@@ -385,7 +397,7 @@ class Cascade:
     def _lag_inverse(self, a: FloatArray) -> FloatArray:
         """(N, 3) commands that make the lagged acceleration follow ``a`` (N+1, 3), the
         values at x_0..x_N: ``u_k = (a_{k+1} - alpha a_k) / (1 - alpha)``."""
-        out: FloatArray = (a[1:] - self._acc_alpha * a[:-1]) / (1.0 - self._acc_alpha)
+        out: FloatArray = (a[1:] - self._acc_alpha * a[:-1]) / self._one_minus_alpha
         return out
 
     def achieved_acceleration(self, state: VehicleState) -> FloatArray:
@@ -408,24 +420,33 @@ class Cascade:
         (before offboard is confirmed, our thrust is not what flies and must not be learned).
         """
         t0 = time.perf_counter()
+        achieved = self.achieved_acceleration(state)
         if learn:
-            self._observe(state)
+            self._observe(state, achieved)
         else:
             self._history.clear()
-        d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), -self._d_max, self._d_max)
-        x0 = np.concatenate([state.pos_ned_m, state.vel_ned_m_s, self.achieved_acceleration(state)])
+        d_max = self._d_max
         if isinstance(self.position, PdController):
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
             # itself; the nominal input only cancels the disturbance
+            d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), -d_max, d_max)
             u_p = np.broadcast_to(-d_hat, (self.position_horizon, 3))
         else:
             # the disturbance at each stage's reference velocity, as the estimator knows it
             # (LWPR's d(v); zero change for the KF observer): the nominal input that keeps the
-            # lagged acceleration on a_ref - d along the horizon, not only on a_ref - d_hat
-            z_stages = np.vstack([state.vel_ned_m_s, refs[:, 3:6]])  # v of x_0..x_N
-            d_var = self.estimator.variation(state.vel_ned_m_s, z_stages)
-            d_var = np.clip(d_hat + d_var, -self._d_max, self._d_max) - d_hat
+            # lagged acceleration on a_ref - d along the horizon, not only on a_ref - d_hat.
+            # One prediction pass gives both the estimate at v (row 0) and its variation.
+            z_stages = self._z_stages
+            z_stages[0] = state.vel_ned_m_s
+            z_stages[1:] = refs[:, 3:6]  # v of x_0..x_N
+            p_hat, d_var = self.estimator.estimate_along(z_stages)
+            d_hat = np.clip(p_hat, -d_max, d_max)
+            d_var = np.clip(d_hat + d_var, -d_max, d_max) - d_hat
             u_p = self.feedforward(refs) - d_hat - self._lag_inverse(d_var)
+        x0 = self._x0
+        x0[0:3] = state.pos_ned_m
+        x0[3:6] = state.vel_ned_m_s
+        x0[6:9] = achieved
         decision: Decision = self.position.step(
             x0, refs, u_p, perturbation=self._e_dist @ d_hat
         )
@@ -508,6 +529,7 @@ class Cascade:
         t0 = time.perf_counter()
         if self.estimator_cfg.kind == "lwpr":
             lwpr.warm_up()  # every LWPR kernel, whatever the few scratch ticks exercise
+        kernels.warm_up()  # the library scan: an empty scratch library never runs it
         scratch = Cascade(
             self.position_cfg, self.attitude_cfg, self.estimator_cfg, self.loop_period_s
         )

@@ -15,7 +15,10 @@ whose slack is zero by construction) is the thesis's "every inactive constraint 
 without gathering rows.
 
 Query order: the last used controller, then its successors in the transition counts (most
-frequent first), then the rest by importance (last use, most recent first). A miss calls
+frequent first), then the rest by importance (last use, most recent first). The scan is one
+compiled call over the maps in that order (:func:`epc_offboard.kernels.query_maps`), bounded
+by ``max_checks`` candidates: a query never costs more than that many KKT checks, whatever
+the library's size (a stored controller beyond the bound is a miss this tick). A miss calls
 :meth:`ExperienceController.learn` (OSQP, polished; active set recovered, rebuilt exactly from
 the KKT system and verified by the same check) and, if that fails, the intermediate
 controller (short horizon, slack on the state bounds, always feasible), then a bounded hover.
@@ -48,7 +51,7 @@ import scipy.linalg as sla
 
 from epc_offboard.decision import Decision
 from epc_offboard.frames import FloatArray
-from epc_offboard.kernels import apply_map
+from epc_offboard.kernels import apply_map, new_map_list, query_maps
 from epc_offboard.models import LinearModel
 from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
 
@@ -61,6 +64,12 @@ _DEPENDENCE_RTOL = 1e-6
 # make OSQP's duals point at it
 _EPS = 1e-8
 _MAX_ITER = 10000
+# Worst-case cost of one KKT check in the compiled scan, per multiply-add of its map (a
+# candidate refused only at its last row): measured 0.13-0.21 ns on the 2-core development
+# machine under load (`epc-offboard bench --service` prints the scan's cost); a query budget
+# in us is turned into a number of candidates with it, so the bound holds in the worst case.
+CHECK_NS_PER_MAC = 0.2
+
 
 
 @dataclass(frozen=True)
@@ -202,6 +211,7 @@ class _Entry:
     importance: float
     uses: int
     origin: str
+    slot: int = -1  # its map's index in the compiled scan's arrays
 
 
 @dataclass
@@ -354,9 +364,12 @@ class ExperienceController:
         max_pending: int = 8,
         max_candidates: int = 64,
         max_candidates_per_origin: int = 16,
+        max_checks: int | None = None,
     ) -> None:
         if max_size < 1:
             raise ValueError(f"max_size must be >= 1, got {max_size}")
+        if max_checks is not None and max_checks < 1:
+            raise ValueError(f"max_checks must be >= 1 or None, got {max_checks}")
         if not (tol > 0.0 and math.isfinite(tol)):
             raise ValueError(f"tol must be a positive finite number, got {tol}")
         if intermediate_horizon < 1:
@@ -380,6 +393,17 @@ class ExperienceController:
         self._intermediate = self._fallback = self._learn_failures = 0
         self._received_shared = 0
         self.candidates = CandidatePool(max_candidates, max_candidates_per_origin)
+        # the bounded scan: every entry's map arrays in slots, and the query order as slots
+        self.max_checks = max_checks
+        self._slot_M = new_map_list()
+        self._slot_width = new_map_list()
+        self._slot_n_check = np.zeros(0, dtype=np.int64)
+        self._free_slots: list[int] = []
+        self._order: npt.NDArray[np.int64] | None = None  # None: to rebuild
+        self._slot_entry: list[_Entry | None] = []  # whose map each slot holds
+        self.last_query_checks = 0  # candidates the last query checked (diagnostics, tests)
+        self._checks = 0
+        self._budget_exhausted = 0
         self._setup(problem)
 
     # -- model ------------------------------------------------------------------------------
@@ -412,6 +436,8 @@ class ExperienceController:
             except DependentActiveSetError:
                 logger.debug("dropping %s: dependent under the new model", e.map.active)
                 self._remove(key)
+                continue
+            self._store_slot(e)
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -479,22 +505,71 @@ class ExperienceController:
                 yield entries[key]
 
     def query_order(self) -> list[tuple[int, ...]]:
-        """Active sets in the order the next query will try them (diagnostics and tests)."""
-        return [e.map.active for e in self._candidates()]
+        """Active sets in the order the next query will try them, at most ``max_checks`` of
+        them (diagnostics and tests)."""
+        order = [e.map.active for e in self._candidates()]
+        return order if self.max_checks is None else order[: self.max_checks]
+
+    def _query_slots(self) -> npt.NDArray[np.int64]:
+        """The slots of :meth:`_candidates`, cached until the order can have changed (an
+        entry added or removed, another controller used, transitions imported)."""
+        if self._order is None:
+            self._order = np.fromiter(
+                (e.slot for e in self._candidates()), dtype=np.int64, count=len(self._entries)
+            )
+        return self._order
 
     def _query(self, theta_aug: FloatArray, u_out: FloatArray) -> _Entry | None:
         p = self.problem
         u_min, u_max = p.u_min, p.u_max
         last = self._last
+        budget = len(self._entries) if self.max_checks is None else self.max_checks
+        checked = 0
         if last is not None:
             # the hot path: the last controller usually still applies
             e = self._entries.get(last)
-            if e is not None and e.map.apply(theta_aug, u_out, u_min, u_max):
-                return e
-        for e in self._candidates():
-            if e.key != last and e.map.apply(theta_aug, u_out, u_min, u_max):
-                return e
-        return None
+            if e is not None:
+                checked = 1
+                if e.map.apply(theta_aug, u_out, u_min, u_max):
+                    self.last_query_checks = 1
+                    self._checks += 1
+                    return e
+        order = self._query_slots()
+        start = checked  # the last controller, when there is one, is the order's first
+        n = min(budget - checked, len(order) - start)
+        k = query_maps(self._slot_M, self._slot_width, self._slot_n_check, order[start:],
+                       n, theta_aug, u_out, u_min, u_max) if n > 0 else -1
+        checked += n if k < 0 else k + 1
+        self.last_query_checks = checked
+        self._checks += checked
+        if k < 0:
+            if len(self._entries) > budget:
+                self._budget_exhausted += 1
+            return None
+        found = self._slot_entry[int(order[start + k])]
+        assert found is not None  # the order holds live entries' slots only
+        return found
+
+    def _store_slot(self, entry: _Entry) -> None:
+        """Put the entry's map arrays in a slot of the compiled scan (its own, if it has
+        one: the map was rebuilt)."""
+        amap = entry.map
+        if entry.slot < 0:
+            if self._free_slots:
+                entry.slot = self._free_slots.pop()
+            else:
+                entry.slot = len(self._slot_M)
+                self._slot_M.append(amap.M)
+                self._slot_width.append(amap.width)
+                self._slot_n_check = np.append(self._slot_n_check, amap.n_check)
+                self._slot_entry.append(entry)
+                self._order = None
+                return
+        self._slot_M[entry.slot] = amap.M
+        self._slot_width[entry.slot] = amap.width
+        self._slot_n_check[entry.slot] = amap.n_check
+        self._slot_entry[entry.slot] = entry
+        self._order = None
 
     def _use(self, entry: _Entry) -> None:
         key = entry.key
@@ -506,6 +581,7 @@ class ExperienceController:
         entry.uses += 1
         if last != key:
             self._entries.move_to_end(key)
+            self._order = None
         self._last = key
 
     # -- miss path --------------------------------------------------------------------------
@@ -596,7 +672,14 @@ class ExperienceController:
                           self.problem.u_max):
             self._learn_failures += 1
             return False
-        if amap.active in self._by_set:
+        key = self._by_set.get(amap.active)
+        if key is not None:
+            if self.max_checks is not None and len(self._entries) > self.max_checks:
+                # the query's budget did not reach it: make it the most important, so the
+                # next query in this region checks it first instead of missing again
+                self._entries[key].importance = float(self._tick)
+                self._entries.move_to_end(key)
+                self._order = None
             return True
         entry = self._add(amap, origin=origin)
         if solved:
@@ -748,6 +831,7 @@ class ExperienceController:
         self.candidates.take(amap.active)  # in the library now: no longer a candidate
         self._entries[key] = entry
         self._by_set[amap.active] = key
+        self._store_slot(entry)
         if least_important:
             self._entries.move_to_end(key, last=False)
         while len(self._entries) > self.max_size:
@@ -761,11 +845,31 @@ class ExperienceController:
     def _remove(self, key: int) -> None:
         entry = self._entries.pop(key)
         self._by_set.pop(entry.map.active, None)
+        self._slot_entry[entry.slot] = None
+        self._free_slots.append(entry.slot)  # its arrays stay until the slot is reused
+        self._order = None
         self._succ.pop(key, None)
         for succ in self._succ.values():
             succ.pop(key, None)
         if self._last == key:
             self._last = None
+
+    def check_cost_us(self) -> float:
+        """Worst-case cost of checking one candidate: the largest map (every input row
+        active) evaluated to its last row, at :data:`CHECK_NS_PER_MAC`."""
+        p = self.problem
+        rows = p.n_u + len(self._geom.chk_rows) + p.nu
+        return rows * (p.n_theta + 1) * CHECK_NS_PER_MAC * 1e-3
+
+    def checks_within(self, budget_us: float) -> int:
+        """How many candidates a query may check to stay within ``budget_us`` (>= 1)."""
+        return max(1, int(budget_us / self.check_cost_us()))
+
+    @property
+    def query_counters(self) -> dict[str, int]:
+        """Candidates checked over all queries, and queries that ended at the budget with
+        entries left unchecked."""
+        return {"checks": self._checks, "budget_exhausted": self._budget_exhausted}
 
     @property
     def stats(self) -> EpcStats:
@@ -867,6 +971,7 @@ class ExperienceController:
             if ka in self._entries and kb in self._entries and ka is not None and kb is not None:
                 succ = self._succ.setdefault(ka, {})
                 succ[kb] = succ.get(kb, 0) + count
+                self._order = None
         if source == "shared":
             self._received_shared += added
         logger.debug("imported %d of %d %s entries", added, len(items), source)

@@ -1,4 +1,4 @@
-"""The EPC hit path's inner loop: apply one cached active-set map and KKT-check it.
+"""The EPC hit path's inner loops: apply cached active-set maps and KKT-check them.
 
 ``apply_map(M, width, theta_aug, n_check, u_out, u_min, u_max) -> bool`` computes
 ``w = M theta_aug`` row by row; the first ``n_check`` rows must satisfy ``0 <= w <= width``
@@ -8,19 +8,30 @@ first input, written clipped to ``[u_min, u_max]`` into ``u_out`` when the check
 Compiled with numba when it is installed: one call instead of five numpy calls, and an early
 exit on the first violated row, which makes refusing a candidate cheaper than applying it.
 The numpy version below is the reference and the fallback; the tests run both.
+
+``query_maps(Ms, widths, n_checks, order, n_order, theta_aug, u_out, u_min, u_max) -> int``
+is the library scan in one call: it tries the maps ``Ms[order[k]]`` for k = 0..n_order-1 in
+that order and returns the first k whose check passes (its input written to ``u_out``), or
+-1. ``n_order`` is the query's budget: the number of candidates checked never exceeds it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import cast
+from collections.abc import Callable, MutableSequence, Sequence
+from typing import Any, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from epc_offboard.frames import FloatArray
 
+IntArray = npt.NDArray[np.int64]
+
 ApplyMap = Callable[[FloatArray, FloatArray, FloatArray, int, FloatArray, FloatArray,
                      FloatArray], bool]
+# (Ms, widths, n_checks, order, n_order, theta_aug, u_out, u_min, u_max) -> k or -1
+QueryMaps = Callable[[Sequence[FloatArray], Sequence[FloatArray], IntArray, IntArray, int,
+                      FloatArray, FloatArray, FloatArray, FloatArray], int]
 
 
 def apply_map_numpy(
@@ -43,7 +54,34 @@ def apply_map_numpy(
     return True
 
 
-def _compile() -> ApplyMap | None:
+def _make_query(apply: ApplyMap) -> QueryMaps:
+    """The library scan over ``apply``: plain Python over the numpy reference, or compiled
+    by numba whole (``apply`` then being the compiled check) into one call."""
+
+    def query(
+        Ms: Sequence[FloatArray],
+        widths: Sequence[FloatArray],
+        n_checks: IntArray,
+        order: IntArray,
+        n_order: int,
+        theta_aug: FloatArray,
+        u_out: FloatArray,
+        u_min: FloatArray,
+        u_max: FloatArray,
+    ) -> int:
+        for k in range(min(n_order, order.shape[0])):
+            i = order[k]
+            if apply(Ms[i], widths[i], theta_aug, n_checks[i], u_out, u_min, u_max):
+                return k
+        return -1
+
+    return query
+
+
+query_maps_numpy = _make_query(apply_map_numpy)
+
+
+def _compile() -> tuple[ApplyMap, QueryMaps] | None:
     try:
         import numba
     except ImportError:  # numba is a dependency; keep working without it, only slower
@@ -78,12 +116,42 @@ def _compile() -> ApplyMap | None:
     # location numba refuses cache=True, so compile in memory then.
     fastmath = {"reassoc", "contract"}
     try:
-        compiled = numba.njit(apply_map_numba, cache=True, nogil=True, fastmath=fastmath)
+        compiled: Any = numba.njit(apply_map_numba, cache=True, nogil=True, fastmath=fastmath)
+        cache = True
     except RuntimeError:
         compiled = numba.njit(apply_map_numba, cache=False, nogil=True, fastmath=fastmath)
-    return cast(ApplyMap, compiled)
+        cache = False
+
+    query = numba.njit(_make_query(cast(ApplyMap, compiled)), cache=cache, nogil=True)
+    return cast(ApplyMap, compiled), cast(QueryMaps, query)
+
+
+def new_map_list() -> MutableSequence[Any]:
+    """The container :func:`query_maps` takes its per-map arrays in: a numba typed list
+    (passed to the compiled scan without conversion) or, without numba, a Python list."""
+    if _NUMBA is None:
+        return []
+    from numba import typed
+
+    return cast(MutableSequence[Any], typed.List())
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the scan and the typed list's methods now: the first
+    miss of a flight must not pay for it (DESIGN.md, timing on a companion computer)."""
+    Ms, widths = new_map_list(), new_map_list()
+    for _ in range(2):
+        Ms.append(np.zeros((2, 2)))
+        widths.append(np.full(1, np.inf))
+    Ms[1] = np.ones((2, 2))  # the slot reuse path
+    widths[1] = np.full(1, np.inf)
+    u = np.empty(1)
+    n_checks = np.ones(2, dtype=np.int64)
+    query_maps(Ms, widths, n_checks, np.arange(2, dtype=np.int64), 2, np.ones(2), u,
+               np.full(1, -1.0), np.full(1, 1.0))
 
 
 _NUMBA = _compile()
-apply_map: ApplyMap = _NUMBA if _NUMBA is not None else apply_map_numpy
+apply_map: ApplyMap = _NUMBA[0] if _NUMBA is not None else apply_map_numpy
+query_maps: QueryMaps = _NUMBA[1] if _NUMBA is not None else query_maps_numpy
 HAVE_NUMBA = _NUMBA is not None

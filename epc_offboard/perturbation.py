@@ -8,6 +8,7 @@ has the same protocol, so scenarios can compare them side by side:
     est.observe(z, p_measured)   # after each model step: z (n_z,), p_measured (nx,)
     p_hat = est.estimate(z)      # once per control tick, at the current query point: (nx,)
     dp = est.variation(z, zs)    # (m, nx): how the estimate changes from z to each row of zs
+    p_hat, dp = est.estimate_along(zs)   # both at once, z = zs[0]: one prediction pass
     est.reset()                  # back to the initial state (nothing learned, filter at 0)
     blob = est.to_bytes(); est.load_bytes(blob)   # the learned state, e.g. for a database
 
@@ -56,6 +57,8 @@ class PerturbationEstimator(Protocol):
     def estimate(self, z: npt.ArrayLike) -> FloatArray: ...
 
     def variation(self, z: npt.ArrayLike, zs: npt.ArrayLike) -> FloatArray: ...
+
+    def estimate_along(self, zs: npt.ArrayLike) -> tuple[FloatArray, FloatArray]: ...
 
     def reset(self) -> None: ...
 
@@ -195,6 +198,14 @@ def _check_rows(value: npt.ArrayLike, n: int, name: str) -> FloatArray:
     return arr
 
 
+def _query_rows(zs: npt.ArrayLike, n: int) -> FloatArray:
+    """:func:`_check_rows` for ``estimate_along``: at least one row, the query point."""
+    rows = _check_rows(zs, n, "zs")
+    if len(rows) == 0:
+        raise LwprError("zs must have at least one row (the query point)")
+    return rows
+
+
 def _dims(nx: int, n_z: int) -> tuple[int, int]:
     for name, value in (("nx", nx), ("n_z", n_z)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -258,6 +269,11 @@ class NoPerturbation:
     def variation(self, z: npt.ArrayLike, zs: npt.ArrayLike) -> FloatArray:
         check_vector(z, self.n_z, "z")
         return np.zeros((len(_check_rows(zs, self.n_z, "zs")), self.nx))
+
+    def estimate_along(self, zs: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """``estimate(zs[0])`` and ``variation(zs[0], zs)``: zeros."""
+        rows = _query_rows(zs, self.n_z)
+        return self.estimate(rows[0]), np.zeros((len(rows), self.nx))
 
     def reset(self) -> None:
         pass
@@ -363,6 +379,16 @@ class LwprPerturbation:
         out: FloatArray = self.predict_raw_many(zs) - self.predict_raw(z)
         return out
 
+    def estimate_along(self, zs: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """``estimate(zs[0])`` and ``variation(zs[0], zs)`` from one prediction pass over the
+        rows of zs (m, n_z), m >= 1: the same numbers (a row of ``predict_many`` is
+        ``predict`` at that row), half the LWPR calls. Advances the filter like ``estimate``."""
+        raw = self.predict_raw_many(zs)
+        if len(raw) == 0:
+            raise LwprError("zs must have at least one row (the query point)")
+        variation: FloatArray = raw - raw[0]
+        return self.filter.step(raw[0]), variation
+
     def reset(self) -> None:
         self.models = self._new_models()
         self.filter.reset()
@@ -454,6 +480,11 @@ class KalmanPerturbation:
         """Zero: the observer's disturbance does not depend on z."""
         check_vector(z, self.n_z, "z")
         return np.zeros((len(_check_rows(zs, self.n_z, "zs")), self.nx))
+
+    def estimate_along(self, zs: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """``estimate(zs[0])`` and ``variation(zs[0], zs)`` (zeros)."""
+        rows = _query_rows(zs, self.n_z)
+        return self.estimate(rows[0]), np.zeros((len(rows), self.nx))
 
     def reset(self) -> None:
         m = len(self.outputs)

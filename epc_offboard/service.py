@@ -541,23 +541,23 @@ class Service:
             out = self.cascade.hover(state)
             self._log_tick(state, t_s, out)
             return out
+        ref_now: FloatArray | None = None  # the trajectory at t_s, for the flight log
         try:
             refs = self._live_refs(state)
-            if refs is None:
-                refs = (
-                    self.cascade.hold_refs(state)
-                    if self.trajectory is None
-                    else self.trajectory.horizon(
-                        t_s, self.cascade.position_dt_s, self.cascade.position_horizon
-                    )
+            if refs is None and self.trajectory is not None:
+                rows = self.trajectory.horizon_from_now(
+                    t_s, self.cascade.position_dt_s, self.cascade.position_horizon
                 )
+                ref_now, refs = rows[0], rows[1:]
+            elif refs is None:
+                refs = self.cascade.hold_refs(state)
             out = self.cascade.position_tick(
                 state, refs, learn=self.outputs.phase == Phase.OFFBOARD
             )
         except Exception as exc:  # degrade, never die
             self._loop_error("position", exc)
             out = self.cascade.hover(state)
-        self._log_tick(state, t_s, out)
+        self._log_tick(state, t_s, out, ref_now)
         return out
 
     def _live_refs(self, state: VehicleState) -> FloatArray | None:
@@ -779,12 +779,24 @@ class Service:
         self._flight_writer = csv.writer(self._flight_log)
         self._flight_writer.writerow(_FLIGHT_LOG_COLUMNS)
 
-    def _log_tick(self, state: VehicleState, t_s: float, out: PositionOutput) -> None:
+    def _log_tick(
+        self,
+        state: VehicleState,
+        t_s: float,
+        out: PositionOutput,
+        ref_now: FloatArray | None = None,
+    ) -> None:
+        """One flight-log row; ``ref_now`` (9,): the trajectory at ``t_s`` when the tick has
+        it already (the first row of its horizon), else it is sampled here."""
         if self._flight_writer is None:
             return
-        ref = self.trajectory.sample(t_s) if self.trajectory is not None else None
-        ref_pos = ref.pos_ned_m if ref is not None else out.ref_pos_ned_m
-        ref_vel = ref.vel_ned_m_s if ref is not None else [0.0, 0.0, 0.0]
+        if ref_now is not None:
+            ref_pos, ref_vel = ref_now[:3], ref_now[3:6]
+        elif self.trajectory is not None:
+            ref = self.trajectory.sample(t_s)
+            ref_pos, ref_vel = ref.pos_ned_m, ref.vel_ned_m_s
+        else:
+            ref_pos, ref_vel = out.ref_pos_ned_m, np.zeros(3)
         self._flight_writer.writerow(
             [f"{t_s:.4f}", f"{state.time_s:.4f}", self.outputs.phase.value]
             + [f"{v:.5f}" for v in (*state.pos_ned_m, *state.vel_ned_m_s, *ref_pos, *ref_vel)]

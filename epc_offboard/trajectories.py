@@ -231,13 +231,81 @@ class Trajectory:
 
     def horizon(self, t0_s: float, dt_s: float, steps: int) -> FloatArray:
         """References for x[1..N] of the position model: (steps, 9) rows [p_ned, v_ned, a_ned]."""
-        out = np.empty((steps, 9))
-        for k in range(steps):
-            r = self.sample(t0_s + (k + 1) * dt_s)
-            out[k, :3] = r.pos_ned_m
-            out[k, 3:6] = r.vel_ned_m_s
-            out[k, 6:] = r.acc_ned_m_s2
+        return self.horizon_from_now(t0_s, dt_s, steps)[1:]
+
+    def horizon_from_now(self, t0_s: float, dt_s: float, steps: int) -> FloatArray:
+        """(steps + 1, 9) rows [p_ned, v_ned, a_ned] at ``t0_s + k dt_s``, k = 0..steps: the
+        reference now, then the horizon of :meth:`horizon`. Each row equals :meth:`sample` at
+        its time to the last bit; circle and figure-8 are evaluated in one vectorised pass
+        (the position loop's tick: 20 samples in a few us instead of ~100)."""
+        many = _PATHS_MANY.get(self.config.shape)
+        if many is None:
+            out = np.empty((steps + 1, 9))
+            for k in range(steps + 1):
+                r = self.sample(t0_s + k * dt_s)
+                out[k, :3] = r.pos_ned_m
+                out[k, 3:6] = r.vel_ned_m_s
+                out[k, 6:] = r.acc_ned_m_s2
+            return out
+        # the same float operations as sample() (k * dt_s is float(k) * dt_s in both)
+        t = t0_s + np.arange(steps + 1, dtype=np.float64) * dt_s
+        s, ds, dds = _warp_many(t - self.start_s, self.config.ramp_s)
+        out = np.zeros((steps + 1, 9))
+        p, dp, ddp = out[:, 0:3], out[:, 3:6], out[:, 6:9]
+        many(self.config, s, p, dp, ddp)  # the path's p, p', p'' (z rows stay 0)
+        ds_c, dds_c = ds[:, None], dds[:, None]
+        ddp[:, :2] = ddp[:, :2] * ds_c * ds_c + dp[:, :2] * dds_c
+        dp[:, :2] *= ds_c
+        p += self.anchor_ned_m
         return out
+
+
+def _warp_many(t_s: FloatArray, ramp_s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`_warp` at each element of ``t_s``, bit for bit."""
+    w = math.pi / ramp_s
+    wt = w * t_s
+    sin_wt = np.sin(wt)
+    ramping = t_s < ramp_s
+    s = np.where(ramping, t_s / 2 - sin_wt / (2 * w), ramp_s / 2 + (t_s - ramp_s))
+    ds = np.where(ramping, (1 - np.cos(wt)) / 2, 1.0)
+    dds = np.where(ramping, w * sin_wt / 2, 0.0)
+    before = t_s <= 0.0
+    if before.any():
+        s[before] = ds[before] = dds[before] = 0.0
+    return s, ds, dds
+
+
+_PathMany = Callable[[TrajectoryConfig, FloatArray, FloatArray, FloatArray, FloatArray], None]
+
+
+def _circle_many(
+    cfg: TrajectoryConfig, s: FloatArray, p: FloatArray, dp: FloatArray, ddp: FloatArray
+) -> None:
+    """The circle's p, p', p'' at each s, written into the (m, 3) views (z left alone)."""
+    r, w = cfg.radius_m, 2 * math.pi / cfg.period_s
+    c, si = np.cos(w * s), np.sin(w * s)
+    p[:, 0], p[:, 1] = r - r * c, r * si
+    dp[:, 0], dp[:, 1] = r * w * si, r * w * c
+    ddp[:, 0], ddp[:, 1] = r * w * w * c, -r * w * w * si
+
+
+def _figure8_many(
+    cfg: TrajectoryConfig, s: FloatArray, p: FloatArray, dp: FloatArray, ddp: FloatArray
+) -> None:
+    """The figure-8's p, p', p'' at each s, written into the (m, 3) views (z left alone)."""
+    a, w = cfg.size_m, 2 * math.pi / cfg.period_s
+    ws, w2s = w * s, 2 * w * s
+    s1, s2 = np.sin(ws), np.sin(w2s)
+    p[:, 0], p[:, 1] = a * s1, a / 2 * s2
+    dp[:, 0], dp[:, 1] = a * w * np.cos(ws), a * w * np.cos(w2s)
+    ddp[:, 0], ddp[:, 1] = -a * w * w * s1, -2 * a * w * w * s2
+
+
+# shapes with a vectorised twin of their make_path function (same operations, same order)
+_PATHS_MANY: dict[str, _PathMany] = {
+    "circle": _circle_many,
+    "figure8": _figure8_many,
+}
 
 
 def live_reference_horizon(

@@ -475,3 +475,50 @@ def test_candidate_maps_are_built_in_slices_bounded_by_time(monkeypatch):
     assert ctrl.build_candidates(None) == 8
     assert ctrl.candidates.unbuilt == 0
     assert ctrl.stats.size == 0  # built is not promoted
+
+
+@pytest.mark.parametrize("kernel", ["compiled", "numpy"])
+def test_a_query_checks_at_most_its_budget_likely_successors_first(kernel, monkeypatch):
+    from epc_offboard import kernels
+
+    if kernel == "numpy":
+        monkeypatch.setattr(epc_module, "query_maps", kernels.query_maps_numpy)
+    p = position_problem(6)
+    x, a = sets_for(p, [[0, 0, 0], [10, 0, 0]])
+    assert x.active_set != a.active_set
+    # a large library of controllers optimal nowhere near hover: single and paired rows
+    filler = [(i,) for i in range(p.n_con)] + [(i, i + 1) for i in range(0, 2 * p.n_u, 2)]
+    filler = [s for s in filler if s not in (x.active_set, a.active_set)][:80]
+    entries = [LibraryEntry(x.active_set, 100.0)]
+    entries += [LibraryEntry(s, 50.0 - 0.1 * k) for k, s in enumerate(filler)]
+    entries.append(LibraryEntry(a.active_set, 0.0))  # least important: last in the scan
+    ctrl = ExperienceController(p, max_size=200, max_checks=10)
+    assert ctrl.import_entries(entries) == len(entries)
+    assert len(ctrl.query_order()) == 10  # the budget bounds what a query may try
+
+    # without a transition, a lies beyond the budget: a miss after exactly 10 checks
+    assert ctrl.step(np.zeros(6), hover_refs(p, [0, 0, 0])).source == "hit"  # x
+    assert ctrl.last_query_checks == 1
+    assert ctrl.step(np.zeros(6), hover_refs(p, [10, 0, 0])).source != "hit"
+    assert ctrl.last_query_checks == 10
+    assert ctrl.query_counters["budget_exhausted"] == 1
+
+    # with x -> a counted, a is tried right after x: a hit at the second check
+    ctrl2 = ExperienceController(p, max_size=200, max_checks=10)
+    ctrl2.import_entries(entries, transitions={(0, len(entries) - 1): 3})
+    assert ctrl2.step(np.zeros(6), hover_refs(p, [0, 0, 0])).source == "hit"
+    assert ctrl2.query_order()[:2] == [x.active_set, a.active_set]
+    assert ctrl2.step(np.zeros(6), hover_refs(p, [10, 0, 0])).source == "hit"
+    assert ctrl2.last_query_checks == 2
+    assert ctrl2.stats.misses == 0
+
+
+def test_the_query_budget_in_us_becomes_a_count():
+    p = position_problem(6)
+    ctrl = ExperienceController(p)
+    cost = ctrl.check_cost_us()
+    assert cost > 0
+    assert ctrl.checks_within(10 * cost + 1e-9) == 10
+    assert ctrl.checks_within(0.1 * cost) == 1  # at least the last controller
+    with pytest.raises(ValueError, match="max_checks"):
+        ExperienceController(p, max_checks=0)
