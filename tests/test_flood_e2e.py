@@ -29,7 +29,7 @@ from tests.rig import Rig
 pytestmark = pytest.mark.timeout(180)
 
 FLEET = "floodtest"
-FLOOD_S = 8.0
+FLOOD_S = 6.0
 
 
 def _free_tcp_port() -> int:

@@ -15,10 +15,10 @@ pytestmark = pytest.mark.timeout(240)
 
 
 def test_random_faults_never_cause_a_takeoff_in_the_air_a_nan_or_a_lockout(tmp_path):
-    result = run_soak(tmp_path, duration_s=25.0, seed=3)
-    assert sum(result.faults.values()) >= 5, result.faults
-    assert len([f for f in FAULTS if result.faults[f]]) >= 3, result.faults
-    assert result.setpoints > 1000
+    result = run_soak(tmp_path, duration_s=16.0, seed=3)
+    assert sum(result.faults.values()) >= 3, result.faults
+    assert len([f for f in FAULTS if result.faults[f]]) >= 2, result.faults
+    assert result.setpoints > 500
     # the invariants, from what the service actually sent
     assert result.takeoffs_sent == 1
     assert result.takeoffs_in_air == 0
