@@ -18,10 +18,12 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
 
+from epc_offboard.errors import EpcError
+
 T = TypeVar("T")
 
 
-class ConfigError(ValueError):
+class ConfigError(EpcError, ValueError):
     """An invalid config: the message names the key and the file."""
 
 

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from epc_offboard.errors import EXIT_OK, UsageError
+from epc_offboard.errors import EXIT_OK, EpcError, UsageError
 from epc_offboard.store import (
     ActiveSet,
     LibrarySnapshot,
@@ -62,7 +62,7 @@ MAX_MODEL_BYTES = 64 * 1024 * 1024
 MAX_SIGNATURE_CHARS = 128
 
 
-class LibraryFileError(ValueError):
+class LibraryFileError(EpcError, ValueError):
     """An export file that does not parse; the message names the file and the field."""
 
 

@@ -21,6 +21,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
+from epc_offboard.errors import EpcError
 from epc_offboard.state import Heartbeat
 
 # MAV_AUTOPILOT
@@ -85,7 +86,7 @@ class Command:
     int_frame: int | None = None
 
 
-class EncodeError(ValueError):
+class EncodeError(EpcError, ValueError):
     """An intent cannot be encoded (a value is missing or not finite): nothing is sent."""
 
 

@@ -45,6 +45,7 @@ import numpy as np
 import numpy.typing as npt
 
 from epc_offboard import lwpr_kernels as kernels
+from epc_offboard.errors import EpcError
 
 FloatArray = npt.NDArray[np.float64]
 ArrayLike = npt.ArrayLike
@@ -56,7 +57,7 @@ _W_UPDATE_MIN = kernels.W_UPDATE_MIN  # a field takes part in an update only abo
 _INITIAL_CAPACITY = 16
 
 
-class LwprError(ValueError):
+class LwprError(EpcError, ValueError):
     """Bad input to, or bad file for, an LWPR model. The model is left unchanged."""
 
 

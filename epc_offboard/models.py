@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.linalg import expm
 
+from epc_offboard.errors import EpcError
 from epc_offboard.frames import GRAVITY_M_S2, FloatArray
 
 # Position loop: x = [p_ned_m(3), v_ned_m_s(3)], u = a_ned_m_s2(3), the desired acceleration
@@ -31,7 +32,7 @@ ATT_NX = 6  # roll, pitch, yaw, p, q, r
 ATT_NU = 3  # p_cmd, q_cmd, r_cmd
 
 
-class ModelError(ValueError):
+class ModelError(EpcError, ValueError):
     """A model's matrices have inconsistent shapes or non-finite entries."""
 
 

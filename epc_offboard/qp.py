@@ -43,13 +43,14 @@ import numpy.typing as npt
 import osqp
 import scipy.sparse as sp
 
+from epc_offboard.errors import EpcError
 from epc_offboard.frames import FloatArray
 from epc_offboard.models import LinearModel
 
 logger = logging.getLogger(__name__)
 
 
-class ProblemError(ValueError):
+class ProblemError(EpcError, ValueError):
     """An MPC problem is ill-posed: shapes, weights or bounds are inconsistent."""
 
 

@@ -30,6 +30,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from epc_offboard.errors import EpcError
+
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
@@ -72,7 +74,7 @@ _UPSERT_MODEL = (
 )
 
 
-class StoreError(RuntimeError):
+class StoreError(EpcError, RuntimeError):
     """The library file could not be used."""
 
 

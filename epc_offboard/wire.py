@@ -51,6 +51,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from epc_offboard.epc import LibraryEntry
+from epc_offboard.errors import EpcError
 
 MAGIC = b"EPCL"
 SCHEMA_VERSION = 1
@@ -70,7 +71,7 @@ _TRANSITION = struct.Struct("<HHI")
 _FLAG_TRANSITIONS = 0x01
 
 
-class WireError(ValueError):
+class WireError(EpcError, ValueError):
     """A payload that is not a valid message; the message says what was wrong."""
 
 

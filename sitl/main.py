@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from epc_offboard.configio import ConfigError
+from epc_offboard.errors import UsageError
 from sitl.endpoint import Counters, SitlEndpoint
 from sitl.groundtruth import GroundTruthWriter
 from sitl.lockstep import Clock, LockstepGate
@@ -23,10 +24,6 @@ from sitl.simulation import Simulation
 from sitl.tcp import GcsTcpServer
 
 HOST = "127.0.0.1"
-
-
-class UsageError(ValueError):
-    """Bad command line: exit code 2."""
 
 
 def _wind(text: str) -> tuple[float, float]:
