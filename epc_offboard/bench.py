@@ -1,5 +1,8 @@
 """`epc-offboard bench`: EPC against OSQP and DAQP on one replayed closed-loop sequence.
 
+(``bench --service`` replays a recorded flight through the service's ticks instead:
+:mod:`epc_offboard.bench_service`.)
+
 The sequence: the position loop (NED double integrator, prediction step 0.05 s) follows a
 lap of 500 steps — hover, an 8 m dash north-down (acceleration then velocity bounds
 active), a 2.5 m/s circle (velocity bounds active on parts of it), a dash back — under a
@@ -296,6 +299,14 @@ def format_table(report: dict[str, Any]) -> str:
 
 
 def run_bench_command(args: argparse.Namespace) -> int:
+    if getattr(args, "service", False):
+        from epc_offboard.bench_service import ServiceBenchError, run_service_bench
+
+        try:
+            return run_service_bench(args.recording, float(args.duration), args.json)
+        except ServiceBenchError as exc:
+            print(f"epc-offboard bench --service: {exc}", file=sys.stderr)
+            return 1
     try:
         report = run_bench(int(args.horizon), int(args.steps))
     except BenchError as exc:

@@ -168,6 +168,28 @@ def build_parser() -> argparse.ArgumentParser:
         "--steps", type=int, default=2000, metavar="K", help="length of the replayed sequence"
     )
     bench.add_argument("--json", default=None, metavar="FILE", help="write the report JSON here")
+    bench.add_argument(
+        "--service",
+        action="store_true",
+        help="instead: replay a recorded windy lockstep flight through the service's whole "
+        "position and attitude ticks (decode, state, estimator, EPC, encode); prints median / "
+        "p99 / max per component, hits, misses and worker solves; with --json also a "
+        "histogram figure (FILE with .png)",
+    )
+    bench.add_argument(
+        "--recording",
+        default=None,
+        metavar="DIR",
+        help="with --service: a sim run's vehicle directory (session.tlog, service.toml, "
+        "flight.csv) to replay (default: fly a lockstep figure-8 in 3 m/s wind now)",
+    )
+    bench.add_argument(
+        "--duration",
+        type=float,
+        default=12.0,
+        metavar="S",
+        help="with --service: seconds of offboard flight to record (default: 12, one lap)",
+    )
 
     db = sub.add_parser(
         "db",

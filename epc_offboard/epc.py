@@ -150,7 +150,7 @@ class ActiveSetMap:
             l_0 = np.zeros(0)
         # U = -H^-1 (F theta + Ga' lam)   (thesis 3.6)
         U_aug = np.hstack([-geom.hinv_f - E1.T @ L_theta, (-E1.T @ l_0)[:, None]])
-        UX_aug = np.vstack([U_aug, geom.xb_aug + geom.xb_bbar @ U_aug, geom.poly @ U_aug])
+        UX_aug = np.vstack([U_aug, geom.xb_aug + geom.xb_bbar @ U_aug, geom.poly_rows(U_aug)])
         L_aug = np.hstack([L_theta, l_0[:, None]])
         chk = geom.chk_sign[:, None] * UX_aug[geom.chk_rows]
         chk[:, -1] += geom.chk_offset
@@ -173,6 +173,16 @@ class ActiveSetMap:
 class _ProblemGeometry:
     """Per-model quantities shared by every active set's map (see :class:`ActiveSetMap`)."""
 
+    def poly_rows(self, U_aug: FloatArray) -> FloatArray:
+        """``poly @ U_aug`` stage by stage (``poly`` is block diagonal): a batch of small
+        products instead of one (N npoly, N nu) product, which OpenBLAS spread over threads
+        and which took 14 ms on two busy cores (1.5 ms idle) for the position problem."""
+        P = self._poly_stage
+        n_stage, nu = P.shape
+        N, cols = U_aug.shape[0] // nu, U_aug.shape[1]
+        out: FloatArray = (P @ U_aug.reshape(N, nu, cols)).reshape(N * n_stage, cols)
+        return out
+
     def __init__(self, problem: MpcProblem, tol: float) -> None:
         self.h_chol = sla.cho_factor(problem.H)
         self.hinv_f = sla.cho_solve(self.h_chol, problem.F)
@@ -189,6 +199,7 @@ class _ProblemGeometry:
         self.xb_bbar = problem.Bbar[rows]
         # the input polytope's rows per stage, P u_k <= p: bounded above only
         self.poly = np.kron(np.eye(N), problem.u_poly_P)
+        self._poly_stage = np.ascontiguousarray(problem.u_poly_P)
         n_poly = self.poly.shape[0]
         lo = np.concatenate([np.tile(problem.u_min, N), np.tile(problem.x_min[bounded], N),
                              np.full(n_poly, -np.inf)])
@@ -558,7 +569,7 @@ class ExperienceController:
             if self._free_slots:
                 entry.slot = self._free_slots.pop()
             else:
-                entry.slot = len(self._slot_M)
+                entry.slot = len(self._slot_entry)  # (a typed list's len compiles on first use)
                 self._slot_M.append(amap.M)
                 self._slot_width.append(amap.width)
                 self._slot_n_check = np.append(self._slot_n_check, amap.n_check)
