@@ -40,7 +40,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from epc_offboard import frames, kernels, lwpr
+from epc_offboard import frames, kernels, lwpr, trajectories
 from epc_offboard.baselines import MpcController, PdController
 from epc_offboard.decision import Controller, Decision
 from epc_offboard.epc import ExperienceController, LibraryEntry
@@ -530,6 +530,7 @@ class Cascade:
         if self.estimator_cfg.kind == "lwpr":
             lwpr.warm_up()  # every LWPR kernel, whatever the few scratch ticks exercise
         kernels.warm_up()  # the library scan: an empty scratch library never runs it
+        trajectories.warm_up()  # the reference horizon the service hands in
         scratch = Cascade(
             self.position_cfg, self.attitude_cfg, self.estimator_cfg, self.loop_period_s
         )

@@ -110,3 +110,15 @@ def test_config_rejects_bad_values():
         TrajectoryConfig(shape="circle", radius_m=0.0)
     with pytest.raises(ValueError, match="waypoints_ned_m"):
         TrajectoryConfig(shape="waypoints")
+
+
+@pytest.mark.parametrize("shape", ["circle", "figure8", "zigzag"])
+def test_the_tick_horizon_equals_sample_to_the_last_bit(shape):
+    traj = Trajectory(TrajectoryConfig(shape=shape, ramp_s=3.0, period_s=12.0, radius_m=1.5),
+                      np.array([1.0, 2.0, -2.5]), start_s=6.0)
+    for t0 in np.arange(0.0, 30.0, 0.37):  # before the start, in the ramp and after it
+        rows = traj.horizon_from_now(t0, 0.05, 20)
+        want = [traj.sample(t0 + k * 0.05) for k in range(21)]
+        assert np.array_equal(rows, [[*r.pos_ned_m, *r.vel_ned_m_s, *r.acc_ned_m_s2]
+                                     for r in want])
+        assert np.array_equal(traj.horizon(t0, 0.05, 20), rows[1:])
