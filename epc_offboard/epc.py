@@ -49,9 +49,10 @@ import numpy as np
 import numpy.typing as npt
 import scipy.linalg as sla
 
+from epc_offboard import kernels
 from epc_offboard.decision import Decision
 from epc_offboard.frames import FloatArray
-from epc_offboard.kernels import apply_map, new_map_list, query_maps
+from epc_offboard.kernels import apply_map, new_map_lists, query_maps, store_map
 from epc_offboard.models import LinearModel
 from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
 
@@ -405,9 +406,11 @@ class ExperienceController:
         self._received_shared = 0
         self.candidates = CandidatePool(max_candidates, max_candidates_per_origin)
         # the bounded scan: every entry's map arrays in slots, and the query order as slots
+        # (its compiled code is made ready here, where a controller is built: at start-up, in
+        # the service and in the miss worker alike, never at the first miss or solve)
+        kernels.warm_up()
         self.max_checks = max_checks
-        self._slot_M = new_map_list()
-        self._slot_width = new_map_list()
+        self._slot_lists = new_map_lists()  # (maps' M, maps' width) by slot
         self._slot_n_check = np.zeros(0, dtype=np.int64)
         self._free_slots: list[int] = []
         self._order: npt.NDArray[np.int64] | None = None  # None: to rebuild
@@ -548,7 +551,7 @@ class ExperienceController:
         order = self._query_slots()
         start = checked  # the last controller, when there is one, is the order's first
         n = min(budget - checked, len(order) - start)
-        k = query_maps(self._slot_M, self._slot_width, self._slot_n_check, order[start:],
+        k = query_maps(*self._slot_lists, self._slot_n_check, order[start:],
                        n, theta_aug, u_out, u_min, u_max) if n > 0 else -1
         checked += n if k < 0 else k + 1
         self.last_query_checks = checked
@@ -569,15 +572,13 @@ class ExperienceController:
             if self._free_slots:
                 entry.slot = self._free_slots.pop()
             else:
-                entry.slot = len(self._slot_entry)  # (a typed list's len compiles on first use)
-                self._slot_M.append(amap.M)
-                self._slot_width.append(amap.width)
+                entry.slot = len(self._slot_entry)
+                store_map(self._slot_lists, entry.slot, amap.M, amap.width)
                 self._slot_n_check = np.append(self._slot_n_check, amap.n_check)
                 self._slot_entry.append(entry)
                 self._order = None
                 return
-        self._slot_M[entry.slot] = amap.M
-        self._slot_width[entry.slot] = amap.width
+        store_map(self._slot_lists, entry.slot, amap.M, amap.width)
         self._slot_n_check[entry.slot] = amap.n_check
         self._slot_entry[entry.slot] = entry
         self._order = None

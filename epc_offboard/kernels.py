@@ -54,31 +54,46 @@ def apply_map_numpy(
     return True
 
 
-def _make_query(apply: ApplyMap) -> QueryMaps:
-    """The library scan over ``apply``: plain Python over the numpy reference, or compiled
-    by numba whole (``apply`` then being the compiled check) into one call."""
-
-    def query(
-        Ms: Sequence[FloatArray],
-        widths: Sequence[FloatArray],
-        n_checks: IntArray,
-        order: IntArray,
-        n_order: int,
-        theta_aug: FloatArray,
-        u_out: FloatArray,
-        u_min: FloatArray,
-        u_max: FloatArray,
-    ) -> int:
-        for k in range(min(n_order, order.shape[0])):
-            i = order[k]
-            if apply(Ms[i], widths[i], theta_aug, n_checks[i], u_out, u_min, u_max):
-                return k
-        return -1
-
-    return query
+def query_maps_numpy(
+    Ms: Sequence[FloatArray],
+    widths: Sequence[FloatArray],
+    n_checks: IntArray,
+    order: IntArray,
+    n_order: int,
+    theta_aug: FloatArray,
+    u_out: FloatArray,
+    u_min: FloatArray,
+    u_max: FloatArray,
+) -> int:
+    """The reference scan (and the fallback without numba)."""
+    for k, i in enumerate(order[:n_order]):
+        if apply_map_numpy(Ms[i], widths[i], theta_aug, int(n_checks[i]), u_out, u_min, u_max):
+            return k
+    return -1
 
 
-query_maps_numpy = _make_query(apply_map_numpy)
+def _query_maps_jit(
+    Ms: Sequence[FloatArray],
+    widths: Sequence[FloatArray],
+    n_checks: IntArray,
+    order: IntArray,
+    n_order: int,
+    theta_aug: FloatArray,
+    u_out: FloatArray,
+    u_min: FloatArray,
+    u_max: FloatArray,
+) -> int:
+    """:func:`query_maps_numpy` compiled whole, over the compiled check ``_apply_jit`` (a
+    module global, so that numba's disk cache keys it: a closure over it missed the cache
+    and recompiled in every process)."""
+    for k in range(min(n_order, order.shape[0])):
+        i = order[k]
+        if _apply_jit(Ms[i], widths[i], theta_aug, n_checks[i], u_out, u_min, u_max):
+            return k
+    return -1
+
+
+_apply_jit: Any = None
 
 
 def _compile() -> tuple[ApplyMap, QueryMaps] | None:
@@ -122,29 +137,80 @@ def _compile() -> tuple[ApplyMap, QueryMaps] | None:
         compiled = numba.njit(apply_map_numba, cache=False, nogil=True, fastmath=fastmath)
         cache = False
 
-    query = numba.njit(_make_query(cast(ApplyMap, compiled)), cache=cache, nogil=True)
+    global _apply_jit
+    _apply_jit = compiled
+    query = numba.njit(_query_maps_jit, cache=cache, nogil=True)
     return cast(ApplyMap, compiled), cast(QueryMaps, query)
 
 
-def new_map_list() -> MutableSequence[Any]:
-    """The container :func:`query_maps` takes its per-map arrays in: a numba typed list
-    (passed to the compiled scan without conversion) or, without numba, a Python list."""
-    if _NUMBA is None:
-        return []
-    from numba import typed
+MapLists = tuple[MutableSequence[Any], MutableSequence[Any]]
 
-    return cast(MutableSequence[Any], typed.List())
+
+def _store_numpy(Ms: MutableSequence[Any], widths: MutableSequence[Any], slot: int,
+                 M: FloatArray, width: FloatArray) -> None:
+    if slot == len(Ms):
+        Ms.append(M)
+        widths.append(width)
+    else:
+        Ms[slot] = M
+        widths[slot] = width
+
+
+def _compile_lists() -> tuple[Callable[[], MapLists], Callable[..., None]] | None:
+    """Numba typed lists made and written only inside cached compiled functions: a typed
+    list's own methods, called from Python, compile anew in every process (~1 s, several
+    under load), which delayed start-up enough to shift a lockstep flight's handshake."""
+    if _NUMBA is None:
+        return None
+    import numba
+    from numba import types
+    from numba.typed import List
+
+    mat, vec = types.float64[:, ::1], types.float64[::1]
+
+    def new_lists() -> MapLists:
+        return List.empty_list(mat), List.empty_list(vec)
+
+    try:
+        made = numba.njit(new_lists, cache=True)
+        stored = numba.njit(_store_numpy, cache=True)
+    except RuntimeError:
+        made = numba.njit(new_lists, cache=False)
+        stored = numba.njit(_store_numpy, cache=False)
+    return cast(Callable[[], MapLists], made), cast(Callable[..., None], stored)
+
+
+def new_map_lists() -> MapLists:
+    """The containers :func:`query_maps` takes its per-map arrays in (matrices, widths):
+    numba typed lists (passed to the compiled scan without conversion) or, without numba,
+    Python lists. Write them with :func:`store_map` only."""
+    return ([], []) if _LISTS is None else _LISTS[0]()
+
+
+def store_map(lists: MapLists, slot: int, M: FloatArray, width: FloatArray) -> None:
+    """Put a map's ``M`` (C-contiguous float64, 2-D) and ``width`` in ``slot``: the next
+    slot (appended) or one already there (replaced)."""
+    if _LISTS is None:
+        _store_numpy(lists[0], lists[1], slot, M, width)
+    else:
+        _LISTS[1](lists[0], lists[1], slot, M, width)
+
+
+_warm = False
 
 
 def warm_up() -> None:
     """Compile (or load from the cache) the scan and the typed list's methods now: the first
-    miss of a flight must not pay for it (DESIGN.md, timing on a companion computer)."""
-    Ms, widths = new_map_list(), new_map_list()
-    for _ in range(2):
-        Ms.append(np.zeros((2, 2)))
-        widths.append(np.full(1, np.inf))
-    Ms[1] = np.ones((2, 2))  # the slot reuse path
-    widths[1] = np.full(1, np.inf)
+    miss of a flight must not pay for it, nor the miss worker's first solve, which a lockstep
+    tick waits for (DESIGN.md, timing on a companion computer). Once per process."""
+    global _warm
+    if _warm:
+        return
+    _warm = True
+    lists = new_map_lists()
+    for slot in (0, 1, 1):  # append, append, then the slot reuse path
+        store_map(lists, slot, np.zeros((2, 2)), np.full(1, np.inf))
+    Ms, widths = lists
     u = np.empty(1)
     n_checks = np.ones(2, dtype=np.int64)
     query_maps(Ms, widths, n_checks, np.arange(2, dtype=np.int64), 2, np.ones(2), u,
@@ -154,4 +220,5 @@ def warm_up() -> None:
 _NUMBA = _compile()
 apply_map: ApplyMap = _NUMBA[0] if _NUMBA is not None else apply_map_numpy
 query_maps: QueryMaps = _NUMBA[1] if _NUMBA is not None else query_maps_numpy
+_LISTS = _compile_lists()
 HAVE_NUMBA = _NUMBA is not None
