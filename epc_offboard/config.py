@@ -104,7 +104,9 @@ class SharingConfig:
     import_slice_s: float = 0.002  # event-loop time per slice of received controllers
     max_queued_entries: int = 8192  # controllers waiting in the inbound queue; beyond: dropped
     candidate_pool_size: int = 64  # received controllers waiting to prove optimal here
-    candidates_per_peer: int = 16  # of those, at most this many from one vehicle
+    candidates_per_peer: int = 16  # of those, at most this many from one vehicle (until proven)
+    candidate_backlog_size: int = 2048  # received controllers kept as tuples, maps unbuilt
+    candidate_backlog_per_peer: int = 512  # of those, at most this many from one vehicle
     candidate_slice_s: float = 0.005  # worker CPU time per slice of candidate factorisations
     query_timeout_s: float = 3.0  # a library snapshot query gives up after this
 
@@ -127,6 +129,12 @@ class SharingConfig:
                      "candidate_pool_size", "candidates_per_peer", "fleet_burst_messages"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if (self.candidate_backlog_size < self.candidate_pool_size
+                or self.candidate_backlog_per_peer < self.candidates_per_peer):
+            raise ValueError(
+                "candidate_backlog_size / candidate_backlog_per_peer must be >= "
+                "candidate_pool_size / candidates_per_peer (the backlog holds the pool's too)"
+            )
         for ep in (*self.listen, *self.connect):
             if "/" not in ep:
                 raise ValueError(f"endpoint {ep!r} must look like PROTOCOL/ADDRESS:PORT")

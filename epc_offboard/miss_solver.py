@@ -24,6 +24,16 @@ the built candidates; one that passes is handed back with its origin instead of 
 and the loop promotes it after its own KKT check at that θ. Candidates never optimal for a
 real tick stay in the pool until newer ones push them out: they never take library slots.
 
+Once a peer's candidate has been promoted (the peer is *proven*), the loop's pool refocuses
+that peer's quota on the controllers likely next (its transitions after the controller in
+use) and asks the worker for their maps (:meth:`ExperienceController.wanted_maps`): the
+worker builds them in the same slices and hands the maps back, and the loop checks them
+before it counts a miss — mat-vecs, no factorisation on the loop. That is what lets a late
+joiner fly on the fleet's library instead of missing once per region; memory stays bounded
+by the pool's size in maps, the rest of a snapshot waiting as tuples. In lockstep (``wait``)
+the wanted maps (at most a few per slice) are a count, not a time, and the slice is waited
+for, so maps arrive at the same tick every run.
+
 No asyncio here: :meth:`pump` is called from the position loop's tick.
 """
 
@@ -38,7 +48,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import TypeVar
 
-from epc_offboard.epc import ExperienceController, LibraryEntry
+from epc_offboard.epc import ActiveSetMap, ExperienceController, LibraryEntry
 from epc_offboard.frames import FloatArray
 from epc_offboard.qp import MpcProblem
 
@@ -49,14 +59,17 @@ _T = TypeVar("_T")
 _LEARNERS: dict[str, ExperienceController] = {}
 
 Found = tuple[tuple[int, ...], str]  # an active set and its origin ("solved" or a peer's)
+_MAX_WANTED = 8  # candidate maps asked of the worker per slice (it builds what its time allows)
 
 
 def _init_worker(problems: dict[str, tuple[MpcProblem, int, int]]) -> None:
     _LEARNERS.clear()
     for name, (problem, pool, per_origin) in problems.items():
-        # the worker only solves and screens: its own library may stay tiny
+        # the worker only solves and screens: its own library may stay tiny, and its pool
+        # copy needs no backlog (the loop's pool keeps that and asks for maps)
         _LEARNERS[name] = ExperienceController(
-            problem, max_size=8, max_candidates=pool, max_candidates_per_origin=per_origin
+            problem, max_size=8, max_candidates=pool, max_candidates_per_origin=per_origin,
+            max_candidate_backlog=pool, max_candidate_backlog_per_origin=per_origin,
         )
 
 
@@ -69,13 +82,25 @@ def _solve(name: str, theta: FloatArray, slice_s: float) -> Found | None:
     return None if entry is None else (entry.active_set, "solved")
 
 
-def _offer(name: str, items: list[tuple[tuple[int, ...], str]], slice_s: float) -> int:
-    """Copy candidates into the worker's pool, build for one slice; returns how many wait."""
+Built = list[tuple[tuple[int, ...], ActiveSetMap | None]]
+
+
+def _offer(
+    name: str, items: list[tuple[tuple[int, ...], str]], wanted: list[tuple[int, ...]],
+    slice_s: float | None,
+) -> tuple[int, Built]:
+    """Copy candidates into the worker's pool; build the maps the loop wants for one slice,
+    or, when it wants none, a slice of the pool's. Returns how many of the pool's wait
+    unbuilt, and the maps built for the loop."""
     learner = _LEARNERS[name]
     for active, origin in items:
         learner.offer_candidates([LibraryEntry(active)], origin)
-    learner.build_candidates(slice_s)
-    return learner.candidates.unbuilt
+    if wanted:
+        built = learner.build_maps(wanted, slice_s)
+    else:
+        built = []
+        learner.build_candidates(slice_s)
+    return learner.candidates.unbuilt, built
 
 
 def _ping() -> bool:
@@ -90,9 +115,10 @@ class _Lane:
     waiting: deque[FloatArray]
     in_flight: Future[Found | None] | None = None
     in_flight_theta: FloatArray | None = None
-    offer: Future[int] | None = None  # candidates being copied / built in the worker
+    offer: Future[tuple[int, Built]] | None = None  # candidates copied / maps built there
     unbuilt: int = 0  # candidate maps the worker still has to build (its last report)
     resend: list[tuple[tuple[int, ...], str]] = field(default_factory=list)  # after a restart
+    model_epoch: int = 0  # the controller's model when the worker got its problem
 
 
 class MissSolver:
@@ -121,6 +147,8 @@ class MissSolver:
                    lane.ctrl.candidates.max_per_origin)
             for name, lane in self._lanes.items()
         }  # fmt: skip
+        for lane in self._lanes.values():  # maps the worker builds are for this model
+            lane.model_epoch = lane.ctrl.model_epoch
         self._pool = ProcessPoolExecutor(
             max_workers=1,
             mp_context=multiprocessing.get_context("spawn"),  # no fork of a threaded process
@@ -148,32 +176,45 @@ class MissSolver:
                 if len(lane.waiting) == lane.waiting.maxlen:
                     self.counters["misses_dropped"] += 1  # the oldest gives way
                 lane.waiting.append(ctrl.pending.pop(0))
-            self._offer_next(name, lane)  # first: the worker takes tasks in order
+            self._offer_next(name, lane, wait)  # first: the worker takes tasks in order
             self._submit_next(name, lane)
         return added
 
-    def _offer_next(self, name: str, lane: _Lane) -> None:
-        """Copy new candidates to the worker, or build a slice of waiting ones (one task in
-        flight per lane; the pool's own bounds keep what waits here bounded)."""
+    def _offer_next(self, name: str, lane: _Lane, wait: bool) -> None:
+        """Copy new candidates to the worker, have it build the maps the loop wants or a
+        slice of its pool's, and attach the maps it returned (one task in flight per lane;
+        the pool's own bounds keep what waits here bounded)."""
         fut = lane.offer
+        ctrl = lane.ctrl
         if fut is not None:
-            if not fut.done():
+            if not (wait or fut.done()):
                 return
             lane.offer = None
             try:
-                lane.unbuilt = fut.result(timeout=0.0)
+                lane.unbuilt, built = fut.result(timeout=30.0 if wait else 0.0)
+                self.counters["candidate_maps_attached"] += ctrl.attach_maps(
+                    built, lane.model_epoch
+                )
             except BrokenProcessPool:
                 self._restart("the worker died")  # then the new one gets the pool, below
             except Exception as exc:  # candidates lost; the flight is not
                 self.counters["candidate_errors"] += 1
                 log.warning("%s candidate import failed: %s", name, exc)
-        fresh = lane.resend + lane.ctrl.candidates.pop_fresh()
+        fresh = lane.resend + ctrl.candidates.pop_fresh()
         lane.resend = []
-        if not (fresh or lane.unbuilt):
+        wanted: list[tuple[int, ...]] = []
+        if ctrl.model_epoch == lane.model_epoch:  # else the worker's maps would be stale
+            ctrl.focus_candidates()
+            wanted = ctrl.wanted_maps(_MAX_WANTED)
+        if not (fresh or lane.unbuilt or wanted):
             return
-        lane.offer = self._submit("candidates", _offer, name, fresh, self._slice_s)
+        # lockstep: the wanted maps (at most _MAX_WANTED) are a count, whatever the machine's
+        # speed, so the loop checks the same maps at the same tick every run
+        slice_s: float | None = None if wait and wanted else self._slice_s
+        lane.offer = self._submit("candidates", _offer, name, fresh, wanted, slice_s)
         if lane.offer is None:
             return
+        self.counters["candidate_maps_wanted"] += len(wanted)
         self.counters["candidates_sent"] += len(fresh)
         self.counters["candidate_slices"] += 1
 

@@ -50,7 +50,7 @@ from typing import Any
 import zenoh
 
 from epc_offboard.config import SharingConfig
-from epc_offboard.epc import ExperienceController, LibraryEntry
+from epc_offboard.epc import MAX_SUCCESSORS, ExperienceController, LibraryEntry
 from epc_offboard.wire import (
     ControllerMessage,
     MessageKind,
@@ -133,6 +133,25 @@ class _TokenBuckets:
                 break
 
 
+def successors_of(msg: ControllerMessage) -> dict[tuple[int, ...], tuple[tuple[int, ...], ...]]:
+    """Each entry's likeliest successors in the sender's transition counts (most frequent
+    first, at most :data:`epc_offboard.epc.MAX_SUCCESSORS`), by active set."""
+    n = len(msg.entries)
+    out: dict[int, list[tuple[int, int]]] = {}
+    for a, b, count in msg.transitions:
+        if 0 <= a < n and 0 <= b < n and a != b:
+            out.setdefault(a, []).append((count, b))
+    return {
+        msg.entries[a].active_set: tuple(
+            msg.entries[b].active_set for _, b in sorted(succ, reverse=True)[:MAX_SUCCESSORS]
+        )
+        for a, succ in out.items()
+    }
+
+
+_TRANSITION_BYTES = 12  # one (from, to, count) on the wire (wire._TRANSITION)
+
+
 class FleetSharing:
     """One Zenoh session shared by the library exchange and the live-reference subscriber.
 
@@ -167,7 +186,8 @@ class FleetSharing:
             for sig in (ctrl.problem.signature(),)
         ]
         for _name, ctrl in controllers:
-            ctrl.limit_candidates(cfg.candidate_pool_size, cfg.candidates_per_peer)
+            ctrl.limit_candidates(cfg.candidate_pool_size, cfg.candidates_per_peer,
+                                  cfg.candidate_backlog_size, cfg.candidate_backlog_per_peer)
         self._buckets = _TokenBuckets(cfg.max_messages_per_s, cfg.burst_messages)
         # all peers together: rotating ids each get a fresh burst, so without a fleet-wide
         # limit a flood is decoded in full on Zenoh's threads, which hold the GIL the
@@ -212,7 +232,7 @@ class FleetSharing:
         vid = self.vehicle_id
         if self.share_library:
             for p in self._problems:  # ready before the queryable can be asked
-                self._prepare_snapshot(p, p.ctrl.export_library())
+                self._prepare_snapshot(p, p.ctrl.export_library(), p.ctrl.export_transitions())
                 p.dirty = False
             for p in self._problems:
                 self.peers[p.name] = set()
@@ -306,12 +326,18 @@ class FleetSharing:
             self._count("entries_rejected_by_problem", len(entries))
             return
         slice_s = self.cfg.import_slice_s
+        successors = successors_of(msg)
+        # the sender's most used (then most recent) last: a peer past its pool quota keeps
+        # its newest in the pool, the rest wait in the backlog
+        entries = tuple(sorted(entries, key=lambda e: (e.uses, e.importance)))
         offered = i = 0
         while i < len(entries):
             t0 = time.perf_counter()
             n = 0
             while i < len(entries) and (n == 0 or time.perf_counter() - t0 < slice_s):
-                offered += ctrl.offer_candidates(entries[i : i + 1], origin)
+                offered += ctrl.offer_candidates(
+                    entries[i : i + 1], origin, successors=successors
+                )
                 i += 1
                 n += 1
             self._count("import_slices")
@@ -379,14 +405,32 @@ class FleetSharing:
             if not self.share_library or not p.dirty:
                 continue
             p.dirty = False  # here, not in the worker: an import meanwhile sets it again
-            entries = p.ctrl.export_library()  # on the loop: the library is not thread-safe
-            await asyncio.to_thread(self._prepare_snapshot, p, entries)
+            # on the loop: the library is not thread-safe
+            entries, transitions = p.ctrl.export_library(), p.ctrl.export_transitions()
+            await asyncio.to_thread(self._prepare_snapshot, p, entries, transitions)
 
-    def _prepare_snapshot(self, p: _Problem, entries: list[LibraryEntry]) -> None:
+    def _prepare_snapshot(
+        self, p: _Problem, entries: list[LibraryEntry],
+        transitions: dict[tuple[int, int], int] | None = None,
+    ) -> None:
+        """Encode the snapshot a late joiner's query gets: the most important controllers
+        that fit one payload, and as many of their transition counts (most frequent first)
+        as still fit — they tell the joiner which controller is likely next."""
         chunks = self._chunks(entries)
         kept = chunks[0] if chunks else ()
+        index = {id(e): i for i, e in enumerate(kept)}
+        room = self.cfg.max_payload_bytes - 64 - 4 - sum(14 + 2 * len(e.active_set) for e in kept)
+        trans = sorted(
+            (
+                (index[id(entries[a])], index[id(entries[b])], n)
+                for (a, b), n in (transitions or {}).items()
+                if id(entries[a]) in index and id(entries[b]) in index
+            ),
+            key=lambda t: -t[2],
+        )[: max(0, room // _TRANSITION_BYTES)]
         p.snapshot = encode_controllers(
-            ControllerMessage(MessageKind.SNAPSHOT, p.signature, self.vehicle_id, kept)
+            ControllerMessage(MessageKind.SNAPSHOT, p.signature, self.vehicle_id, kept,
+                              tuple(trans))
         )
 
     # -- Zenoh's threads ------------------------------------------------------------------
