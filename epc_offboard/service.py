@@ -63,7 +63,7 @@ from epc_offboard.sharing import FleetSharing
 from epc_offboard.state import StateTracker, VehicleState
 from epc_offboard.store import LibrarySnapshot, LibraryStore
 from epc_offboard.timing import LoopTiming
-from epc_offboard.trajectories import Trajectory, live_reference_horizon
+from epc_offboard.trajectories import Rejoin, Trajectory, live_reference_horizon
 
 log = logging.getLogger("epc_offboard.service")
 
@@ -130,6 +130,7 @@ class Service:
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
         self.outputs = Outputs(Phase.WAIT_HEARTBEAT, False, (), "starting")
         self.trajectory: Trajectory | None = None
+        self._rejoin: Rejoin | None = None  # the way back onto the trajectory after a hold
         self._position_out: PositionOutput | None = None
         self._stopping = asyncio.Event()
         self._exit_code = 0
@@ -422,6 +423,8 @@ class Service:
                 self._do_action(action, out, state)
             if out.phase != self.outputs.phase:
                 self._phase_changed(now, out)
+                if out.phase in (Phase.STREAMING, Phase.OFFBOARD) and state is not None:
+                    self._start_rejoin(state, now)
             self.outputs = out
             self._manage_rates(now, link_up=hb is not None)
             self._manage_params(now, link_up=hb is not None)
@@ -445,6 +448,34 @@ class Service:
         self.phase_events.append(
             {"t_s": round(now, 4), "phase": out.phase.value, "reason": out.reason}
         )
+
+    def _start_rejoin(self, state: VehicleState, now: float) -> None:
+        """Setpoints start streaming, or offboard is (re)entered, while a trajectory has run
+        on (a failsafe, a pilot): the reference starts where the vehicle is and closes the
+        gap smoothly (trajectories.Rejoin) instead of asking for a far point at once."""
+        if self.trajectory is None:
+            return
+        self._rejoin = Rejoin.onto(
+            self.trajectory.sample(now), state.pos_ned_m, state.vel_ned_m_s, now,
+            self.cfg.trajectory.rejoin_tau_s,
+        )  # fmt: skip
+        gap = float(np.linalg.norm(self._rejoin.gap_ned_m))
+        if gap > 0.05:
+            self.counters["trajectory_rejoins"] += 1
+            log.info("rejoining the trajectory %.2f m away (tau %.1f s)", gap,
+                     self._rejoin.tau_s)  # fmt: skip
+
+    def _reference_rows(self, t_s: float, dt_s: float, steps: int) -> FloatArray:
+        """(steps + 1, 9) rows [p, v, a] of the trajectory from ``t_s``, rejoin included."""
+        assert self.trajectory is not None
+        rows = self.trajectory.horizon_from_now(t_s, dt_s, steps)
+        if self._rejoin is not None:
+            if self._rejoin.done(t_s):
+                self._rejoin = None
+            else:
+                times = t_s + dt_s * np.arange(steps + 1, dtype=np.float64)
+                rows = np.add(rows, self._rejoin.rows(times))
+        return rows
 
     def _start_trajectory(self, state: VehicleState, altitude_m: float | None) -> None:
         anchor = state.pos_ned_m.copy()
@@ -514,8 +545,8 @@ class Service:
         """The px4 baseline: the reference's position, velocity and acceleration now, to the
         autopilot's own position controller (as MAVSDK's offboard plugin sends them)."""
         if self.trajectory is not None:
-            ref = self.trajectory.sample(t_s)
-            pos, vel, acc = ref.pos_ned_m, ref.vel_ned_m_s, ref.acc_ned_m_s2
+            row = self._reference_rows(t_s, 0.0, 0)[0]
+            pos, vel, acc = row[:3], row[3:6], row[6:9]
         else:
             pos = self.cascade.hold_refs(state)[0, :3]
             vel = acc = np.zeros(3)
@@ -545,7 +576,7 @@ class Service:
         try:
             refs = self._live_refs(state)
             if refs is None and self.trajectory is not None:
-                rows = self.trajectory.horizon_from_now(
+                rows = self._reference_rows(
                     t_s, self.cascade.position_dt_s, self.cascade.position_horizon
                 )
                 ref_now, refs = rows[0], rows[1:]
@@ -793,8 +824,8 @@ class Service:
         if ref_now is not None:
             ref_pos, ref_vel = ref_now[:3], ref_now[3:6]
         elif self.trajectory is not None:
-            ref = self.trajectory.sample(t_s)
-            ref_pos, ref_vel = ref.pos_ned_m, ref.vel_ned_m_s
+            row = self._reference_rows(t_s, 0.0, 0)[0]
+            ref_pos, ref_vel = row[:3], row[3:6]
         else:
             ref_pos, ref_vel = out.ref_pos_ned_m, np.zeros(3)
         self._flight_writer.writerow(

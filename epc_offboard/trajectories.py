@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from epc_offboard.frames import FloatArray
 
@@ -53,10 +54,13 @@ class TrajectoryConfig:
     dy_m: float = 0.0
     dz_m: float = 0.0
     waypoints_ned_m: tuple[tuple[float, float, float], ...] = field(default_factory=tuple)
+    # rejoining a trajectory that ran on while the autopilot held (a failsafe, a pilot):
+    # the gap to it closes as a critically damped second-order response of this time constant
+    rejoin_tau_s: float = 1.0
 
     def __post_init__(self) -> None:
         positive = ("ramp_s", "radius_m", "period_s", "size_m", "amplitude_m",
-                    "peak_speed_m_s", "accel_m_s2", "speed_m_s")  # fmt: skip
+                    "peak_speed_m_s", "accel_m_s2", "speed_m_s", "rejoin_tau_s")  # fmt: skip
         for name in positive:
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -69,6 +73,47 @@ class RefSample:
     pos_ned_m: FloatArray
     vel_ned_m_s: FloatArray
     acc_ned_m_s2: FloatArray
+
+
+@dataclass(frozen=True)
+class Rejoin:
+    """A bumpless way back onto a trajectory that ran on while someone else flew.
+
+    The reference is the trajectory plus a gap e(t) that starts at the vehicle's position
+    and velocity error (``e0 = p - p_traj``, ``de0 = v - v_traj`` at ``start_s``) and closes
+    critically damped: ``e(t) = (e0 + (de0 + e0 / tau) t) exp(-t / tau)``. Without it a
+    re-entry after a failsafe asked for the trajectory metres away at once: saturated
+    commands that, with the faults that caused the failsafe, flipped the vehicle.
+    """
+
+    gap_ned_m: FloatArray  # e0
+    gap_rate_ned_m_s: FloatArray  # de0
+    start_s: float
+    tau_s: float
+
+    @classmethod
+    def onto(
+        cls, traj: RefSample, pos_ned_m: FloatArray, vel_ned_m_s: FloatArray, t_s: float,
+        tau_s: float,
+    ) -> Rejoin:  # fmt: skip
+        return cls(pos_ned_m - traj.pos_ned_m, vel_ned_m_s - traj.vel_ned_m_s, t_s, tau_s)
+
+    def rows(self, t_s: npt.ArrayLike) -> FloatArray:
+        """(len(t_s), 9) rows [e, de, dde] of the gap at times ``t_s`` (0 before start_s)."""
+        t = np.maximum(np.asarray(t_s, dtype=np.float64) - self.start_s, 0.0)[:, None]
+        tau = self.tau_s
+        a, b = self.gap_ned_m[None, :], (self.gap_rate_ned_m_s + self.gap_ned_m / tau)[None, :]
+        decay = np.exp(-t / tau)
+        e = (a + b * t) * decay
+        de = (b - (a + b * t) / tau) * decay
+        dde = (-2.0 * b / tau + (a + b * t) / tau**2) * decay
+        out: FloatArray = np.hstack([e, de, dde])
+        return out
+
+    def done(self, t_s: float) -> bool:
+        """The gap has closed to nothing that matters (15 time constants: a 3 m gap is then
+        below 0.1 mm, so dropping the rejoin is no jump)."""
+        return t_s - self.start_s > 15.0 * self.tau_s
 
 
 # A path in its own progress variable s (seconds of "full speed" travel): p(s), p'(s), p''(s).

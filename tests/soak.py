@@ -43,12 +43,18 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.frames import tilt_deg
-from epc_offboard.state import PX4_MAIN_MODE_OFFBOARD, px4_modes
+from epc_offboard.state import (
+    PX4_AUTO_SUB_LAND,
+    PX4_MAIN_MODE_AUTO,
+    PX4_MAIN_MODE_OFFBOARD,
+    px4_modes,
+)
 from tests.rig import Rig, cpu_hog
 
 FAULTS = ("stale_state", "heartbeat_loss", "service_stall", "cpu_load")
 _POSITION_STREAMS = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ODOMETRY)
 _MAV_CMD_NAV_TAKEOFF = 22
+_AUTO, _AUTO_LAND = float(PX4_MAIN_MODE_AUTO), float(PX4_AUTO_SUB_LAND)
 _MARGIN_S = 12.0  # the mission's flight after the faults: offboard again within it (no lockout)
 
 
@@ -57,6 +63,7 @@ class SoakResult:
     duration_s: float
     seed: int
     faults: dict[str, int] = field(default_factory=dict)
+    fault_log: list[tuple[float, str]] = field(default_factory=list)  # (wall s from start, fault)
     takeoffs_sent: int = 0  # NAV_TAKEOFF frames from the service in its tlog
     takeoffs_in_air: int = 0  # of those, sent while the ground truth was above 0.5 m
     setpoints: int = 0
@@ -167,8 +174,14 @@ def _index_at(ts: list[float], t: float) -> int:
     return lo
 
 
-def run_soak(out: Path, duration_s: float, seed: int = 0) -> SoakResult:
-    """Fly a circle for ``duration_s`` of faults (plus recovery and landing) in real time."""
+def run_soak(
+    out: Path, duration_s: float, seed: int = 0, attitude_mode: str = "autopilot"
+) -> SoakResult:
+    """Fly a circle for ``duration_s`` of faults (plus recovery and landing) in real time.
+
+    ``attitude_mode``: as config/default.toml flies a real vehicle ("autopilot": quaternion
+    + thrust), or "epc" (body rates), which no companion that can stall for longer than a
+    few ticks should fly: PX4 holds the last body-rate setpoint until COM_OF_LOSS_T."""
     rng = random.Random(seed)
     result = SoakResult(duration_s, seed, faults=dict.fromkeys(FAULTS, 0))
     overrides = {
@@ -176,6 +189,7 @@ def run_soak(out: Path, duration_s: float, seed: int = 0) -> SoakResult:
         "mission": {"duration_s": duration_s + _MARGIN_S, "land_at_end": True},
         "trajectory": {"shape": "circle", "radius_m": 1.5, "period_s": 8.0},
         "log": {"tlog_path": str(out / "session.tlog")},
+        "attitude": {"mode": attitude_mode},
     }
     out.mkdir(parents=True, exist_ok=True)
     with Rig(out, lockstep=False, speedup=1.0, service_overrides=overrides) as rig:
@@ -185,6 +199,7 @@ def run_soak(out: Path, duration_s: float, seed: int = 0) -> SoakResult:
         t_end = time.monotonic() + duration_s
         while time.monotonic() < t_end:
             fault = rng.choice(FAULTS)
+            result.fault_log.append((round(time.monotonic() - t_end + duration_s, 2), fault))
             _inject(rig, fault, rng)
             result.faults[fault] += 1
             result.rss_kib.append(_rss_kib(rig.service.pid))
@@ -200,8 +215,15 @@ def run_soak(out: Path, duration_s: float, seed: int = 0) -> SoakResult:
     _check_tlog(out / "session.tlog", sysid, truth, result)
     alt = [-d for d in truth["pos_d_m"]]
     result.max_altitude_m = max(alt)
-    flying = [i for i, a in enumerate(alt) if a > 2.0]  # from climb-out to the landing
-    span = range(flying[0], flying[-1] + 1) if flying else range(0)
+    # from climb-out to the mission's landing (the autopilot's LAND mode), or the end: a
+    # vehicle that hit the ground before it never climbs back to count as landed
+    first = next((i for i, a in enumerate(alt) if a > 2.0), len(alt))
+    landing = next(
+        (i for i in range(first, len(alt))
+         if (truth["main_mode"][i], truth["sub_mode"][i]) == (_AUTO, _AUTO_LAND)),
+        len(alt),
+    )  # fmt: skip
+    span = range(first, landing)
     result.min_altitude_m = min((alt[i] for i in span), default=0.0)
     result.max_tilt_deg = max(
         (tilt_deg((truth["q_w"][i], truth["q_x"][i], truth["q_y"][i], truth["q_z"][i]))
@@ -219,9 +241,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=600.0, help="seconds of faults")
     ap.add_argument("--seed", type=int, default=0, help="fault schedule seed")
     ap.add_argument("--out", default="out/soak", help="logs, tlog and soak.json")
+    ap.add_argument(
+        "--attitude-mode", default="autopilot", choices=["autopilot", "epc"],
+        help="autopilot: quaternion + thrust, as config/default.toml flies a real vehicle; "
+        "epc: body rates",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     out = Path(args.out)
-    result = run_soak(out, args.duration, args.seed)
+    result = run_soak(out, args.duration, args.seed, args.attitude_mode)
     (out / "soak.json").write_text(json.dumps(asdict(result), indent=2))
     rss = [v for v in result.rss_kib if v]
     growth = (rss[-1] - rss[len(rss) // 2]) / rss[len(rss) // 2] if len(rss) > 2 else 0.0

@@ -122,3 +122,28 @@ def test_the_tick_horizon_equals_sample_to_the_last_bit(shape):
         assert np.array_equal(rows, [[*r.pos_ned_m, *r.vel_ned_m_s, *r.acc_ned_m_s2]
                                      for r in want])
         assert np.array_equal(traj.horizon(t0, 0.05, 20), rows[1:])
+
+
+def test_rejoin_starts_at_the_vehicle_and_closes_the_gap_smoothly():
+    from epc_offboard.trajectories import RefSample, Rejoin
+
+    traj = RefSample(np.array([3.0, -1.0, -2.5]), np.array([1.2, 0.0, 0.0]), np.zeros(3))
+    pos, vel = np.array([0.0, 0.5, -2.0]), np.zeros(3)
+    rj = Rejoin.onto(traj, pos, vel, t_s=10.0, tau_s=1.0)
+    start = rj.rows([10.0])[0]
+    # trajectory + gap = where the vehicle is, at the speed it has: no jump at all
+    np.testing.assert_allclose(traj.pos_ned_m + start[:3], pos, atol=1e-12)
+    np.testing.assert_allclose(traj.vel_ned_m_s + start[3:6], vel, atol=1e-12)
+    # the derivatives are those of the gap (central differences)
+    t = np.linspace(10.0, 16.0, 601)
+    rows, h = rj.rows(t), t[1] - t[0]
+    np.testing.assert_allclose(np.gradient(rows[:, 0:3], h, axis=0)[1:-1], rows[1:-1, 3:6],
+                               atol=2e-3)  # fmt: skip
+    np.testing.assert_allclose(np.gradient(rows[:, 3:6], h, axis=0)[1:-1], rows[1:-1, 6:9],
+                               atol=2e-3)  # fmt: skip
+    # critically damped: it closes without overshooting the trajectory on any axis
+    gap0 = rj.gap_ned_m
+    assert np.all(rows[:, 0:3] * np.sign(gap0) >= -1e-12)
+    assert np.all(np.abs(rj.rows([25.0 + 1e-9])[0]) < 1e-4)
+    assert rj.done(25.5)
+    assert not rj.done(24.0)
