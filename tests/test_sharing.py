@@ -465,7 +465,10 @@ def test_a_received_controller_joins_the_library_only_when_optimal_for_a_tick_he
         legit_set = learn(legit, TARGETS[0])
         loop_factorisations[0] = 0  # the teacher's own solve above is not b's
         async with peer(config("b", pb, []), b) as sb:
-            solver = MissSolver({"position": b})  # after FleetSharing sized the pool
+            # after FleetSharing sized the pool; slices long enough that the worker screens
+            # every candidate before the solve however loaded the machine (the slice's
+            # time bound is tested elsewhere)
+            solver = MissSolver({"position": b}, slice_s=30.0)
             solver.start()
             try:
                 with zenoh.open(raw_config(praw, pb)) as raw:
