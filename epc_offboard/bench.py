@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.epc import ExperienceController
+from epc_offboard.errors import EpcError
 from epc_offboard.frames import FloatArray
 from epc_offboard.models import acceleration_box, position_model
 from epc_offboard.qp import MpcProblem, OsqpSolver, QpStatus
@@ -40,7 +41,7 @@ SEQUENCE = (
 )
 
 
-class BenchError(RuntimeError):
+class BenchError(EpcError, RuntimeError):
     pass
 
 

@@ -49,6 +49,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from epc_offboard.cascade import Cascade
 from epc_offboard.config import load_service_config
 from epc_offboard.epc import ExperienceController
+from epc_offboard.errors import EpcError
 from epc_offboard.miss_solver import MissSolver
 from epc_offboard.state import StateTracker
 from epc_offboard.trajectories import Trajectory
@@ -63,7 +64,7 @@ _IGNORE_ATTITUDE = 0b10000000  # body rates + thrust, as the service sends in ra
 _T = TypeVar("_T")
 
 
-class ServiceBenchError(RuntimeError):
+class ServiceBenchError(EpcError, RuntimeError):
     pass
 
 

@@ -101,8 +101,12 @@ class PositionControlConfig:
     yaw_deg: float = 0.0  # heading held while tracking
     library_size: int = 400
     # a library query's worst-case cost: bounds the candidates a miss checks (the most
-    # likely first: the last controller, its successors, then by importance)
-    query_budget_us: float = 400.0
+    # likely first: the last controller, its successors, then by importance). 3000 us of the
+    # worst-case model is ~190 position maps (a check usually exits within a few rows, at a
+    # fraction of that); 400 us (25 maps) left a saved library's controllers unchecked: a
+    # second zig-zag flight missed 122 ticks instead of 42, and a miss costs more than the
+    # checks it saves (the intermediate QP on the loop and a solve in the worker)
+    query_budget_us: float = 3000.0
     pd_kp: Vec3 = (6.0, 6.0, 8.0)
     pd_kd: Vec3 = (4.5, 4.5, 5.0)
 

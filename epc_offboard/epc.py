@@ -51,6 +51,7 @@ import scipy.linalg as sla
 
 from epc_offboard import kernels
 from epc_offboard.decision import Decision
+from epc_offboard.errors import EpcError
 from epc_offboard.frames import FloatArray
 from epc_offboard.kernels import apply_map, new_map_lists, query_maps, store_map
 from epc_offboard.models import LinearModel
@@ -107,7 +108,7 @@ class EpcStats:
         return self.hits / total if total else 0.0
 
 
-class DependentActiveSetError(ValueError):
+class DependentActiveSetError(EpcError, ValueError):
     """The active set's constraint rows are linearly dependent (no unique multipliers)."""
 
 

@@ -1,0 +1,149 @@
+"""The layer rules of the code base, enforced on its import graph (read with ``ast``, so a
+deferred import inside a function counts as well as one at the top).
+
+* pure numerics import no I/O: no asyncio, sockets, MAVLink, Zenoh, SQLite or processes,
+  and none of the product's I/O modules;
+* the plant (``sitl``) never imports the controller;
+* the service never imports the tools (sim, compare, benchmarks, figures, db, exporters);
+* no import cycle among modules at import time;
+* every error the product raises is an ``EpcError`` and the builtin it is a kind of.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+from pathlib import Path
+
+import pytest
+
+from epc_offboard.errors import EpcError
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("epc_offboard", "sitl")
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for f in sorted((ROOT / pkg).glob("*.py")):
+            out[pkg if f.stem == "__init__" else f"{pkg}.{f.stem}"] = f
+    return out
+
+
+MODULES = _modules()
+
+NUMERICS = tuple(
+    f"epc_offboard.{m}"
+    for m in (
+        "frames", "models", "qp", "epc", "kernels", "decision", "lwpr", "lwpr_kernels",
+        "perturbation", "baselines", "trajectories", "offboard", "dialect", "dialect_px4",
+        "dialect_ardupilot", "timing", "rates", "errors",
+    )
+)  # fmt: skip
+IO_LIBRARIES = ("asyncio", "socket", "pymavlink", "zenoh", "sqlite3", "subprocess", "serial")
+IO_MODULES = tuple(
+    f"epc_offboard.{m}" for m in ("link", "service", "sharing", "store", "db", "sim", "cli")
+)
+CONTROLLER = tuple(
+    f"epc_offboard.{m}"
+    for m in (
+        "cascade", "epc", "qp", "kernels", "lwpr", "lwpr_kernels", "perturbation", "models",
+        "baselines", "mpc", "offboard", "service", "sharing", "store", "miss_solver",
+    )
+)  # fmt: skip
+TOOLS = tuple(
+    f"epc_offboard.{m}"
+    for m in (
+        "sim", "compare", "bench", "bench_service", "bench_lwpr", "figures", "tables", "db",
+        "logexport", "cli",
+    )
+)  # fmt: skip
+
+
+def _imports(path: Path, *, top_level_only: bool) -> set[str]:
+    """Everything a module imports (``from a import b`` counts as ``a`` and ``a.b``)."""
+    tree = ast.parse(path.read_text())
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    found: set[str] = set()
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            found.update(f"{node.module}.{a.name}" for a in node.names)
+    return found
+
+
+def _graph(*, top_level_only: bool) -> dict[str, set[str]]:
+    return {
+        m: {d for d in _imports(p, top_level_only=top_level_only) if d in MODULES} - {m}
+        for m, p in MODULES.items()
+    }
+
+
+def _reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    seen: set[str] = set()
+    todo = [start]
+    while todo:
+        for nxt in graph[todo.pop()]:
+            if nxt not in seen:
+                seen.add(nxt)
+                todo.append(nxt)
+    return seen
+
+
+def test_the_module_lists_name_real_modules():
+    for name in (*NUMERICS, *IO_MODULES, *CONTROLLER, *TOOLS):
+        assert name in MODULES, f"{name} is not a module any more: update the layer lists"
+
+
+@pytest.mark.parametrize("module", NUMERICS)
+def test_numerics_import_no_io(module):
+    graph = _graph(top_level_only=False)
+    for m in (module, *_reachable(graph, module)):
+        direct = _imports(MODULES[m], top_level_only=False)
+        bad = {d for d in direct if d.split(".")[0] in IO_LIBRARIES}
+        assert not bad, f"{module} reaches {m}, which imports {sorted(bad)}"
+    io = _reachable(graph, module) & set(IO_MODULES)
+    assert not io, f"{module} imports the I/O modules {sorted(io)}"
+
+
+def test_the_plant_never_imports_the_controller():
+    graph = _graph(top_level_only=False)
+    for m in MODULES:
+        if m.startswith("sitl"):
+            bad = _reachable(graph, m) & set(CONTROLLER)
+            assert not bad, f"{m} imports the controller: {sorted(bad)}"
+
+
+def test_the_service_never_imports_the_tools():
+    bad = _reachable(_graph(top_level_only=False), "epc_offboard.service") & set(TOOLS)
+    assert not bad, f"the service imports tools: {sorted(bad)}"
+
+
+def test_no_import_cycle_at_import_time():
+    graph = _graph(top_level_only=True)
+    for m in graph:
+        assert m not in _reachable(graph, m), f"{m} imports itself through a cycle"
+
+
+def test_every_error_is_an_epc_error_and_a_builtin():
+    checked = 0
+    for name in MODULES:
+        if name.endswith("__main__"):
+            continue  # importing it runs the command line
+        module = importlib.import_module(name)
+        for _, cls in inspect.getmembers(module, inspect.isclass):
+            if cls.__module__ != name or not issubclass(cls, Exception):
+                continue
+            if not cls.__name__.endswith("Error"):
+                continue  # control flow (the service's _Stop), not an error
+            checked += 1
+            assert issubclass(cls, EpcError), f"{name}.{cls.__name__} is not an EpcError"
+            builtins = [b for b in cls.__mro__[1:] if b.__module__ == "builtins"]
+            assert any(b is not Exception and b is not BaseException for b in builtins), (
+                f"{name}.{cls.__name__} subclasses no specific builtin"
+            )
+    assert checked >= 10
