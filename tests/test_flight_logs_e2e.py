@@ -33,7 +33,7 @@ CHECKED = ("HEARTBEAT", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "SET_ATTITU
 def flight(tmp_path_factory):
     """(vehicle1 directory, unix time before the flight, unix time after it)."""
     started = time.time()
-    _, out = sim(tmp_path_factory.mktemp("flight"), "--scenario", "hover", "--duration", "4",
+    _, out, _ = sim(tmp_path_factory.mktemp("flight"), "--scenario", "hover", "--duration", "4",
                  "--adaptation", "none")  # fmt: skip
     return out / "vehicle1", started, time.time()
 
