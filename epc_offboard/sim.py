@@ -608,9 +608,21 @@ def scenario_for(args: argparse.Namespace) -> ScenarioConfig:
     return scenario
 
 
+def _stop_on_sigterm() -> None:
+    """SIGTERM (systemd, a test harness, `kill`) ends sim as Ctrl-C does: through the
+    ``finally`` that stops every SITL and service it started (the default action killed sim
+    alone and left its children flying)."""
+
+    def handler(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def run_sim_command(args: argparse.Namespace) -> int:
     from epc_offboard.errors import EXIT_RUNTIME
 
+    _stop_on_sigterm()
     if getattr(args, "compare", None) is not None:
         from epc_offboard.compare import run_compare_command
 

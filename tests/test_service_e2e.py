@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
@@ -184,3 +186,43 @@ def test_truncated_library_is_moved_aside_and_the_service_flies(tmp_path):
         rig.wait_mode(*OFFBOARD)
         assert "moved aside" in rig.log()
     assert list(tmp_path.glob("library.sqlite.corrupt-*"))
+
+
+def test_sigterm_to_sim_stops_every_process_it_started(tmp_path):
+    """`kill` of a running sim used to end sim alone and leave its SITL and service flying."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "hover", "--duration", "30",
+         "--adaptation", "none", "--gcs-port", "0", "--out", str(out)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    marker = str(out / "vehicle1")
+
+    def children() -> list[int]:
+        pids = []
+        for entry in Path("/proc").iterdir():
+            if entry.name.isdigit():
+                try:
+                    cmdline = (entry / "cmdline").read_bytes().decode(errors="replace")
+                except OSError:
+                    continue
+                if marker in cmdline:
+                    pids.append(int(entry.name))
+        return pids
+
+    try:
+        deadline = time.monotonic() + 60
+        while len(children()) < 2 and time.monotonic() < deadline:  # SITL and service up
+            time.sleep(0.2)
+        assert len(children()) >= 2, "sim never started its SITL and service"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=20) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 10
+        while children() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert children() == [], "sim's SITL or service outlived it"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for pid in children():
+            os.kill(pid, signal.SIGKILL)
