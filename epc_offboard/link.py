@@ -47,6 +47,7 @@ from urllib.parse import urlsplit
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.configio import ConfigError
+from epc_offboard.logsetup import LogGate
 
 log = logging.getLogger(__name__)
 
@@ -290,7 +291,7 @@ class MavlinkLink:
         self._peer_timeout_s = peer_timeout_s
         self._peer_heard = -float("inf")
         self.counters: Counter[str] = Counter()
-        self._last_dispatch_log = -float("inf")
+        self._log_gate = LogGate()
         self.mav = mavlink.MAVLink(_SendFile(self), srcSystem=system_id, srcComponent=component_id)
         self.mav.robust_parsing = True
         self.signature: SignatureCheck | None = None
@@ -563,9 +564,7 @@ class MavlinkLink:
                 self._dispatch(msg, addr)
             except Exception as exc:  # one bad message costs one counted drop, not the rest
                 self.counters["dispatch_errors"] += 1
-                now = time.monotonic()
-                if now - self._last_dispatch_log > 1.0:
-                    self._last_dispatch_log = now
+                if self._log_gate.open("dispatch", 1.0):
                     log.warning(
                         "%s dropped: %s: %s (%d so far)",
                         msg.get_type(), type(exc).__name__, exc, self.counters["dispatch_errors"],

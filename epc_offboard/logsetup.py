@@ -42,3 +42,18 @@ def setup_logging(cfg: LogConfig) -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(cfg.level.upper())
+
+
+class LogGate:
+    """At most one log line per key in every ``every_s`` of wall-clock time: lines a peer or
+    the wire can trigger at any rate stay bounded (the counters beside them count all)."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, float] = {}  # keys are the caller's literals: bounded
+
+    def open(self, key: str, every_s: float) -> bool:
+        now = time.monotonic()
+        if now - self._last.get(key, -float("inf")) <= every_s:
+            return False
+        self._last[key] = now
+        return True

@@ -55,7 +55,7 @@ from epc_offboard.dialect import (
 )
 from epc_offboard.frames import FloatArray
 from epc_offboard.link import MavlinkLink, TlogWriter, load_signing_key
-from epc_offboard.logsetup import setup_logging
+from epc_offboard.logsetup import LogGate, setup_logging
 from epc_offboard.miss_solver import MissSolver
 from epc_offboard.offboard import Action, Inputs, OffboardStateMachine, Outputs, Phase
 from epc_offboard.rates import RateMonitor
@@ -112,8 +112,6 @@ class Service:
             self.sm.dialect = self.dialect
         self.params: dict[str, float] = {}  # autopilot parameters read (PARAM_VALUE)
         self._params_requested_at = -math.inf
-        self._last_refusal_log = -math.inf
-        self._last_autopilot_log = -math.inf
         self.cascade = Cascade(
             cfg.position,
             cfg.attitude,
@@ -147,8 +145,7 @@ class Service:
         self._ready_sent = False
         self._control_alive_wall = -math.inf
         self._lingering = False  # landed, still up for the fleet (mission.linger_after_landing)
-        self._last_error_log = -math.inf
-        self._last_ack_log = -math.inf
+        self._log_gate = LogGate()  # wire- and loop-driven log lines, rate-limited
         # phase transitions on the loop clock, the newest _MAX_PHASE_EVENTS (a flapping link
         # cannot grow it)
         self.phase_events: deque[dict[str, Any]] = deque(maxlen=_MAX_PHASE_EVENTS)
@@ -210,9 +207,7 @@ class Service:
             # two counters, whatever the wire says: a fuzzing peer cannot grow the dict
             accepted = msg.result in (mavlink.MAV_RESULT_ACCEPTED, 5)  # 5: in progress
             self.counters["acks_accepted" if accepted else "acks_refused"] += 1
-            wall = time.monotonic()
-            if not accepted and wall - self._last_ack_log > 1.0:
-                self._last_ack_log = wall
+            if not accepted and self._log_gate.open("ack", 1.0):
                 log.info(
                     "command %d answered with result %d (%d refusals so far)",
                     msg.command, msg.result, self.counters["acks_refused"],
@@ -223,14 +218,11 @@ class Service:
         that the heartbeat contradicts is kept, and the contradiction logged and counted."""
         if autopilot == MAV_AUTOPILOT_INVALID:
             return  # a camera or gimbal of the vehicle
-        wall = time.monotonic()
-        quiet = wall - self._last_autopilot_log < 10.0
         if self.dialect is None:
             dialect = choose("auto", autopilot)
             if dialect is None:
                 self.counters["heartbeats_unknown_autopilot"] += 1
-                if not quiet:
-                    self._last_autopilot_log = wall
+                if self._log_gate.open("autopilot", 10.0):
                     log.error(
                         "HEARTBEAT.autopilot %d is neither PX4 (12) nor ArduPilot (3): "
                         "nothing is commanded; set link.autopilot to fly it", autopilot,
@@ -248,8 +240,7 @@ class Service:
                 )  # fmt: skip
         elif autopilot != self.dialect.autopilot:
             self.counters["heartbeats_other_autopilot"] += 1
-            if not quiet:
-                self._last_autopilot_log = wall
+            if self._log_gate.open("autopilot", 10.0):
                 log.error(
                     "link.autopilot = %s but HEARTBEAT.autopilot is %d: speaking %s anyway",
                     self.cfg.link.autopilot, autopilot, self.dialect.name,
@@ -325,9 +316,7 @@ class Service:
         why = self._offboard_refusal() if action == Action.REQUEST_OFFBOARD else ""
         if why:
             self.counters["offboard_refused"] += 1
-            wall = time.monotonic()
-            if wall - self._last_refusal_log > 10.0:
-                self._last_refusal_log = wall
+            if self._log_gate.open("refusal", 10.0):
                 log.error(
                     "not requesting offboard (%s GUIDED) nor sending setpoints: %s "
                     "(%d refusals so far)", self.dialect.name, why,
@@ -734,9 +723,7 @@ class Service:
 
     def _loop_error(self, loop: str, exc: Exception) -> None:
         self.counters[f"{loop}_loop_errors"] += 1
-        wall = time.monotonic()
-        if wall - self._last_error_log > 1.0:
-            self._last_error_log = wall
+        if self._log_gate.open("loop_error", 1.0):
             log.error(
                 "%s loop degraded to hover after %s: %s (%d so far)",
                 loop,
