@@ -27,6 +27,7 @@ ways), the SITL's ground truth and the service's own stats:
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import math
 import os
@@ -151,7 +152,7 @@ def _check_tlog(path: Path, service_sysid: int, truth: dict[str, list[float]], r
             continue
         if mtype in ("COMMAND_LONG", "COMMAND_INT") and msg.command == _MAV_CMD_NAV_TAKEOFF:
             r.takeoffs_sent += 1
-            i = max(0, min(len(t_truth) - 1, _index_at(t_truth, vehicle_t_s)))
+            i = max(0, min(len(t_truth) - 1, bisect.bisect_left(t_truth, vehicle_t_s)))
             if alt_truth[i] > 0.5:
                 r.takeoffs_in_air += 1
         elif mtype == "SET_ATTITUDE_TARGET":
@@ -161,17 +162,6 @@ def _check_tlog(path: Path, service_sysid: int, truth: dict[str, list[float]], r
             if not all(math.isfinite(v) for v in values):
                 r.non_finite_setpoints += 1
     tlog.close()
-
-
-def _index_at(ts: list[float], t: float) -> int:
-    lo, hi = 0, len(ts)
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if ts[mid] < t:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
 
 
 def run_soak(

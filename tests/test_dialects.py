@@ -25,15 +25,12 @@ from epc_offboard.offboard import (
     LANDED_STATE_IN_AIR,
     LANDED_STATE_ON_GROUND,
     Inputs,
-    OffboardConfig,
     OffboardStateMachine,
     Phase,
 )
 from epc_offboard.state import Heartbeat
-from tests.test_offboard import fault_schedules
+from tests.test_offboard import AUTO, HOME_AMSL_M, fault_schedules
 
-AUTO = OffboardConfig(auto_arm=True, auto_takeoff=True, auto_offboard=True)
-HOME_AMSL_M = 488.0
 TARGET = TakeoffTarget(2.5, HOME_AMSL_M + 2.5)
 WHERE = Position(473977420, 85455940, 90.0)
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import socket
 import threading
 import time
 
@@ -25,17 +24,12 @@ from epc_offboard.epc import LibraryEntry
 from epc_offboard.state import PX4_MAIN_MODE_OFFBOARD
 from epc_offboard.wire import ControllerMessage, MessageKind, encode_controllers
 from tests.rig import Rig
+from tests.test_sharing import free_tcp_port
 
 pytestmark = pytest.mark.timeout(180)
 
 FLEET = "floodtest"
 FLOOD_S = 6.0
-
-
-def _free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _flood(port: int, signature: str, n_con: int, stop: threading.Event, sent: list[int]):
@@ -60,7 +54,7 @@ def _flood(port: int, signature: str, n_con: int, stop: threading.Event, sent: l
 
 
 def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path):
-    port = _free_tcp_port()
+    port = free_tcp_port()
     overrides = {
         "mission": {"duration_s": FLOOD_S + 6.0, "land_at_end": True},
         "trajectory": {"shape": "hover"},
