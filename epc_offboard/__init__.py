@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING, Any
 
 # Every matrix in the control loops is small (<= 240 x 136): BLAS threads only add
 # synchronisation, and on a loaded companion computer their spin-waiting made EPC's miss path
@@ -21,4 +22,40 @@ if "STATE_DIRECTORY" in os.environ:
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__"]
+# The public API, imported on first use (PEP 562): the bundled SITL imports
+# ``epc_offboard.common`` and must not pull in the controller (numba, OSQP) with it.
+_PUBLIC = {
+    "ExperienceController": "epc_offboard.control.epc",
+    "LibraryEntry": "epc_offboard.control.epc",
+    "LinearModel": "epc_offboard.control.models",
+    "MpcProblem": "epc_offboard.control.qp",
+    "LWPR": "epc_offboard.control.lwpr",
+    "EpcError": "epc_offboard.common.errors",
+}
+
+if TYPE_CHECKING:
+    from epc_offboard.common.errors import EpcError
+    from epc_offboard.control.epc import ExperienceController, LibraryEntry
+    from epc_offboard.control.lwpr import LWPR
+    from epc_offboard.control.models import LinearModel
+    from epc_offboard.control.qp import MpcProblem
+
+
+def __getattr__(name: str) -> Any:
+    module = _PUBLIC.get(name)
+    if module is None:
+        raise AttributeError(f"module 'epc_offboard' has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(module), name)
+
+
+__all__ = [
+    "LWPR",
+    "EpcError",
+    "ExperienceController",
+    "LibraryEntry",
+    "LinearModel",
+    "MpcProblem",
+    "__version__",
+]

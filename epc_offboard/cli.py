@@ -13,17 +13,17 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import cast
 
-from epc_offboard.configio import ConfigError
-from epc_offboard.db import add_db_arguments
-from epc_offboard.errors import EXIT_RUNTIME, EXIT_USAGE, UsageError
+from epc_offboard.common.configio import ConfigError
+from epc_offboard.common.errors import EXIT_RUNTIME, EXIT_USAGE, UsageError
+from epc_offboard.tools.db import add_db_arguments
 
 # subcommand -> "module:function(args) -> exit code"
 _COMMANDS = {
-    "run": "epc_offboard.service:run_service_command",
-    "sim": "epc_offboard.sim:run_sim_command",
-    "bench": "epc_offboard.bench:run_bench_command",
-    "db": "epc_offboard.db:run_db_command",
-    "log": "epc_offboard.logexport:run_log_command",
+    "run": "epc_offboard.service.service:run_service_command",
+    "sim": "epc_offboard.tools.sim:run_sim_command",
+    "bench": "epc_offboard.tools.bench:run_bench_command",
+    "db": "epc_offboard.tools.db:run_db_command",
+    "log": "epc_offboard.tools.logexport:run_log_command",
 }
 
 
@@ -55,7 +55,7 @@ class _HelpFormatter(argparse.HelpFormatter):
 
 def build_parser() -> argparse.ArgumentParser:
     from epc_offboard import __version__
-    from epc_offboard.sim import SCENARIO_DIR
+    from epc_offboard.tools.sim import SCENARIO_DIR
 
     fmt = _HelpFormatter
     parser = argparse.ArgumentParser(

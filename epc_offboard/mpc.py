@@ -1,12 +1,17 @@
-"""The EPC core as one import (CONTRACTS.md): ``from epc_offboard.mpc import ...``."""
+"""CONTRACTS.md's import path for the EPC core, kept so scripts written against it keep working.
+
+Not the MPC baseline (that is :class:`epc_offboard.control.baselines.MpcController`) and no
+code of its own: the core lives in ``epc_offboard/control/``, and new code imports it from the
+package root (``from epc_offboard import ExperienceController, MpcProblem, LinearModel``).
+"""
 
 from __future__ import annotations
 
-from epc_offboard.baselines import MpcController, PdController
-from epc_offboard.decision import Controller, Decision, Source
-from epc_offboard.epc import EpcStats, ExperienceController, LibraryEntry
-from epc_offboard.models import LinearModel, attitude_model, position_model
-from epc_offboard.qp import MpcProblem, OsqpSolver, QpResult, QpStatus
+from epc_offboard.control.baselines import MpcController, PdController
+from epc_offboard.control.decision import Controller, Decision, Source
+from epc_offboard.control.epc import EpcStats, ExperienceController, LibraryEntry
+from epc_offboard.control.models import LinearModel, attitude_model, position_model
+from epc_offboard.control.qp import MpcProblem, OsqpSolver, QpResult, QpStatus
 
 __all__ = [
     "Controller",

@@ -31,7 +31,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from epc_offboard.frames import (
+from epc_offboard.common.frames import (
     GRAVITY_M_S2,
     FloatArray,
     quat_conjugate,

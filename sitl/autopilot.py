@@ -22,7 +22,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from epc_offboard.frames import (
+from epc_offboard.common.frames import (
     GRAVITY_M_S2,
     FloatArray,
     quat_conjugate,

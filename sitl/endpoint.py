@@ -18,8 +18,8 @@ from typing import Any, cast
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.frames import quat_to_euler, quat_to_rotation
-from epc_offboard.link import enable_signing
+from epc_offboard.common.frames import quat_to_euler, quat_to_rotation
+from epc_offboard.common.signing import enable_signing
 from sitl.autopilot import (
     FORCE_DISARM_MAGIC,
     IGNORE_ATTITUDE,

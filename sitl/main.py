@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from epc_offboard.configio import ConfigError
-from epc_offboard.errors import UsageError
+from epc_offboard.common.configio import ConfigError
+from epc_offboard.common.errors import UsageError
 from sitl.endpoint import Counters, SitlEndpoint
 from sitl.groundtruth import GroundTruthWriter
 from sitl.lockstep import Clock, LockstepGate

@@ -2,7 +2,7 @@
 
 One TOML file (``config/vehicles/*.toml``) holds the tables ``[vehicle]``, ``[environment]``,
 ``[autopilot]``, ``[sitl]`` and ``[ardupilot]`` (the ArduCopter personality's parameters);
-it is loaded strictly by :func:`epc_offboard.configio.load_config` so an unknown or misspelt
+it is loaded strictly by :func:`epc_offboard.common.configio.load_config` so an unknown or misspelt
 key is an error naming the key and the file. Every key carries its unit. Range checks live
 in ``__post_init__``.
 """
@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from epc_offboard.configio import load_config
-from epc_offboard.frames import GRAVITY_M_S2
+from epc_offboard.common.configio import load_config
+from epc_offboard.common.frames import GRAVITY_M_S2
 
 AUTOPILOTS = frozenset({"px4", "ardupilot"})  # SITL personalities
 

@@ -1,7 +1,7 @@
 """Quadrotor rigid-body dynamics (thesis 3.2) and its environment: pure numerics, no I/O.
 
 The thesis writes its world frame z-up and thrust along +z_B. Internally everything is NED/FRD
-(``epc_offboard.frames``), so, converted once:
+(``epc_offboard.common.frames``), so, converted once:
 
   (3.9)   m dv/dt = [0, 0, m g] + R(q) ([0, 0, -sum F_i] + f_drag)          (NED, FRD)
   (3.10)  I dw/dt = tau(F, M) - w x (I w)                                    (FRD)
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from epc_offboard.frames import GRAVITY_M_S2, FloatArray, wind_vector_ned_m_s
+from epc_offboard.common.frames import GRAVITY_M_S2, FloatArray, wind_vector_ned_m_s
 from sitl.params import EnvironmentParams, VehicleParams
 
 NX = 17

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from epc_offboard.frames import FloatArray, euler_to_quat, quat_multiply, quat_normalize
+from epc_offboard.common.frames import FloatArray, euler_to_quat, quat_multiply, quat_normalize
 from sitl.ardupilot import ArduCopter
 from sitl.autopilot import ActuatorCommand, Autopilot
 from sitl.params import SimConfig

@@ -13,7 +13,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.link import enable_signing
+from epc_offboard.common.signing import enable_signing
 from sitl.endpoint import Address, SitlEndpoint
 
 MAX_BUFFERED_BYTES = 1 << 20

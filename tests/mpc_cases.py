@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from epc_offboard.models import position_model
-from epc_offboard.qp import MpcProblem
+from epc_offboard.control.models import position_model
+from epc_offboard.control.qp import MpcProblem
 
 V_MAX = 2.0
 A_MAX = 3.0

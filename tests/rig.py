@@ -21,9 +21,9 @@ from typing import Any
 
 from pymavlink import mavutil
 
-from epc_offboard.configio import dump_toml, merge_dicts
-from epc_offboard.sim import SITL_SERVICE_CONFIG
-from epc_offboard.state import px4_modes
+from epc_offboard.common.configio import dump_toml, merge_dicts
+from epc_offboard.tools.sim import SITL_SERVICE_CONFIG
+from epc_offboard.vehicle.state import px4_modes
 
 
 def cpu_hog(seconds: float) -> subprocess.Popen[bytes]:

@@ -43,8 +43,8 @@ from typing import Any
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.frames import tilt_deg
-from epc_offboard.state import (
+from epc_offboard.common.frames import tilt_deg
+from epc_offboard.vehicle.state import (
     PX4_AUTO_SUB_LAND,
     PX4_MAIN_MODE_AUTO,
     PX4_MAIN_MODE_OFFBOARD,
@@ -198,7 +198,7 @@ def run_soak(
         result.recovered_s = _wait_offboard(rig, _MARGIN_S)
         result.exit_code = rig.wait_exit(timeout_s=_MARGIN_S + 60.0)
         truth = rig.groundtruth()
-        from epc_offboard.config import LinkConfig
+        from epc_offboard.service.config import LinkConfig
 
         sysid = int(rig.config["link"].get("system_id", LinkConfig.system_id))
         result.stats = rig.stats()

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from epc_offboard.baselines import MpcController, PdController
-from epc_offboard.decision import Controller, Decision
-from epc_offboard.epc import ExperienceController
+from epc_offboard.control.baselines import MpcController, PdController
+from epc_offboard.control.decision import Controller, Decision
+from epc_offboard.control.epc import ExperienceController
 from tests.mpc_cases import A_MAX, exact_solution, hover_refs, position_problem
 
 

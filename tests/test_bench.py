@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from epc_offboard.bench import run_bench, run_bench_command
+from epc_offboard.tools.bench import run_bench, run_bench_command
 
 
 def test_tiny_bench_reports_the_contract_shape(tmp_path, capsys):

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from epc_offboard import frames
-from epc_offboard.cascade import Cascade, PositionOutput
-from epc_offboard.config import load_service_config
-from epc_offboard.models import AttitudeThrust, attitude_to_accel
-from epc_offboard.state import VehicleState
+from epc_offboard.common import frames
+from epc_offboard.control.cascade import Cascade, PositionOutput
+from epc_offboard.control.models import AttitudeThrust, attitude_to_accel
+from epc_offboard.service.config import load_service_config
+from epc_offboard.vehicle.state import VehicleState
 
 _CONFIG = Path(__file__).resolve().parent.parent / "config" / "sitl.toml"
 _DT_S = 0.01  # the position loop's period

@@ -6,8 +6,8 @@ import asyncio
 
 import pytest
 
-from epc_offboard.clock import VehicleClock, WallClock
-from epc_offboard.timing import LoopTiming
+from epc_offboard.service.clock import VehicleClock, WallClock
+from epc_offboard.service.timing import LoopTiming
 
 
 def test_loop_timing_rate_jitter_and_misses():

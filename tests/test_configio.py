@@ -7,7 +7,7 @@ from typing import Literal
 
 import pytest
 
-from epc_offboard.configio import ConfigError, load_config
+from epc_offboard.common.configio import ConfigError, load_config
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ def test_missing_file(tmp_path):
 def test_dump_toml_round_trips():
     import tomllib
 
-    from epc_offboard.configio import dump_toml
+    from epc_offboard.common.configio import dump_toml
 
     data = {
         "a": 1, "b": 2.5, "c": "x\"y", "d": True, "e": [1.0, 2.0], "f": float("inf"),

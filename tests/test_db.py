@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from epc_offboard.cascade import Cascade
 from epc_offboard.cli import build_parser, main
-from epc_offboard.config import load_service_config
-from epc_offboard.store import LibraryStore, StoredController
+from epc_offboard.control.cascade import Cascade
+from epc_offboard.service.config import load_service_config
+from epc_offboard.store.library import LibraryStore, StoredController
 
 SITL_CONFIG = "config/sitl.toml"
 # import and merge check every controller against the problems of a service config: the

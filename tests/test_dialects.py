@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epc_offboard import dialect_ardupilot as apm
-from epc_offboard import dialect_px4 as px4
-from epc_offboard.dialect import (
+from epc_offboard.vehicle import dialect_ardupilot as apm
+from epc_offboard.vehicle import dialect_px4 as px4
+from epc_offboard.vehicle.dialect import (
     MAV_CMD_DO_SET_MODE,
     Action,
     EncodeError,
@@ -21,14 +21,14 @@ from epc_offboard.dialect import (
     TakeoffTarget,
     choose,
 )
-from epc_offboard.offboard import (
+from epc_offboard.vehicle.offboard import (
     LANDED_STATE_IN_AIR,
     LANDED_STATE_ON_GROUND,
     Inputs,
     OffboardStateMachine,
     Phase,
 )
-from epc_offboard.state import Heartbeat
+from epc_offboard.vehicle.state import Heartbeat
 from tests.test_offboard import AUTO, HOME_AMSL_M, fault_schedules
 
 TARGET = TakeoffTarget(2.5, HOME_AMSL_M + 2.5)

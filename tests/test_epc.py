@@ -10,11 +10,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import epc_offboard.epc as epc_module
-from epc_offboard.epc import ExperienceController, LibraryEntry
-from epc_offboard.kernels import apply_map_numpy
-from epc_offboard.models import LinearModel, attitude_model, position_model
-from epc_offboard.qp import MpcProblem
+import epc_offboard.control.epc as epc_module
+from epc_offboard.control.epc import ExperienceController, LibraryEntry
+from epc_offboard.control.kernels import apply_map_numpy
+from epc_offboard.control.models import LinearModel, attitude_model, position_model
+from epc_offboard.control.qp import MpcProblem
 from tests.mpc_cases import A_MAX, V_MAX, exact_solution, hover_refs, position_problem
 
 FAST = settings(max_examples=25, deadline=None,
@@ -371,8 +371,8 @@ def test_attitude_loop_is_exact_too():
 def test_hits_are_exact_with_the_tilt_polygon():
     """Input polytope rows (the position loop's tilt polygon) are constraint rows like any
     other: hits and solves equal the exact optimum, and every input satisfies P u <= p."""
-    from epc_offboard.cascade import PositionControlConfig
-    from epc_offboard.models import acceleration_limits, position_model_lagged
+    from epc_offboard.control.cascade import PositionControlConfig
+    from epc_offboard.control.models import acceleration_limits, position_model_lagged
 
     pc = PositionControlConfig()
     lim = acceleration_limits(math.radians(45.0), 0.08, 0.95, 0.5)
@@ -466,7 +466,7 @@ def test_candidate_maps_are_built_in_slices_bounded_by_time(monkeypatch):
         fake_now[0] += 1e-3
         return fake_now[0]
 
-    monkeypatch.setattr("epc_offboard.epc.time.perf_counter", perf_counter)
+    monkeypatch.setattr("epc_offboard.control.epc.time.perf_counter", perf_counter)
     assert ctrl.build_candidates(0.0) == 1
     # start at t0; after each map a reading: t0 + 1 and + 2 ms go on, + 3 ms stops it
     assert ctrl.build_candidates(2.5e-3) == 3
@@ -479,7 +479,7 @@ def test_candidate_maps_are_built_in_slices_bounded_by_time(monkeypatch):
 
 @pytest.mark.parametrize("kernel", ["compiled", "numpy"])
 def test_a_query_checks_at_most_its_budget_likely_successors_first(kernel, monkeypatch):
-    from epc_offboard import kernels
+    from epc_offboard.control import kernels
 
     if kernel == "numpy":
         monkeypatch.setattr(epc_module, "query_maps", kernels.query_maps_numpy)

@@ -18,11 +18,11 @@ import time
 import pytest
 import zenoh
 
-from epc_offboard.cascade import Cascade
-from epc_offboard.config import load_service_config
-from epc_offboard.epc import LibraryEntry
-from epc_offboard.state import PX4_MAIN_MODE_OFFBOARD
-from epc_offboard.wire import ControllerMessage, MessageKind, encode_controllers
+from epc_offboard.control.cascade import Cascade
+from epc_offboard.control.epc import LibraryEntry
+from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
+from epc_offboard.service.config import load_service_config
+from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import Rig
 from tests.test_sharing import free_tcp_port
 

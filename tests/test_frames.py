@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from epc_offboard import frames
+from epc_offboard.common import frames
 
 angles = st.floats(min_value=-math.pi, max_value=math.pi, allow_nan=False)
 small_pitch = st.floats(min_value=-1.5, max_value=1.5, allow_nan=False)
@@ -83,7 +83,7 @@ def test_wrap_pi(a, w):
 def test_tilt_and_angle_between_attitudes():
     import math
 
-    from epc_offboard.frames import angle_between_deg, euler_to_quat, tilt_deg
+    from epc_offboard.common.frames import angle_between_deg, euler_to_quat, tilt_deg
 
     assert tilt_deg(euler_to_quat(0.0, 0.0, 1.2)) == pytest.approx(0.0, abs=1e-9)
     assert tilt_deg(euler_to_quat(math.radians(30), 0.0, 0.7)) == pytest.approx(30.0)

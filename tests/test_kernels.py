@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from epc_offboard.kernels import HAVE_NUMBA, apply_map, apply_map_numpy
+from epc_offboard.control.kernels import HAVE_NUMBA, apply_map, apply_map_numpy
 
 
 @pytest.mark.skipif(not HAVE_NUMBA, reason="numba not installed: the numpy path is in use")

@@ -14,11 +14,13 @@ from __future__ import annotations
 import ast
 import importlib
 import inspect
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-from epc_offboard.errors import EpcError
+from epc_offboard.common.errors import EpcError
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("epc_offboard", "sitl")
@@ -27,39 +29,40 @@ PACKAGES = ("epc_offboard", "sitl")
 def _modules() -> dict[str, Path]:
     out = {}
     for pkg in PACKAGES:
-        for f in sorted((ROOT / pkg).glob("*.py")):
-            out[pkg if f.stem == "__init__" else f"{pkg}.{f.stem}"] = f
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            parts = f.relative_to(ROOT).with_suffix("").parts
+            out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = f
     return out
 
 
 MODULES = _modules()
 
-NUMERICS = tuple(
-    f"epc_offboard.{m}"
-    for m in (
-        "frames", "models", "qp", "epc", "kernels", "decision", "lwpr", "lwpr_kernels",
-        "perturbation", "baselines", "trajectories", "offboard", "dialect", "dialect_px4",
-        "dialect_ardupilot", "timing", "rates", "errors",
-    )
+def _in(*packages: str) -> tuple[str, ...]:
+    """Every module of these packages (and the packages themselves)."""
+    return tuple(m for m in MODULES if any(m == p or m.startswith(p + ".") for p in packages))
+
+
+# control/ is pure numerics as a whole; the vehicle's state machine, dialects and rate
+# bookkeeping are too (commands as values: the link sends them)
+NUMERICS = (
+    *(m for m in _in("epc_offboard.control") if m != "epc_offboard.control.cascade"),
+    *(f"epc_offboard.vehicle.{m}" for m in (
+        "offboard", "dialect", "dialect_px4", "dialect_ardupilot", "rates", "state")),
+    "epc_offboard.service.timing",
+    "epc_offboard.common.errors",
+    "epc_offboard.common.frames",
 )  # fmt: skip
 IO_LIBRARIES = ("asyncio", "socket", "pymavlink", "zenoh", "sqlite3", "subprocess", "serial")
-IO_MODULES = tuple(
-    f"epc_offboard.{m}" for m in ("link", "service", "sharing", "store", "db", "sim", "cli")
+IO_MODULES = (
+    "epc_offboard.vehicle.link",
+    *_in("epc_offboard.service", "epc_offboard.fleet", "epc_offboard.store"),
+    "epc_offboard.tools.db",
+    "epc_offboard.tools.sim",
+    "epc_offboard.cli",
 )
-CONTROLLER = tuple(
-    f"epc_offboard.{m}"
-    for m in (
-        "cascade", "epc", "qp", "kernels", "lwpr", "lwpr_kernels", "perturbation", "models",
-        "baselines", "mpc", "offboard", "service", "sharing", "store", "miss_solver",
-    )
-)  # fmt: skip
-TOOLS = tuple(
-    f"epc_offboard.{m}"
-    for m in (
-        "sim", "compare", "bench", "bench_service", "bench_lwpr", "figures", "tables", "db",
-        "logexport", "cli",
-    )
-)  # fmt: skip
+# what the plant may import of the product: the shared package, nothing else
+PLANT_MAY_IMPORT = _in("epc_offboard.common")
+TOOLS = (*_in("epc_offboard.tools"), "epc_offboard.cli")
 
 
 def _imports(path: Path, *, top_level_only: bool) -> set[str]:
@@ -95,8 +98,9 @@ def _reachable(graph: dict[str, set[str]], start: str) -> set[str]:
 
 
 def test_the_module_lists_name_real_modules():
-    for name in (*NUMERICS, *IO_MODULES, *CONTROLLER, *TOOLS):
+    for name in (*NUMERICS, *IO_MODULES, *PLANT_MAY_IMPORT, *TOOLS):
         assert name in MODULES, f"{name} is not a module any more: update the layer lists"
+    assert len(_in("epc_offboard.control")) >= 10
 
 
 @pytest.mark.parametrize("module", NUMERICS)
@@ -114,12 +118,28 @@ def test_the_plant_never_imports_the_controller():
     graph = _graph(top_level_only=False)
     for m in MODULES:
         if m.startswith("sitl"):
-            bad = _reachable(graph, m) & set(CONTROLLER)
-            assert not bad, f"{m} imports the controller: {sorted(bad)}"
+            product = {d for d in _reachable(graph, m) if d.startswith("epc_offboard.")}
+            bad = product - set(PLANT_MAY_IMPORT)
+            assert not bad, f"{m} imports more of the product than epc_offboard.common: {bad}"
+
+
+def test_the_running_plant_loads_no_controller():
+    """What the interpreter really loads (package __init__ files included) when the SITL's
+    command starts: nothing of the controller, no numba, no OSQP."""
+    code = (
+        "import sys, sitl.main\n"
+        "bad = sorted(m for m in sys.modules if m.startswith(('numba', 'osqp', 'zenoh')) "
+        "or (m.startswith('epc_offboard.') and not m.startswith('epc_offboard.common')))\n"
+        "print(','.join(bad))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert out.stdout.strip() == "", f"the SITL loads {out.stdout.strip()}"
 
 
 def test_the_service_never_imports_the_tools():
-    bad = _reachable(_graph(top_level_only=False), "epc_offboard.service") & set(TOOLS)
+    bad = _reachable(_graph(top_level_only=False), "epc_offboard.service.service") & set(TOOLS)
     assert not bad, f"the service imports tools: {sorted(bad)}"
 
 

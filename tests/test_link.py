@@ -12,8 +12,9 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.configio import ConfigError
-from epc_offboard.link import MavlinkLink, TlogWriter, load_signing_key, parse_url
+from epc_offboard.common.configio import ConfigError
+from epc_offboard.common.signing import load_signing_key
+from epc_offboard.vehicle.link import MavlinkLink, TlogWriter, parse_url
 
 KEY = bytes(range(32))
 

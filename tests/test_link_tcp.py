@@ -9,9 +9,9 @@ import asyncio
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard import link as link_module
-from epc_offboard.configio import ConfigError
-from epc_offboard.link import Endpoint, MavlinkLink, parse_url
+from epc_offboard.common.configio import ConfigError
+from epc_offboard.vehicle import link as link_module
+from epc_offboard.vehicle.link import Endpoint, MavlinkLink, parse_url
 
 WAIT_S = 5.0  # generous: every wait below ends on an event, not on this
 

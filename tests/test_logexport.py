@@ -9,7 +9,7 @@ import pytest
 from mcap.reader import make_reader
 
 from epc_offboard.cli import main
-from epc_offboard.service import _FLIGHT_LOG_COLUMNS
+from epc_offboard.service.service import _FLIGHT_LOG_COLUMNS
 
 
 def _row(k: int) -> list[str]:

@@ -16,8 +16,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epc_offboard.bench_lwpr import DragFlight
-from epc_offboard.lwpr import LWPR, LwprError, LwprReference, warm_up
+from epc_offboard.control.lwpr import LWPR, LwprError, LwprReference, warm_up
+from epc_offboard.tools.bench_lwpr import DragFlight
 
 
 def cross(X: np.ndarray) -> np.ndarray:
@@ -424,7 +424,7 @@ def test_warm_up_compiles_the_kernels_and_leaves_lwpr_usable():
     took_s = warm_up()
     assert took_s > 0.0 if LWPR.compiled else took_s == 0.0
     if LWPR.compiled:
-        from epc_offboard import lwpr_kernels
+        from epc_offboard.control import lwpr_kernels
 
         model = trained(n=200)  # inputs in other layouts reuse the compiled kernels
         X = np.random.default_rng(14).uniform(-1, 1, (20, 3))
@@ -443,9 +443,9 @@ def test_the_cascade_warm_up_compiles_every_lwpr_kernel_before_the_first_tick():
     the service's READY point, update and predict_many need no compilation (the scratch
     ticks alone would not learn, and leave update to the first tick in flight)."""
     code = (
-        "from epc_offboard import lwpr_kernels as k\n"
-        "from epc_offboard.cascade import (AttitudeControlConfig, Cascade, EstimatorConfig,\n"
-        "    PositionControlConfig)\n"
+        "from epc_offboard.control import lwpr_kernels as k\n"
+        "from epc_offboard.control.cascade import (\n"
+        "    AttitudeControlConfig, Cascade, EstimatorConfig, PositionControlConfig)\n"
         "c = Cascade(PositionControlConfig(), AttitudeControlConfig(), EstimatorConfig())\n"
         "before = (len(k.update.signatures), len(k.predict_many.signatures))\n"
         "c.warm_up()\n"

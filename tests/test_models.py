@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epc_offboard.frames import GRAVITY_M_S2
-from epc_offboard.models import (
+from epc_offboard.common.frames import GRAVITY_M_S2
+from epc_offboard.control.models import (
     AttitudeThrust,
     LinearModel,
     ModelError,

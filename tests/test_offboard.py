@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epc_offboard.configio import ConfigError, from_dict
-from epc_offboard.offboard import (
+from epc_offboard.common.configio import ConfigError, from_dict
+from epc_offboard.vehicle.offboard import (
     LANDED_STATE_IN_AIR,
     LANDED_STATE_ON_GROUND,
     Action,
@@ -17,7 +17,7 @@ from epc_offboard.offboard import (
     OffboardStateMachine,
     Phase,
 )
-from epc_offboard.state import Heartbeat
+from epc_offboard.vehicle.state import Heartbeat
 
 AUTO = OffboardConfig(auto_arm=True, auto_takeoff=True, auto_offboard=True)
 HOME_AMSL_M = 488.0

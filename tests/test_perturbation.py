@@ -10,9 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from epc_offboard import bench_lwpr as bench
-from epc_offboard.configio import ConfigError, load_config
-from epc_offboard.perturbation import (
+from epc_offboard.common.configio import ConfigError, load_config
+from epc_offboard.control.perturbation import (
     KalmanPerturbation,
     LowPassFilter,
     LwprPerturbation,
@@ -20,6 +19,7 @@ from epc_offboard.perturbation import (
     PerturbationConfig,
     make_estimator,
 )
+from epc_offboard.tools import bench_lwpr as bench
 
 NX, NZ, DT_S = bench.NX, bench.NZ, bench.DT_S  # position loop: x = p(3), v(3); u = a(3)
 VEL = list(bench.VELOCITY)

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from epc_offboard.models import position_model
-from epc_offboard.qp import MpcProblem, OsqpSolver, ProblemError, QpStatus
+from epc_offboard.control.models import position_model
+from epc_offboard.control.qp import MpcProblem, OsqpSolver, ProblemError, QpStatus
 from tests.mpc_cases import exact_solution, position_problem
 
 

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from epc_offboard.compare import MethodRun, print_compare, write_compare_figure
-from epc_offboard.figures import phase_spans, write_figure
-from epc_offboard.sim import (
+from epc_offboard.tools.compare import MethodRun, print_compare, write_compare_figure
+from epc_offboard.tools.figures import phase_spans, write_figure
+from epc_offboard.tools.sim import (
     VehicleResult,
     VehicleRun,
     flight_progress,
@@ -19,7 +19,7 @@ from epc_offboard.sim import (
     print_table,
     print_targets,
 )
-from epc_offboard.tables import format_metric, render_plain
+from epc_offboard.tools.tables import format_metric, render_plain
 
 BOX_CHARS = set("┏┓┗┛┃━│─┡┩╇╋┳┻┼└┘┌┐")
 EVENTS = [

@@ -18,14 +18,14 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.sim import SCENARIO_DIR
-from epc_offboard.state import (
+from epc_offboard.store.library import LibraryStore
+from epc_offboard.tools.sim import SCENARIO_DIR
+from epc_offboard.vehicle.state import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
     PX4_MAIN_MODE_OFFBOARD,
     px4_custom_mode,
 )
-from epc_offboard.store import LibraryStore
 from tests.rig import Rig
 
 pytestmark = pytest.mark.timeout(240)
@@ -178,7 +178,7 @@ def test_unknown_config_key_exits_2_naming_key_and_file(tmp_path):
 def test_truncated_library_is_moved_aside_and_the_service_flies(tmp_path):
     lib = tmp_path / "library.sqlite"
     with LibraryStore.open(lib) as store:
-        from epc_offboard.store import StoredController
+        from epc_offboard.store.library import StoredController
 
         store.save_controllers("x", [StoredController((i,), 1.0, 1) for i in range(300)])
     lib.write_bytes(lib.read_bytes()[:2000])

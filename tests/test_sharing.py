@@ -18,16 +18,16 @@ import numpy as np
 import pytest
 import zenoh
 
-from epc_offboard.config import SharingConfig
-from epc_offboard.epc import ExperienceController, LibraryEntry
-from epc_offboard.sharing import FleetSharing
-from epc_offboard.wire import (
+from epc_offboard.control.epc import ExperienceController, LibraryEntry
+from epc_offboard.fleet.sharing import FleetSharing
+from epc_offboard.fleet.wire import (
     ControllerMessage,
     MessageKind,
     ReferenceMessage,
     encode_controllers,
     encode_reference,
 )
+from epc_offboard.service.config import SharingConfig
 from tests.mpc_cases import hover_refs, position_problem
 
 pytestmark = pytest.mark.timeout(60)
@@ -323,7 +323,7 @@ def test_live_reference_is_received_fresh_then_stale():
 
 
 def test_live_reference_horizon_holds_tracks_and_follows_a_path():
-    from epc_offboard.trajectories import live_reference_horizon
+    from epc_offboard.control.trajectories import live_reference_horizon
 
     kw: dict = {"age_s": 0.1, "dt_s": 0.1, "steps": 4, "width": 9}
     hold = live_reference_horizon((1.0, 2.0, -3.0), None, (), None, **kw)
@@ -397,7 +397,7 @@ def loop_factorisations(monkeypatch) -> list[int]:
     """Counts ActiveSetMap factorisations done on the main thread (the event loop's)."""
     import threading
 
-    from epc_offboard import epc
+    from epc_offboard.control import epc
 
     count = [0]
     original = epc.ActiveSetMap.__init__
@@ -454,7 +454,7 @@ def test_a_received_controller_joins_the_library_only_when_optimal_for_a_tick_he
     """Useless controllers flood in beside a real one. In flight (the miss worker screens
     the candidates), only the real one is promoted, at the tick it is optimal for, with its
     origin; the flood never enters the library."""
-    from epc_offboard.miss_solver import MissSolver
+    from epc_offboard.service.miss_solver import MissSolver
 
     async def main() -> None:
         pb, praw, plegit = free_tcp_port(), free_tcp_port(), free_tcp_port()
@@ -511,7 +511,7 @@ def test_a_received_controller_joins_the_library_only_when_optimal_for_a_tick_he
 
 
 def test_token_buckets_expire_and_never_refuse_a_new_sender():
-    from epc_offboard.sharing import _TokenBuckets
+    from epc_offboard.fleet.sharing import _TokenBuckets
 
     buckets = _TokenBuckets(rate_per_s=1.0, burst=2)
     assert all(buckets.allow(f"evil{k}", 0.0) for k in range(1200))  # one burst each
@@ -526,11 +526,11 @@ def test_token_buckets_expire_and_never_refuse_a_new_sender():
 def test_origin_is_kept_through_the_store_and_db_info(tmp_path, capsys):
     """A fleet candidate promoted in flight is stored as shared:<vehicle>, loads back as
     such, and `db info` does not count it as this vehicle's own solve."""
-    from epc_offboard.cascade import Cascade
     from epc_offboard.cli import main as cli_main
-    from epc_offboard.config import load_service_config
-    from epc_offboard.state import VehicleState
-    from epc_offboard.store import LibraryStore
+    from epc_offboard.control.cascade import Cascade
+    from epc_offboard.service.config import load_service_config
+    from epc_offboard.store.library import LibraryStore
+    from epc_offboard.vehicle.state import VehicleState
 
     cfg = load_service_config("config/sitl.toml")
 

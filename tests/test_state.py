@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard import frames
-from epc_offboard.offboard import Inputs, OffboardConfig, OffboardStateMachine, Phase
-from epc_offboard.state import (
+from epc_offboard.common import frames
+from epc_offboard.vehicle.offboard import Inputs, OffboardConfig, OffboardStateMachine, Phase
+from epc_offboard.vehicle.state import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
     StateTracker,

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from epc_offboard.store import (
+from epc_offboard.store.library import (
     LibraryStore,
     StoredController,
     StoreError,
@@ -105,7 +105,7 @@ def test_kill_9_keeps_every_committed_controller(tmp_path):
     script = textwrap.dedent(
         f"""
         import sys
-        from epc_offboard.store import LibraryStore, StoredController
+        from epc_offboard.store.library import LibraryStore, StoredController
         store = LibraryStore.open({str(path)!r})
         i = 0
         while True:
@@ -147,7 +147,7 @@ def test_db_info_command(tmp_path, capsys):
 # of the first creation (every boundary between two statements is a moment a kill can land).
 _CREATOR = """
 import itertools, os, signal, sqlite3, sys
-from epc_offboard.store import LibraryStore
+from epc_offboard.store.library import LibraryStore
 kill_at = int(sys.argv[2])
 if kill_at:
     statements = itertools.count(1)

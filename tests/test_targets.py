@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from epc_offboard.configio import ConfigError
-from epc_offboard.sim import load_scenario
-from epc_offboard.targets import TargetConfig, evaluate, parse_method
+from epc_offboard.common.configio import ConfigError
+from epc_offboard.tools.sim import load_scenario
+from epc_offboard.tools.targets import TargetConfig, evaluate, parse_method
 
 
 def report(rmse: float, max_err: float = 0.0, violations: int = 0) -> dict:
@@ -53,7 +53,7 @@ def test_bad_target_in_a_scenario_names_the_file(tmp_path):
 
 
 def test_flight_warnings_name_what_went_wrong_and_leave_out_zeros():
-    from epc_offboard.sim import flight_warnings
+    from epc_offboard.tools.sim import flight_warnings
 
     stats = {
         "counters": {"failsafes": 2, "position_ticks_skipped": 0, "store_errors": 1},
@@ -73,7 +73,7 @@ def test_flight_warnings_name_what_went_wrong_and_leave_out_zeros():
 
 
 def test_sitl_counters_are_read_from_its_closing_line(tmp_path):
-    from epc_offboard.sim import sitl_counters
+    from epc_offboard.tools.sim import sitl_counters
 
     log = tmp_path / "sitl.log"
     log.write_text(

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from epc_offboard.trajectories import Trajectory, TrajectoryConfig
+from epc_offboard.control.trajectories import Trajectory, TrajectoryConfig
 
 ANCHOR = np.array([1.0, -2.0, -2.5])
 SHAPES = {
@@ -56,7 +56,7 @@ def test_speed_profile_is_jerk_limited_rest_to_rest(distance_m, v_peak):
     """Peak acceleration a_max, jerk at most pi a^2 / (2 v) with v the speed actually reached
     (lowered when the distance is too short): what a lagged vehicle can follow without the lag
     inversion spiking its command (see _trapezoid)."""
-    from epc_offboard.trajectories import _trapezoid
+    from epc_offboard.control.trajectories import _trapezoid
 
     a_max = 6.0
     prof = _trapezoid(distance_m, 3.75, a_max)
@@ -125,7 +125,7 @@ def test_the_tick_horizon_equals_sample_to_the_last_bit(shape):
 
 
 def test_rejoin_starts_at_the_vehicle_and_closes_the_gap_smoothly():
-    from epc_offboard.trajectories import RefSample, Rejoin
+    from epc_offboard.control.trajectories import RefSample, Rejoin
 
     traj = RefSample(np.array([3.0, -1.0, -2.5]), np.array([1.2, 0.0, 0.0]), np.zeros(3))
     pos, vel = np.array([0.0, 0.5, -2.0]), np.zeros(3)

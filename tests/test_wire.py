@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epc_offboard.epc import LibraryEntry
-from epc_offboard.wire import (
+from epc_offboard.control.epc import LibraryEntry
+from epc_offboard.fleet.wire import (
     ControllerMessage,
     MessageKind,
     ReferenceMessage,

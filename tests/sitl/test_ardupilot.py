@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.frames import quat_to_euler
+from epc_offboard.common.frames import quat_to_euler
 from sitl.ardupilot import BRAKE, GUIDED, LAND, LOITER, RTL, STABILIZE, ArduCopter
 from sitl.autopilot import HOLD, IGNORE_ATTITUDE, OFFBOARD, AttitudeSetpoint, Result
 from sitl.endpoint import Counters, SitlEndpoint
@@ -324,8 +324,8 @@ def test_command_line_ports_and_params(capsys):
 
 
 def test_link_autopilot_is_validated_naming_the_key(tmp_path):
-    from epc_offboard.config import load_service_config
-    from epc_offboard.configio import ConfigError
+    from epc_offboard.common.configio import ConfigError
+    from epc_offboard.service.config import load_service_config
 
     path = tmp_path / "service.toml"
     path.write_text('[link]\nautopilot = "apm"\n')

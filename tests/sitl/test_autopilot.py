@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epc_offboard.frames import euler_to_quat, quat_to_euler, quat_to_rotation
+from epc_offboard.common.frames import euler_to_quat, quat_to_euler, quat_to_rotation
 from sitl.autopilot import (
     HOLD,
     IGNORE_ATTITUDE,

@@ -8,7 +8,7 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.frames import euler_to_quat
+from epc_offboard.common.frames import euler_to_quat
 from sitl.groundtruth import COLUMNS
 from tests.sitl.mavclient import MavClient, counters_from, start_sitl, state_stamp_ms, stop_sitl
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from epc_offboard.frames import GRAVITY_M_S2, euler_to_quat
+from epc_offboard.common.frames import GRAVITY_M_S2, euler_to_quat
 from sitl.params import EnvironmentParams, SurfaceParams, load_sim_config
 from sitl.physics import (
     QUAT,

@@ -1,0 +1,224 @@
+"""The EPC hit path's inner loops: apply cached active-set maps and KKT-check them.
+
+``apply_map(M, width, theta_aug, n_check, u_out, u_min, u_max) -> bool`` computes
+``w = M theta_aug`` row by row; the first ``n_check`` rows must satisfy ``0 <= w <= width``
+(the KKT check, see :class:`epc_offboard.control.epc.ActiveSetMap`), the last ``nu`` rows are the
+first input, written clipped to ``[u_min, u_max]`` into ``u_out`` when the check passes.
+
+Compiled with numba when it is installed: one call instead of five numpy calls, and an early
+exit on the first violated row, which makes refusing a candidate cheaper than applying it.
+The numpy version below is the reference and the fallback; the tests run both.
+
+``query_maps(Ms, widths, n_checks, order, n_order, theta_aug, u_out, u_min, u_max) -> int``
+is the library scan in one call: it tries the maps ``Ms[order[k]]`` for k = 0..n_order-1 in
+that order and returns the first k whose check passes (its input written to ``u_out``), or
+-1. ``n_order`` is the query's budget: the number of candidates checked never exceeds it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, MutableSequence, Sequence
+from typing import Any, cast
+
+import numpy as np
+import numpy.typing as npt
+
+from epc_offboard.common.frames import FloatArray
+
+IntArray = npt.NDArray[np.int64]
+
+ApplyMap = Callable[[FloatArray, FloatArray, FloatArray, int, FloatArray, FloatArray,
+                     FloatArray], bool]
+# (Ms, widths, n_checks, order, n_order, theta_aug, u_out, u_min, u_max) -> k or -1
+QueryMaps = Callable[[Sequence[FloatArray], Sequence[FloatArray], IntArray, IntArray, int,
+                      FloatArray, FloatArray, FloatArray, FloatArray], int]
+
+
+def apply_map_numpy(
+    M: FloatArray,
+    width: FloatArray,
+    theta_aug: FloatArray,
+    n_check: int,
+    u_out: FloatArray,
+    u_min: FloatArray,
+    u_max: FloatArray,
+) -> bool:
+    w = M @ theta_aug
+    chk = w[:n_check]
+    # chk >= 0 and chk <= width in one comparison: a non-negative double orders like its bits
+    # as an unsigned integer; a negative one (sign bit set) or NaN compares above any width
+    if not (chk.view(np.uint64) <= width.view(np.uint64)).all():
+        return False
+    np.minimum(w[n_check:], u_max, out=u_out)
+    np.maximum(u_out, u_min, out=u_out)
+    return True
+
+
+def query_maps_numpy(
+    Ms: Sequence[FloatArray],
+    widths: Sequence[FloatArray],
+    n_checks: IntArray,
+    order: IntArray,
+    n_order: int,
+    theta_aug: FloatArray,
+    u_out: FloatArray,
+    u_min: FloatArray,
+    u_max: FloatArray,
+) -> int:
+    """The reference scan (and the fallback without numba)."""
+    for k, i in enumerate(order[:n_order]):
+        if apply_map_numpy(Ms[i], widths[i], theta_aug, int(n_checks[i]), u_out, u_min, u_max):
+            return k
+    return -1
+
+
+def _query_maps_jit(
+    Ms: Sequence[FloatArray],
+    widths: Sequence[FloatArray],
+    n_checks: IntArray,
+    order: IntArray,
+    n_order: int,
+    theta_aug: FloatArray,
+    u_out: FloatArray,
+    u_min: FloatArray,
+    u_max: FloatArray,
+) -> int:
+    """:func:`query_maps_numpy` compiled whole, over the compiled check ``_apply_jit`` (a
+    module global, so that numba's disk cache keys it: a closure over it missed the cache
+    and recompiled in every process)."""
+    for k in range(min(n_order, order.shape[0])):
+        i = order[k]
+        if _apply_jit(Ms[i], widths[i], theta_aug, n_checks[i], u_out, u_min, u_max):
+            return k
+    return -1
+
+
+_apply_jit: Any = None
+
+
+def _compile() -> tuple[ApplyMap, QueryMaps] | None:
+    try:
+        import numba
+    except ImportError:  # numba is a dependency; keep working without it, only slower
+        return None
+
+    def apply_map_numba(
+        M: FloatArray,
+        width: FloatArray,
+        theta_aug: FloatArray,
+        n_check: int,
+        u_out: FloatArray,
+        u_min: FloatArray,
+        u_max: FloatArray,
+    ) -> bool:
+        rows, cols = M.shape
+        for i in range(n_check):
+            s = 0.0
+            for j in range(cols):
+                s += M[i, j] * theta_aug[j]
+            if not (s >= 0.0 and s <= width[i]):
+                return False
+        for i in range(n_check, rows):
+            s = 0.0
+            for j in range(cols):
+                s += M[i, j] * theta_aug[j]
+            k = i - n_check
+            u_out[k] = min(max(s, u_min[k]), u_max[k])
+        return True
+
+    # reassoc/contract let the dot product vectorise; no nnan/ninf: widths may be +inf.
+    # The on-disk cache spares the ~1 s compile on later starts; without a writable cache
+    # location numba refuses cache=True, so compile in memory then.
+    fastmath = {"reassoc", "contract"}
+    try:
+        compiled: Any = numba.njit(apply_map_numba, cache=True, nogil=True, fastmath=fastmath)
+        cache = True
+    except RuntimeError:
+        compiled = numba.njit(apply_map_numba, cache=False, nogil=True, fastmath=fastmath)
+        cache = False
+
+    global _apply_jit
+    _apply_jit = compiled
+    query = numba.njit(_query_maps_jit, cache=cache, nogil=True)
+    return cast(ApplyMap, compiled), cast(QueryMaps, query)
+
+
+MapLists = tuple[MutableSequence[Any], MutableSequence[Any]]
+
+
+def _store_numpy(Ms: MutableSequence[Any], widths: MutableSequence[Any], slot: int,
+                 M: FloatArray, width: FloatArray) -> None:
+    if slot == len(Ms):
+        Ms.append(M)
+        widths.append(width)
+    else:
+        Ms[slot] = M
+        widths[slot] = width
+
+
+def _compile_lists() -> tuple[Callable[[], MapLists], Callable[..., None]] | None:
+    """Numba typed lists made and written only inside cached compiled functions: a typed
+    list's own methods, called from Python, compile anew in every process (~1 s, several
+    under load), which delayed start-up enough to shift a lockstep flight's handshake."""
+    if _NUMBA is None:
+        return None
+    import numba
+    from numba import types
+    from numba.typed import List
+
+    mat, vec = types.float64[:, ::1], types.float64[::1]
+
+    def new_lists() -> MapLists:
+        return List.empty_list(mat), List.empty_list(vec)
+
+    try:
+        made = numba.njit(new_lists, cache=True)
+        stored = numba.njit(_store_numpy, cache=True)
+    except RuntimeError:
+        made = numba.njit(new_lists, cache=False)
+        stored = numba.njit(_store_numpy, cache=False)
+    return cast(Callable[[], MapLists], made), cast(Callable[..., None], stored)
+
+
+def new_map_lists() -> MapLists:
+    """The containers :func:`query_maps` takes its per-map arrays in (matrices, widths):
+    numba typed lists (passed to the compiled scan without conversion) or, without numba,
+    Python lists. Write them with :func:`store_map` only."""
+    return ([], []) if _LISTS is None else _LISTS[0]()
+
+
+def store_map(lists: MapLists, slot: int, M: FloatArray, width: FloatArray) -> None:
+    """Put a map's ``M`` (C-contiguous float64, 2-D) and ``width`` in ``slot``: the next
+    slot (appended) or one already there (replaced)."""
+    if _LISTS is None:
+        _store_numpy(lists[0], lists[1], slot, M, width)
+    else:
+        _LISTS[1](lists[0], lists[1], slot, M, width)
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the scan and the typed list's methods now: the first
+    miss of a flight must not pay for it, nor the miss worker's first solve, which a lockstep
+    tick waits for (DESIGN.md, timing on a companion computer). Once per process."""
+    global _warm
+    if _warm:
+        return
+    _warm = True
+    lists = new_map_lists()
+    for slot in (0, 1, 1):  # append, append, then the slot reuse path
+        store_map(lists, slot, np.zeros((2, 2)), np.full(1, np.inf))
+    Ms, widths = lists
+    u = np.empty(1)
+    n_checks = np.ones(2, dtype=np.int64)
+    query_maps(Ms, widths, n_checks, np.arange(2, dtype=np.int64), 2, np.ones(2), u,
+               np.full(1, -1.0), np.full(1, 1.0))
+
+
+_NUMBA = _compile()
+apply_map: ApplyMap = _NUMBA[0] if _NUMBA is not None else apply_map_numpy
+query_maps: QueryMaps = _NUMBA[1] if _NUMBA is not None else query_maps_numpy
+_LISTS = _compile_lists()
+HAVE_NUMBA = _NUMBA is not None

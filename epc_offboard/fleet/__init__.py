@@ -1,0 +1,2 @@
+"""Fleet sharing over Zenoh: the wire codec and the sharing session.
+"""

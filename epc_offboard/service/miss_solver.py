@@ -1,0 +1,298 @@
+"""EPC's miss path off the control loop: full QP solves in a worker process.
+
+On a library miss the tick applies the intermediate controller at once (thesis 3.1.3) and
+the controller queues the parameter vector θ (``ExperienceController(learn_on_miss=False)``,
+:attr:`~epc_offboard.control.epc.ExperienceController.pending`). :class:`MissSolver` takes those θ,
+solves the full QP, recovers and verifies its active set in ONE worker process (a standard
+``ProcessPoolExecutor``; each problem is sent once, at start, then only θ travels), and hands
+the active set back. The loop adds it only after its own KKT check passes at that θ
+(:meth:`ExperienceController.add_solved`). A 10-30 ms solve therefore never
+stalls the loops: on a real PX4 in wind it starved the 200 Hz attitude loop and, in
+body-rate mode, flipped the vehicle.
+
+* one solve in flight per controller; further misses wait in a small bounded buffer, and
+  those the returning controller already covers are dropped (a region is solved once);
+* the worker's death is survived: the pool is rebuilt, the lost solve counted;
+* ``wait=True`` (lockstep simulation) blocks until the solve in flight has returned, so the
+  result enters the library at the same tick every run: deterministic.
+
+Fleet candidates (:class:`~epc_offboard.control.epc.CandidatePool`) are screened here too, so a
+flood of received controllers costs the loops nothing but bookkeeping: the loop's
+controller keeps the bounded pool of active sets, the worker a copy with their maps, built
+in slices bounded by time (``slice_s``) between solves. A miss is first checked against
+the built candidates; one that passes is handed back with its origin instead of a solve,
+and the loop promotes it after its own KKT check at that θ. Candidates never optimal for a
+real tick stay in the pool until newer ones push them out: they never take library slots.
+
+Once a peer's candidate has been promoted (the peer is *proven*), the loop's pool refocuses
+that peer's quota on the controllers likely next (its transitions after the controller in
+use) and asks the worker for their maps (:meth:`ExperienceController.wanted_maps`): the
+worker builds them in the same slices and hands the maps back, and the loop checks them
+before it counts a miss — mat-vecs, no factorisation on the loop. That is what lets a late
+joiner fly on the fleet's library instead of missing once per region; memory stays bounded
+by the pool's size in maps, the rest of a snapshot waiting as tuples. In lockstep (``wait``)
+the wanted maps (at most a few per slice) are a count, not a time, and the slice is waited
+for, so maps arrive at the same tick every run.
+
+No asyncio here: :meth:`pump` is called from the position loop's tick.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+from collections import Counter, deque
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from typing import TypeVar
+
+from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.epc import ActiveSetMap, ExperienceController, LibraryEntry
+from epc_offboard.control.qp import MpcProblem
+
+log = logging.getLogger(__name__)
+_T = TypeVar("_T")
+
+# worker-process state: one learner per problem, built once by the initializer
+_LEARNERS: dict[str, ExperienceController] = {}
+
+Found = tuple[tuple[int, ...], str]  # an active set and its origin ("solved" or a peer's)
+_MAX_WANTED = 8  # candidate maps asked of the worker per slice (it builds what its time allows)
+
+
+def _init_worker(problems: dict[str, tuple[MpcProblem, int, int]]) -> None:
+    _LEARNERS.clear()
+    for name, (problem, pool, per_origin) in problems.items():
+        # the worker only solves and screens: its own library may stay tiny, and its pool
+        # copy needs no backlog (the loop's pool keeps that and asks for maps)
+        _LEARNERS[name] = ExperienceController(
+            problem, max_size=8, max_candidates=pool, max_candidates_per_origin=per_origin,
+            max_candidate_backlog=pool, max_candidate_backlog_per_origin=per_origin,
+        )
+
+
+def _solve(name: str, theta: FloatArray, slice_s: float) -> Found | None:
+    learner = _LEARNERS[name]
+    found = learner.screen_candidates(theta, slice_s)
+    if found is not None:
+        return found
+    entry = learner.learn_theta(theta)
+    return None if entry is None else (entry.active_set, "solved")
+
+
+Built = list[tuple[tuple[int, ...], ActiveSetMap | None]]
+
+
+def _offer(
+    name: str, items: list[tuple[tuple[int, ...], str]], wanted: list[tuple[int, ...]],
+    slice_s: float | None,
+) -> tuple[int, Built]:
+    """Copy candidates into the worker's pool; build the maps the loop wants for one slice,
+    or, when it wants none, a slice of the pool's. Returns how many of the pool's wait
+    unbuilt, and the maps built for the loop."""
+    learner = _LEARNERS[name]
+    for active, origin in items:
+        learner.offer_candidates([LibraryEntry(active)], origin)
+    if wanted:
+        built = learner.build_maps(wanted, slice_s)
+    else:
+        built = []
+        learner.build_candidates(slice_s)
+    return learner.candidates.unbuilt, built
+
+
+def _ping() -> bool:
+    return True
+
+
+@dataclass
+class _Lane:
+    """One controller's queue: at most one solve in flight, a few waiting."""
+
+    ctrl: ExperienceController
+    waiting: deque[FloatArray]
+    in_flight: Future[Found | None] | None = None
+    in_flight_theta: FloatArray | None = None
+    offer: Future[tuple[int, Built]] | None = None  # candidates copied / maps built there
+    unbuilt: int = 0  # candidate maps the worker still has to build (its last report)
+    resend: list[tuple[tuple[int, ...], str]] = field(default_factory=list)  # after a restart
+    model_epoch: int = 0  # the controller's model when the worker got its problem
+
+
+class MissSolver:
+    """``slice_s``: the most CPU time the worker spends building candidate maps before it
+    takes the next solve (a flood must not delay the misses of the flight)."""
+
+    def __init__(
+        self,
+        controllers: dict[str, ExperienceController],
+        *,
+        max_waiting: int = 4,
+        slice_s: float = 0.005,
+    ) -> None:
+        self._slice_s = slice_s
+        self._lanes = {
+            name: _Lane(c, deque(maxlen=max_waiting)) for name, c in controllers.items()
+        }
+        self.counters: Counter[str] = Counter()
+        self._pool: ProcessPoolExecutor | None = None
+
+    def start(self, timeout_s: float = 30.0) -> None:
+        """Start the worker and wait until it has imported and built its learners (before
+        READY: a worker that cannot start is an error now, not mid-flight)."""
+        problems = {
+            name: (lane.ctrl.problem, lane.ctrl.candidates.max_size,
+                   lane.ctrl.candidates.max_per_origin)
+            for name, lane in self._lanes.items()
+        }  # fmt: skip
+        for lane in self._lanes.values():  # maps the worker builds are for this model
+            lane.model_epoch = lane.ctrl.model_epoch
+        self._pool = ProcessPoolExecutor(
+            max_workers=1,
+            mp_context=multiprocessing.get_context("spawn"),  # no fork of a threaded process
+            initializer=_init_worker,
+            initargs=(problems,),
+        )
+        self._pool.submit(_ping).result(timeout=timeout_s)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+
+    def pump(self, *, wait: bool = False) -> int:
+        """Collect returned solves into the libraries, queue new misses, submit the next.
+
+        Returns the number of controllers added. ``wait``: block until every solve in flight
+        has returned first (lockstep).
+        """
+        added = 0
+        for name, lane in self._lanes.items():
+            added += self._collect(name, lane, wait)
+            ctrl = lane.ctrl
+            while ctrl.pending:
+                if len(lane.waiting) == lane.waiting.maxlen:
+                    self.counters["misses_dropped"] += 1  # the oldest gives way
+                lane.waiting.append(ctrl.pending.pop(0))
+            self._offer_next(name, lane, wait)  # first: the worker takes tasks in order
+            self._submit_next(name, lane)
+        return added
+
+    def _offer_next(self, name: str, lane: _Lane, wait: bool) -> None:
+        """Copy new candidates to the worker, have it build the maps the loop wants or a
+        slice of its pool's, and attach the maps it returned (one task in flight per lane;
+        the pool's own bounds keep what waits here bounded)."""
+        fut = lane.offer
+        ctrl = lane.ctrl
+        if fut is not None:
+            if not (wait or fut.done()):
+                return
+            lane.offer = None
+            try:
+                lane.unbuilt, built = fut.result(timeout=30.0 if wait else 0.0)
+                self.counters["candidate_maps_attached"] += ctrl.attach_maps(
+                    built, lane.model_epoch
+                )
+            except BrokenProcessPool:
+                self._restart("the worker died")  # then the new one gets the pool, below
+            except Exception as exc:  # candidates lost; the flight is not
+                self.counters["candidate_errors"] += 1
+                log.warning("%s candidate import failed: %s", name, exc)
+        fresh = lane.resend + ctrl.candidates.pop_fresh()
+        lane.resend = []
+        wanted: list[tuple[int, ...]] = []
+        if ctrl.model_epoch == lane.model_epoch:  # else the worker's maps would be stale
+            ctrl.focus_candidates()
+            wanted = ctrl.wanted_maps(_MAX_WANTED)
+        if not (fresh or lane.unbuilt or wanted):
+            return
+        # lockstep: the wanted maps (at most _MAX_WANTED) are a count, whatever the machine's
+        # speed, so the loop checks the same maps at the same tick every run
+        slice_s: float | None = None if wait and wanted else self._slice_s
+        lane.offer = self._submit("candidates", _offer, name, fresh, wanted, slice_s)
+        if lane.offer is None:
+            return
+        self.counters["candidate_maps_wanted"] += len(wanted)
+        self.counters["candidates_sent"] += len(fresh)
+        self.counters["candidate_slices"] += 1
+
+    def _collect(self, name: str, lane: _Lane, wait: bool) -> int:
+        fut = lane.in_flight
+        if fut is None or not (wait or fut.done()):
+            return 0
+        theta = lane.in_flight_theta
+        lane.in_flight = lane.in_flight_theta = None
+        try:
+            active = fut.result(timeout=30.0 if wait else 0.0)
+        except BrokenProcessPool:
+            self._restart("the worker died")
+            return 0
+        except Exception as exc:  # a solve that raised: the miss stays a miss
+            self.counters["solve_errors"] += 1
+            log.warning("%s miss solve failed: %s", name, exc)
+            return 0
+        self.counters["solves_returned"] += 1
+        if active is None or theta is None:
+            self.counters["solves_without_controller"] += 1
+            return 0
+        aset, origin = active
+        if origin != "solved":
+            self.counters["candidates_found"] += 1
+        if not lane.ctrl.add_solved(theta, aset, origin):
+            self.counters["solves_refused_by_kkt_check"] += 1
+            return 0
+        return 1
+
+    def _submit_next(self, name: str, lane: _Lane) -> None:
+        if lane.in_flight is not None or self._pool is None:
+            return
+        while lane.waiting:
+            theta = lane.waiting.popleft()
+            if lane.ctrl.covers(theta):
+                self.counters["misses_already_covered"] += 1  # solved meanwhile: once only
+                continue
+            lane.in_flight = self._submit("a solve", _solve, name, theta, self._slice_s)
+            if lane.in_flight is None:
+                return
+            lane.in_flight_theta = theta
+            self.counters["solves_submitted"] += 1
+            return
+
+    def _submit(self, what: str, fn: Callable[..., _T], *args: object) -> Future[_T] | None:
+        """Hand ``fn(*args)`` to the worker; None, and the worker restarted, if it cannot."""
+        if self._pool is None:
+            return None
+        try:
+            return self._pool.submit(fn, *args)
+        except (BrokenProcessPool, RuntimeError):
+            self._restart(f"the worker could not take {what}")
+            return None
+
+    def _restart(self, why: str) -> None:
+        self.counters["worker_restarts"] += 1
+        log.error("EPC miss worker: %s; restarting it", why)
+        for lane in self._lanes.values():
+            lane.in_flight = lane.in_flight_theta = lane.offer = None
+            # the new worker's pool starts empty: send it every candidate again
+            lane.ctrl.candidates.pop_fresh()
+            lane.resend = lane.ctrl.candidates.items()
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+        try:
+            self.start()
+        except Exception as exc:  # the loops fly on: misses stay intermediate
+            self._pool = None
+            log.error("EPC miss worker cannot restart: %s", exc)
+
+    @property
+    def in_flight(self) -> int:
+        return sum(lane.in_flight is not None for lane in self._lanes.values())
+
+    def worker_pid(self) -> int | None:
+        """The worker process's pid (fault tests kill it)."""
+        if self._pool is None:
+            return None
+        procs = getattr(self._pool, "_processes", None) or {}
+        return next(iter(procs), None)

@@ -1,0 +1,2 @@
+"""The controller library on disk (SQLite).
+"""

@@ -1,0 +1,459 @@
+"""The controller library and learned models on disk: SQLite in WAL mode.
+
+Why SQLite: transactional (a kill -9 at any moment leaves a file that opens, holding every
+transaction committed before the kill — WAL with synchronous=NORMAL is durable against a
+process crash), readable by `epc-offboard db info` and the sqlite3 shell while the service
+runs, and in the standard library.
+
+What is stored is experience, never gains: each controller is an active set (sorted
+constraint row indices of the problem) under the problem signature it belongs to, with its
+importance and use count; transitions between active sets; and opaque model blobs (LWPR).
+Rows are validated when read: a row that does not parse is skipped and counted, never fatal.
+A file that is not a database, fails SQLite's quick_check, or has another schema version is
+moved aside (``NAME.corrupt-YYYYmmddTHHMMSS``) with a log line, and a new empty store opens.
+
+Offline transfer between vehicles (``epc-offboard db``, :mod:`epc_offboard.tools.db`) reads a whole
+library as a :class:`LibrarySnapshot` and writes one back in a single transaction, so an
+import either lands whole or not at all. Writing is idempotent: a controller or transition
+already present keeps the larger importance, use count and transition count.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import sqlite3
+import threading
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from epc_offboard.common.errors import EpcError
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS controllers (
+    signature TEXT NOT NULL,
+    active_set TEXT NOT NULL,          -- JSON array of sorted constraint row indices
+    importance REAL NOT NULL,
+    uses INTEGER NOT NULL,
+    origin TEXT NOT NULL,              -- solved | prior | shared:<vehicle>
+    updated_unix_s REAL NOT NULL,
+    PRIMARY KEY (signature, active_set)
+);
+CREATE TABLE IF NOT EXISTS transitions (
+    signature TEXT NOT NULL,
+    from_set TEXT NOT NULL,
+    to_set TEXT NOT NULL,
+    count INTEGER NOT NULL,
+    PRIMARY KEY (signature, from_set, to_set)
+);
+CREATE TABLE IF NOT EXISTS models (
+    name TEXT NOT NULL,
+    signature TEXT NOT NULL,
+    blob BLOB NOT NULL,
+    updated_unix_s REAL NOT NULL,
+    PRIMARY KEY (name, signature)
+);
+"""
+
+_TABLES = frozenset({"meta", "controllers", "transitions", "models"})
+_SET_VERSION = f"INSERT OR IGNORE INTO meta VALUES ('schema_version', '{SCHEMA_VERSION}');"
+
+ActiveSet = tuple[int, ...]
+
+_UPSERT_MODEL = (
+    "INSERT INTO models VALUES (?, ?, ?, ?) ON CONFLICT (name, signature) "
+    "DO UPDATE SET blob = excluded.blob, updated_unix_s = excluded.updated_unix_s"
+)
+
+
+class StoreError(EpcError, RuntimeError):
+    """The library file could not be used."""
+
+
+@dataclass(frozen=True)
+class StoredController:
+    active_set: ActiveSet
+    importance: float
+    uses: int
+    origin: str = "solved"
+
+
+@dataclass(frozen=True)
+class Transition:
+    from_set: ActiveSet
+    to_set: ActiveSet
+    count: int
+
+
+@dataclass(frozen=True)
+class SignatureSnapshot:
+    """Everything stored under one problem signature."""
+
+    controllers: tuple[StoredController, ...] = ()
+    transitions: tuple[Transition, ...] = ()
+    models: Mapping[str, bytes] = field(default_factory=dict)  # name -> opaque blob
+
+
+@dataclass(frozen=True)
+class LibrarySnapshot:
+    """A whole library file (or the part of it under some signatures), as plain values."""
+
+    signatures: Mapping[str, SignatureSnapshot]
+
+    def counts(self) -> dict[str, int]:
+        return {
+            "signatures": len(self.signatures),
+            "controllers": sum(len(s.controllers) for s in self.signatures.values()),
+            "transitions": sum(len(s.transitions) for s in self.signatures.values()),
+            "models": sum(len(s.models) for s in self.signatures.values()),
+        }
+
+
+def encode_active_set(active_set: Iterable[int]) -> str:
+    return json.dumps(sorted(int(i) for i in active_set), separators=(",", ":"))
+
+
+def decode_active_set(text: str) -> ActiveSet:
+    """Parse a stored active set; ValueError unless it is a sorted list of unique ints >= 0."""
+    return active_set_from_list(json.loads(text), text[:60])
+
+
+def active_set_from_list(data: object, shown: str | None = None) -> ActiveSet:
+    """``data`` as an active set; ValueError unless a sorted list of unique ints >= 0."""
+    shown = repr(data)[:60] if shown is None else repr(shown)
+    if not isinstance(data, list) or not all(
+        isinstance(i, int) and not isinstance(i, bool) for i in data
+    ):
+        raise ValueError(f"active set must be a list of integers, got {shown}")
+    if any(i < 0 for i in data) or any(b <= a for a, b in itertools.pairwise(data)):
+        raise ValueError(f"active set must be sorted unique non-negative, got {shown}")
+    return tuple(data)
+
+
+class LibraryStore:
+    """One SQLite file. Thread-safe: the service calls it from a worker thread."""
+
+    def __init__(self, path: str | Path, *, _conn: sqlite3.Connection) -> None:
+        self.path = Path(path)
+        self._conn = _conn
+        self._lock = threading.Lock()
+        self.skipped_rows = 0
+
+    @classmethod
+    def open(cls, path: str | Path, *, repair: bool = True) -> LibraryStore:
+        """Open or create the store.
+
+        A corrupt or incompatible file is moved aside and a new one started when ``repair``
+        (the service: it must fly); otherwise :class:`StoreError` names the problem and the
+        file is left as it is (the offline tools: a user's file is never moved under them).
+        """
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            return cls(p, _conn=_connect(p))
+        except (sqlite3.DatabaseError, StoreError) as exc:
+            if not repair:
+                raise StoreError(f"{p}: not a usable library: {exc}") from exc
+            aside = p.with_name(f"{p.name}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}")
+            log.error(
+                "library %s is unusable (%s): moved aside to %s, starting empty", p, exc, aside
+            )
+            for suffix in ("", "-wal", "-shm"):
+                side = Path(str(p) + suffix)
+                if side.exists():
+                    side.rename(Path(str(aside) + suffix))
+            return cls(p, _conn=_connect(p))
+
+    @classmethod
+    def open_readonly(cls, path: str | Path, *, immutable: bool = False) -> LibraryStore:
+        """Open an existing library for reading only; :class:`StoreError` if it is unusable.
+
+        ``immutable``: SQLite's ``immutable=1``, which creates no ``-wal``/``-shm`` beside
+        the file but ignores any WAL and any concurrent writer: only for a file no process
+        has open (no ``-wal`` beside it); :func:`epc_offboard.tools.db.read_library` checks that.
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise StoreError(f"{p}: no such library file")
+        try:
+            return cls(p, _conn=_connect(p, readonly=True, immutable=immutable))
+        except (sqlite3.DatabaseError, StoreError) as exc:
+            raise StoreError(f"{p}: not a usable library: {exc}") from exc
+
+    def close(self) -> None:
+        with self._lock:
+            self._conn.close()
+
+    def __enter__(self) -> LibraryStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- controllers -------------------------------------------------------------------
+
+    def save_controllers(self, signature: str, entries: Iterable[StoredController]) -> int:
+        """Insert or update controllers in one transaction; returns how many were written."""
+        now = time.time()
+        rows = [
+            (
+                signature,
+                encode_active_set(e.active_set),
+                float(e.importance),
+                int(e.uses),
+                e.origin,
+                now,
+            )
+            for e in entries
+        ]
+        with self._lock, self._conn:
+            self._conn.executemany(
+                "INSERT INTO controllers VALUES (?, ?, ?, ?, ?, ?) "
+                "ON CONFLICT (signature, active_set) DO UPDATE SET "
+                "importance = max(importance, excluded.importance), "
+                "uses = max(uses, excluded.uses), updated_unix_s = excluded.updated_unix_s",
+                rows,
+            )
+        return len(rows)
+
+    def load_controllers(self, signature: str) -> list[StoredController]:
+        """Every valid controller of ``signature``, most important first."""
+        with self._lock:
+            rows = self._conn.execute(
+                "SELECT active_set, importance, uses, origin FROM controllers "
+                "WHERE signature = ? ORDER BY importance DESC",
+                (signature,),
+            ).fetchall()
+        out = []
+        for active_text, importance, uses, origin in rows:
+            try:
+                out.append(
+                    StoredController(
+                        decode_active_set(active_text), float(importance), int(uses), str(origin)
+                    )
+                )
+            except (ValueError, TypeError) as exc:
+                self.skipped_rows += 1
+                log.warning("library %s: skipped a bad controller row: %s", self.path, exc)
+        return out
+
+    def delete_controllers(self, signature: str, active_sets: Iterable[ActiveSet]) -> None:
+        with self._lock, self._conn:
+            self._conn.executemany(
+                "DELETE FROM controllers WHERE signature = ? AND active_set = ?",
+                [(signature, encode_active_set(a)) for a in active_sets],
+            )
+
+    # -- transitions -------------------------------------------------------------------
+
+    def save_transitions(
+        self, signature: str, counts: dict[tuple[ActiveSet, ActiveSet], int]
+    ) -> None:
+        rows = [
+            (signature, encode_active_set(a), encode_active_set(b), int(n))
+            for (a, b), n in counts.items()
+        ]
+        with self._lock, self._conn:
+            self._conn.executemany(
+                "INSERT INTO transitions VALUES (?, ?, ?, ?) "
+                "ON CONFLICT (signature, from_set, to_set) DO UPDATE SET count = excluded.count",
+                rows,
+            )
+
+    def load_transitions(self, signature: str) -> dict[tuple[ActiveSet, ActiveSet], int]:
+        with self._lock:
+            rows = self._conn.execute(
+                "SELECT from_set, to_set, count FROM transitions WHERE signature = ?", (signature,)
+            ).fetchall()
+        out: dict[tuple[ActiveSet, ActiveSet], int] = {}
+        for a, b, n in rows:
+            try:
+                out[(decode_active_set(a), decode_active_set(b))] = int(n)
+            except (ValueError, TypeError) as exc:
+                self.skipped_rows += 1
+                log.warning("library %s: skipped a bad transition row: %s", self.path, exc)
+        return out
+
+    # -- models ------------------------------------------------------------------------
+
+    def save_model(self, name: str, signature: str, blob: bytes) -> None:
+        with self._lock, self._conn:
+            self._conn.execute(_UPSERT_MODEL, (name, signature, sqlite3.Binary(blob), time.time()))
+
+    def load_model(self, name: str, signature: str) -> bytes | None:
+        with self._lock:
+            row = self._conn.execute(
+                "SELECT blob FROM models WHERE name = ? AND signature = ?", (name, signature)
+            ).fetchone()
+        return None if row is None else bytes(row[0])
+
+    # -- whole library (offline transfer) ------------------------------------------------
+
+    def signatures(self) -> list[str]:
+        with self._lock:
+            rows = self._conn.execute(
+                "SELECT signature FROM controllers UNION SELECT signature FROM transitions "
+                "UNION SELECT signature FROM models ORDER BY 1"
+            ).fetchall()
+        return [str(r[0]) for r in rows]
+
+    def snapshot(self, signatures: Iterable[str] | None = None) -> LibrarySnapshot:
+        """Every valid row under ``signatures`` (all when None); bad rows skipped and counted."""
+        wanted = self.signatures() if signatures is None else list(signatures)
+        out: dict[str, SignatureSnapshot] = {}
+        for sig in wanted:
+            with self._lock:
+                models = {
+                    str(name): bytes(blob)
+                    for name, blob in self._conn.execute(
+                        "SELECT name, blob FROM models WHERE signature = ? ORDER BY name", (sig,)
+                    )
+                }
+            out[sig] = SignatureSnapshot(
+                tuple(self.load_controllers(sig)),
+                tuple(Transition(a, b, n) for (a, b), n in self.load_transitions(sig).items()),
+                models,
+            )
+        return LibrarySnapshot(out)
+
+    def save_snapshot(self, snapshot: LibrarySnapshot) -> None:
+        """Save this vehicle's own library: :meth:`save_controllers`, :meth:`save_transitions`
+        and :meth:`save_model` for every signature of ``snapshot`` (any thread)."""
+        for sig, part in snapshot.signatures.items():
+            self.save_controllers(sig, part.controllers)
+            self.save_transitions(sig, {(t.from_set, t.to_set): t.count for t in part.transitions})
+            for name, blob in part.models.items():
+                self.save_model(name, sig, blob)
+
+    def write_snapshot(
+        self, snapshot: LibrarySnapshot, *, origin: str, models: bool = False
+    ) -> dict[str, int]:
+        """Merge ``snapshot`` into this file in ONE transaction; returns rows new to it.
+
+        New controllers are tagged ``origin``; ones already here keep theirs and take the
+        larger importance and use count; transition counts take the larger of the two (so
+        writing the same snapshot twice changes nothing). Models are written only when
+        ``models`` is set: a learned model describes one airframe, an active set any vehicle
+        with the same problem.
+        """
+        now = time.time()
+        new = {"controllers": 0, "transitions": 0, "models": 0}
+        with self._lock, self._conn:
+            for sig, part in snapshot.signatures.items():
+                for c in part.controllers:
+                    key = encode_active_set(c.active_set)
+                    existed = self._conn.execute(
+                        "SELECT 1 FROM controllers WHERE signature = ? AND active_set = ?",
+                        (sig, key),
+                    ).fetchone()
+                    new["controllers"] += existed is None
+                    self._conn.execute(
+                        "INSERT INTO controllers VALUES (?, ?, ?, ?, ?, ?) "
+                        "ON CONFLICT (signature, active_set) DO UPDATE SET "
+                        "importance = max(importance, excluded.importance), "
+                        "uses = max(uses, excluded.uses)",
+                        (sig, key, float(c.importance), int(c.uses), origin, now),
+                    )
+                for t in part.transitions:
+                    a, b = encode_active_set(t.from_set), encode_active_set(t.to_set)
+                    existed = self._conn.execute(
+                        "SELECT 1 FROM transitions WHERE signature = ? AND from_set = ? "
+                        "AND to_set = ?",
+                        (sig, a, b),
+                    ).fetchone()
+                    new["transitions"] += existed is None
+                    self._conn.execute(
+                        "INSERT INTO transitions VALUES (?, ?, ?, ?) "
+                        "ON CONFLICT (signature, from_set, to_set) DO UPDATE SET "
+                        "count = max(count, excluded.count)",
+                        (sig, a, b, int(t.count)),
+                    )
+                if models:
+                    for name, blob in part.models.items():
+                        new["models"] += 1
+                        self._conn.execute(_UPSERT_MODEL, (name, sig, sqlite3.Binary(blob), now))
+        return new
+
+    # -- inspection ----------------------------------------------------------------------
+
+    def summary(self) -> dict[str, dict[str, int]]:
+        """Per signature: controllers, transitions and models stored."""
+        out: dict[str, dict[str, int]] = {}
+        with self._lock:
+            for table, key in (
+                ("controllers", "controllers"),
+                ("transitions", "transitions"),
+                ("models", "models"),
+            ):
+                for sig, n in self._conn.execute(
+                    f"SELECT signature, count(*) FROM {table} GROUP BY signature"
+                ):
+                    out.setdefault(str(sig), {"controllers": 0, "transitions": 0, "models": 0})[
+                        key
+                    ] = int(n)
+        return out
+
+
+def _connect(
+    path: Path, *, readonly: bool = False, immutable: bool = False
+) -> sqlite3.Connection:
+    if readonly:
+        uri = path.resolve().as_uri() + "?mode=ro" + ("&immutable=1" if immutable else "")
+        conn = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
+    else:
+        conn = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
+    try:
+        conn.execute("PRAGMA busy_timeout = 2000")
+        if not readonly:
+            conn.execute("PRAGMA journal_mode = WAL")
+            conn.execute("PRAGMA synchronous = NORMAL")
+        check = conn.execute("PRAGMA quick_check").fetchone()
+        if check is None or check[0] != "ok":
+            raise StoreError(f"quick_check failed: {check}")
+        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if (tables or readonly) and "meta" not in tables:
+            raise StoreError("not an epc-offboard library (no meta table)")
+        if "meta" in tables:
+            row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+            if row is None and _creation_cut_short(conn, tables, readonly=readonly):
+                log.warning(
+                    "library %s: its creation was cut short (empty tables, no schema "
+                    "version): %s",
+                    path, "read as empty" if readonly else "finished",
+                )  # fmt: skip
+            elif row is None or row[0] != str(SCHEMA_VERSION):
+                raise StoreError(
+                    f"schema version {row[0] if row else None}, expected {SCHEMA_VERSION}"
+                )
+        if not readonly:
+            # the schema and its version in ONE transaction: a kill leaves both or neither
+            conn.executescript(f"BEGIN IMMEDIATE;{_SCHEMA}{_SET_VERSION}COMMIT;")
+        # Python's sqlite3 with isolation_level=None is in autocommit; `with conn:` below
+        # still wraps each batch in one transaction.
+        conn.isolation_level = "DEFERRED"
+    except Exception:
+        conn.close()
+        raise
+    return conn
+
+
+def _creation_cut_short(conn: sqlite3.Connection, tables: set[str], *, readonly: bool) -> bool:
+    """Whether an unversioned file is only a library whose creation was killed: nothing but
+    our tables, all empty (before the schema and its version shared one transaction, a
+    kill between the two left that). Such a file is finished, not moved aside; one that
+    holds rows is not ours to guess about. Read-only, it reads as empty only when every
+    table is there."""
+    if not tables <= _TABLES or (readonly and tables != _TABLES):
+        return False
+    # (names from _TABLES only: nothing from the file reaches the SQL text)
+    return all(
+        conn.execute(f"SELECT 1 FROM {name} LIMIT 1").fetchone() is None for name in sorted(tables)
+    )

@@ -1,0 +1,264 @@
+"""`epc-offboard sim --compare`: one scenario flown by several methods, side by side.
+
+Each method (``controller:adaptation``; default: the scenario's ``[compare] methods``) flies
+the same scenario, wind and seed, one flight after another, from an empty controller library
+and a fresh estimator, so the comparison is reproducible. Written to ``--out``:
+
+* ``compare.json``: ``{"scenario", "methods", "reports": [CONTRACTS.md sim report, ...],
+  "targets": [verdict, ...], "all_pass"}`` with the scenario's ``[[targets]]`` evaluated
+  (:mod:`epc_offboard.tools.targets`);
+* ``compare.png``: in the style of the thesis's figures 3.4-3.7: every method's path against
+  the reference, the tracking error over time, and the velocity against its bound;
+* one directory per method with that flight's report.json, flight.png and logs.
+
+Exit code 0 when every flight completed and no declared target failed; 1 when a flight failed
+or a target did (the failed targets are named on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from epc_offboard.common.frames import FloatArray
+from epc_offboard.tools.sim import (
+    ScenarioConfig,
+    VehicleResult,
+    fly_and_report,
+    scenario_for,
+    targets_exit_code,
+)
+from epc_offboard.tools.targets import evaluate, method_name, parse_method
+
+
+@dataclass(frozen=True)
+class MethodRun:
+    method: str
+    report: dict[str, Any]
+    results: list[VehicleResult]
+
+
+def methods_for(args: argparse.Namespace, scenario: ScenarioConfig) -> tuple[str, ...]:
+    """``--compare`` alone: the scenario's methods; ``--compare a:b,c:d``: those."""
+    from epc_offboard.common.errors import UsageError
+
+    text = str(args.compare).strip()
+    if not text:
+        return scenario.compare.methods
+    methods = tuple(m.strip() for m in text.split(",") if m.strip())
+    try:
+        for m in methods:
+            parse_method(m)
+    except ValueError as exc:
+        raise UsageError(f"--compare: {exc}") from exc
+    if len(set(methods)) != len(methods):
+        raise UsageError(f"--compare repeats a method: {text}")
+    return methods
+
+
+def fly_method(
+    args: argparse.Namespace, scenario: ScenarioConfig, method: str, out_dir: Path
+) -> tuple[MethodRun, FloatArray]:
+    controller, adaptation = parse_method(method)
+    run_args = argparse.Namespace(**{**vars(args), "controller": controller,
+                                     "adaptation": adaptation, "compare": None})
+    run_dir = out_dir / method.replace(":", "-")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for old in run_dir.glob("library-*.sqlite*"):  # learn from scratch: reproducible
+        old.unlink()
+    report, results, bounds = fly_and_report(
+        run_args, scenario, run_dir, f"{args.scenario}: {method}"
+    )
+    return MethodRun(method, report, results), bounds
+
+
+def run_compare_command(args: argparse.Namespace) -> int:
+    from epc_offboard.common.errors import EXIT_RUNTIME
+
+    scenario = scenario_for(args)
+    methods = methods_for(args, scenario)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    flown: list[MethodRun] = []
+    bounds = np.full(3, np.inf)
+    for method in methods:
+        print(f"{args.scenario}: flying {method}", file=sys.stderr)
+        try:
+            run, bounds = fly_method(args, scenario, method, out_dir)
+        except RuntimeError as exc:
+            print(f"epc-offboard sim --compare: {method}: {exc}", file=sys.stderr)
+            return EXIT_RUNTIME
+        flown.append(run)
+    reports = {r.method: r.report for r in flown}
+    verdicts = evaluate(scenario.targets, reports)
+    summary = {
+        "scenario": args.scenario,
+        "description": scenario.description,
+        "note": scenario.note,
+        "methods": list(methods),
+        "reports": [r.report for r in flown],
+        "targets": verdicts,
+        "all_pass": all(v["verdict"] == "PASS" for v in verdicts),
+    }
+    (out_dir / "compare.json").write_text(json.dumps(summary, indent=2))
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+    wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
+    write_compare_figure(flown, bounds, out_dir / "compare.png", scenario, args.scenario, wind)
+    print_compare(summary)
+    print(f"report: {out_dir / 'compare.json'}  figure: {out_dir / 'compare.png'}")
+    return targets_exit_code(verdicts)
+
+
+# -- output ---------------------------------------------------------------------------------
+
+
+COMPARE_COLUMNS = ("method", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "lap-1 misses",
+                   "QPs", "us med", "us p99", "pos Hz", "att Hz")  # fmt: skip
+
+
+def print_compare(summary: dict[str, Any], file: TextIO | None = None) -> None:
+    """The methods side by side and the targets' verdicts (values in the metric's unit):
+    rich tables on a terminal, plain aligned text when piped."""
+    from epc_offboard.tools.tables import format_metric, print_table
+
+    rows = []
+    for rep in summary["reports"]:
+        for v in rep["vehicles"]:
+            pos = v.get("loops", {}).get("position", {})
+            att = v.get("loops", {}).get("attitude", {})
+            name = method_name(rep["controller"], rep["adaptation"])
+            if len(rep["vehicles"]) > 1:
+                name += f" #{v['id']}"
+            lib = v["library"]
+            epc = lib["hits"] + lib["misses"] > 0
+            rows.append([
+                name,
+                f"{v['tracking']['rmse_m'] * 100:.2f}",
+                f"{v['tracking']['max_error_m'] * 100:.2f}",
+                f"{v['max_speed_m_s']:.2f}",
+                str(v["constraint_violations"]),
+                f"{lib['hit_rate'] * 100:.1f}%" if epc else "-",
+                str(lib.get("first_lap_misses", "-")) if epc else "-",
+                str(lib["qp_solves"]),
+                f"{pos.get('compute_us_median', 0.0):.0f}",
+                f"{pos.get('compute_us_p99', 0.0):.0f}",
+                f"{pos.get('rate_hz', 0.0):.1f}",
+                f"{att.get('rate_hz', 0.0):.1f}",
+            ])  # fmt: skip
+    title = f"{summary['scenario']}: methods side by side (ground truth)"
+    print_table(title, COMPARE_COLUMNS, rows, left=1, file=file, min_width=118)
+    if summary.get("note"):
+        print(f"note: {summary['note']}", file=file)
+    if summary["targets"]:
+        target_rows = [
+            [t["target"], format_metric(t["metric"], t["value"]),
+             format_metric(t["metric"], t["bound"]), t["verdict"]]
+            for t in summary["targets"]
+        ]  # fmt: skip
+        print_table("targets", ("target", "value", "bound", "verdict"), target_rows,
+                    left=1, file=file)  # fmt: skip
+
+
+def write_compare_figure(
+    flown: list[MethodRun],
+    vel_bounds_m_s: FloatArray,
+    path: Path,
+    scenario: ScenarioConfig,
+    name: str,
+    wind: tuple[float, float],
+) -> None:
+    """Thesis figs. 3.4-3.7 in one: paths vs reference, error over time, velocity vs bound;
+    the window the RMSE is measured over shaded, one legend for the whole figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from epc_offboard.tools.figures import (
+        PHASE_COLOURS,
+        mark_events,
+        vehicle_colour,
+        vehicle_style,
+    )
+
+    fig, (ax_path, ax_err, ax_vel) = plt.subplots(1, 3, figsize=(17, 5.6), layout="constrained")
+    # the horizontal axis the reference moves along most: the velocity panel's axis
+    first = flown[0].results[0]
+    axis = int(np.argmax(np.ptp(first.ref_ned_m[:, :2], axis=0)))
+    axis_name = "NE"[axis]
+    settle = scenario.settle_s
+    window_max = 0.0
+    outside_max = 0.0
+    curves = [(run, r) for run in flown for r in run.results]
+    for i, (run, r) in enumerate(curves):
+        after = r.t_s >= settle
+        label = run.method if len(run.results) == 1 else f"{run.method} #{r.vehicle_id}"
+        label += f": RMSE {r.report['tracking']['rmse_m'] * 100:.2f} cm"
+        # colour, dashes and width all differ, each drawn narrower over the earlier ones:
+        # identical methods (EPC + KF equals MPC + KF) both stay visible
+        colour, ls, lw = vehicle_colour(i), vehicle_style(i), max(0.9, 2.6 - 0.35 * i)
+        ax_path.plot(r.pos_ned_m[after, 1], r.pos_ned_m[after, 0], color=colour, ls=ls,
+                     lw=lw, label=label)  # fmt: skip
+        ax_err.plot(r.t_s, r.error_m * 100.0, color=colour, ls=ls, lw=lw)
+        ax_vel.plot(r.t_s, r.vel_ned_m_s[:, axis], color=colour, ls=ls, lw=lw)
+        if np.any(after):
+            window_max = max(window_max, float(np.max(r.error_m[after])) * 100.0)
+        if np.any(~after):
+            outside_max = max(outside_max, float(np.max(r.error_m[~after])) * 100.0)
+    # the reference last, thin and dashed over the flown paths: seen where they cover it
+    after = first.t_s >= settle
+    ax_path.plot(first.ref_ned_m[after, 1], first.ref_ned_m[after, 0], color="black",
+                 ls=(0, (4, 3)), lw=1.0, zorder=10, label="reference")  # fmt: skip
+    # under offboard only: before it the reference is where the vehicle was, and its jump
+    # to the trajectory at entry is no velocity
+    moving = first.t_s > 0.05
+    ref_v = np.gradient(first.ref_ned_m[moving, axis], first.t_s[moving])
+    ax_vel.plot(first.t_s[moving], ref_v, color="black", ls=(0, (4, 3)), lw=1.0, zorder=10)
+    ax_path.set(xlabel="east [m]", ylabel="north [m]", title="path after settling (top view)")
+    ax_path.set_aspect("equal", adjustable="datalim")
+    t_lo = min(float(r.t_s[0]) for _, r in curves)
+    t_hi = max(float(r.t_s[-1]) for _, r in curves)
+    for ax in (ax_err, ax_vel):
+        if t_lo < 0.0:
+            ax.axvspan(t_lo, 0.0, color=PHASE_COLOURS["to offboard"], alpha=0.6, lw=0, zorder=0)
+        ax.axvspan(0.0, settle, color=PHASE_COLOURS["settle"], alpha=0.6, lw=0, zorder=0)
+        ax.axvspan(settle, t_hi, color=PHASE_COLOURS["RMSE window"], alpha=0.6, lw=0, zorder=0)
+        ax.set_xlim(t_lo, t_hi)
+    mark_events([ax_err, ax_vel], [r for _, r in curves])
+    top = 1.15 * window_max if window_max > 0 else max(outside_max, 1.0)
+    ax_err.set_ylim(0.0, max(top, 1.05 * outside_max) if outside_max <= 1.5 * top else top)
+    if outside_max > 1.5 * top:
+        ax_err.text(0.99, 0.97, f"clipped at {top:.3g} cm: the settle transient reaches "
+                    f"{outside_max:.3g} cm", transform=ax_err.transAxes, ha="right", va="top",
+                    fontsize=8, bbox={"fc": "white", "ec": "0.7", "alpha": 0.9})  # fmt: skip
+    ax_err.set(xlabel="time since offboard entry [s]", ylabel="|position error| [cm]",
+               title="tracking error (ground truth)")  # fmt: skip
+    bound = float(vel_bounds_m_s[axis])
+    handles, labels = ax_path.get_legend_handles_labels()
+    if np.isfinite(bound):
+        for b in (bound, -bound):
+            ax_vel.axhline(b, color="r", ls=":", lw=1.2)
+        handles.append(ax_vel.lines[-1])
+        labels.append(f"velocity bound ±{bound:g} m/s")
+    handles += [Patch(color=PHASE_COLOURS["to offboard"], alpha=0.6),
+                Patch(color=PHASE_COLOURS["settle"], alpha=0.6),
+                Patch(color=PHASE_COLOURS["RMSE window"], alpha=0.6)]  # fmt: skip
+    labels += ["entering offboard", f"settle (first {settle:g} s)", "RMSE window"]
+    ax_vel.set(xlabel="time since offboard entry [s]", ylabel=f"v_{axis_name} [m/s]",
+               title=f"{axis_name} velocity vs state constraint (ground truth)")  # fmt: skip
+    for ax in (ax_path, ax_err, ax_vel):
+        ax.grid(True, alpha=0.3)
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 5),
+               fontsize=8, frameon=False)  # fmt: skip
+    wind_text = f", wind {wind[0]:g} m/s towards {wind[1]:g} deg" if wind[0] > 0 else ", no wind"
+    fig.suptitle(f"{name}{wind_text}")
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,523 @@
+"""MAVLink 2 over UDP, TCP or serial for asyncio: pymavlink's sans-IO codec driven by the loop.
+
+No blocking ``recv_match`` anywhere: datagrams (a DatagramProtocol) or serial bytes (a
+non-blocking tty watched by ``loop.add_reader``) arrive on the event loop, are fed to
+``MAVLink.parse_buffer`` and handed to a callback as decoded messages. Bad bytes never raise:
+the codec runs with ``robust_parsing`` so corrupt frames, bad CRCs and bad signatures come back
+as ``BAD_DATA`` and are counted here, by reason.
+
+Connection URLs (as MAVSDK and mavutil spell them):
+
+* ``udpin://HOST:PORT``  — bind HOST:PORT, reply to whoever last sent us a valid message
+  (the usual companion-computer setup: PX4 sends to us on 14540);
+* ``udpout://HOST:PORT`` — send to HOST:PORT from an ephemeral port (we speak first);
+* ``serial:///dev/DEVICE:BAUD`` — a UART (PX4's TELEM2 to a companion computer), raw 8N1,
+  no flow control; BAUD defaults to 57600 (PX4's SER_TEL2_BAUD). Mind the bandwidth: a
+  200 Hz SET_ATTITUDE_TARGET stream alone is about 11 kB/s, so use 921600 for offboard.
+  A serial byte stream carries frames split anywhere: partial frames are kept for the next
+  read (a datagram's leftover, by contrast, is garbage). Writes never block the loop: what
+  the tty cannot take at once is queued (bounded) and written when it is writable. A device
+  that goes away (USB unplugged) is reopened every second until it is back.
+* ``tcp://HOST:PORT`` — a TCP client (ArduPilot SITL's 5760 + 10 * instance, a MAVProxy or
+  mavlink-router TCP output). A byte stream, like serial: partial frames are kept. When the
+  connection cannot be made or drops, it is made again every ``TCP_RECONNECT_PERIOD_S``
+  (counted, logged); until then sends are dropped and counted. Writes never block: past
+  ``TCP_MAX_PENDING_BYTES`` unsent, a frame is dropped (a stale setpoint is worse than none).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import struct
+import termios
+import time
+import tty
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO, Literal
+from urllib.parse import urlsplit
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.common.configio import ConfigError
+from epc_offboard.common.logsetup import LogGate
+from epc_offboard.common.signing import SignatureCheck, enable_signing
+
+log = logging.getLogger(__name__)
+
+MessageHandler = Callable[[Any], None]
+
+
+SERIAL_DEFAULT_BAUD = 57600
+SERIAL_REOPEN_PERIOD_S = 1.0
+SERIAL_MAX_PENDING_BYTES = 8192  # ~90 ms at 921600 baud: beyond that, a setpoint is stale
+TCP_RECONNECT_PERIOD_S = 1.0
+TCP_MAX_PENDING_BYTES = 65536
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    mode: Literal["udpin", "udpout", "serial", "tcp"]
+    host: str = ""
+    port: int = 0
+    device: str = ""  # serial only
+    baud: int = 0  # serial only
+
+
+def parse_url(url: str) -> Endpoint:
+    """Parse ``udpin://HOST:PORT``, ``udpout://HOST:PORT``, ``tcp://HOST:PORT`` or
+    ``serial:///dev/DEV[:BAUD]``; anything else is a ConfigError naming what is wrong."""
+    parts = urlsplit(url)
+    if parts.scheme == "serial":
+        return _parse_serial(url)
+    if parts.scheme not in ("udpin", "udpout", "tcp"):
+        raise ConfigError(
+            f"connection url {url!r}: scheme must be udpin://, udpout://, tcp:// or serial://"
+        )
+    try:
+        port = parts.port
+    except ValueError as exc:
+        raise ConfigError(f"connection url {url!r}: bad port") from exc
+    if not parts.hostname or port is None:
+        raise ConfigError(f"connection url {url!r}: expected {parts.scheme}://HOST:PORT")
+    if parts.scheme == "tcp":
+        return Endpoint("tcp", parts.hostname, port)
+    mode: Literal["udpin", "udpout"] = "udpin" if parts.scheme == "udpin" else "udpout"
+    return Endpoint(mode, parts.hostname, port)
+
+
+def _parse_serial(url: str) -> Endpoint:
+    rest = url[len("serial://") :]
+    device, sep, baud_text = rest.rpartition(":")
+    if not sep:
+        device, baud_text = rest, str(SERIAL_DEFAULT_BAUD)
+    if not device.startswith("/"):
+        raise ConfigError(f"connection url {url!r}: expected serial:///dev/DEVICE:BAUD")
+    try:
+        baud = int(baud_text)
+    except ValueError as exc:
+        raise ConfigError(
+            f"connection url {url!r}: baud rate {baud_text!r} is not a number"
+        ) from exc
+    if not hasattr(termios, f"B{baud}"):
+        raise ConfigError(f"connection url {url!r}: unsupported baud rate {baud}")
+    return Endpoint("serial", device=device, baud=baud)
+
+
+class TlogWriter:
+    """A MAVLink telemetry log (.tlog): each frame prefixed by a big-endian uint64 of unix us.
+
+    This is the format QGroundControl writes and MAVExplorer/mavlogdump read.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        # Lives as long as the session, closed by close(): no context manager fits.
+        self._fh: BinaryIO | None = Path(path).open("ab")  # noqa: SIM115
+
+    def write(self, frame: bytes, unix_time_s: float | None = None) -> None:
+        if self._fh is None:
+            return
+        t_us = int((time.time() if unix_time_s is None else unix_time_s) * 1e6)
+        self._fh.write(struct.pack(">Q", t_us) + frame)
+
+    def flush(self) -> None:
+        if self._fh is not None:
+            self._fh.flush()
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+class _Protocol(asyncio.DatagramProtocol):
+    def __init__(self, link: MavlinkLink) -> None:
+        self._link = link
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        self._link._on_datagram(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable when the peer is not up yet: expected, not fatal.
+        self._link.counters["socket_errors"] += 1
+        log.debug("udp error: %s", exc)
+
+
+class _StreamProtocol(asyncio.Protocol):
+    """A TCP connection's bytes to the link (a stream: frames may be split anywhere)."""
+
+    def __init__(self, link: MavlinkLink) -> None:
+        self._link = link
+
+    def data_received(self, data: bytes) -> None:
+        link = self._link
+        link._on_bytes(data, (link.endpoint.host, link.endpoint.port), stream=True)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._link._tcp_lost(self, "closed by the peer" if exc is None else str(exc))
+
+
+class MavlinkLink:
+    """One MAVLink 2 connection over UDP, TCP or serial.
+
+    ``on_message`` is called on the event loop for every valid message that passed the
+    system-id filter (``accept_system_ids``; None accepts all). ``counters`` counts what was
+    received, sent and rejected, by reason.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        system_id: int,
+        component_id: int,
+        on_message: MessageHandler,
+        accept_system_ids: frozenset[int] | None = None,
+        signing_key: bytes | None = None,
+        tlog: TlogWriter | None = None,
+        peer_timeout_s: float = 3.0,
+    ) -> None:
+        self.endpoint = parse_url(url)
+        self._on_message = on_message
+        self._accept = accept_system_ids
+        self._tlog = tlog
+        self._transport: asyncio.DatagramTransport | None = None
+        self._peer: tuple[str, int] | None = (
+            (self.endpoint.host, self.endpoint.port) if self.endpoint.mode == "udpout" else None
+        )
+        self._fd: int | None = None  # serial
+        self._tcp: asyncio.Transport | None = None  # tcp, while connected
+        self._tcp_protocol: _StreamProtocol | None = None
+        self._tcp_task: asyncio.Task[None] | None = None
+        self._pending = bytearray()  # serial bytes the tty has not taken yet
+        self._reopen: asyncio.TimerHandle | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._closed = False
+        self._peer_timeout_s = peer_timeout_s
+        self._peer_heard = -float("inf")
+        self.counters: Counter[str] = Counter()
+        self._log_gate = LogGate()
+        self.mav = mavlink.MAVLink(_SendFile(self), srcSystem=system_id, srcComponent=component_id)
+        self.mav.robust_parsing = True
+        self.signature: SignatureCheck | None = None
+        if signing_key is not None:
+            self.signature = enable_signing(self.mav, signing_key)
+
+    @property
+    def peer(self) -> tuple[str, int] | None:
+        return self._peer
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        if self._transport is None:
+            raise RuntimeError("link is not open")
+        addr: tuple[str, int] = self._transport.get_extra_info("sockname")[:2]
+        return addr
+
+    async def open(self) -> None:
+        """Bind or open the link; OSError names the address or device that failed."""
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._closed = False
+        if self.endpoint.mode == "serial":
+            self._open_serial(loop)
+            return
+        if self.endpoint.mode == "tcp":
+            # an autopilot not up yet is not an error: the link connects when it is
+            await self._connect_tcp()
+            return
+        if self.endpoint.mode == "udpin":
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _Protocol(self), local_addr=(self.endpoint.host, self.endpoint.port)
+            )
+        else:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _Protocol(self), local_addr=("0.0.0.0", 0)
+            )
+        self._transport = transport
+
+    def close(self) -> None:
+        self._closed = True
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+        if self._reopen is not None:
+            self._reopen.cancel()
+            self._reopen = None
+        if self._tcp_task is not None:
+            self._tcp_task.cancel()
+            self._tcp_task = None
+        if self._tcp is not None:
+            self._tcp.close()
+            self._tcp = None
+        self._close_serial()
+        if self._tlog is not None:
+            self._tlog.flush()
+
+    def send(self, msg: Any) -> bool:
+        """Encode and send ``msg``; False (and counted) when there is no peer or socket yet."""
+        if self.endpoint.mode == "serial":
+            if self._fd is None:
+                self.counters["send_no_peer"] += 1
+                return False
+        elif self.endpoint.mode == "tcp":
+            if self._tcp is None:
+                self.counters["send_no_peer"] += 1
+                return False
+        elif self._transport is None or self._peer is None:
+            self.counters["send_no_peer"] += 1
+            return False
+        self.mav.send(msg)
+        return True
+
+    def _write_frame(self, frame: bytes) -> None:
+        if self.endpoint.mode == "serial":
+            if not self._write_serial(frame):
+                return
+        elif self.endpoint.mode == "tcp":
+            if self._tcp is None or self._tcp.is_closing():
+                return
+            if self._tcp.get_write_buffer_size() + len(frame) > TCP_MAX_PENDING_BYTES:
+                self.counters["send_dropped"] += 1  # the peer does not read: drop, never block
+                return
+            self._tcp.write(frame)
+        else:
+            if self._transport is None or self._peer is None:
+                return
+            self._transport.sendto(frame, self._peer)
+        self.counters["sent"] += 1
+        if self._tlog is not None:
+            self._tlog.write(frame)
+
+    # -- serial ---------------------------------------------------------------------------
+
+    def _open_serial(self, loop: asyncio.AbstractEventLoop) -> None:
+        dev, baud = self.endpoint.device, self.endpoint.baud
+        fd = os.open(dev, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            tty.setraw(fd)  # 8 bits, no echo, no line editing, no signals
+            attrs = termios.tcgetattr(fd)
+            attrs[2] = (attrs[2] | termios.CLOCAL | termios.CREAD) & ~termios.CRTSCTS
+            attrs[4] = attrs[5] = getattr(termios, f"B{baud}")
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        except termios.error as exc:
+            os.close(fd)
+            raise OSError(f"{dev}: cannot configure the serial port: {exc}") from exc
+        self._fd = fd
+        self._pending.clear()
+        self._peer = (dev, baud)
+        loop.add_reader(fd, self._on_serial_readable)
+        log.info("serial link open: %s at %d baud", dev, baud)
+
+    def _close_serial(self) -> None:
+        if self._fd is None:
+            return
+        if self._loop is not None and not self._loop.is_closed():
+            self._loop.remove_reader(self._fd)
+            self._loop.remove_writer(self._fd)
+        with contextlib.suppress(OSError):
+            os.close(self._fd)
+        self._fd = None
+        self._pending.clear()
+
+    def _on_serial_readable(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            data = os.read(self._fd, 4096)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._serial_lost(str(exc))
+            return
+        if not data:
+            self._serial_lost("end of file")
+            return
+        self._on_bytes(data, (self.endpoint.device, self.endpoint.baud), stream=True)
+
+    def _write_serial(self, frame: bytes) -> bool:
+        if self._fd is None:
+            return False
+        if len(self._pending) + len(frame) > SERIAL_MAX_PENDING_BYTES:
+            self.counters["send_dropped"] += 1  # the link is saturated: drop, never block
+            return False
+        if self._pending:
+            self._pending += frame
+            return True
+        try:
+            n = os.write(self._fd, frame)
+        except BlockingIOError:
+            n = 0
+        except OSError as exc:
+            self._serial_lost(str(exc))
+            return False
+        if n < len(frame):
+            self._pending += frame[n:]
+            assert self._loop is not None
+            self._loop.add_writer(self._fd, self._flush_serial)
+        return True
+
+    def _flush_serial(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            n = os.write(self._fd, self._pending)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._serial_lost(str(exc))
+            return
+        del self._pending[:n]
+        if not self._pending and self._loop is not None:
+            self._loop.remove_writer(self._fd)
+
+    def _serial_lost(self, why: str) -> None:
+        self.counters["serial_lost"] += 1
+        log.error("serial link %s lost (%s): reopening", self.endpoint.device, why)
+        self._close_serial()
+        self._schedule_reopen()
+
+    def _schedule_reopen(self) -> None:
+        if self._closed or self._loop is None:
+            return
+        self._reopen = self._loop.call_later(
+            SERIAL_REOPEN_PERIOD_S, self._try_reopen, self._loop
+        )
+
+    def _try_reopen(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._reopen = None
+        try:
+            self._open_serial(loop)
+        except OSError as exc:
+            self.counters["serial_reopen_failed"] += 1
+            log.debug("serial reopen failed: %s", exc)
+            self._schedule_reopen()
+
+    # -- tcp ------------------------------------------------------------------------------
+
+    async def _connect_tcp(self) -> None:
+        """One connection attempt; on failure the next is scheduled."""
+        loop = asyncio.get_running_loop()
+        host, port = self.endpoint.host, self.endpoint.port
+        try:
+            transport, protocol = await loop.create_connection(
+                lambda: _StreamProtocol(self), host, port
+            )
+        except OSError as exc:
+            self.counters["tcp_connect_failed"] += 1
+            if self.counters["tcp_connect_failed"] == 1:
+                log.warning("tcp %s:%d: cannot connect (%s): retrying", host, port, exc)
+            self._schedule_tcp_connect()
+            return
+        if self._closed:
+            transport.close()
+            return
+        self._reset_parser()  # a stream cut mid-frame: the old connection's bytes are void
+        self._tcp, self._tcp_protocol = transport, protocol
+        self._peer = (host, port)
+        self.counters["tcp_connects"] += 1
+        log.info("tcp link connected to %s:%d", host, port)
+
+    def _schedule_tcp_connect(self) -> None:
+        if self._closed or self._loop is None:
+            return
+
+        def start() -> None:
+            if not self._closed:
+                self._tcp_task = asyncio.ensure_future(self._connect_tcp())
+
+        self._reopen = self._loop.call_later(TCP_RECONNECT_PERIOD_S, start)
+
+    def _tcp_lost(self, protocol: _StreamProtocol, why: str) -> None:
+        if protocol is not self._tcp_protocol:
+            return  # an old connection's late notice
+        self._tcp = self._tcp_protocol = None
+        if self._closed:
+            return
+        self.counters["tcp_lost"] += 1
+        host, port = self.endpoint.host, self.endpoint.port
+        log.error("tcp link to %s:%d lost (%s): reconnecting", host, port, why)
+        self._schedule_tcp_connect()
+
+    def _reset_parser(self) -> None:
+        self.mav.buf = bytearray()
+        self.mav.buf_index = 0
+        self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+
+    # -- receiving ------------------------------------------------------------------------
+
+    def _on_datagram(self, data: bytes, addr: tuple[Any, int]) -> None:
+        self.counters["datagrams"] += 1
+        self._on_bytes(data, addr, stream=False)
+
+    def _on_bytes(self, data: bytes, addr: tuple[Any, int], *, stream: bool) -> None:
+        try:
+            msgs = self.mav.parse_buffer(data) or []
+        except Exception as exc:  # the codec must never take the loop down
+            self.counters["bad_data"] += 1
+            log.debug("unparseable bytes from %s: %s", addr, exc)
+            return
+        if not stream and self.mav.buf_len() > 0:
+            # A datagram carries whole messages: a leftover is garbage, and kept it would
+            # swallow the first message of the next datagram.
+            self.counters["bad_data"] += 1
+            self.mav.buf = bytearray()
+            self.mav.buf_index = 0
+            self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+        for msg in msgs:
+            try:
+                self._dispatch(msg, addr)
+            except Exception as exc:  # one bad message costs one counted drop, not the rest
+                self.counters["dispatch_errors"] += 1
+                if self._log_gate.open("dispatch", 1.0):
+                    log.warning(
+                        "%s dropped: %s: %s (%d so far)",
+                        msg.get_type(), type(exc).__name__, exc, self.counters["dispatch_errors"],
+                    )  # fmt: skip
+
+    def _dispatch(self, msg: Any, addr: tuple[Any, int]) -> None:
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            reason = str(getattr(msg, "reason", ""))
+            key = "bad_signature" if "signature" in reason.lower() else "bad_data"
+            self.counters[key] += 1
+            return
+        if mtype == "UNKNOWN" or mtype.startswith("UNKNOWN_"):
+            self.counters["unknown_message"] += 1
+            return
+        if self._accept is not None and msg.get_srcSystem() not in self._accept:
+            self.counters["wrong_system"] += 1
+            return
+        self.counters["received"] += 1
+        if self.endpoint.mode == "udpin":
+            # The peer is the first address that spoke; it only moves once it has been silent
+            # for peer_timeout_s (the autopilot restarted on another port). A second sender
+            # cannot redirect our setpoints while the vehicle is talking to us.
+            sender = (str(addr[0]), int(addr[1]))
+            now = time.monotonic()
+            if sender == self._peer:
+                self._peer_heard = now
+            elif self._peer is None or now - self._peer_heard > self._peer_timeout_s:
+                if self._peer is not None:
+                    log.warning("MAVLink peer moved from %s:%d to %s:%d", *self._peer, *sender)
+                self._peer, self._peer_heard = sender, now
+            else:
+                self.counters["other_sender"] += 1
+        if self._tlog is not None:
+            self._tlog.write(bytes(msg.get_msgbuf()))
+        self._on_message(msg)
+
+
+class _SendFile:
+    """The file-like pymavlink writes packed frames to."""
+
+    def __init__(self, link: MavlinkLink) -> None:
+        self._link = link
+
+    def write(self, frame: bytes) -> None:
+        self._link._write_frame(bytes(frame))

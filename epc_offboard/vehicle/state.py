@@ -1,0 +1,450 @@
+"""Vehicle state from MAVLink messages: decoded, validated, timestamped, predicted forward.
+
+The tracker is fed decoded pymavlink messages by the service and keeps the newest *valid*
+sample of each kind. A sample with a NaN, an out-of-range value or a non-unit quaternion is
+rejected, counted by reason, and never replaces a good one. Two times are kept per sample:
+the vehicle's own timestamp (``time_boot_ms``/``time_usec``; drives the lockstep clock) and
+the local receipt time (``time.monotonic``; drives staleness checks in real operation).
+
+PX4 sends LOCAL_POSITION_NED and ODOMETRY at only 30 Hz by default while the position loop
+runs at 100 Hz, so ``snapshot`` predicts the position forward at constant velocity to the
+requested time, up to ``max_predict_s``, and reports how old the underlying samples are.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from epc_offboard.common import frames
+from epc_offboard.common.frames import FloatArray
+
+log = logging.getLogger(__name__)
+
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+MAV_COMP_ID_AUTOPILOT1 = 1
+MAV_AUTOPILOT_INVALID = 8  # MAVLink's "not a flight controller"
+# MAV_TYPEs of components that are not a flight controller (antenna tracker, GCS, onboard
+# computer, gimbal, ADS-B, camera, charging station, FLARM, servo, Open Drone ID, battery,
+# parachute, logger, OSD, IMU, GPS, winch, illuminator, gripper): no flight mode in their
+# heartbeat. A type past the dialect's last (49) is not one either.
+_NOT_AUTOPILOT_TYPES = frozenset(
+    {5, 6, 18, 26, 27, 30, 31, 32, 33, 34, 36, 37, 38, 39, 40, 41, 42, 44, 48}
+)
+_MAV_TYPE_END = 49
+_FLAP_LOG_PERIOD_S = 10.0
+_MAX_CLAIMS = 8  # changes being confirmed at once; past it the oldest claim is forgotten
+# time_boot_ms is truncated to whole ms while ODOMETRY's time_usec is not: samples of one
+# instant can differ by up to a millisecond and must not count as out of order.
+_ORDER_TOLERANCE_S = 1.5e-3
+_MAX_CANDIDATES = 4  # candidate timelines kept per stream while judging a resync
+MAV_FRAME_LOCAL_NED = 1
+MAV_FRAME_LOCAL_FRD = 20
+MAV_FRAME_BODY_FRD = 12
+
+# PX4 custom_mode: main mode in bits 16-23, sub mode in bits 24-31.
+PX4_MAIN_MODE_POSCTL = 3
+PX4_MAIN_MODE_AUTO = 4
+PX4_MAIN_MODE_OFFBOARD = 6
+PX4_AUTO_SUB_TAKEOFF = 2
+PX4_AUTO_SUB_LOITER = 3
+PX4_AUTO_SUB_LAND = 6
+
+
+def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
+    return (main_mode << 16) | (sub_mode << 24)
+
+
+def px4_modes(custom_mode: int) -> tuple[int, int]:
+    """(main_mode, sub_mode) of a PX4 custom_mode."""
+    return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+
+
+@dataclass(frozen=True)
+class StateLimits:
+    """Plausibility bounds: a sample outside them is rejected as corrupt, not clipped."""
+
+    max_abs_pos_m: float = 1.0e4
+    max_speed_m_s: float = 100.0
+    max_rate_rad_s: float = 50.0
+    quat_norm_tolerance: float = 0.05
+    max_predict_s: float = 0.2
+    # A stamp may run ahead of the receive clock by this much (link jitter, batching); more
+    # is a spoofed or corrupt stamp, rejected without touching the tracker's vehicle time.
+    max_time_jump_s: float = 1.0
+    # This many consecutive samples of one stream that agree with each other but not with
+    # the tracker's timeline (an autopilot reboot restarting time_boot_ms at 0, or a bad
+    # stamp accepted first) move the tracker to their timeline: a resync, never a lockout.
+    resync_samples: int = 5
+    # Heartbeats: a mode or arming change that comes sooner than heartbeat_min_interval_s
+    # (half PX4's 1 Hz period) after the heartbeat before it, or is undone within
+    # heartbeat_flap_window_s (a period plus jitter), is a flap: a forged heartbeat between
+    # two genuine ones. Changes are adopted at once until a flap (an early one is held
+    # back, an undoing adopted); for heartbeat_calm_s after the last, a change is adopted
+    # only once it has been claimed for heartbeat_confirm_s (PX4's heartbeat period) with
+    # the mode held not claimed meanwhile: while the vehicle keeps sending the mode held,
+    # no forgery lasts that long; a genuine change then lags a heartbeat, on a calm link none.
+    heartbeat_min_interval_s: float = 0.5
+    heartbeat_flap_window_s: float = 1.5
+    heartbeat_calm_s: float = 10.0
+    heartbeat_confirm_s: float = 1.0
+    # The autopilot's (MAV_TYPE, MAV_AUTOPILOT) is learnt from its first heartbeat, and
+    # learnt again only after this long without one.
+    heartbeat_relearn_s: float = 5.0
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    system_id: int
+    armed: bool
+    main_mode: int
+    sub_mode: int
+    received_s: float  # local monotonic time
+    custom_mode: int = 0  # as sent: ArduPilot's plain mode number (PX4's is main/sub above)
+    autopilot: int = 12  # MAV_AUTOPILOT: 12 PX4, 3 ArduPilot
+
+    @property
+    def offboard(self) -> bool:
+        return self.main_mode == PX4_MAIN_MODE_OFFBOARD
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """The newest valid state, predicted to ``time_s``. Arrays are NED/FRD, SI units."""
+
+    time_s: float  # vehicle time this state is for
+    pos_ned_m: FloatArray
+    vel_ned_m_s: FloatArray
+    q_ned_frd: FloatArray  # [w, x, y, z], body FRD -> world NED
+    rate_frd_rad_s: FloatArray
+    position_age_s: float  # vehicle time since the position sample this is predicted from
+    attitude_age_s: float
+
+    @property
+    def euler_rad(self) -> tuple[float, float, float]:
+        """(roll, pitch, yaw) Z-Y-X."""
+        return frames.quat_to_euler(self.q_ned_frd)
+
+    @property
+    def yaw_rad(self) -> float:
+        return self.euler_rad[2]
+
+
+@dataclass
+class _Sample:
+    vehicle_s: float
+    received_s: float
+    values: tuple[FloatArray, ...]
+
+
+@dataclass
+class _Timeline:
+    """One stream's newest accepted stamp and when it came (the receive clock)."""
+
+    vehicle_s: float
+    received_s: float
+
+    def admits(self, t_s: float, now: float, max_jump_s: float) -> str | None:
+        """None if ``t_s`` continues this timeline, else the reason it does not."""
+        if t_s < self.vehicle_s - _ORDER_TOLERANCE_S:
+            return "rejected_out_of_order"
+        if t_s - self.vehicle_s > (now - self.received_s) + max_jump_s:
+            return "rejected_time_jump"
+        return None
+
+    def continued_by(self, t_s: float, now: float, limits: StateLimits) -> bool:
+        """Whether ``t_s`` advances a candidate timeline: strictly newer (a stream always
+        moves on; a repeated stamp is no evidence) and not too far ahead."""
+        return t_s > self.vehicle_s and self.admits(t_s, now, limits.max_time_jump_s) is None
+
+
+@dataclass
+class StateTracker:
+    """Keeps the newest valid attitude and position samples of one vehicle.
+
+    Order is judged per stream (ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY
+    each keep their own newest stamp): PX4's ODOMETRY carries the estimator's sample time,
+    which trails ATTITUDE's, and is not out of order. A sample older than the one held from
+    another stream is simply not newer news. Forward jumps are bounded against the receive
+    clock, and a consistent new timeline is adopted after ``resync_samples`` samples.
+    """
+
+    system_id: int
+    limits: StateLimits = field(default_factory=StateLimits)
+    # whose HEARTBEAT carries the flight mode: the autopilot's (config link.target_component;
+    # 0 accepts any component, the type checks still apply)
+    component_id: int = MAV_COMP_ID_AUTOPILOT1
+    counters: Counter[str] = field(default_factory=Counter)
+    heartbeat: Heartbeat | None = None
+    _attitude: _Sample | None = None  # (q, rate)
+    _position: _Sample | None = None  # (pos, vel)
+    vehicle_time_s: float = 0.0  # newest vehicle timestamp seen in a valid state message
+    _timelines: dict[str, _Timeline] = field(default_factory=dict)  # per stream (4 at most)
+    _candidates: dict[str, list[list[_Timeline]]] = field(default_factory=dict)
+    _kind: tuple[int, int] | None = None  # the autopilot's (MAV_TYPE, MAV_AUTOPILOT)
+    _mode: tuple[bool, int] | None = None  # (armed, custom_mode) of the heartbeat held
+    _mode_before: tuple[bool, int] | None = None  # what the last adopted change replaced
+    _mode_changed_s: float = -math.inf
+    _mode_heard_s: float = -math.inf  # the last heartbeat accepted
+    _flap_s: float = -math.inf  # the last flap: changes need confirming until calm again
+    # changes claimed since the mode held was last claimed: mode -> first claimed (bounded)
+    _claims: dict[tuple[bool, int], float] = field(default_factory=dict)
+    _flap_logged_s: float = -math.inf
+
+    def handle(self, msg: Any, received_s: float | None = None) -> bool:
+        """Consume one decoded message; True when it updated the state."""
+        if msg.get_srcSystem() != self.system_id:
+            return False
+        now = time.monotonic() if received_s is None else received_s
+        mtype = msg.get_type()
+        if mtype == "HEARTBEAT":
+            if not self._accept_heartbeat(msg, now):
+                return False
+            main, sub = px4_modes(int(msg.custom_mode))
+            self.heartbeat = Heartbeat(
+                self.system_id,
+                bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
+                main,
+                sub,
+                now,
+                custom_mode=int(msg.custom_mode),
+                autopilot=int(msg.autopilot),
+            )
+            return False
+        if mtype == "ATTITUDE_QUATERNION":
+            q = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=np.float64)
+            rate = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
+            return self._set_attitude(mtype, msg.time_boot_ms * 1e-3, now, q, rate)
+        if mtype == "ATTITUDE":
+            # validated before it is converted: NaN or absurd angles are corrupt, not math
+            angles = (msg.roll, msg.pitch, msg.yaw)
+            if not all(math.isfinite(a) for a in angles):
+                self.counters["rejected_nan"] += 1
+                return False
+            if max(abs(a) for a in angles) > 2.0 * math.pi:
+                self.counters["rejected_range"] += 1
+                return False
+            q = frames.euler_to_quat(msg.roll, msg.pitch, msg.yaw)
+            rate = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
+            return self._set_attitude(mtype, msg.time_boot_ms * 1e-3, now, q, rate)
+        if mtype == "LOCAL_POSITION_NED":
+            pos = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
+            vel = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
+            return self._set_position(mtype, msg.time_boot_ms * 1e-3, now, pos, vel)
+        if mtype == "ODOMETRY":
+            return self._handle_odometry(msg, now)
+        return False
+
+    def _accept_heartbeat(self, msg: Any, now: float) -> bool:
+        """Whether this HEARTBEAT may replace the one held: the autopilot's (configured
+        component, a flight controller's type, the autopilot's kind) and, while heartbeats
+        flap, a change confirmed. Counted: ignored, flaps, changes held back."""
+        if not self._from_autopilot(msg, now):
+            self.counters["heartbeat_ignored"] += 1
+            return False
+        mode = (bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED), int(msg.custom_mode))
+        held, claims = self._mode, self._claims
+        if held is None or mode == held:
+            if claims:  # changes held back, contradicted: still flapping
+                self._flapped(now)
+                claims.clear()
+            self._mode, self._mode_heard_s = mode, now
+            return True
+        limits = self.limits
+        calm = now - self._flap_s >= limits.heartbeat_calm_s
+        # an undoing restores what the vehicle said before the forgery: adopted
+        undone = (
+            calm
+            and mode == self._mode_before
+            and now - self._mode_changed_s <= limits.heartbeat_flap_window_s
+        )
+        if calm and (undone or now - self._mode_heard_s < limits.heartbeat_min_interval_s):
+            self._flapped(now)
+        if not undone and now - self._flap_s < limits.heartbeat_calm_s:
+            first_s = claims.setdefault(mode, now)
+            if now - first_s < limits.heartbeat_confirm_s:
+                if len(claims) > _MAX_CLAIMS:
+                    del claims[next(iter(claims))]
+                self.counters["heartbeat_changes_held"] += 1
+                return False
+        self._mode_before, self._mode, self._mode_changed_s = held, mode, now
+        self._mode_heard_s = now
+        claims.clear()
+        return True
+
+    def _from_autopilot(self, msg: Any, now: float) -> bool:
+        if self.component_id and msg.get_srcComponent() != self.component_id:
+            return False
+        kind = (int(msg.type), int(msg.autopilot))
+        mav_type, autopilot = kind
+        if (
+            autopilot == MAV_AUTOPILOT_INVALID
+            or mav_type in _NOT_AUTOPILOT_TYPES
+            or mav_type >= _MAV_TYPE_END
+        ):
+            return False
+        hb = self.heartbeat
+        if hb is None or now - hb.received_s > self.limits.heartbeat_relearn_s:
+            self._kind = kind
+        return kind == self._kind
+
+    def _flapped(self, now: float) -> None:
+        self.counters["heartbeat_flaps"] += 1
+        self._flap_s = now
+        if now - self._flap_logged_s >= _FLAP_LOG_PERIOD_S:
+            self._flap_logged_s = now
+            log.warning(
+                "heartbeat mode/arming flapping (%d flaps so far): forged heartbeats? a mode "
+                "change now needs %.1f s to be believed; MAVLink signing stops this",
+                self.counters["heartbeat_flaps"], self.limits.heartbeat_confirm_s,
+            )  # fmt: skip
+
+    def _handle_odometry(self, msg: Any, now: float) -> bool:
+        if msg.frame_id not in (MAV_FRAME_LOCAL_NED, MAV_FRAME_LOCAL_FRD):
+            self.counters["odometry_unsupported_frame"] += 1
+            return False
+        t_s = msg.time_usec * 1e-6
+        q = np.array(msg.q, dtype=np.float64)
+        rate = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
+        pos = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
+        vel = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
+        if not self._valid_quat(q):
+            return False
+        if msg.child_frame_id == MAV_FRAME_BODY_FRD:
+            vel = frames.quat_to_rotation(q) @ vel  # PX4 sends body-frame velocity
+        if not self._admit("ODOMETRY", t_s, now):
+            return False
+        updated = self._set_attitude(None, t_s, now, q, rate)
+        return self._set_position(None, t_s, now, pos, vel) or updated
+
+    def _admit(self, stream: str | None, t_s: float, now: float) -> bool:
+        """Whether stamp ``t_s`` of ``stream`` continues its timeline (None: already
+        admitted by the caller). Rejections are counted; a run of them that agree with each
+        other is a new timeline (reboot), adopted: resync."""
+        if stream is None:
+            return True
+        if not math.isfinite(t_s):
+            self.counters["rejected_time_jump"] += 1
+            return False
+        line = self._timelines.get(stream)
+        reason = None if line is None else line.admits(t_s, now, self.limits.max_time_jump_s)
+        if reason is None:
+            # (candidates stay: a bad stamp accepted first must not wipe the evidence
+            # against it; they are bounded and expire by the jump bound)
+            self._timelines[stream] = _Timeline(t_s, now)
+            return True
+        self.counters[reason] += 1
+        # candidate timelines of this stream: a sample extends the one it continues, else
+        # starts one (past _MAX_CANDIDATES the shortest, then stalest, is dropped), so
+        # interleaved garbage can neither break a genuine new timeline nor grow memory
+        runs = self._candidates.setdefault(stream, [])
+        run = next((r for r in runs if r[-1].continued_by(t_s, now, self.limits)), None)
+        if run is None:
+            if len(runs) >= _MAX_CANDIDATES:
+                runs.remove(min(runs, key=lambda r: (len(r), r[-1].received_s)))
+            run = []
+            runs.append(run)
+        run.append(_Timeline(t_s, now))
+        del run[: -self.limits.resync_samples]
+        if len(run) < self.limits.resync_samples:
+            return False
+        # a new timeline: forget the old one everywhere (every stream restarts with it)
+        self.counters["time_resyncs"] += 1
+        log.warning(
+            "%s: %d consecutive samples on another timeline (%.3f s, was %.3f s): "
+            "resynchronised (autopilot reboot or a bad stamp earlier)",
+            stream, len(run), t_s, 0.0 if line is None else line.vehicle_s,
+        )  # fmt: skip
+        self._timelines = {stream: _Timeline(t_s, now)}
+        self._candidates.clear()
+        self._attitude = self._position = None
+        self.vehicle_time_s = t_s
+        return True
+
+    def _valid_quat(self, q: FloatArray) -> bool:
+        if not np.all(np.isfinite(q)):
+            self.counters["rejected_nan"] += 1
+            return False
+        if abs(float(np.linalg.norm(q)) - 1.0) > self.limits.quat_norm_tolerance:
+            self.counters["rejected_quaternion"] += 1
+            return False
+        return True
+
+    def _set_attitude(
+        self, stream: str | None, t_s: float, now: float, q: FloatArray, rate: FloatArray
+    ) -> bool:
+        if not self._valid_quat(q):
+            return False
+        if not np.all(np.isfinite(rate)):
+            self.counters["rejected_nan"] += 1
+            return False
+        if float(np.max(np.abs(rate))) > self.limits.max_rate_rad_s:
+            self.counters["rejected_range"] += 1
+            return False
+        if not self._admit(stream, t_s, now):
+            return False
+        if self._attitude is not None and t_s < self._attitude.vehicle_s - _ORDER_TOLERANCE_S:
+            return False  # valid, but older than what another stream already gave
+        self._attitude = _Sample(t_s, now, (frames.quat_normalize(q), rate))
+        self.vehicle_time_s = max(self.vehicle_time_s, t_s)
+        return True
+
+    def _set_position(
+        self, stream: str | None, t_s: float, now: float, pos: FloatArray, vel: FloatArray
+    ) -> bool:
+        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(vel))):
+            self.counters["rejected_nan"] += 1
+            return False
+        if (
+            float(np.max(np.abs(pos))) > self.limits.max_abs_pos_m
+            or float(np.linalg.norm(vel)) > self.limits.max_speed_m_s
+        ):
+            self.counters["rejected_range"] += 1
+            return False
+        if not self._admit(stream, t_s, now):
+            return False
+        if self._position is not None and t_s < self._position.vehicle_s - _ORDER_TOLERANCE_S:
+            return False  # valid, but older than what another stream already gave
+        self._position = _Sample(t_s, now, (pos, vel))
+        self.vehicle_time_s = max(self.vehicle_time_s, t_s)
+        return True
+
+    def age_s(self, now_s: float, *, vehicle_clock: bool) -> float:
+        """Age of the older of the two samples: by vehicle time or by local receipt time."""
+        if self._attitude is None or self._position is None:
+            return math.inf
+        if vehicle_clock:
+            oldest = min(self._attitude.vehicle_s, self._position.vehicle_s)
+        else:
+            oldest = min(self._attitude.received_s, self._position.received_s)
+        return max(0.0, now_s - oldest)
+
+    def snapshot(self, at_vehicle_s: float | None = None) -> VehicleState | None:
+        """The state predicted to vehicle time ``at_vehicle_s`` (default: newest sample time).
+
+        None until both an attitude and a position sample have arrived.
+        """
+        if self._attitude is None or self._position is None:
+            return None
+        t = self.vehicle_time_s if at_vehicle_s is None else at_vehicle_s
+        q, rate = self._attitude.values
+        pos, vel = self._position.values
+        dt_pos = t - self._position.vehicle_s
+        # Constant-velocity prediction over the gap between position samples, never further
+        # than max_predict_s: beyond that the sample is stale and the service must hold.
+        dt_pred = min(max(dt_pos, 0.0), self.limits.max_predict_s)
+        return VehicleState(
+            time_s=t,
+            pos_ned_m=pos + vel * dt_pred,
+            vel_ned_m_s=vel.copy(),
+            q_ned_frd=q.copy(),
+            rate_frd_rad_s=rate.copy(),
+            position_age_s=max(dt_pos, 0.0),
+            attitude_age_s=max(t - self._attitude.vehicle_s, 0.0),
+        )
