@@ -36,7 +36,7 @@ from epc_offboard.control.trajectories import TrajectoryConfig
 from epc_offboard.tools.figures import write_figure
 from epc_offboard.tools.targets import CompareConfig, TargetConfig
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 SCENARIO_DIR = CONFIG_DIR / "scenarios"
 SITL_SERVICE_CONFIG = CONFIG_DIR / "sitl.toml"
 
