@@ -50,8 +50,14 @@ class LoopsConfig:
     supervisor_rate_hz: float = 20.0
     clock: Literal["wall", "vehicle"] = "wall"  # vehicle: lockstep with the SITL
     watchdog_period_s: float = 0.5
+    # > 0: the loops' thread runs SCHED_FIFO at this priority (1-99), so other processes
+    # cannot delay a tick (service/realtime.py); needs CAP_SYS_NICE, else logged and ignored
+    realtime_priority: int = 0
 
     def __post_init__(self) -> None:
+        prio = self.realtime_priority
+        if isinstance(prio, bool) or not isinstance(prio, int) or not 0 <= prio <= 99:
+            raise ValueError(f"realtime_priority must be an integer 0..99, got {prio!r}")
         for name in (
             "position_rate_hz",
             "attitude_rate_hz",

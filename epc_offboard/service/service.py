@@ -47,6 +47,7 @@ from epc_offboard.common.signing import load_signing_key
 from epc_offboard.control.cascade import AttitudeOutput, Cascade, PositionOutput
 from epc_offboard.control.trajectories import Rejoin, Trajectory, live_reference_horizon
 from epc_offboard.fleet.sharing import FleetSharing
+from epc_offboard.service import realtime
 from epc_offboard.service.clock import Clock, VehicleClock, WallClock
 from epc_offboard.service.config import ServiceConfig, load_service_config
 from epc_offboard.service.miss_solver import MissSolver
@@ -146,6 +147,7 @@ class Service:
         self._ready_sent = False
         self._control_alive_wall = -math.inf
         self._lingering = False  # landed, still up for the fleet (mission.linger_after_landing)
+        self.gc_monitor = realtime.GcMonitor()
         self._log_gate = LogGate()  # wire- and loop-driven log lines, rate-limited
         # phase transitions on the loop clock, the newest _MAX_PHASE_EVENTS (a flapping link
         # cannot grow it)
@@ -858,6 +860,7 @@ class Service:
         self._open_flight_log()
         await self._open_sharing()
         await self.link.open()
+        self._prepare_realtime()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)
         loop.add_signal_handler(signal.SIGINT, self.request_stop)
@@ -882,6 +885,19 @@ class Service:
         finally:
             await self._shutdown()
         return self._exit_code
+
+    def _prepare_realtime(self) -> None:
+        """Start-up is over: freeze its objects out of the garbage collector and, if
+        configured, raise the loops' scheduling priority (service/realtime.py)."""
+        frozen = realtime.freeze_startup_objects()
+        self.gc_monitor.install()
+        try:
+            how = realtime.apply_priority(self.cfg.loops.realtime_priority)
+        except realtime.PriorityError as exc:
+            self.counters["realtime_priority_refused"] += 1
+            how = "normal scheduling"
+            log.warning("loops.realtime_priority not applied: %s", exc)
+        log.info("loops: %s; %d start-up objects frozen out of the garbage collector", how, frozen)
 
     async def _open_sharing(self) -> None:
         """Join the fleet; a vehicle that cannot still flies, alone (logged, counted)."""
@@ -917,6 +933,7 @@ class Service:
             self._flight_log.close()
         self._write_stats()
         self.link.close()
+        self.gc_monitor.uninstall()
         log.info("stopped: %s", dict(self.counters))
 
     def stats(self) -> dict[str, Any]:
@@ -934,6 +951,7 @@ class Service:
                 "attitude": self.attitude_timing.report().as_dict(),
             },
             "counters": dict(self.counters),
+            "gc": self.gc_monitor.stats(),
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
             "state": dict(self.tracker.counters),

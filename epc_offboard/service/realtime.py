@@ -1,0 +1,108 @@
+"""Keeping the control loops' period on a general-purpose OS: garbage collection, scheduling.
+
+* **Garbage collection.** A full (generation 2) collection of Python's cyclic collector walks
+  every object the interpreter holds: about 160,000 once numba, OSQP, SciPy and pymavlink are
+  loaded, 55-150 ms on this 2-core machine under load, 10-30 attitude periods lost at a
+  moment nobody chooses. Once start-up is over, :func:`freeze_startup_objects` moves every
+  object alive into the permanent generation (:func:`gc.freeze`), so a collection in flight
+  only walks what the flight itself allocated since (tens of microseconds). Every collection
+  is timed (:class:`GcMonitor`, through :data:`gc.callbacks`) and reported in the stats.
+* **Scheduling.** With ``loops.realtime_priority`` > 0 the thread that runs the loops is
+  scheduled ``SCHED_FIFO`` at that priority (:func:`apply_priority`): nothing at normal
+  priority on the companion computer (a camera pipeline, a logger, a CPU hog) can then delay
+  a tick. Processes started later (the EPC miss worker) are reset to normal scheduling
+  (``SCHED_RESET_ON_FORK``): its QP solves must not compete with the loops. Threads already
+  running (Zenoh's) keep their normal priority. Without the privilege (``CAP_SYS_NICE``; the
+  systemd unit's ``CPUSchedulingPolicy=`` grants the same without it) the service says why
+  and flies on normal scheduling.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from epc_offboard.common.errors import EpcError
+
+log = logging.getLogger(__name__)
+
+_SLOW_COLLECTION_S = 0.001  # a collection longer than this is counted as slow
+
+
+@dataclass
+class GcMonitor:
+    """Counts and times the cyclic collector's collections, per generation."""
+
+    collections: list[int] = field(default_factory=lambda: [0, 0, 0])
+    slow: int = 0  # collections longer than _SLOW_COLLECTION_S
+    max_pause_s: float = 0.0
+    _started: float | None = None
+
+    def install(self) -> None:
+        if self._callback not in gc.callbacks:
+            gc.callbacks.append(self._callback)
+
+    def uninstall(self) -> None:
+        if self._callback in gc.callbacks:
+            gc.callbacks.remove(self._callback)
+
+    def _callback(self, phase: str, info: dict[str, Any]) -> None:
+        if phase == "start":
+            self._started = time.perf_counter()
+            return
+        if self._started is None:
+            return
+        pause = time.perf_counter() - self._started
+        self._started = None
+        generation = int(info.get("generation", 2))
+        self.collections[min(max(generation, 0), 2)] += 1
+        self.max_pause_s = max(self.max_pause_s, pause)
+        if pause > _SLOW_COLLECTION_S:
+            self.slow += 1
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "collections": list(self.collections),
+            "slow_collections": self.slow,
+            "max_pause_ms": round(self.max_pause_s * 1e3, 3),
+            "frozen_objects": gc.get_freeze_count(),
+        }
+
+
+def freeze_startup_objects() -> int:
+    """Collect once, then move every object alive into the permanent generation, which no
+    later collection walks. Call once start-up is over (kernels compiled, library loaded)
+    and before the loops run. Returns the number of objects frozen."""
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
+
+
+class PriorityError(EpcError, OSError):
+    """The scheduling policy could not be set (no privilege, or not Linux)."""
+
+
+def apply_priority(priority: int) -> str:
+    """Schedule the calling thread ``SCHED_FIFO`` at ``priority`` (1..99); 0 leaves the
+    scheduling as it is. Returns what was done, for the log; raises :class:`PriorityError`
+    naming why it could not."""
+    if priority == 0:
+        return "normal scheduling (loops.realtime_priority = 0)"
+    setter = getattr(os, "sched_setscheduler", None)
+    if setter is None:
+        raise PriorityError("SCHED_FIFO is not available on this system")
+    policy = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+    try:
+        setter(0, policy, os.sched_param(priority))
+    except PermissionError as exc:
+        raise PriorityError(
+            f"SCHED_FIFO priority {priority} refused ({exc.strerror}): run with CAP_SYS_NICE, "
+            "or set CPUSchedulingPolicy=fifo in the systemd unit"
+        ) from exc
+    except OSError as exc:
+        raise PriorityError(f"SCHED_FIFO priority {priority} refused: {exc}") from exc
+    return f"SCHED_FIFO priority {priority}"

@@ -1,0 +1,105 @@
+"""The loops' real-time preparation: the garbage collector's start-up objects frozen, its
+collections timed, and SCHED_FIFO for the loops' thread (with the miss worker reset to
+normal scheduling), or a clear refusal."""
+
+from __future__ import annotations
+
+import gc
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from epc_offboard.common.configio import ConfigError
+from epc_offboard.service.config import load_service_config
+from epc_offboard.service.realtime import GcMonitor, apply_priority, freeze_startup_objects
+
+
+@pytest.fixture
+def unfrozen():
+    yield
+    gc.unfreeze()
+
+
+def test_the_monitor_times_every_collection_by_generation():
+    monitor = GcMonitor()
+    monitor.install()
+    try:
+        gc.collect(0)
+        gc.collect(2)
+        gc.collect(2)
+    finally:
+        monitor.uninstall()
+    assert monitor.collections[0] >= 1
+    assert monitor.collections[2] >= 2
+    assert monitor.max_pause_s > 0.0
+    gc.collect(2)  # uninstalled: no longer counted
+    assert monitor.collections[2] == monitor.stats()["collections"][2]
+    before = monitor.collections[2]
+    gc.collect(2)
+    assert monitor.collections[2] == before
+
+
+def test_frozen_start_up_objects_are_not_walked_again(unfrozen):
+    # a few thousand objects alive, as the service's modules and kernels are after start-up
+    alive = [{"k": [i]} for i in range(20_000)]
+    frozen = freeze_startup_objects()
+    assert frozen >= 20_000
+    assert gc.get_freeze_count() == frozen
+    # what a full collection can still see excludes them
+    visible = {id(x) for x in gc.get_objects(2)}
+    assert not any(id(o) in visible for o in alive)
+
+
+def test_priority_zero_changes_nothing():
+    assert "normal" in apply_priority(0)
+
+
+def test_fifo_for_the_loops_and_normal_scheduling_for_the_worker():
+    """In a child interpreter (this one must stay as it is): either SCHED_FIFO is granted
+    and a process started afterwards (the miss worker) runs SCHED_OTHER, or the refusal
+    names what is missing."""
+    code = textwrap.dedent(
+        """
+        import os, subprocess, sys
+        from epc_offboard.service.realtime import PriorityError, apply_priority
+        try:
+            print(apply_priority(10))
+        except PriorityError as exc:
+            print("REFUSED", exc)
+            raise SystemExit(0)
+        policy = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK
+        assert policy == os.SCHED_FIFO, policy
+        child = subprocess.run(
+            [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+            capture_output=True, text=True, check=True)
+        print("CHILD", child.stdout.strip())
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    if out.stdout.startswith("REFUSED"):
+        assert "CAP_SYS_NICE" in out.stdout or "not available" in out.stdout
+    else:
+        assert "SCHED_FIFO priority 10" in out.stdout
+        import os
+
+        assert f"CHILD {os.SCHED_OTHER}" in out.stdout
+
+
+@pytest.mark.parametrize("value", [-1, 100, 1.5, True])
+def test_a_bad_priority_is_refused_naming_the_key_and_file(tmp_path, value):
+    path = tmp_path / "service.toml"
+    text = "true" if value is True else str(value)
+    path.write_text(
+        f'[link]\nurl = "udpin://127.0.0.1:14540"\n[loops]\nrealtime_priority = {text}\n'
+    )
+    with pytest.raises(ConfigError, match=r"loops.*realtime_priority") as err:
+        load_service_config(path)
+    assert str(path) in str(err.value)
+
+
+def test_the_real_vehicle_config_asks_for_fifo_and_the_sitl_config_does_not():
+    assert load_service_config("config/default.toml").loops.realtime_priority > 0
+    assert load_service_config("config/sitl.toml").loops.realtime_priority == 0
