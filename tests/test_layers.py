@@ -45,7 +45,7 @@ def _in(*packages: str) -> tuple[str, ...]:
 # control/ is pure numerics as a whole; the vehicle's state machine, dialects and rate
 # bookkeeping are too (commands as values: the link sends them)
 NUMERICS = (
-    *(m for m in _in("epc_offboard.control") if m != "epc_offboard.control.cascade"),
+    *_in("epc_offboard.control"),
     *(f"epc_offboard.vehicle.{m}" for m in (
         "offboard", "dialect", "dialect_px4", "dialect_ardupilot", "rates", "state")),
     "epc_offboard.service.timing",
@@ -123,19 +123,36 @@ def test_the_plant_never_imports_the_controller():
             assert not bad, f"{m} imports more of the product than epc_offboard.common: {bad}"
 
 
-def test_the_running_plant_loads_no_controller():
-    """What the interpreter really loads (package __init__ files included) when the SITL's
-    command starts: nothing of the controller, no numba, no OSQP."""
+def _loaded_by(module: str, condition: str) -> list[str]:
+    """The modules (package __init__ files included) that importing ``module`` in a fresh
+    interpreter really loads and for which the expression ``condition`` on ``m`` holds."""
     code = (
-        "import sys, sitl.main\n"
-        "bad = sorted(m for m in sys.modules if m.startswith(('numba', 'osqp', 'zenoh')) "
-        "or (m.startswith('epc_offboard.') and not m.startswith('epc_offboard.common')))\n"
-        "print(','.join(bad))\n"
+        f"import sys, {module}\n"
+        f"print(','.join(sorted(m for m in sys.modules if {condition})))\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
     )
-    assert out.stdout.strip() == "", f"the SITL loads {out.stdout.strip()}"
+    return [m for m in out.stdout.strip().split(",") if m]
+
+
+def test_the_running_plant_loads_no_controller():
+    """What the interpreter really loads when the SITL's command starts: nothing of the
+    controller, no numba, no OSQP."""
+    bad = _loaded_by(
+        "sitl.main",
+        "m.startswith(('numba', 'osqp', 'zenoh')) "
+        "or (m.startswith('epc_offboard.') and not m.startswith('epc_offboard.common'))",
+    )
+    assert not bad, f"the SITL loads {bad}"
+
+
+@pytest.mark.parametrize("module", ["epc_offboard.fleet.wire", "epc_offboard.control.library"])
+def test_the_library_types_and_the_codec_load_no_numerics(module):
+    """The library's value types and the fleet's codec are plain Python: a planner (or any
+    peer) decoding controller messages loads no numpy, numba, OSQP or scipy."""
+    bad = _loaded_by(module, "m.split('.')[0] in ('numpy', 'numba', 'osqp', 'scipy')")
+    assert not bad, f"{module} loads {sorted({m.split('.')[0] for m in bad})}"
 
 
 def test_the_service_never_imports_the_tools():
