@@ -19,7 +19,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.store.library import LibraryStore
-from epc_offboard.tools.sim import SCENARIO_DIR
+from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 from epc_offboard.vehicle.state import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
