@@ -22,6 +22,8 @@ AUTOPILOTS = ("px4", "ardupilot")
 
 @dataclass(frozen=True)
 class SimOptions:
+    """One ``sim`` run: what to fly, how, how many vehicles, and where to write."""
+
     scenario_name: str  # as given to --scenario: a name or a path (the report's "scenario")
     scenario: ScenarioConfig  # loaded, --duration applied
     controller: str = "epc"
