@@ -20,7 +20,7 @@ from epc_offboard.tools.db import add_db_arguments
 # subcommand -> "module:function(args) -> exit code"
 _COMMANDS = {
     "run": "epc_offboard.service.service:run_service_command",
-    "sim": "epc_offboard.tools.sim:run_sim_command",
+    "sim": "epc_offboard.tools.sim.command:run_sim_command",
     "bench": "epc_offboard.tools.bench:run_bench_command",
     "db": "epc_offboard.tools.db:run_db_command",
     "log": "epc_offboard.tools.logexport:run_log_command",
@@ -55,7 +55,7 @@ class _HelpFormatter(argparse.HelpFormatter):
 
 def build_parser() -> argparse.ArgumentParser:
     from epc_offboard import __version__
-    from epc_offboard.tools.sim import SCENARIO_DIR
+    from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 
     fmt = _HelpFormatter
     parser = argparse.ArgumentParser(

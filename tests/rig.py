@@ -22,7 +22,7 @@ from typing import Any
 from pymavlink import mavutil
 
 from epc_offboard.common.configio import dump_toml, merge_dicts
-from epc_offboard.tools.sim import SITL_SERVICE_CONFIG
+from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
 from epc_offboard.vehicle.state import px4_modes
 
 

@@ -14,7 +14,7 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.tools.sim import sitl_counters
+from epc_offboard.tools.sim.analysis import sitl_counters
 from tests.rig import Rig
 
 pytestmark = pytest.mark.timeout(120)

@@ -10,7 +10,7 @@ import pytest
 
 from epc_offboard import __version__
 from epc_offboard.cli import build_parser
-from epc_offboard.tools.sim import SCENARIO_DIR
+from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:

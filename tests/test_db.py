@@ -9,8 +9,9 @@ import pytest
 
 from epc_offboard.cli import build_parser, main
 from epc_offboard.control.cascade import Cascade
+from epc_offboard.control.library import LibraryEntry
 from epc_offboard.service.config import load_service_config
-from epc_offboard.store.library import LibraryStore, StoredController
+from epc_offboard.store.library import LibraryStore
 
 SITL_CONFIG = "config/sitl.toml"
 # import and merge check every controller against the problems of a service config: the
@@ -40,7 +41,7 @@ def _contents(path):
 def test_export_import_round_trip_models_only_on_request(tmp_path, capsys):
     src = _library(
         tmp_path / "v1.sqlite",
-        [StoredController((1, 4), 5.0, 9), StoredController((), 2.0, 3)],
+        [LibraryEntry((1, 4), 5.0, 9), LibraryEntry((), 2.0, 3)],
         {((), (1, 4)): 6},
         model=b"\x00lwpr\xff",
     )
@@ -67,13 +68,13 @@ def test_export_import_round_trip_models_only_on_request(tmp_path, capsys):
 
 
 def test_merge_is_a_union_and_idempotent(tmp_path):
-    v1 = _library(tmp_path / "v1.sqlite", [StoredController((1,), 3.0, 2)], {((1,), (1,)): 4})
+    v1 = _library(tmp_path / "v1.sqlite", [LibraryEntry((1,), 3.0, 2)], {((1,), (1,)): 4})
     v2 = _library(
         tmp_path / "v2.sqlite",
-        [StoredController((1,), 7.0, 1), StoredController((2, 5), 1.0, 1)],
+        [LibraryEntry((1,), 7.0, 1), LibraryEntry((2, 5), 1.0, 1)],
         {((1,), (1,)): 2},
     )
-    v3 = _library(tmp_path / "v3.sqlite", [StoredController((9,), 1.0, 1)], sig=OTHER)
+    v3 = _library(tmp_path / "v3.sqlite", [LibraryEntry((9,), 1.0, 1)], sig=OTHER)
     fleet = tmp_path / "fleet.sqlite"
     for _ in range(2):  # merging the same files again changes nothing
         assert main(["db", "merge", str(fleet), str(v1), str(v2), str(v3), *CFG]) == 0
@@ -85,8 +86,8 @@ def test_merge_is_a_union_and_idempotent(tmp_path):
 
 
 def test_signature_filter(tmp_path):
-    v1 = _library(tmp_path / "v1.sqlite", [StoredController((1,), 1.0, 1)])
-    _library(v1, [StoredController((2,), 1.0, 1)], sig=OTHER)
+    v1 = _library(tmp_path / "v1.sqlite", [LibraryEntry((1,), 1.0, 1)])
+    _library(v1, [LibraryEntry((2,), 1.0, 1)], sig=OTHER)
     out = tmp_path / "only.json"
     assert main(["db", "export", str(v1), str(out), "--signature", OTHER]) == 0
     assert list(json.loads(out.read_text())["signatures"]) == [OTHER]
@@ -146,7 +147,7 @@ C0 = ["signatures", SIG, "controllers", 0]
 def test_bad_export_is_rejected_naming_the_field_and_changes_nothing(
     tmp_path, capsys, edit, named
 ):
-    lib = _library(tmp_path / "lib.sqlite", [StoredController((3,), 1.0, 1)])
+    lib = _library(tmp_path / "lib.sqlite", [LibraryEntry((3,), 1.0, 1)])
     before = _contents(lib)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(edit(_valid_export())))
@@ -159,7 +160,7 @@ def test_bad_export_is_rejected_naming_the_field_and_changes_nothing(
 
 @pytest.mark.parametrize("text", ["", "{not json", '{"format": "epc-offboard-library"'])
 def test_export_that_is_not_json_is_rejected(tmp_path, capsys, text):
-    lib = _library(tmp_path / "lib.sqlite", [StoredController((3,), 1.0, 1)])
+    lib = _library(tmp_path / "lib.sqlite", [LibraryEntry((3,), 1.0, 1)])
     bad = tmp_path / "bad.json"
     bad.write_text(text)
     assert main(["db", "import", str(lib), str(bad), *CFG]) == 2
@@ -168,7 +169,7 @@ def test_export_that_is_not_json_is_rejected(tmp_path, capsys, text):
 
 
 def test_corrupt_files_are_reported_and_never_moved(tmp_path, capsys):
-    good = _library(tmp_path / "good.sqlite", [StoredController((3,), 1.0, 1)])
+    good = _library(tmp_path / "good.sqlite", [LibraryEntry((3,), 1.0, 1)])
     before = _contents(good)
     garbage = tmp_path / "garbage.sqlite"
     garbage.write_bytes(b"this is not a database" * 200)
@@ -184,7 +185,7 @@ def test_corrupt_files_are_reported_and_never_moved(tmp_path, capsys):
 
 
 def test_usage_errors(tmp_path, capsys):
-    lib = _library(tmp_path / "lib.sqlite", [StoredController((3,), 1.0, 1)])
+    lib = _library(tmp_path / "lib.sqlite", [LibraryEntry((3,), 1.0, 1)])
     assert main(["db", "export", str(lib)]) == 2
     assert "usage: epc-offboard db export" in capsys.readouterr().err
     assert main(["db", "merge", str(lib)]) == 2
@@ -200,11 +201,11 @@ def _mixed_source(tmp_path, action):
     bad = [(POS_PROBLEM.n_con + 5,), tuple(range(POS_PROBLEM.n_u + 1))]
     src = _library(
         tmp_path / "v1.sqlite",
-        [StoredController((), 3.0, 1), StoredController((1,), 2.0, 1)]
-        + [StoredController(a, 1.0, 1) for a in bad],
+        [LibraryEntry((), 3.0, 1), LibraryEntry((1,), 2.0, 1)]
+        + [LibraryEntry(a, 1.0, 1) for a in bad],
         {((), (1,)): 4, ((), bad[0]): 2},
     )
-    _library(src, [StoredController((), 1.0, 1)], sig="f" * 32)  # another vehicle's problem
+    _library(src, [LibraryEntry((), 1.0, 1)], sig="f" * 32)  # another vehicle's problem
     if action == "merge":
         return src, bad
     out = tmp_path / "v1.json"
@@ -215,7 +216,7 @@ def _mixed_source(tmp_path, action):
 @pytest.mark.parametrize("action", ["import", "merge"])
 def test_one_invalid_controller_fails_the_command_and_writes_nothing(tmp_path, capsys, action):
     src, bad = _mixed_source(tmp_path, action)
-    dst = _library(tmp_path / "v2.sqlite", [StoredController((7,), 1.0, 1)])
+    dst = _library(tmp_path / "v2.sqlite", [LibraryEntry((7,), 1.0, 1)])
     before = _contents(dst)
     capsys.readouterr()
     assert main(["db", action, str(dst), str(src), *CFG]) == 2
@@ -262,7 +263,7 @@ def test_without_config_nothing_is_written_and_the_message_names_config(
 
 @pytest.mark.parametrize("action", ["info", "export"])
 def test_reading_a_library_leaves_nothing_beside_it(tmp_path, action):
-    lib = _library(tmp_path / "lib.sqlite", [StoredController((1,), 1.0, 1)])
+    lib = _library(tmp_path / "lib.sqlite", [LibraryEntry((1,), 1.0, 1)])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["lib.sqlite"]
     mtime_ns = lib.stat().st_mtime_ns
     args = [str(tmp_path / "out.json")] if action == "export" else []
@@ -273,10 +274,10 @@ def test_reading_a_library_leaves_nothing_beside_it(tmp_path, action):
 
 def test_a_library_open_by_a_writer_is_read_through_its_wal(tmp_path, capsys):
     # a running service holds the file open; what it committed is still only in its WAL
-    lib = _library(tmp_path / "lib.sqlite", [StoredController((1,), 1.0, 1)])
+    lib = _library(tmp_path / "lib.sqlite", [LibraryEntry((1,), 1.0, 1)])
     writer = LibraryStore.open(lib)
     try:
-        writer.save_controllers(SIG, [StoredController((2,), 1.0, 1)])
+        writer.save_controllers(SIG, [LibraryEntry((2,), 1.0, 1)])
         assert (tmp_path / "lib.sqlite-wal").exists()
         assert main(["db", "info", str(lib)]) == 0
         assert f"{SIG}: 2 controllers" in capsys.readouterr().out
@@ -296,7 +297,7 @@ def test_sitl_config_keeps_its_library_apart_from_the_demos():
 def test_info_lists_signatures_and_origins(tmp_path, capsys):
     lib = _library(
         tmp_path / "lib.sqlite",
-        [StoredController((1,), 1.0, 1), StoredController((2,), 1.0, 1, "shared:2")],
+        [LibraryEntry((1,), 1.0, 1), LibraryEntry((2,), 1.0, 1, "shared:2")],
         model=b"m",
     )
     assert main(["db", "info", str(lib)]) == 0

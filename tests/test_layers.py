@@ -5,7 +5,8 @@ deferred import inside a function counts as well as one at the top).
   and none of the product's I/O modules;
 * the plant (``sitl``) never imports the controller;
 * the service never imports the tools (sim, compare, benchmarks, figures, db, exporters);
-* no import cycle among modules at import time;
+* no import cycle among modules at import time, and none among the tools even counting
+  deferred imports (sim's parts, compare, figures, tables, targets);
 * every error the product raises is an ``EpcError`` and the builtin it is a kind of.
 """
 
@@ -45,7 +46,7 @@ def _in(*packages: str) -> tuple[str, ...]:
 # control/ is pure numerics as a whole; the vehicle's state machine, dialects and rate
 # bookkeeping are too (commands as values: the link sends them)
 NUMERICS = (
-    *(m for m in _in("epc_offboard.control") if m != "epc_offboard.control.cascade"),
+    *_in("epc_offboard.control"),
     *(f"epc_offboard.vehicle.{m}" for m in (
         "offboard", "dialect", "dialect_px4", "dialect_ardupilot", "rates", "state")),
     "epc_offboard.service.timing",
@@ -57,7 +58,7 @@ IO_MODULES = (
     "epc_offboard.vehicle.link",
     *_in("epc_offboard.service", "epc_offboard.fleet", "epc_offboard.store"),
     "epc_offboard.tools.db",
-    "epc_offboard.tools.sim",
+    "epc_offboard.tools.sim.orchestrate",
     "epc_offboard.cli",
 )
 # what the plant may import of the product: the shared package, nothing else
@@ -123,19 +124,36 @@ def test_the_plant_never_imports_the_controller():
             assert not bad, f"{m} imports more of the product than epc_offboard.common: {bad}"
 
 
-def test_the_running_plant_loads_no_controller():
-    """What the interpreter really loads (package __init__ files included) when the SITL's
-    command starts: nothing of the controller, no numba, no OSQP."""
+def _loaded_by(module: str, condition: str) -> list[str]:
+    """The modules (package __init__ files included) that importing ``module`` in a fresh
+    interpreter really loads and for which the expression ``condition`` on ``m`` holds."""
     code = (
-        "import sys, sitl.main\n"
-        "bad = sorted(m for m in sys.modules if m.startswith(('numba', 'osqp', 'zenoh')) "
-        "or (m.startswith('epc_offboard.') and not m.startswith('epc_offboard.common')))\n"
-        "print(','.join(bad))\n"
+        f"import sys, {module}\n"
+        f"print(','.join(sorted(m for m in sys.modules if {condition})))\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
     )
-    assert out.stdout.strip() == "", f"the SITL loads {out.stdout.strip()}"
+    return [m for m in out.stdout.strip().split(",") if m]
+
+
+def test_the_running_plant_loads_no_controller():
+    """What the interpreter really loads when the SITL's command starts: nothing of the
+    controller, no numba, no OSQP."""
+    bad = _loaded_by(
+        "sitl.main",
+        "m.startswith(('numba', 'osqp', 'zenoh')) "
+        "or (m.startswith('epc_offboard.') and not m.startswith('epc_offboard.common'))",
+    )
+    assert not bad, f"the SITL loads {bad}"
+
+
+@pytest.mark.parametrize("module", ["epc_offboard.fleet.wire", "epc_offboard.control.library"])
+def test_the_library_types_and_the_codec_load_no_numerics(module):
+    """The library's value types and the fleet's codec are plain Python: a planner (or any
+    peer) decoding controller messages loads no numpy, numba, OSQP or scipy."""
+    bad = _loaded_by(module, "m.split('.')[0] in ('numpy', 'numba', 'osqp', 'scipy')")
+    assert not bad, f"{module} loads {sorted({m.split('.')[0] for m in bad})}"
 
 
 def test_the_service_never_imports_the_tools():
@@ -147,6 +165,16 @@ def test_no_import_cycle_at_import_time():
     graph = _graph(top_level_only=True)
     for m in graph:
         assert m not in _reachable(graph, m), f"{m} imports itself through a cycle"
+
+
+def test_the_tools_have_no_import_cycle_even_deferred():
+    """A deferred import hides a cycle from the interpreter, not from the reader: compare uses
+    sim's parts, figures takes sim's results, and neither is imported back."""
+    tools = set(_in("epc_offboard.tools"))
+    graph = {m: deps & tools for m, deps in _graph(top_level_only=False).items() if m in tools}
+    for m in graph:
+        assert m not in _reachable(graph, m), f"{m} imports itself through a cycle"
+    assert "epc_offboard.tools.sim.orchestrate" in _reachable(graph, "epc_offboard.tools.compare")
 
 
 def test_every_error_is_an_epc_error_and_a_builtin():

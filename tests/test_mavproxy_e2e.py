@@ -25,7 +25,7 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.tools.sim import _stop as stop_process
+from epc_offboard.tools.sim.orchestrate import stop_process
 from tests.rig import free_port
 
 MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent))

@@ -9,7 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from epc_offboard.control.epc import ExperienceController, LibraryEntry
+from epc_offboard.control.epc import ExperienceController
+from epc_offboard.control.library import LibraryEntry
 from epc_offboard.service.miss_solver import MissSolver
 from tests.mpc_cases import exact_solution, hover_refs, position_problem
 

@@ -11,14 +11,10 @@ import numpy as np
 
 from epc_offboard.tools.compare import MethodRun, print_compare, write_compare_figure
 from epc_offboard.tools.figures import phase_spans, write_figure
-from epc_offboard.tools.sim import (
-    VehicleResult,
-    VehicleRun,
-    flight_progress,
-    load_scenario,
-    print_table,
-    print_targets,
-)
+from epc_offboard.tools.sim.analysis import VehicleResult
+from epc_offboard.tools.sim.orchestrate import VehicleRun, flight_progress
+from epc_offboard.tools.sim.report import print_report, print_targets
+from epc_offboard.tools.sim.scenario import load_scenario
 from epc_offboard.tools.tables import format_metric, render_plain
 
 BOX_CHARS = set("┏┓┗┛┃━│─┡┩╇╋┳┻┼└┘┌┐")
@@ -106,7 +102,7 @@ def assert_plain_and_aligned(text: str, header_word: str) -> list[str]:
 
 def test_report_table_is_plain_aligned_text_when_not_a_tty() -> None:
     out = io.StringIO()  # not a TTY, as a pipe or a file
-    print_table(sim_report(2, note="large by design"), file=out)
+    print_report(sim_report(2, note="large by design"), file=out)
     text = out.getvalue()
     rows = assert_plain_and_aligned(text, "id")
     assert "lap-1 misses" in rows[0]
@@ -121,7 +117,7 @@ def test_report_table_is_plain_aligned_text_when_not_a_tty() -> None:
 
 def test_report_table_prints_errors_in_cm() -> None:
     out = io.StringIO()
-    print_table(sim_report(1), file=out)
+    print_report(sim_report(1), file=out)
     row = assert_plain_and_aligned(out.getvalue(), "id")[1].split()
     assert row[1] == "0.43"
     assert row[2] == "0.64"

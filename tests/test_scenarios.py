@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from epc_offboard.tools.sim import load_scenario
+from epc_offboard.tools.sim.scenario import load_scenario
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 

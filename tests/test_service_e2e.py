@@ -19,7 +19,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.store.library import LibraryStore
-from epc_offboard.tools.sim import SCENARIO_DIR
+from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 from epc_offboard.vehicle.state import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
@@ -178,9 +178,9 @@ def test_unknown_config_key_exits_2_naming_key_and_file(tmp_path):
 def test_truncated_library_is_moved_aside_and_the_service_flies(tmp_path):
     lib = tmp_path / "library.sqlite"
     with LibraryStore.open(lib) as store:
-        from epc_offboard.store.library import StoredController
+        from epc_offboard.control.library import LibraryEntry
 
-        store.save_controllers("x", [StoredController((i,), 1.0, 1) for i in range(300)])
+        store.save_controllers("x", [LibraryEntry((i,), 1.0, 1) for i in range(300)])
     lib.write_bytes(lib.read_bytes()[:2000])
     with Rig(tmp_path) as rig:
         rig.wait_mode(*OFFBOARD)

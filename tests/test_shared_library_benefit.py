@@ -8,9 +8,8 @@ import asyncio
 import numpy as np
 
 from epc_offboard.control.epc import CandidatePool, ExperienceController
-from epc_offboard.fleet.sharing import FleetSharing
+from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 from epc_offboard.fleet.wire import decode_controllers
-from epc_offboard.service.config import SharingConfig
 from epc_offboard.service.miss_solver import MissSolver
 from tests import test_sharing
 from tests.mpc_cases import position_problem

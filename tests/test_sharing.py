@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from epc_offboard.control.epc import ExperienceController, LibraryEntry
-from epc_offboard.fleet.sharing import FleetSharing
+from epc_offboard.control.epc import ExperienceController
+from epc_offboard.control.library import LibraryEntry
+from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 from epc_offboard.fleet.wire import (
     ControllerMessage,
     MessageKind,
@@ -27,7 +28,6 @@ from epc_offboard.fleet.wire import (
     encode_controllers,
     encode_reference,
 )
-from epc_offboard.service.config import SharingConfig
 from tests.mpc_cases import hover_refs, position_problem
 
 pytestmark = pytest.mark.timeout(60)

@@ -13,9 +13,9 @@ import time
 
 import pytest
 
+from epc_offboard.control.library import LibraryEntry
 from epc_offboard.store.library import (
     LibraryStore,
-    StoredController,
     StoreError,
     decode_active_set,
     encode_active_set,
@@ -28,13 +28,15 @@ def test_controllers_round_trip_and_merge_keeps_most_important(tmp_path):
     path = tmp_path / "lib.sqlite"
     with LibraryStore.open(path) as store:
         store.save_controllers(
-            SIG, [StoredController((1, 5, 9), 2.0, 3), StoredController((), 1.0, 1)]
+            SIG, [LibraryEntry((1, 5, 9), 2.0, 3), LibraryEntry((), 1.0, 1)]
         )
-        store.save_controllers(SIG, [StoredController((1, 5, 9), 1.5, 7, "shared:2")])
-        store.save_controllers("sig-b", [StoredController((4,), 9.0, 1)])
+        store.save_controllers(SIG, [LibraryEntry((1, 5, 9), 1.5, 7, "shared:2")])
+        store.save_controllers("sig-b", [LibraryEntry((4,), 9.0, 1)])
     with LibraryStore.open(path) as store:
         got = store.load_controllers(SIG)
-        assert got == [StoredController((1, 5, 9), 2.0, 7, "solved"), StoredController((), 1.0, 1)]
+        assert got == [
+            LibraryEntry((1, 5, 9), 2.0, 7, "solved"), LibraryEntry((), 1.0, 1, "solved")
+        ]
         assert store.summary()[SIG]["controllers"] == 2
         assert store.summary()["sig-b"]["controllers"] == 1
 
@@ -61,13 +63,13 @@ def test_encode_sorts():
 def test_bad_rows_are_skipped_not_fatal(tmp_path):
     path = tmp_path / "lib.sqlite"
     with LibraryStore.open(path) as store:
-        store.save_controllers(SIG, [StoredController((2,), 1.0, 1)])
+        store.save_controllers(SIG, [LibraryEntry((2,), 1.0, 1)])
     conn = sqlite3.connect(path)
     conn.execute("INSERT INTO controllers VALUES (?, '[9, 3]', 5.0, 1, 'solved', 0)", (SIG,))
     conn.commit()
     conn.close()
     with LibraryStore.open(path) as store:
-        assert store.load_controllers(SIG) == [StoredController((2,), 1.0, 1)]
+        assert store.load_controllers(SIG) == [LibraryEntry((2,), 1.0, 1, "solved")]
         assert store.skipped_rows == 1
 
 
@@ -83,7 +85,7 @@ def test_bad_rows_are_skipped_not_fatal(tmp_path):
 def test_unusable_file_is_moved_aside_and_store_starts_empty(tmp_path, damage, caplog):
     path = tmp_path / "lib.sqlite"
     with LibraryStore.open(path) as store:
-        store.save_controllers(SIG, [StoredController((i,), 1.0, 1) for i in range(200)])
+        store.save_controllers(SIG, [LibraryEntry((i,), 1.0, 1) for i in range(200)])
     damage(path)
     with LibraryStore.open(path) as store:
         assert store.load_controllers(SIG) == []
@@ -105,11 +107,12 @@ def test_kill_9_keeps_every_committed_controller(tmp_path):
     script = textwrap.dedent(
         f"""
         import sys
-        from epc_offboard.store.library import LibraryStore, StoredController
+        from epc_offboard.control.library import LibraryEntry
+        from epc_offboard.store.library import LibraryStore
         store = LibraryStore.open({str(path)!r})
         i = 0
         while True:
-            store.save_controllers("sig", [StoredController((i, i + 1), float(i), 1)])
+            store.save_controllers("sig", [LibraryEntry((i, i + 1), float(i), 1)])
             print(i, flush=True)
             i += 1
         """
@@ -135,7 +138,7 @@ def test_db_info_command(tmp_path, capsys):
     path = tmp_path / "lib.sqlite"
     with LibraryStore.open(path) as store:
         store.save_controllers(
-            SIG, [StoredController((1,), 1.0, 1), StoredController((2,), 1.0, 1)]
+            SIG, [LibraryEntry((1,), 1.0, 1), LibraryEntry((2,), 1.0, 1)]
         )
     assert main(["db", "info", str(path)]) == 0
     assert f"{SIG}: 2 controllers" in capsys.readouterr().out
@@ -224,7 +227,7 @@ def test_an_unversioned_empty_library_is_finished_one_with_rows_refused(tmp_path
     offline, moved aside by the service, as before."""
     full = tmp_path / "full.sqlite"
     with LibraryStore.open(full) as store:
-        store.save_controllers(SIG, [StoredController((1,), 1.0, 1)])
+        store.save_controllers(SIG, [LibraryEntry((1,), 1.0, 1)])
     _drop_version(full)
     with pytest.raises(StoreError, match="schema version None"):
         LibraryStore.open(full, repair=False)
@@ -240,7 +243,7 @@ def test_an_unversioned_empty_library_is_finished_one_with_rows_refused(tmp_path
     with LibraryStore.open_readonly(path) as store:
         assert store.signatures() == []
     with LibraryStore.open(path, repair=False) as store:
-        store.save_controllers(SIG, [StoredController((1,), 1.0, 1)])
+        store.save_controllers(SIG, [LibraryEntry((1,), 1.0, 1)])
     conn = sqlite3.connect(path)
     assert conn.execute("SELECT value FROM meta").fetchall() == [("1",)]
     conn.close()

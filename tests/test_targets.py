@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from epc_offboard.common.configio import ConfigError
-from epc_offboard.tools.sim import load_scenario
+from epc_offboard.tools.sim.scenario import load_scenario
 from epc_offboard.tools.targets import TargetConfig, evaluate, parse_method
 
 
@@ -50,35 +50,3 @@ def test_bad_target_in_a_scenario_names_the_file(tmp_path):
     path.write_text('[[targets]]\nmethod = "epc:lwpr"\nmetric = "rmse_m"\n')
     with pytest.raises(ConfigError, match=r"bad\.toml"):
         load_scenario(str(path))
-
-
-def test_flight_warnings_name_what_went_wrong_and_leave_out_zeros():
-    from epc_offboard.tools.sim import flight_warnings
-
-    stats = {
-        "counters": {"failsafes": 2, "position_ticks_skipped": 0, "store_errors": 1},
-        "phase_events": [
-            {"t_s": 1.0, "phase": "failsafe", "reason": "state stale (0.40 s)"},
-            {"t_s": 2.0, "phase": "failsafe", "reason": "heartbeat lost"},
-        ],
-    }
-    got = flight_warnings(stats, {"lockstep_timeouts": 3, "handler_errors": 0})
-    assert got == {
-        "failsafes": 2,
-        "library store errors": 1,
-        "stale-state failsafes": 1,
-        "SITL lockstep timeouts": 3,
-    }
-    assert flight_warnings({}, {}) == {}
-
-
-def test_sitl_counters_are_read_from_its_closing_line(tmp_path):
-    from epc_offboard.tools.sim import sitl_counters
-
-    log = tmp_path / "sitl.log"
-    log.write_text(
-        "epc-sitl: instance 0, sysid 1\n"
-        "epc-sitl: counters received=10 lockstep_timeouts=4 offboard_failsafes=1\n"
-    )
-    assert sitl_counters(log) == {"received": 10, "lockstep_timeouts": 4, "offboard_failsafes": 1}
-    assert sitl_counters(tmp_path / "missing.log") == {}

@@ -45,7 +45,18 @@ from epc_offboard.common.frames import GRAVITY_M_S2, FloatArray
 from epc_offboard.control import kernels, lwpr, trajectories
 from epc_offboard.control.baselines import MpcController, PdController
 from epc_offboard.control.decision import Controller, Decision
-from epc_offboard.control.epc import ExperienceController, LibraryEntry
+from epc_offboard.control.epc import ExperienceController
+from epc_offboard.control.library import (
+    LibraryEntry,
+    LibrarySnapshot,
+    SignatureSnapshot,
+    Transition,
+)
+
+# the names this module used before library.py held one entry type and the store's protocol
+# (kept to leave the concurrent split of this module undisturbed; rename after it lands)
+from epc_offboard.control.library import LibraryEntry as StoredController
+from epc_offboard.control.library import LibraryStorage as LibraryStore
 from epc_offboard.control.models import (
     AttitudeThrust,
     accel_to_attitude,
@@ -63,13 +74,6 @@ from epc_offboard.control.perturbation import (
     make_estimator,
 )
 from epc_offboard.control.qp import MpcProblem
-from epc_offboard.store.library import (
-    LibrarySnapshot,
-    LibraryStore,
-    SignatureSnapshot,
-    StoredController,
-    Transition,
-)
 from epc_offboard.vehicle.state import VehicleState
 
 log = logging.getLogger(__name__)

@@ -36,7 +36,6 @@ never optimal here never takes a library slot.
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 import time
@@ -54,6 +53,7 @@ from epc_offboard.common.frames import FloatArray
 from epc_offboard.control import kernels
 from epc_offboard.control.decision import Decision
 from epc_offboard.control.kernels import apply_map, new_map_lists, query_maps, store_map
+from epc_offboard.control.library import EntryError, LibraryEntry, parse_entry
 from epc_offboard.control.models import LinearModel
 from epc_offboard.control.qp import MpcProblem, OsqpSolver, QpStatus
 
@@ -71,23 +71,6 @@ _MAX_ITER = 10000
 # machine under load (`epc-offboard bench --service` prints the scan's cost); a query budget
 # in us is turned into a number of candidates with it, so the bound holds in the worst case.
 CHECK_NS_PER_MAC = 0.2
-
-
-@dataclass(frozen=True)
-class LibraryEntry:
-    """A stored controller as exchanged with the store and the fleet.
-
-    ``active_set``: sorted, unique row indices into the problem's constraint layout;
-    ``importance``: local last-use tick (0 for imported entries never used here);
-    ``uses``: how many ticks it was applied; ``origin``: ``solved`` (this vehicle's own solve),
-    ``shared:<vehicle>`` (a fleet candidate that passed the KKT check here), ``prior`` or an
-    offline import's tag (the store's column); empty where not known (the wire carries none).
-    """
-
-    active_set: tuple[int, ...]
-    importance: float = 0.0
-    uses: int = 0
-    origin: str = ""
 
 
 @dataclass(frozen=True)
@@ -945,9 +928,9 @@ class ExperienceController:
             )
         pool = self.candidates
         added = 0
-        for n, e in enumerate(entries):
+        for n, received in enumerate(entries):
             try:
-                self._check_entry(n, e)
+                e = self._check_entry(n, received)
             except ValueError:
                 pool.counters["rejected_malformed"] += 1
                 continue
@@ -1280,30 +1263,22 @@ class ExperienceController:
         return added
 
     def _validated_map(self, n: int, e: LibraryEntry) -> ActiveSetMap:
-        self._check_entry(n, e)
+        entry = self._check_entry(n, e)
         try:
-            return self._make_map(e.active_set)
+            return self._make_map(entry.active_set)
         except DependentActiveSetError as exc:
             raise ValueError(f"entry {n}: active set rows are linearly dependent") from exc
 
-    def _check_entry(self, n: int, e: LibraryEntry) -> None:
-        """Everything about an entry short of its factorisation (ValueError names it)."""
+    def _check_entry(self, n: int, e: LibraryEntry) -> LibraryEntry:
+        """Everything about an entry short of its factorisation (ValueError names it): the
+        entry as parsed, its active set a tuple in range with at most N nu rows."""
         p = self.problem
-        aset = e.active_set
-        if not isinstance(aset, tuple) or not all(
-            isinstance(i, int) and not isinstance(i, bool) for i in aset
-        ):
-            raise ValueError(f"entry {n}: active_set must be a tuple of ints")
-        if any(i < 0 or i >= p.n_con for i in aset):
-            raise ValueError(f"entry {n}: active_set index out of range 0..{p.n_con - 1}")
-        if any(a >= b for a, b in itertools.pairwise(aset)):
-            raise ValueError(f"entry {n}: active_set must be sorted and unique")
-        if len(aset) > p.n_u:
-            raise ValueError(f"entry {n}: {len(aset)} active rows exceed {p.n_u} inputs")
-        if not math.isfinite(e.importance):
-            raise ValueError(f"entry {n}: importance must be finite")
-        if not isinstance(e.uses, int) or e.uses < 0:
-            raise ValueError(f"entry {n}: uses must be an int >= 0")
+        try:
+            return parse_entry(
+                e.active_set, e.importance, e.uses, e.origin, n_con=p.n_con, max_rows=p.n_u
+            )
+        except EntryError as exc:
+            raise ValueError(f"entry {n}: {exc}") from exc
 
 
 class _IntermediateQp:

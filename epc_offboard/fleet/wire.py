@@ -41,17 +41,15 @@ Live references (JSON, UTF-8, so planners written by others can produce them)::
 from __future__ import annotations
 
 import enum
-import itertools
 import json
 import math
 import re
 import struct
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from epc_offboard.common.errors import EpcError
-from epc_offboard.control.epc import LibraryEntry
+from epc_offboard.control.library import EntryError, LibraryEntry, parse_entry
 
 MAGIC = b"EPCL"
 SCHEMA_VERSION = 1
@@ -59,7 +57,7 @@ MAX_VEHICLE_ID_LEN = 32
 MAX_ENTRIES = 0xFFFF
 MAX_REFERENCE_BYTES = 16384
 MAX_HORIZON_POINTS = 200
-# a fleet or vehicle name, in keys and payloads (config.SharingConfig validates with it too)
+# a fleet or vehicle name, in keys and payloads (sharing.SharingConfig validates with it too)
 NAME_RE = re.compile(rf"[A-Za-z0-9_-]{{1,{MAX_VEHICLE_ID_LEN}}}")
 _SIG_RE = re.compile(r"[0-9a-f]{32}")
 
@@ -69,6 +67,8 @@ _U32 = struct.Struct("<I")
 _ENTRY_TAIL = struct.Struct("<dI")  # importance, uses
 _TRANSITION = struct.Struct("<HHI")
 _FLAG_TRANSITIONS = 0x01
+_INDEX_LIMIT = 0x10000  # active-set indices travel as u16
+_U32_MAX = 0xFFFFFFFF
 
 
 class WireError(EpcError, ValueError):
@@ -122,7 +122,7 @@ def encode_controllers(msg: ControllerMessage) -> bytes:
         _U16.pack(len(msg.entries)),
     ]
     for n, e in enumerate(msg.entries):
-        _check_entry(n, e.active_set, e.importance, e.uses, n_con=None)
+        _parse_entry(n, e.active_set, e.importance, e.uses, n_con=None, max_rows=None)
         parts.append(struct.pack(f"<H{len(e.active_set)}H", len(e.active_set), *e.active_set))
         parts.append(_ENTRY_TAIL.pack(float(e.importance), int(e.uses)))
     if msg.transitions:
@@ -176,13 +176,10 @@ def decode_controllers(
     entries = []
     for n in range(count):
         (n_active,) = r.unpack(_U16, f"entry {n} length")
-        if max_active is not None and n_active > max_active:
-            raise WireError(f"entry {n}: {n_active} active rows exceed {max_active}")
         raw = r.take(2 * n_active, f"entry {n} indices")
         active = struct.unpack(f"<{n_active}H", raw)
         importance, uses = r.unpack(_ENTRY_TAIL, f"entry {n} importance/uses")
-        _check_entry(n, active, importance, uses, n_con=n_con)
-        entries.append(LibraryEntry(tuple(active), importance, uses))
+        entries.append(_parse_entry(n, active, importance, uses, n_con=n_con, max_rows=max_active))
     transitions: list[tuple[int, int, int]] = []
     if flags & _FLAG_TRANSITIONS:
         (n_trans,) = r.unpack(_U32, "transition count")
@@ -199,21 +196,22 @@ def decode_controllers(
     )
 
 
-def _check_entry(
-    n: int, active: Sequence[int], importance: float, uses: int, *, n_con: int | None
-) -> None:
-    if any(not isinstance(i, int) or isinstance(i, bool) for i in active):
-        raise WireError(f"entry {n}: active set must hold integers")
-    if any(i < 0 or i > 0xFFFF for i in active):
-        raise WireError(f"entry {n}: active set index outside 0..65535")
-    if any(b <= a for a, b in itertools.pairwise(active)):
-        raise WireError(f"entry {n}: active set indices must be sorted and unique")
-    if n_con is not None and active and active[-1] >= n_con:
-        raise WireError(f"entry {n}: active set index {active[-1]} out of range 0..{n_con - 1}")
-    if not isinstance(importance, float | int) or not math.isfinite(importance):
-        raise WireError(f"entry {n}: importance must be finite, got {importance!r}")
-    if not isinstance(uses, int) or not 0 <= uses <= 0xFFFFFFFF:
+def _parse_entry(
+    n: int, active: object, importance: object, uses: object, *, n_con: int | None,
+    max_rows: int | None,
+) -> LibraryEntry:
+    """Entry ``n`` as the library's one parser takes it (indices below ``n_con``, or the
+    u16 limit when None), with a use count that fits a u32; WireError names entry and field."""
+    try:
+        entry = parse_entry(
+            active, importance, uses, n_con=_INDEX_LIMIT if n_con is None else n_con,
+            max_rows=max_rows,
+        )
+    except EntryError as exc:
+        raise WireError(f"entry {n}: {exc}") from exc
+    if entry.uses > _U32_MAX:
         raise WireError(f"entry {n}: uses must be an integer in 0..2^32-1, got {uses!r}")
+    return entry
 
 
 def _check_transition(a: int, b: int, count: int, n_entries: int) -> None:

@@ -49,7 +49,8 @@ from dataclasses import dataclass, field
 from typing import TypeVar
 
 from epc_offboard.common.frames import FloatArray
-from epc_offboard.control.epc import ActiveSetMap, ExperienceController, LibraryEntry
+from epc_offboard.control.epc import ActiveSetMap, ExperienceController
+from epc_offboard.control.library import LibraryEntry
 from epc_offboard.control.qp import MpcProblem
 
 log = logging.getLogger(__name__)

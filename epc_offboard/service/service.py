@@ -45,6 +45,7 @@ from epc_offboard.common.frames import FloatArray
 from epc_offboard.common.logsetup import LogGate, setup_logging
 from epc_offboard.common.signing import load_signing_key
 from epc_offboard.control.cascade import AttitudeOutput, Cascade, PositionOutput
+from epc_offboard.control.library import LibrarySnapshot
 from epc_offboard.control.trajectories import Rejoin, Trajectory, live_reference_horizon
 from epc_offboard.fleet.sharing import FleetSharing
 from epc_offboard.service import realtime
@@ -52,7 +53,7 @@ from epc_offboard.service.clock import Clock, VehicleClock, WallClock
 from epc_offboard.service.config import ServiceConfig, load_service_config
 from epc_offboard.service.miss_solver import MissSolver
 from epc_offboard.service.timing import LoopTiming
-from epc_offboard.store.library import LibrarySnapshot, LibraryStore
+from epc_offboard.store.library import LibraryStore
 from epc_offboard.vehicle.dialect import (
     MAV_AUTOPILOT_INVALID,
     Command,

@@ -20,17 +20,23 @@ already present keeps the larger importance, use count and transition count.
 
 from __future__ import annotations
 
-import itertools
 import json
 import logging
 import sqlite3
 import threading
 import time
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Iterable
 from pathlib import Path
 
 from epc_offboard.common.errors import EpcError
+from epc_offboard.control.library import (
+    ActiveSet,
+    LibraryEntry,
+    LibrarySnapshot,
+    SignatureSnapshot,
+    Transition,
+    parse_active_set,
+)
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +72,6 @@ CREATE TABLE IF NOT EXISTS models (
 _TABLES = frozenset({"meta", "controllers", "transitions", "models"})
 _SET_VERSION = f"INSERT OR IGNORE INTO meta VALUES ('schema_version', '{SCHEMA_VERSION}');"
 
-ActiveSet = tuple[int, ...]
-
 _UPSERT_MODEL = (
     "INSERT INTO models VALUES (?, ?, ?, ?) ON CONFLICT (name, signature) "
     "DO UPDATE SET blob = excluded.blob, updated_unix_s = excluded.updated_unix_s"
@@ -78,64 +82,14 @@ class StoreError(EpcError, RuntimeError):
     """The library file could not be used."""
 
 
-@dataclass(frozen=True)
-class StoredController:
-    active_set: ActiveSet
-    importance: float
-    uses: int
-    origin: str = "solved"
-
-
-@dataclass(frozen=True)
-class Transition:
-    from_set: ActiveSet
-    to_set: ActiveSet
-    count: int
-
-
-@dataclass(frozen=True)
-class SignatureSnapshot:
-    """Everything stored under one problem signature."""
-
-    controllers: tuple[StoredController, ...] = ()
-    transitions: tuple[Transition, ...] = ()
-    models: Mapping[str, bytes] = field(default_factory=dict)  # name -> opaque blob
-
-
-@dataclass(frozen=True)
-class LibrarySnapshot:
-    """A whole library file (or the part of it under some signatures), as plain values."""
-
-    signatures: Mapping[str, SignatureSnapshot]
-
-    def counts(self) -> dict[str, int]:
-        return {
-            "signatures": len(self.signatures),
-            "controllers": sum(len(s.controllers) for s in self.signatures.values()),
-            "transitions": sum(len(s.transitions) for s in self.signatures.values()),
-            "models": sum(len(s.models) for s in self.signatures.values()),
-        }
-
-
 def encode_active_set(active_set: Iterable[int]) -> str:
     return json.dumps(sorted(int(i) for i in active_set), separators=(",", ":"))
 
 
 def decode_active_set(text: str) -> ActiveSet:
-    """Parse a stored active set; ValueError unless it is a sorted list of unique ints >= 0."""
-    return active_set_from_list(json.loads(text), text[:60])
-
-
-def active_set_from_list(data: object, shown: str | None = None) -> ActiveSet:
-    """``data`` as an active set; ValueError unless a sorted list of unique ints >= 0."""
-    shown = repr(data)[:60] if shown is None else repr(shown)
-    if not isinstance(data, list) or not all(
-        isinstance(i, int) and not isinstance(i, bool) for i in data
-    ):
-        raise ValueError(f"active set must be a list of integers, got {shown}")
-    if any(i < 0 for i in data) or any(b <= a for a, b in itertools.pairwise(data)):
-        raise ValueError(f"active set must be sorted unique non-negative, got {shown}")
-    return tuple(data)
+    """Parse a stored active set; ValueError unless it is a sorted list of unique ints >= 0
+    (:func:`~epc_offboard.control.library.parse_active_set`)."""
+    return parse_active_set(json.loads(text))
 
 
 class LibraryStore:
@@ -200,8 +154,9 @@ class LibraryStore:
 
     # -- controllers -------------------------------------------------------------------
 
-    def save_controllers(self, signature: str, entries: Iterable[StoredController]) -> int:
-        """Insert or update controllers in one transaction; returns how many were written."""
+    def save_controllers(self, signature: str, entries: Iterable[LibraryEntry]) -> int:
+        """Insert or update controllers in one transaction; returns how many were written.
+        An entry that does not know its origin is stored as this vehicle's own ("solved")."""
         now = time.time()
         rows = [
             (
@@ -209,7 +164,7 @@ class LibraryStore:
                 encode_active_set(e.active_set),
                 float(e.importance),
                 int(e.uses),
-                e.origin,
+                e.origin or "solved",
                 now,
             )
             for e in entries
@@ -224,7 +179,7 @@ class LibraryStore:
             )
         return len(rows)
 
-    def load_controllers(self, signature: str) -> list[StoredController]:
+    def load_controllers(self, signature: str) -> list[LibraryEntry]:
         """Every valid controller of ``signature``, most important first."""
         with self._lock:
             rows = self._conn.execute(
@@ -236,7 +191,7 @@ class LibraryStore:
         for active_text, importance, uses, origin in rows:
             try:
                 out.append(
-                    StoredController(
+                    LibraryEntry(
                         decode_active_set(active_text), float(importance), int(uses), str(origin)
                     )
                 )

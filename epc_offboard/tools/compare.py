@@ -17,8 +17,6 @@ or a target did (the failed targets are named on stderr).
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,15 +24,16 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from epc_offboard.common.errors import EXIT_RUNTIME
 from epc_offboard.common.frames import FloatArray
-from epc_offboard.tools.sim import (
-    ScenarioConfig,
-    VehicleResult,
-    fly_and_report,
-    scenario_for,
-    targets_exit_code,
-)
-from epc_offboard.tools.targets import evaluate, method_name, parse_method
+from epc_offboard.tools.figures import PHASE_COLOURS, mark_events, vehicle_colour, vehicle_style
+from epc_offboard.tools.sim.analysis import VehicleResult
+from epc_offboard.tools.sim.options import SimOptions
+from epc_offboard.tools.sim.orchestrate import fly_and_report
+from epc_offboard.tools.sim.report import targets_exit_code, write_json
+from epc_offboard.tools.sim.scenario import ScenarioConfig
+from epc_offboard.tools.tables import format_metric, print_table
+from epc_offboard.tools.targets import evaluate, method_name
 
 
 @dataclass(frozen=True)
@@ -44,53 +43,32 @@ class MethodRun:
     results: list[VehicleResult]
 
 
-def methods_for(args: argparse.Namespace, scenario: ScenarioConfig) -> tuple[str, ...]:
-    """``--compare`` alone: the scenario's methods; ``--compare a:b,c:d``: those."""
-    from epc_offboard.common.errors import UsageError
-
-    text = str(args.compare).strip()
-    if not text:
-        return scenario.compare.methods
-    methods = tuple(m.strip() for m in text.split(",") if m.strip())
-    try:
-        for m in methods:
-            parse_method(m)
-    except ValueError as exc:
-        raise UsageError(f"--compare: {exc}") from exc
-    if len(set(methods)) != len(methods):
-        raise UsageError(f"--compare repeats a method: {text}")
-    return methods
-
-
-def fly_method(
-    args: argparse.Namespace, scenario: ScenarioConfig, method: str, out_dir: Path
-) -> tuple[MethodRun, FloatArray]:
-    controller, adaptation = parse_method(method)
-    run_args = argparse.Namespace(**{**vars(args), "controller": controller,
-                                     "adaptation": adaptation, "compare": None})
+def fly_method(options: SimOptions, method: str, out_dir: Path) -> tuple[MethodRun, FloatArray]:
+    """One method's flight into ``out_dir/CONTROLLER-ADAPTATION``, from an empty library;
+    (the flight, its velocity bounds m/s (3,) NED)."""
     run_dir = out_dir / method.replace(":", "-")
     run_dir.mkdir(parents=True, exist_ok=True)
     for old in run_dir.glob("library-*.sqlite*"):  # learn from scratch: reproducible
         old.unlink()
     report, results, bounds = fly_and_report(
-        run_args, scenario, run_dir, f"{args.scenario}: {method}"
+        options.flying(method), run_dir, f"{options.scenario_name}: {method}"
     )
     return MethodRun(method, report, results), bounds
 
 
-def run_compare_command(args: argparse.Namespace) -> int:
-    from epc_offboard.common.errors import EXIT_RUNTIME
-
-    scenario = scenario_for(args)
-    methods = methods_for(args, scenario)
-    out_dir = Path(args.out)
+def run_compare(options: SimOptions) -> int:
+    """Fly ``options.compare``'s methods one after another, report them side by side and
+    judge the scenario's targets; the exit code."""
+    scenario, name = options.scenario, options.scenario_name
+    methods = options.compare or ()
+    out_dir = options.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     flown: list[MethodRun] = []
     bounds = np.full(3, np.inf)
     for method in methods:
-        print(f"{args.scenario}: flying {method}", file=sys.stderr)
+        print(f"{name}: flying {method}", file=sys.stderr)
         try:
-            run, bounds = fly_method(args, scenario, method, out_dir)
+            run, bounds = fly_method(options, method, out_dir)
         except RuntimeError as exc:
             print(f"epc-offboard sim --compare: {method}: {exc}", file=sys.stderr)
             return EXIT_RUNTIME
@@ -98,7 +76,7 @@ def run_compare_command(args: argparse.Namespace) -> int:
     reports = {r.method: r.report for r in flown}
     verdicts = evaluate(scenario.targets, reports)
     summary = {
-        "scenario": args.scenario,
+        "scenario": name,
         "description": scenario.description,
         "note": scenario.note,
         "methods": list(methods),
@@ -106,11 +84,8 @@ def run_compare_command(args: argparse.Namespace) -> int:
         "targets": verdicts,
         "all_pass": all(v["verdict"] == "PASS" for v in verdicts),
     }
-    (out_dir / "compare.json").write_text(json.dumps(summary, indent=2))
-    if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2))
-    wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
-    write_compare_figure(flown, bounds, out_dir / "compare.png", scenario, args.scenario, wind)
+    write_json(summary, out_dir / "compare.json", options.json_path)
+    write_compare_figure(flown, bounds, out_dir / "compare.png", scenario, name, options.wind)
     print_compare(summary)
     print(f"report: {out_dir / 'compare.json'}  figure: {out_dir / 'compare.png'}")
     return targets_exit_code(verdicts)
@@ -126,8 +101,6 @@ COMPARE_COLUMNS = ("method", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "l
 def print_compare(summary: dict[str, Any], file: TextIO | None = None) -> None:
     """The methods side by side and the targets' verdicts (values in the metric's unit):
     rich tables on a terminal, plain aligned text when piped."""
-    from epc_offboard.tools.tables import format_metric, print_table
-
     rows = []
     for rep in summary["reports"]:
         for v in rep["vehicles"]:
@@ -181,13 +154,6 @@ def write_compare_figure(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
-
-    from epc_offboard.tools.figures import (
-        PHASE_COLOURS,
-        mark_events,
-        vehicle_colour,
-        vehicle_style,
-    )
 
     fig, (ax_path, ax_err, ax_vel) = plt.subplots(1, 3, figsize=(17, 5.6), layout="constrained")
     # the horizontal axis the reference moves along most: the velocity panel's axis

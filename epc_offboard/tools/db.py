@@ -28,7 +28,6 @@ import argparse
 import base64
 import binascii
 import json
-import math
 import sys
 import time
 from collections.abc import Iterable
@@ -37,16 +36,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from epc_offboard.common.errors import EXIT_OK, EpcError, UsageError
-from epc_offboard.store.library import (
+from epc_offboard.control.library import (
     ActiveSet,
+    EntryError,
+    LibraryEntry,
     LibrarySnapshot,
-    LibraryStore,
     SignatureSnapshot,
-    StoredController,
-    StoreError,
     Transition,
-    active_set_from_list,
+    parse_active_set,
+    parse_entry,
 )
+from epc_offboard.store.library import LibraryStore, StoreError
 
 if TYPE_CHECKING:
     from epc_offboard.mpc import MpcProblem
@@ -129,20 +129,18 @@ def snapshot_from_json(data: Any, source: str) -> LibrarySnapshot:
             w = f"{where}.controllers[{i}]"
             if not isinstance(c, dict) or set(c) - {"active_set", "importance", "uses", "origin"}:
                 raise fail(w, "must be an object with active_set, importance, uses, origin")
-            importance = c.get("importance", 0.0)
-            uses = c.get("uses", 0)
-            if not _is_number(importance) or not math.isfinite(importance):
-                raise fail(f"{w}.importance", f"must be a finite number, got {importance!r}")
-            if not _is_int(uses) or uses < 0:
-                raise fail(f"{w}.uses", f"must be an integer >= 0, got {uses!r}")
-            parsed_c.append(
-                StoredController(
-                    _active_set(c.get("active_set"), f"{w}.active_set", fail),
-                    float(importance),
-                    int(uses),
-                    str(c.get("origin", "solved"))[:64],
+            try:
+                parsed_c.append(
+                    parse_entry(
+                        c.get("active_set"),
+                        c.get("importance", 0.0),
+                        c.get("uses", 0),
+                        str(c.get("origin", "solved"))[:64],
+                        max_rows=MAX_ACTIVE_ROWS,
+                    )
                 )
-            )
+            except EntryError as exc:
+                raise fail(w, str(exc)) from exc
         parsed_t = []
         for i, t in enumerate(_list(part.get("transitions", []), f"{where}.transitions", fail)):
             w = f"{where}.transitions[{i}]"
@@ -177,10 +175,6 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def _is_number(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
 def _list(v: Any, where: str, fail: Any) -> list[Any]:
     if not isinstance(v, list):
         raise fail(where, f"must be a list, got {type(v).__name__}")
@@ -188,11 +182,9 @@ def _list(v: Any, where: str, fail: Any) -> list[Any]:
 
 
 def _active_set(v: Any, where: str, fail: Any) -> ActiveSet:
-    if isinstance(v, list) and len(v) > MAX_ACTIVE_ROWS:
-        raise fail(where, f"{len(v)} rows exceed {MAX_ACTIVE_ROWS}")
     try:
-        return active_set_from_list(v)
-    except ValueError as exc:
+        return parse_active_set(v, max_rows=MAX_ACTIVE_ROWS)
+    except EntryError as exc:
         raise fail(where, str(exc)) from exc
 
 
@@ -249,7 +241,7 @@ def validate_against_problems(
 ) -> Validated:
     """Check every controller of the problems' signatures as the service does on load.
     Transitions are kept only between valid controllers of the same source."""
-    from epc_offboard.control.epc import ExperienceController, LibraryEntry
+    from epc_offboard.control.epc import ExperienceController
 
     invalid: list[str] = []
     not_taken: list[str] = []
@@ -260,10 +252,10 @@ def validate_against_problems(
             not_taken.append(f"signature {sig}: not a problem of {config_path}")
             continue
         checker = ExperienceController(problem, max_size=1)
-        ok: list[StoredController] = []
+        ok: list[LibraryEntry] = []
         for c in part.controllers:
             try:
-                checker.import_entries([LibraryEntry(c.active_set, c.importance, c.uses)])
+                checker.import_entries([c])
             except ValueError as exc:
                 invalid.append(f"signature {sig}: controller {list(c.active_set)}: {exc}")
                 continue

@@ -18,11 +18,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.tools.sim.analysis import MISS_SOURCES, VehicleResult
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-    from epc_offboard.tools.sim import VehicleResult
 
 # one colour and one line style per vehicle: vehicle 1 drawn wide and light under vehicle 2's
 # narrow dashed line, so neither hides the other where they fly the same path
@@ -329,8 +329,6 @@ def _draw_velocity(ax: Axes, results: list[VehicleResult], bounds_m_s: FloatArra
 def _draw_library(ax: Axes, results: list[VehicleResult]) -> None:
     """Misses per second where they happened (a miss: the library had no controller proven
     optimal for that tick), with the totals written out."""
-    from epc_offboard.tools.sim import _MISS_SOURCES
-
     lines = []
     n = len(results)
     peak = 0
@@ -339,7 +337,7 @@ def _draw_library(ax: Axes, results: list[VehicleResult]) -> None:
         if not lib.get("hits", 0) + lib.get("misses", 0):
             lines.append(f"v{r.vehicle_id}: no controller library (not EPC)")
             continue
-        miss_t = r.t_s[np.isin(r.sources, _MISS_SOURCES)]
+        miss_t = r.t_s[np.isin(r.sources, MISS_SOURCES)]
         lo, hi = np.floor(float(r.t_s[0])), np.ceil(float(r.t_s[-1]))
         edges = np.arange(lo, hi + 1.0, 1.0)
         counts, _ = np.histogram(miss_t, bins=edges)

@@ -1,0 +1,52 @@
+"""`epc-offboard sim`: the command line's entry (the only part that sees argparse).
+
+One flight by default; ``--compare`` flies several methods (:mod:`epc_offboard.tools.compare`).
+Writes, to ``--out``: ``report.json`` (CONTRACTS.md shape) with the scenario's targets this
+method can be judged on, ``flight.png``, and per vehicle the flight log, the .tlog, the ground
+truth and both processes' logs. Exit code 0, 1 when a flight or a declared target failed, 2 on
+bad usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from epc_offboard.common.errors import EXIT_RUNTIME
+from epc_offboard.tools.sim.options import SimOptions, sim_options
+from epc_offboard.tools.sim.orchestrate import fly_and_report, stop_on_sigterm
+from epc_offboard.tools.sim.report import (
+    method_targets,
+    print_report,
+    print_targets,
+    targets_exit_code,
+    write_json,
+)
+
+
+def run_sim_command(args: argparse.Namespace) -> int:
+    stop_on_sigterm()
+    options = sim_options(args)
+    if options.compare is not None:
+        from epc_offboard.tools.compare import run_compare
+
+        return run_compare(options)
+    return run_one(options)
+
+
+def run_one(options: SimOptions) -> int:
+    """One flight of one method, reported; the exit code."""
+    out_dir = options.out_dir
+    out_dir.mkdir(parents=True, exist_ok=True)
+    title = f"{options.scenario_name}: {options.controller} + {options.adaptation}"
+    try:
+        report, _results, _bounds = fly_and_report(options, out_dir, title)
+    except RuntimeError as exc:
+        print(f"epc-offboard sim: {exc}", file=sys.stderr)
+        return EXIT_RUNTIME
+    report["targets"] = method_targets(options, report)
+    write_json(report, out_dir / "report.json", options.json_path)
+    print_report(report)
+    print_targets(report["targets"])
+    print(f"report: {out_dir / 'report.json'}  figure: {out_dir / 'flight.png'}")
+    return targets_exit_code(report["targets"])

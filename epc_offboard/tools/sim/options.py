@@ -1,0 +1,125 @@
+"""What one ``epc-offboard sim`` run was asked to do, as one typed value.
+
+:func:`sim_options` reads the command line's ``argparse.Namespace`` once, loads the scenario
+and checks everything a user can get wrong (UsageError, exit code 2, before any process
+starts); below it nothing sees argparse.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+from epc_offboard.common.configio import ConfigError
+from epc_offboard.common.errors import UsageError
+from epc_offboard.tools.sim.scenario import ScenarioConfig, load_scenario
+from epc_offboard.tools.targets import method_name, parse_method
+
+AUTOPILOTS = ("px4", "ardupilot")
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """One ``sim`` run: what to fly, how, how many vehicles, and where to write."""
+
+    scenario_name: str  # as given to --scenario: a name or a path (the report's "scenario")
+    scenario: ScenarioConfig  # loaded, --duration applied
+    controller: str = "epc"
+    adaptation: str = "lwpr"
+    vehicles: int = 1
+    lockstep: bool = True
+    wind_speed_m_s: float = 0.0
+    wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (CONTRACTS.md)
+    seed: int = 0
+    gcs_port: int | None = None  # None: the autopilot's usual ground-station port
+    autopilot: str = "px4"
+    share: bool = True  # fleet sharing over Zenoh when vehicles > 1
+    stagger: bool = False  # vehicle k starts once vehicle k-1 has landed
+    out_dir: Path = Path("out")
+    json_path: Path | None = None  # also write the report JSON here
+    compare: tuple[str, ...] | None = None  # `--compare`: the methods; None: one flight
+
+    def __post_init__(self) -> None:
+        _check_vehicles(self.vehicles)
+        parse_method(self.method)  # ValueError naming a bad controller or adaptation
+        if self.autopilot not in AUTOPILOTS:
+            raise ValueError(f"autopilot must be one of {AUTOPILOTS}, got {self.autopilot!r}")
+
+    @property
+    def method(self) -> str:
+        """``controller:adaptation``, as targets and ``--compare`` name methods."""
+        return method_name(self.controller, self.adaptation)
+
+    @property
+    def wind(self) -> tuple[float, float]:
+        """(speed m/s, direction deg), as ``--wind`` and the SITL take it."""
+        return self.wind_speed_m_s, self.wind_dir_deg
+
+    def flying(self, method: str) -> SimOptions:
+        """The options of one flight of ``--compare``: this method, no comparison."""
+        controller, adaptation = parse_method(method)
+        return dataclasses.replace(self, controller=controller, adaptation=adaptation, compare=None)
+
+
+def _check_vehicles(n: int) -> None:
+    if n < 1:
+        raise UsageError("--vehicles must be >= 1")
+
+
+def sim_options(args: argparse.Namespace) -> SimOptions:
+    """The options of ``epc-offboard sim``'s parsed command line; UsageError if bad."""
+    _check_vehicles(args.vehicles)
+    scenario = _scenario(args.scenario, args.duration)
+    wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
+    compare = None if args.compare is None else _compare_methods(args.compare, scenario)
+    return SimOptions(
+        scenario_name=args.scenario,
+        scenario=scenario,
+        controller=args.controller,
+        adaptation=args.adaptation,
+        vehicles=args.vehicles,
+        lockstep=args.lockstep,
+        wind_speed_m_s=wind[0],
+        wind_dir_deg=wind[1],
+        seed=args.seed,
+        gcs_port=args.gcs_port,
+        autopilot=args.autopilot,
+        share=not args.no_share,
+        stagger=args.stagger,
+        out_dir=Path(args.out),
+        json_path=Path(args.json) if args.json else None,
+        compare=compare,
+    )
+
+
+def _scenario(name: str, duration_s: float | None) -> ScenarioConfig:
+    """The scenario named by ``--scenario`` with ``--duration`` applied."""
+    try:
+        scenario = load_scenario(name)
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from exc
+    if duration_s is not None:
+        if duration_s <= scenario.settle_s:
+            raise UsageError(
+                f"--duration must exceed the scenario's settle time {scenario.settle_s} s"
+            )
+        scenario = dataclasses.replace(scenario, duration_s=duration_s)
+    return scenario
+
+
+def _compare_methods(text: str, scenario: ScenarioConfig) -> tuple[str, ...]:
+    """``--compare`` alone: the scenario's methods; ``--compare a:b,c:d``: those."""
+    text = text.strip()
+    if not text:
+        return scenario.compare.methods
+    methods = tuple(m.strip() for m in text.split(",") if m.strip())
+    try:
+        for m in methods:
+            parse_method(m)
+    except ValueError as exc:
+        raise UsageError(f"--compare: {exc}") from exc
+    if len(set(methods)) != len(methods):
+        raise UsageError(f"--compare repeats a method: {text}")
+    return methods

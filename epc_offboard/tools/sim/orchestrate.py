@@ -1,0 +1,336 @@
+"""The processes of a sim flight: for each vehicle k (1..N) ``epc-sitl --instance k-1`` and
+``epc-offboard run`` on loopback UDP, started, watched (a progress bar), stopped.
+
+The service arms, takes off, enters offboard, flies the scenario and lands; what the flight
+leaves in each ``vehicleK/`` directory (the flight log, the .tlog, the ground truth, stats and
+both processes' logs) is then analysed (:mod:`.analysis`) and reported (:mod:`.report`):
+:func:`fly_and_report` does all three.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from epc_offboard.common.configio import dump_toml, merge_dicts
+from epc_offboard.common.frames import FloatArray
+from epc_offboard.tools.figures import write_figure
+from epc_offboard.tools.sim.analysis import VehicleResult, analyse, read_flight
+from epc_offboard.tools.sim.options import SimOptions
+from epc_offboard.tools.sim.report import make_report, write_json
+from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
+
+ZENOH_BASE_PORT = 7446  # vehicle k listens on tcp/127.0.0.1:(7446 + k) (CONTRACTS.md)
+
+
+@dataclass
+class VehicleRun:
+    """One vehicle's processes and the directory they write to."""
+
+    vehicle_id: int
+    out_dir: Path
+    sitl: subprocess.Popen[bytes] | None = None
+    service: subprocess.Popen[bytes] | None = None
+    offboard_entry_s: float | None = None  # vehicle time offboard began (the progress bar)
+
+    @property
+    def groundtruth(self) -> Path:
+        return self.out_dir / "groundtruth.csv"
+
+    @property
+    def flight_log(self) -> Path:
+        return self.out_dir / "flight.csv"
+
+    @property
+    def stats(self) -> Path:
+        return self.out_dir / "stats.json"
+
+    @property
+    def sitl_log(self) -> Path:
+        return self.out_dir / "sitl.log"
+
+    @property
+    def service_log(self) -> Path:
+        return self.out_dir / "service.log"
+
+    @property
+    def service_config(self) -> Path:
+        return self.out_dir / "service.toml"
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def service_config_for(
+    options: SimOptions, vehicle_id: int, port: int, run_dir: Path, library_path: Path
+) -> dict[str, Any]:
+    """The service config of one vehicle: config/sitl.toml + scenario + command-line flags."""
+    scenario = options.scenario
+    with SITL_SERVICE_CONFIG.open("rb") as fh:
+        base = tomllib.load(fh)
+    traj = {k: v for k, v in vars(scenario.trajectory).items()}
+    traj["waypoints_ned_m"] = [list(w) for w in scenario.trajectory.waypoints_ned_m]
+    from sitl.params import load_sim_config
+
+    # what PX4 users set as MPC_THR_HOVER, known exactly for the simulated airframe
+    hover = load_sim_config().vehicle.hover_thrust_norm
+    flags: dict[str, Any] = {
+        "link": {"url": f"udpin://127.0.0.1:{port}", "target_system": vehicle_id},
+        "loops": {"clock": "vehicle" if options.lockstep else "wall"},
+        "position": {"controller": options.controller, "hover_thrust_norm": hover},
+        "estimator": {"kind": options.adaptation},
+        "trajectory": traj,
+        "trajectory_altitude_m": scenario.altitude_m,
+        "mission": {"duration_s": scenario.duration_s, "land_at_end": True},
+        "store": {"path": str(library_path)},
+        "log": {
+            "flight_log_path": str(run_dir / "flight.csv"),
+            "tlog_path": str(run_dir / "session.tlog"),
+            "stats_path": str(run_dir / "stats.json"),
+        },
+    }
+    flags["sharing"] = _sharing_flags(options, vehicle_id)
+    if options.stagger:
+        flags["mission"]["linger_after_landing"] = True
+    return merge_dicts(merge_dicts(base, scenario.service), flags)
+
+
+def _sharing_flags(options: SimOptions, vehicle_id: int) -> dict[str, Any]:
+    """Fleet sharing for ``--vehicles N > 1`` unless ``--no-share``: every vehicle listens on
+    its own loopback port and connects to all the others (no multicast scouting)."""
+    n = options.vehicles
+    if n < 2 or not options.share:
+        return {"enabled": False}
+    return {
+        "enabled": True,
+        "fleet": "sim",
+        "vehicle_id": f"v{vehicle_id}",
+        "listen": [f"tcp/127.0.0.1:{ZENOH_BASE_PORT + vehicle_id}"],
+        "connect": [
+            f"tcp/127.0.0.1:{ZENOH_BASE_PORT + k}" for k in range(1, n + 1) if k != vehicle_id
+        ],
+        "scouting_multicast": False,
+    }
+
+
+def _gcs_port(options: SimOptions, vehicle_id: int) -> int:
+    """The ground-station port of vehicle k's SITL, as PX4 and ArduPilot SITL number them: PX4
+    sends UDP to one port (14550 by default) for every vehicle, told apart by system id;
+    ArduPilot serves TCP on its own port (base + 10 (k - 1)), only when a base is given (a
+    listening port of a concurrent run could clash). 0: no ground-station stream."""
+    port = options.gcs_port
+    if options.autopilot == "ardupilot":
+        return 0 if not port else int(port) + 10 * (vehicle_id - 1)
+    return 14550 if port is None else int(port)
+
+
+def _start(cmd: list[str], log_path: Path) -> subprocess.Popen[bytes]:
+    log_fh = log_path.open("wb")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen(cmd, stdout=log_fh, stderr=subprocess.STDOUT, env=env)
+
+
+def stop_process(proc: subprocess.Popen[bytes] | None, timeout_s: float = 5.0) -> None:
+    """SIGTERM, then SIGKILL after ``timeout_s``; nothing if it is gone already."""
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM (systemd, a test harness, `kill`) ends sim as Ctrl-C does: through the
+    ``finally`` that stops every SITL and service it started (the default action killed sim
+    alone and left its children flying)."""
+
+    def handler(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
+def _last_row(path: Path) -> tuple[list[str], list[str]]:
+    """(header, last complete row) of a growing CSV; empty lists when none yet."""
+    try:
+        with path.open("rb") as fh:
+            header = fh.readline().decode(errors="replace").strip().split(",")
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 4096))
+            tail = fh.read().decode(errors="replace").splitlines()
+    except OSError:
+        return [], []
+    rows = [r.split(",") for r in tail[1:] if r.count(",") == len(header) - 1]
+    return (header, rows[-1]) if rows and rows[-1] != header else (header, [])
+
+
+def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
+    """(phase label, seconds flown under offboard) of a running vehicle, from the tails of its
+    growing flight log and ground truth: "takeoff" until the service streams, "offboard
+    3.2/10 s", "landing" once the offboard part is over (the log stops while the vehicle's
+    clock runs on), "landed" when its stats are written."""
+    if run.stats.exists():
+        return "landed", duration_s
+    header, last = _last_row(run.flight_log)
+    if not last or "phase" not in header or "vehicle_t_s" not in header:
+        return "takeoff", 0.0
+    phase, t_s = last[header.index("phase")], float(last[header.index("vehicle_t_s")])
+    if phase != "offboard":
+        if run.offboard_entry_s is not None:  # offboard is over
+            return "landing", duration_s
+        return "entering offboard", 0.0
+    if run.offboard_entry_s is None:  # the first offboard row, read once
+        with run.flight_log.open(newline="") as fh:
+            for row in csv.DictReader(fh):
+                if row.get("phase") == "offboard":
+                    run.offboard_entry_s = float(row["vehicle_t_s"])
+                    break
+    done_s = min(max(t_s - (run.offboard_entry_s or t_s), 0.0), duration_s)
+    truth_header, truth_last = _last_row(run.groundtruth)
+    truth_t_s = float(truth_last[0]) if truth_last and truth_header[0] == "t_s" else t_s
+    if done_s >= duration_s - 0.05 or truth_t_s > t_s + 2.0:  # the log has stopped
+        return "landing", duration_s
+    return f"offboard {done_s:.1f}/{duration_s:g} s", done_s
+
+
+def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
+    """Start every SITL and service, wait for the services to finish, stop the SITLs.
+
+    With ``--stagger`` vehicle k starts once vehicle k-1 has landed (its stats file appears;
+    its service lingers, sharing its library) and every service is stopped after the last
+    vehicle has landed.
+    """
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    runs: list[VehicleRun] = []
+    scenario, name, vehicles, stagger = (
+        options.scenario, options.scenario_name, options.vehicles, options.stagger
+    )  # fmt: skip
+
+    def start(k: int) -> None:
+        run = VehicleRun(k, out_dir / f"vehicle{k}")
+        run.out_dir.mkdir(parents=True, exist_ok=True)
+        run.stats.unlink(missing_ok=True)  # with --stagger its appearance means "landed"
+        for stale in (run.flight_log, run.groundtruth):  # the progress bar reads their tails
+            stale.unlink(missing_ok=True)
+        offboard_port = _free_udp_port()
+        listen_port = _free_udp_port()
+        library = out_dir / f"library-{k}.sqlite"
+        cfg = service_config_for(options, k, offboard_port, run.out_dir, library)
+        run.service_config.write_text(dump_toml(cfg))
+        sitl_cmd = [
+            sys.executable, "-m", "sitl.main", "--instance", str(k - 1),
+            "--listen-port", str(listen_port), "--offboard-port", str(offboard_port),
+            "--gcs-port", str(_gcs_port(options, k)), "--groundtruth", str(run.groundtruth),
+            "--seed", str(options.seed + k - 1),
+            "--wind", f"{options.wind_speed_m_s},{options.wind_dir_deg}",
+        ]  # fmt: skip
+        if options.lockstep:
+            sitl_cmd.append("--lockstep")
+        sitl_cmd += ["--autopilot", options.autopilot]
+        if options.autopilot == "ardupilot":
+            # what the README asks of a real ArduCopter: thrust as throttle, not climb rate
+            sitl_cmd += ["--param", "GUID_OPTIONS=8"]
+        run.service = _start(
+            [sys.executable, "-m", "epc_offboard.cli", "run", "--config",
+             str(run.service_config)],
+            run.service_log,
+        )  # fmt: skip
+        run.sitl = _start(sitl_cmd, run.sitl_log)
+        runs.append(run)
+
+    for k in range(1, (1 if stagger else vehicles) + 1):
+        start(k)
+    expected_s = scenario.duration_s + 20.0  # takeoff, offboard entry, landing
+    flights = vehicles if stagger else 1
+    deadline = time.monotonic() + flights * max(120.0, 20.0 * expected_s)
+    # the bar counts the scenario's seconds under offboard, the only ones the scenario names;
+    # takeoff and landing show as the phase in its label
+    total_s = scenario.duration_s * (vehicles if stagger else 1)
+    try:
+        with Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            TextColumn("{task.completed:.1f}/{task.total:.0f} s offboard"),
+            TimeElapsedColumn(),
+            transient=False,
+            disable=not sys.stderr.isatty(),
+        ) as progress:
+            task = progress.add_task(f"{name}: takeoff", total=total_s)
+            while any(r.service is not None and r.service.poll() is None for r in runs):
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the flight did not finish in time (see the vehicle logs)")
+                if any(r.sitl is not None and r.sitl.poll() is not None for r in runs):
+                    raise RuntimeError("a SITL process exited early (see sitl.log)")
+                if stagger and runs[-1].stats.exists():  # the newest vehicle has landed
+                    if len(runs) < vehicles:
+                        start(len(runs) + 1)
+                    else:
+                        for r in runs:
+                            stop_process(r.service)
+                states = [flight_progress(r, scenario.duration_s) for r in runs]
+                done_s = sum(s[1] for s in states) if stagger else min(s[1] for s in states)
+                phase = states[-1][0] if stagger else states[0][0]
+                who = f" vehicle {len(runs)}/{vehicles}" if vehicles > 1 else ""
+                progress.update(task, completed=min(done_s, total_s),
+                                description=f"{name}{who}: {phase}")  # fmt: skip
+                time.sleep(0.2)
+            progress.update(task, completed=total_s, description=f"{name}: landed")
+    finally:
+        for r in runs:
+            stop_process(r.service)
+            stop_process(r.sitl)
+    for r in runs:
+        if r.service is not None and r.service.returncode != 0:
+            raise RuntimeError(
+                f"vehicle {r.vehicle_id}: service exited with {r.service.returncode} "
+                f"(see {r.service_log})"
+            )
+    return runs
+
+
+def fly_and_report(
+    options: SimOptions, out_dir: Path, title: str
+) -> tuple[dict[str, Any], list[VehicleResult], FloatArray]:
+    """Fly, analyse on ground truth, write ``report.json`` and ``flight.png`` to ``out_dir``;
+    returns (report, results, velocity bounds m/s (3,) NED). RuntimeError if a flight
+    failed."""
+    runs = fly(options, out_dir)
+    cfg = tomllib.loads(runs[0].service_config.read_text())
+    bounds = np.array(cfg["position"]["max_vel_m_s"], dtype=np.float64)
+    results = [
+        analyse(
+            read_flight(r.vehicle_id, flight_log=r.flight_log, groundtruth=r.groundtruth,
+                        stats=r.stats, sitl_log=r.sitl_log),
+            options.scenario,
+            bounds,
+        )
+        for r in runs
+    ]  # fmt: skip
+    from epc_offboard.tools.logexport import flight_csv_to_mcap
+
+    for r in runs:  # the per-tick log for Foxglove Studio and PlotJuggler, beside the CSV
+        flight_csv_to_mcap(r.flight_log, r.flight_log.with_suffix(".mcap"))
+    report = make_report(options, results)
+    write_json(report, out_dir / "report.json")
+    write_figure(results, bounds, out_dir / "flight.png", title,
+                 settle_s=options.scenario.settle_s)  # fmt: skip
+    return report, results, bounds

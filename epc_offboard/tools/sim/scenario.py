@@ -1,0 +1,60 @@
+"""Scenarios: the flights ``epc-offboard sim`` knows by name (``config/scenarios/NAME.toml``).
+
+A scenario says what to fly (trajectory, altitude, duration, wind), how to judge it (the
+settle time the metrics skip, the first lap, the acceptance targets) and which methods
+``sim --compare`` flies side by side.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from epc_offboard.common.configio import ConfigError, from_dict
+from epc_offboard.control.trajectories import TrajectoryConfig
+from epc_offboard.tools.targets import CompareConfig, TargetConfig
+
+CONFIG_DIR = Path(__file__).resolve().parents[3] / "config"
+SCENARIO_DIR = CONFIG_DIR / "scenarios"
+SITL_SERVICE_CONFIG = CONFIG_DIR / "sitl.toml"
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    description: str = ""
+    note: str = ""  # printed under the report's table: e.g. why an error is large by design
+    duration_s: float = 20.0  # flight under offboard control, from the trajectory's start
+    settle_s: float = 3.0  # metrics ignore the first settle_s of the trajectory
+    lap_s: float = 0.0  # one lap of the trajectory, for first-lap library figures (0: whole)
+    altitude_m: float = 2.5  # the trajectory's altitude above home
+    wind_speed_m_s: float = 0.0
+    wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (CONTRACTS.md)
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    service: dict[str, Any] = field(default_factory=dict)  # overrides of config/sitl.toml
+    compare: CompareConfig = field(default_factory=CompareConfig)  # `sim --compare` methods
+    targets: tuple[TargetConfig, ...] = ()  # acceptance targets (epc_offboard.tools.targets)
+
+    def __post_init__(self) -> None:
+        if self.duration_s <= 0.0:
+            raise ValueError(f"duration_s must be > 0, got {self.duration_s}")
+        if not 0.0 <= self.settle_s < self.duration_s:
+            raise ValueError("settle_s must be in [0, duration_s)")
+        if self.lap_s < 0.0:
+            raise ValueError(f"lap_s must be >= 0, got {self.lap_s}")
+
+
+def load_scenario(name: str) -> ScenarioConfig:
+    """A scenario by name (``config/scenarios/NAME.toml``) or by path (``*.toml``);
+    ConfigError naming the file and key when it is unknown or invalid."""
+    path = Path(name) if name.endswith(".toml") else SCENARIO_DIR / f"{name}.toml"
+    if not path.exists():
+        known = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+        raise ConfigError(f"unknown scenario {name!r} (known: {', '.join(known)})")
+    with path.open("rb") as fh:
+        try:
+            raw = tomllib.load(fh)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    return from_dict(ScenarioConfig, raw, source=str(path))

@@ -1,0 +1,211 @@
+"""The sim's pure analysis (ground truth + flight log -> the report's numbers) against
+oracles computed by hand, and its options read from the command line once (no flight)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from epc_offboard.cli import build_parser
+from epc_offboard.common.errors import UsageError
+from epc_offboard.tools.sim.analysis import (
+    FlightRecord,
+    analyse,
+    flight_warnings,
+    read_csv_columns,
+    read_flight,
+    sitl_counters,
+)
+from epc_offboard.tools.sim.options import SimOptions, sim_options
+from epc_offboard.tools.sim.scenario import ScenarioConfig, load_scenario
+
+# A flight logged at 1 Hz: streaming at t = 9 s, offboard from 10 s to 14 s, hovering at
+# 2 m up (NED d = -2). Scenario: settle 1.5 s (the metrics start at 11.5 s), first lap 2 s.
+SCENARIO = ScenarioConfig(duration_s=4.0, settle_s=1.5, lap_s=2.0)
+LOG_T_S = np.array([9.0, 10.0, 11.0, 12.0, 13.0, 14.0])
+PHASES = np.array(["streaming", "offboard", "offboard", "offboard", "offboard", "offboard"])
+SOURCES = np.array(["", "hit", "solved", "hit", "fallback", "hit"])
+BOUNDS_M_S = np.array([1.0, 1.0, 1.0])
+
+
+def _flight() -> dict[str, np.ndarray]:
+    return {
+        "vehicle_t_s": LOG_T_S,
+        "phase": PHASES,
+        "source": SOURCES,
+        "ref_pos_n_m": np.zeros(6),
+        "ref_pos_e_m": np.zeros(6),
+        "ref_pos_d_m": np.full(6, -2.0),
+    }
+
+
+def _truth() -> dict[str, np.ndarray]:
+    """Ground truth every 0.5 s from 9 s to 15 s: off the reference by 5 m at 10 s and 1 m at
+    11 s (inside the settle time), 0.3 m north at 12 s, 0.4 m east at 13 s, on it at 14 s;
+    fast (2 m/s N) at 10 s (settling), 1.5 m/s N at 12.5 s and -1.2 m/s E at 13.5 s (both
+    over the 1 m/s bound), 3 m/s N at 14.5 s (after the last offboard tick)."""
+    t = np.arange(9.0, 15.01, 0.5)
+    n, e, d = np.zeros_like(t), np.zeros_like(t), np.full_like(t, -2.0)
+    vn, ve, vd = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
+
+    def at(t_s: float) -> int:
+        return int(np.argmin(np.abs(t - t_s)))
+
+    n[at(10.0)], n[at(11.0)], n[at(12.0)], e[at(13.0)] = 5.0, 1.0, 0.3, 0.4
+    vn[at(10.0)], vn[at(12.5)], ve[at(13.5)], vn[at(14.5)] = 2.0, 1.5, -1.2, 3.0
+    return {"t_s": t, "pos_n_m": n, "pos_e_m": e, "pos_d_m": d,
+            "vel_n_m_s": vn, "vel_e_m_s": ve, "vel_d_m_s": vd}  # fmt: skip
+
+
+def _record(**stats: object) -> FlightRecord:
+    return FlightRecord(3, _flight(), _truth(), dict(stats), {"lockstep_timeouts": 2})
+
+
+def test_tracking_error_is_measured_on_ground_truth_after_settling() -> None:
+    v = analyse(_record(), SCENARIO, BOUNDS_M_S).report
+    # errors at 12, 13, 14 s: 0.3, 0.4, 0 m; the settle time's 5 m and 1 m left out
+    assert v["tracking"]["rmse_m"] == pytest.approx(math.sqrt((0.3**2 + 0.4**2 + 0.0) / 3))
+    assert v["tracking"]["max_error_m"] == pytest.approx(0.4)
+
+
+def test_velocity_bounds_are_checked_on_every_truth_sample_after_settling() -> None:
+    v = analyse(_record(), SCENARIO, BOUNDS_M_S).report
+    # 12.5 s (N 1.5) and 13.5 s (E -1.2); not 10 s (settling) nor 14.5 s (after offboard)
+    assert v["constraint_violations"] == 2
+    assert v["max_abs_vel_m_s"] == pytest.approx([1.5, 1.2, 0.0])
+    assert v["max_speed_m_s"] == pytest.approx(1.5)
+    loose = analyse(_record(), SCENARIO, np.array([1.5, 1.5, 1.5])).report
+    assert loose["constraint_violations"] == 0  # at the bound is within it
+
+
+def test_library_use_first_lap_misses_and_times_since_offboard() -> None:
+    stats = {
+        "library": {"position": {"hits": 3, "misses": 1, "size": 7, "qp_solves": 2}},
+        "phase_events": [{"t_s": 8.5, "phase": "preflight"}, {"t_s": 10.0, "phase": "offboard"}],
+    }
+    r = analyse(_record(**stats), SCENARIO, BOUNDS_M_S)
+    lib = r.report["library"]
+    assert lib["hit_rate"] == pytest.approx(0.75)
+    # the first lap is 10 s to 12 s: one miss ("solved"); the whole flight has two
+    assert lib["first_lap_misses"] == 1
+    assert [e["t_s"] for e in r.report["phase_events"]] == [-1.5, 0.0]
+    assert r.report["warnings"] == {"SITL lockstep timeouts": 2}
+    np.testing.assert_allclose(r.t_s, LOG_T_S - 10.0)
+    np.testing.assert_allclose(r.error_m[3:], [0.3, 0.4, 0.0])
+    assert r.report["id"] == 3
+
+
+def test_a_flight_that_never_entered_offboard_is_an_error() -> None:
+    flight = {**_flight(), "phase": np.full(6, "streaming")}
+    with pytest.raises(RuntimeError, match="vehicle 3: never flew in offboard"):
+        analyse(FlightRecord(3, flight, _truth()), SCENARIO, BOUNDS_M_S)
+
+
+def test_the_files_read_back_as_the_columns_written(tmp_path: Path) -> None:
+    flight, truth = _flight(), _truth()
+    for name, cols in (("flight.csv", flight), ("groundtruth.csv", truth)):
+        rows = [",".join(cols)] + [",".join(str(c[i]) for c in cols.values())
+                                   for i in range(len(next(iter(cols.values()))))]  # fmt: skip
+        (tmp_path / name).write_text("\n".join(rows) + "\n9.9,torn")  # a torn last line
+    record = read_flight(
+        3,
+        flight_log=tmp_path / "flight.csv",
+        groundtruth=tmp_path / "groundtruth.csv",
+        stats=tmp_path / "missing.json",
+        sitl_log=tmp_path / "missing.log",
+    )
+    assert record.stats == {}
+    assert record.sitl_counters == {}
+    np.testing.assert_array_equal(record.flight["phase"], PHASES)
+    np.testing.assert_allclose(record.truth["pos_n_m"], truth["pos_n_m"])
+    in_memory = analyse(_record(), SCENARIO, BOUNDS_M_S).report["tracking"]
+    assert analyse(record, SCENARIO, BOUNDS_M_S).report["tracking"] == in_memory
+    (tmp_path / "empty.csv").write_text("t_s\n")
+    with pytest.raises(RuntimeError, match="no data"):
+        read_csv_columns(tmp_path / "empty.csv")
+
+
+def test_flight_warnings_name_what_went_wrong_and_leave_out_zeros():
+
+    stats = {
+        "counters": {"failsafes": 2, "position_ticks_skipped": 0, "store_errors": 1},
+        "phase_events": [
+            {"t_s": 1.0, "phase": "failsafe", "reason": "state stale (0.40 s)"},
+            {"t_s": 2.0, "phase": "failsafe", "reason": "heartbeat lost"},
+        ],
+    }
+    got = flight_warnings(stats, {"lockstep_timeouts": 3, "handler_errors": 0})
+    assert got == {
+        "failsafes": 2,
+        "library store errors": 1,
+        "stale-state failsafes": 1,
+        "SITL lockstep timeouts": 3,
+    }
+    assert flight_warnings({}, {}) == {}
+
+
+def test_sitl_counters_are_read_from_its_closing_line(tmp_path):
+
+    log = tmp_path / "sitl.log"
+    log.write_text(
+        "epc-sitl: instance 0, sysid 1\n"
+        "epc-sitl: counters received=10 lockstep_timeouts=4 offboard_failsafes=1\n"
+    )
+    assert sitl_counters(log) == {"received": 10, "lockstep_timeouts": 4, "offboard_failsafes": 1}
+    assert sitl_counters(tmp_path / "missing.log") == {}
+
+
+def _options(*argv: str) -> SimOptions:
+    return sim_options(build_parser().parse_args(["sim", *argv]))
+
+
+def test_options_are_read_once_from_the_command_line() -> None:
+    o = _options("--scenario", "circle", "--wind", "3,90", "--vehicles", "2", "--no-share",
+                 "--json", "r.json", "--realtime")  # fmt: skip
+    assert (o.scenario_name, o.vehicles, o.share, o.lockstep) == ("circle", 2, False, False)
+    assert o.wind == (3.0, 90.0)
+    assert o.json_path == Path("r.json")
+    assert o.compare is None
+    assert o.scenario == load_scenario("circle")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        o.vehicles = 3  # type: ignore[misc]
+    calm = _options("--duration", "7.5")
+    assert calm.wind == (calm.scenario.wind_speed_m_s, calm.scenario.wind_dir_deg)
+    assert calm.scenario.duration_s == 7.5
+
+
+def test_compare_options_name_the_methods_flown() -> None:
+    assert _options("--scenario", "circle", "--compare").compare == (
+        load_scenario("circle").compare.methods
+    )
+    o = _options("--compare", "pd:none, epc:kf")
+    assert o.compare == ("pd:none", "epc:kf")
+    one = o.flying("epc:kf")
+    assert (one.controller, one.adaptation, one.method, one.compare) == (
+        "epc", "kf", "epc:kf", None)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (("--vehicles", "0"), "--vehicles must be >= 1"),
+        (("--scenario", "nowhere"), "unknown scenario 'nowhere'"),
+        (("--duration", "3"), "--duration must exceed the scenario's settle time 3.0 s"),
+        (("--compare", "epc:lwpr,epc:lwpr"), "--compare repeats a method"),
+        (("--compare", "epc:magic"), "--compare: method 'epc:magic'"),
+    ],
+)
+def test_bad_options_are_usage_errors(argv: tuple[str, ...], message: str) -> None:
+    with pytest.raises(UsageError, match=message):
+        _options(*argv)
+
+
+def test_options_built_in_code_are_checked_too() -> None:
+    with pytest.raises(UsageError, match="--vehicles must be >= 1"):
+        SimOptions("hover", load_scenario("hover"), vehicles=0)
+    with pytest.raises(ValueError, match="controller must be one of"):
+        SimOptions("hover", load_scenario("hover"), controller="lqr")
