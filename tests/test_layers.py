@@ -45,7 +45,7 @@ def _in(*packages: str) -> tuple[str, ...]:
 # control/ is pure numerics as a whole; the vehicle's state machine, dialects and rate
 # bookkeeping are too (commands as values: the link sends them)
 NUMERICS = (
-    *(m for m in _in("epc_offboard.control") if m != "epc_offboard.control.cascade"),
+    *_in("epc_offboard.control"),
     *(f"epc_offboard.vehicle.{m}" for m in (
         "offboard", "dialect", "dialect_px4", "dialect_ardupilot", "rates", "state")),
     "epc_offboard.service.timing",
