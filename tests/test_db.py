@@ -18,8 +18,8 @@ SITL_CONFIG = "config/sitl.toml"
 # libraries here hold the SITL service's position (SIG) and attitude (OTHER) problems
 _CFG = load_service_config(SITL_CONFIG)
 _CASCADE = Cascade(_CFG.position, _CFG.attitude, _CFG.estimator, 1.0 / _CFG.loops.position_rate_hz)
-POS_PROBLEM = _CASCADE.pos_problem
-SIG, OTHER = POS_PROBLEM.signature(), _CASCADE.att_problem.signature()
+POS_PROBLEM = _CASCADE.position.problem
+SIG, OTHER = POS_PROBLEM.signature(), _CASCADE.attitude.problem.signature()
 CFG = ["--config", SITL_CONFIG]
 
 

@@ -372,8 +372,8 @@ def test_attitude_loop_is_exact_too():
 def test_hits_are_exact_with_the_tilt_polygon():
     """Input polytope rows (the position loop's tilt polygon) are constraint rows like any
     other: hits and solves equal the exact optimum, and every input satisfies P u <= p."""
-    from epc_offboard.control.cascade import PositionControlConfig
     from epc_offboard.control.models import acceleration_limits, position_model_lagged
+    from epc_offboard.control.position import PositionControlConfig
 
     pc = PositionControlConfig()
     lim = acceleration_limits(math.radians(45.0), 0.08, 0.95, 0.5)

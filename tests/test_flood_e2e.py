@@ -66,7 +66,7 @@ def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path
     with Rig(tmp_path, lockstep=False, speedup=1.0, service_overrides=overrides) as rig:
         cfg = load_service_config(rig.config_path)
         cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
-        problem = cascade.pos_problem
+        problem = cascade.position.problem
         rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=90)
         time.sleep(2.0)  # settle on the hover point
         stop, sent = threading.Event(), [0]

@@ -444,8 +444,10 @@ def test_the_cascade_warm_up_compiles_every_lwpr_kernel_before_the_first_tick():
     ticks alone would not learn, and leave update to the first tick in flight)."""
     code = (
         "from epc_offboard.control import lwpr_kernels as k\n"
-        "from epc_offboard.control.cascade import (\n"
-        "    AttitudeControlConfig, Cascade, EstimatorConfig, PositionControlConfig)\n"
+        "from epc_offboard.control.attitude import AttitudeControlConfig\n"
+        "from epc_offboard.control.cascade import Cascade\n"
+        "from epc_offboard.control.perturbation import EstimatorConfig\n"
+        "from epc_offboard.control.position import PositionControlConfig\n"
         "c = Cascade(PositionControlConfig(), AttitudeControlConfig(), EstimatorConfig())\n"
         "before = (len(k.update.signatures), len(k.predict_many.signatures))\n"
         "c.warm_up()\n"

@@ -325,17 +325,17 @@ def test_live_reference_is_received_fresh_then_stale():
 def test_live_reference_horizon_holds_tracks_and_follows_a_path():
     from epc_offboard.control.trajectories import live_reference_horizon
 
-    kw: dict = {"age_s": 0.1, "dt_s": 0.1, "steps": 4, "width": 9}
-    hold = live_reference_horizon((1.0, 2.0, -3.0), None, (), None, **kw)
+    kw: dict = {"yaw_rad": 0.5, "age_s": 0.1, "dt_s": 0.1, "steps": 4}
+    hold = live_reference_horizon((1.0, 2.0, -3.0), None, (), None, **kw).ahead
     assert hold.shape == (4, 9)
     np.testing.assert_allclose(hold[:, :3], np.tile([1.0, 2.0, -3.0], (4, 1)))
     assert not hold[:, 3:].any()
-    track = live_reference_horizon((0.0, 0.0, -2.0), (1.0, 0.0, 0.0), (), None, **kw)
+    track = live_reference_horizon((0.0, 0.0, -2.0), (1.0, 0.0, 0.0), (), None, **kw).ahead
     np.testing.assert_allclose(track[:, 0], [0.2, 0.3, 0.4, 0.5])  # age + k dt, at 1 m/s
     np.testing.assert_allclose(track[:, 3], 1.0)
     path = live_reference_horizon(
         (0.0, 0.0, -2.0), None, ((0.2, 0.0, -2.0), (0.2, 0.2, -2.0)), 0.2, **kw
-    )
+    ).ahead
     # t = 0.2, 0.3, 0.4, 0.5 s along 0 -> (0.2, 0) -> (0.2, 0.2), then held at the end
     np.testing.assert_allclose(path[:, 0], [0.2, 0.2, 0.2, 0.2])
     np.testing.assert_allclose(path[:, 1], [0.0, 0.1, 0.2, 0.2])
@@ -529,6 +529,7 @@ def test_origin_is_kept_through_the_store_and_db_info(tmp_path, capsys):
     from epc_offboard.cli import main as cli_main
     from epc_offboard.control.cascade import Cascade
     from epc_offboard.service.config import load_service_config
+    from epc_offboard.store import experience
     from epc_offboard.store.library import LibraryStore
     from epc_offboard.vehicle.state import VehicleState
 
@@ -547,31 +548,31 @@ def test_origin_is_kept_through_the_store_and_db_info(tmp_path, capsys):
         attitude_age_s=0.0,
     )
     teacher, pupil = cascade(), cascade()
-    teacher.position_tick(state, teacher.hold_refs(state), learn=True)
+    teacher.position_tick(state, teacher.position.hold(state.pos_ned_m), learn=True)
     (taught,) = [e.active_set for e in dict(teacher.experience_controllers())["position"]
                  .export_library()]  # fmt: skip
     pupil_pos = dict(pupil.experience_controllers())["position"]
 
     async def receive() -> None:  # from vehicle v7, over Zenoh, as in flight
         pp, praw = free_tcp_port(), free_tcp_port()
-        sig = pupil.pos_problem.signature()
+        sig = pupil.position.problem.signature()
         async with peer(config("pupil", pp, []), pupil_pos) as sp:
             with zenoh.open(raw_config(praw, pp)) as raw:
                 await connected(raw, sp, sig)
                 await flood(raw, sp, sig, [taught], ["v7"], 1)
 
     asyncio.run(receive())
-    pupil.position_tick(state, pupil.hold_refs(state), learn=True)
+    pupil.position_tick(state, pupil.position.hold(state.pos_ned_m), learn=True)
     assert pupil_pos.stats.qp_solves == 0  # the fleet's controller, not a solve here
     path = tmp_path / "lib.sqlite"
     with LibraryStore.open(path) as store:
-        pupil.save_to(store)
-        sig = pupil.pos_problem.signature()
+        experience.save(pupil, store)
+        sig = pupil.position.problem.signature()
         assert [(c.active_set, c.origin) for c in store.load_controllers(sig)] == [
             (taught, "shared:v7")
         ]
         again = cascade()
-        again.load_from(store)
+        experience.load(again, store)
     again_pos = dict(again.experience_controllers())["position"]
     assert [(e.active_set, e.origin) for e in again_pos.export_library()] == [
         (taught, "shared:v7")

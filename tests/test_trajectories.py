@@ -124,6 +124,41 @@ def test_the_tick_horizon_equals_sample_to_the_last_bit(shape):
         assert np.array_equal(traj.horizon(t0, 0.05, 20), rows[1:])
 
 
+@pytest.mark.parametrize("shape", ["circle", "figure8", "zigzag", "line"])
+def test_the_reference_horizon_holds_the_old_rows_bit_for_bit(shape):
+    """ReferenceHorizon round trip: what the tick receives is the (N, 9) rows it used to
+    receive, its stage 0 the reference now, its columns the position, velocity and
+    acceleration; a rejoin's gap is added to every stage."""
+    from epc_offboard.control.reference import ReferenceHorizon
+    from epc_offboard.control.trajectories import RefSample, Rejoin
+
+    traj = Trajectory(TrajectoryConfig(shape=shape, ramp_s=3.0, period_s=12.0),
+                      np.array([1.0, 2.0, -2.5]), start_s=6.0)  # fmt: skip
+    rejoin = Rejoin.onto(RefSample(np.zeros(3), np.zeros(3), np.zeros(3)),
+                         np.array([0.5, -0.3, 0.2]), np.array([0.1, 0.0, 0.0]), 7.0, 1.0)
+    for t0 in np.arange(0.0, 30.0, 0.37):
+        rows = traj.horizon_from_now(t0, 0.05, 20)
+        ref = traj.reference(t0, 0.05, 20, 0.25)
+        assert ref.steps == 20
+        assert np.array_equal(ref.ahead, traj.horizon(t0, 0.05, 20))
+        assert np.array_equal(ref.stages, rows)
+        assert np.array_equal(ref.pos_ned_m, rows[:, 0:3])
+        assert np.array_equal(ref.vel_ned_m_s, rows[:, 3:6])
+        assert np.array_equal(ref.acc_ned_m_s2, rows[:, 6:9])
+        assert np.array_equal(ref.yaw_rad, np.full(21, 0.25))
+        joined = traj.reference(t0, 0.05, 20, 0.25, rejoin)
+        gap = rejoin.rows(t0 + 0.05 * np.arange(21, dtype=np.float64))
+        assert np.array_equal(joined.stages, rows + gap)
+    # the hold: the point at rest, at every stage
+    hold = ReferenceHorizon.hold([1.0, 2.0, -3.0], 0.5, 4)
+    assert np.array_equal(hold.ahead, np.tile([1.0, 2.0, -3.0, 0, 0, 0, 0, 0, 0], (4, 1)))
+    assert np.array_equal(hold.stages[0], hold.stages[4])
+    with pytest.raises(ValueError, match="reference horizon"):
+        ReferenceHorizon(np.zeros((5, 6)), np.zeros(5))
+    with pytest.raises(ValueError, match="reference horizon"):
+        ReferenceHorizon(np.zeros((5, 9)), np.zeros(4))
+
+
 def test_rejoin_starts_at_the_vehicle_and_closes_the_gap_smoothly():
     from epc_offboard.control.trajectories import RefSample, Rejoin
 

@@ -1341,3 +1341,13 @@ class _IntermediateQp:
         if not np.all(np.isfinite(u0)):
             return None
         return p.clip_input(u0)
+
+
+def budgeted_controller(
+    problem: MpcProblem, library_size: int, query_budget_us: float, learn_on_miss: bool
+) -> ExperienceController:
+    """EPC over ``problem`` with a library of ``library_size`` controllers whose queries
+    check no more candidates than fit in ``query_budget_us`` of the worst-case model."""
+    epc = ExperienceController(problem, max_size=library_size, learn_on_miss=learn_on_miss)
+    epc.max_checks = epc.checks_within(query_budget_us)
+    return epc

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
 
 from epc_offboard.common.errors import EpcError
 
@@ -83,20 +82,6 @@ class LibrarySnapshot:
             "transitions": sum(len(s.transitions) for s in self.signatures.values()),
             "models": sum(len(s.models) for s in self.signatures.values()),
         }
-
-
-class LibraryStorage(Protocol):
-    """What the control cascade needs of a library store, so that the numerics load and save
-    experience without importing SQLite (:class:`epc_offboard.store.library.LibraryStore`
-    is one)."""
-
-    def load_controllers(self, signature: str) -> list[LibraryEntry]: ...
-
-    def load_transitions(self, signature: str) -> Mapping[tuple[ActiveSet, ActiveSet], int]: ...
-
-    def load_model(self, name: str, signature: str) -> bytes | None: ...
-
-    def save_snapshot(self, snapshot: LibrarySnapshot) -> None: ...
 
 
 def parse_active_set(

@@ -32,6 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.reference import STAGE_WIDTH, ReferenceHorizon
 
 _F = TypeVar("_F", bound=Callable[..., Any])
 
@@ -285,7 +286,7 @@ class Trajectory:
         reference now, then the horizon of :meth:`horizon`. Each row equals :meth:`sample` at
         its time to the last bit; circle and figure-8 are one compiled call (the position
         loop's tick: 21 samples in a few us instead of ~130)."""
-        out = np.empty((steps + 1, 9))
+        out = np.empty((steps + 1, STAGE_WIDTH))
         cfg = self.config
         if cfg.shape in _SHAPE_CODE:
             a, period = (cfg.radius_m, cfg.period_s) if cfg.shape == "circle" else (
@@ -299,6 +300,18 @@ class Trajectory:
             out[k, 3:6] = r.vel_ned_m_s
             out[k, 6:] = r.acc_ned_m_s2
         return out
+
+    def reference(
+        self, t0_s: float, dt_s: float, steps: int, yaw_rad: float, rejoin: Rejoin | None = None
+    ) -> ReferenceHorizon:
+        """The reference horizon from ``t0_s`` (stages 0..``steps``, ``dt_s`` apart): the rows
+        of :meth:`horizon_from_now`, plus ``rejoin``'s gap when one is closing, flown at the
+        heading ``yaw_rad``."""
+        rows = self.horizon_from_now(t0_s, dt_s, steps)
+        if rejoin is not None:
+            times = t0_s + dt_s * np.arange(steps + 1, dtype=np.float64)
+            rows = np.add(rows, rejoin.rows(times))
+        return ReferenceHorizon.at_heading(rows, yaw_rad)
 
 
 def _jit(fn: _F) -> _F:
@@ -368,20 +381,21 @@ def live_reference_horizon(
     horizon_pos_ned_m: Sequence[Sequence[float]],
     horizon_dt_s: float | None,
     *,
+    yaw_rad: float,
     age_s: float,
     dt_s: float,
     steps: int,
-    width: int,
-) -> FloatArray:
-    """References for x[1..N] from a planner's live reference received ``age_s`` ago.
+) -> ReferenceHorizon:
+    """The reference horizon from a planner's live reference received ``age_s`` ago.
 
-    (steps, width) rows [p_ned, v_ned, 0...]: with a horizon, the piecewise-linear path
-    through ``pos`` then ``horizon_pos`` (spaced ``horizon_dt_s``), held at its end; with only
-    a velocity, the target moving at it; else a hold at ``pos``.
+    Stages 0..``steps`` at ``age_s + k dt_s`` after the reference's time, rows
+    [p_ned, v_ned, 0]: with a horizon, the piecewise-linear path through ``pos`` then
+    ``horizon_pos`` (spaced ``horizon_dt_s``), held at its end; with only a velocity, the
+    target moving at it; else a hold at ``pos``. Heading ``yaw_rad`` throughout.
     """
-    t = age_s + dt_s * np.arange(1, steps + 1)
+    t = age_s + dt_s * np.arange(0, steps + 1)
     pos = np.asarray(pos_ned_m, dtype=np.float64)
-    out = np.zeros((steps, width))
+    out = np.zeros((steps + 1, STAGE_WIDTH))
     if len(horizon_pos_ned_m) and horizon_dt_s is not None:
         pts = np.vstack([pos, np.asarray(horizon_pos_ned_m, dtype=np.float64)])
         times = horizon_dt_s * np.arange(len(pts))
@@ -396,4 +410,4 @@ def live_reference_horizon(
         out[:, 3:6] = vel
     else:
         out[:, :3] = pos
-    return out
+    return ReferenceHorizon.at_heading(out, yaw_rad)

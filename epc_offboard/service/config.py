@@ -12,11 +12,9 @@ from typing import Literal
 
 from epc_offboard.common.configio import load_config
 from epc_offboard.common.logsetup import LogConfig
-from epc_offboard.control.cascade import (
-    AttitudeControlConfig,
-    EstimatorConfig,
-    PositionControlConfig,
-)
+from epc_offboard.control.attitude import AttitudeControlConfig
+from epc_offboard.control.perturbation import EstimatorConfig
+from epc_offboard.control.position import PositionControlConfig
 from epc_offboard.control.trajectories import TrajectoryConfig
 from epc_offboard.fleet.sharing import SharingConfig
 from epc_offboard.vehicle.offboard import OffboardConfig

@@ -41,18 +41,22 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common.configio import ConfigError
-from epc_offboard.common.frames import FloatArray
 from epc_offboard.common.logsetup import LogGate, setup_logging
 from epc_offboard.common.signing import load_signing_key
-from epc_offboard.control.cascade import AttitudeOutput, Cascade, PositionOutput
+from epc_offboard.control.attitude import AttitudeOutput
+from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library import LibrarySnapshot
-from epc_offboard.control.trajectories import Rejoin, Trajectory, live_reference_horizon
+from epc_offboard.control.position import PositionOutput
+from epc_offboard.control.reference import ReferenceHorizon
+from epc_offboard.control.trajectories import Trajectory
 from epc_offboard.fleet.sharing import FleetSharing
 from epc_offboard.service import realtime
 from epc_offboard.service.clock import Clock, VehicleClock, WallClock
 from epc_offboard.service.config import ServiceConfig, load_service_config
 from epc_offboard.service.miss_solver import MissSolver
+from epc_offboard.service.reference import ReferenceSelector
 from epc_offboard.service.timing import LoopTiming
+from epc_offboard.store import experience
 from epc_offboard.store.library import LibraryStore
 from epc_offboard.vehicle.dialect import (
     MAV_AUTOPILOT_INVALID,
@@ -127,11 +131,11 @@ class Service:
             slice_s=cfg.sharing.candidate_slice_s,
         )
         self.counters: Counter[str] = Counter()
+        self.references = ReferenceSelector(cfg.position, cfg.reference.timeout_s, self.counters)
         self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
         self.outputs = Outputs(Phase.WAIT_HEARTBEAT, False, (), "starting")
         self.trajectory: Trajectory | None = None
-        self._rejoin: Rejoin | None = None  # the way back onto the trajectory after a hold
         self._position_out: PositionOutput | None = None
         self._stopping = asyncio.Event()
         self._exit_code = 0
@@ -176,7 +180,6 @@ class Service:
                 share_library=cfg.sharing.enabled,
                 reference=live,
             )
-        self._live_reference = False  # whether the last position tick flew a live reference
         from sdnotify import SystemdNotifier
 
         self._notifier = SystemdNotifier()
@@ -443,32 +446,7 @@ class Service:
         )
 
     def _start_rejoin(self, state: VehicleState, now: float) -> None:
-        """Setpoints start streaming, or offboard is (re)entered, while a trajectory has run
-        on (a failsafe, a pilot): the reference starts where the vehicle is and closes the
-        gap smoothly (trajectories.Rejoin) instead of asking for a far point at once."""
-        if self.trajectory is None:
-            return
-        self._rejoin = Rejoin.onto(
-            self.trajectory.sample(now), state.pos_ned_m, state.vel_ned_m_s, now,
-            self.cfg.trajectory.rejoin_tau_s,
-        )  # fmt: skip
-        gap = float(np.linalg.norm(self._rejoin.gap_ned_m))
-        if gap > 0.05:
-            self.counters["trajectory_rejoins"] += 1
-            log.info("rejoining the trajectory %.2f m away (tau %.1f s)", gap,
-                     self._rejoin.tau_s)  # fmt: skip
-
-    def _reference_rows(self, t_s: float, dt_s: float, steps: int) -> FloatArray:
-        """(steps + 1, 9) rows [p, v, a] of the trajectory from ``t_s``, rejoin included."""
-        assert self.trajectory is not None
-        rows = self.trajectory.horizon_from_now(t_s, dt_s, steps)
-        if self._rejoin is not None:
-            if self._rejoin.done(t_s):
-                self._rejoin = None
-            else:
-                times = t_s + dt_s * np.arange(steps + 1, dtype=np.float64)
-                rows = np.add(rows, self._rejoin.rows(times))
-        return rows
+        self.references.start_rejoin(self.trajectory, state, now)
 
     def _start_trajectory(self, state: VehicleState, altitude_m: float | None) -> None:
         anchor = state.pos_ned_m.copy()
@@ -476,7 +454,7 @@ class Service:
         if want is not None and altitude_m is not None:
             anchor[2] += altitude_m - want  # down of home = down now + height above home
         self.trajectory = Trajectory(self.cfg.trajectory, anchor, start_s=self.clock.now_s())
-        self.cascade.hold_position(anchor)
+        self.references.hold_at(anchor)
         log.info("trajectory %s started at %s", self.cfg.trajectory.shape, anchor.round(3).tolist())
 
     def _mission_complete(self, now: float) -> bool:
@@ -537,13 +515,8 @@ class Service:
     def _send_position_target(self, state: VehicleState, t_s: float) -> None:
         """The px4 baseline: the reference's position, velocity and acceleration now, to the
         autopilot's own position controller (as MAVSDK's offboard plugin sends them)."""
-        if self.trajectory is not None:
-            row = self._reference_rows(t_s, 0.0, 0)[0]
-            pos, vel, acc = row[:3], row[3:6], row[6:9]
-        else:
-            pos = self.cascade.hold_refs(state)[0, :3]
-            vel = acc = np.zeros(3)
-        values = [float(v) for v in (*pos, *vel, *acc)]
+        now = self.references.now(state, t_s, self.trajectory)
+        values = [float(v) for v in now.stages[0]]
         if not all(math.isfinite(v) for v in values):
             self.counters["non_finite_setpoints_replaced"] += 1
             return
@@ -555,68 +528,29 @@ class Service:
                 mavlink.MAV_FRAME_LOCAL_NED,
                 mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE,
                 *values,
-                math.radians(self.cfg.position.yaw_deg),
+                float(now.yaw_rad[0]),
                 0.0,
             )
         )
 
     def _position_tick(self, state: VehicleState, t_s: float) -> PositionOutput:
+        reference: ReferenceHorizon | None = None  # what the flight log shows
         if self._autopilot_positions:  # nothing to compute: the log keeps the reference
             out = self.cascade.hover(state)
-            self._log_tick(state, t_s, out)
+            reference = self.references.now(state, t_s, self.trajectory)
+            self._log_tick(state, t_s, out, reference)
             return out
-        ref_now: FloatArray | None = None  # the trajectory at t_s, for the flight log
+        offboard = self.outputs.phase == Phase.OFFBOARD
         try:
-            refs = self._live_refs(state)
-            if refs is None and self.trajectory is not None:
-                rows = self._reference_rows(
-                    t_s, self.cascade.position_dt_s, self.cascade.position_horizon
-                )
-                ref_now, refs = rows[0], rows[1:]
-            elif refs is None:
-                refs = self.cascade.hold_refs(state)
-            out = self.cascade.position_tick(
-                state, refs, learn=self.outputs.phase == Phase.OFFBOARD
+            reference = self.references.horizon(
+                state, t_s, self.trajectory, self.sharing, offboard=offboard
             )
+            out = self.cascade.position_tick(state, reference, learn=offboard)
         except Exception as exc:  # degrade, never die
             self._loop_error("position", exc)
             out = self.cascade.hover(state)
-        self._log_tick(state, t_s, out, ref_now)
+        self._log_tick(state, t_s, out, reference)
         return out
-
-    def _live_refs(self, state: VehicleState) -> FloatArray | None:
-        """The reference horizon from a fresh live reference (offboard only), else None."""
-        ref = None
-        if self.sharing is not None and self.outputs.phase == Phase.OFFBOARD:
-            ref = self.sharing.live_reference(time.monotonic(), self.cfg.reference.timeout_s)
-        if (ref is not None) != self._live_reference:
-            self._live_reference = ref is not None
-            if ref is not None:
-                log.info("live reference: tracking from %s", list(ref.message.pos_ned_m))
-            elif self.sharing is not None:
-                self.counters["live_reference_stale"] += 1
-                log.warning(
-                    "live reference stale (> %.2f s): back to the %s",
-                    self.cfg.reference.timeout_s,
-                    "trajectory" if self.trajectory is not None else "hold",
-                )
-                self.cascade.yaw_target_rad = None
-                if self.trajectory is None:
-                    self.cascade.hold_position(state.pos_ned_m)
-        if ref is None:
-            return None
-        msg = ref.message
-        self.cascade.yaw_target_rad = msg.yaw_rad
-        return live_reference_horizon(
-            msg.pos_ned_m,
-            msg.vel_ned_m_s,
-            msg.horizon_pos_ned_m,
-            msg.horizon_dt_s,
-            age_s=time.monotonic() - ref.received_s,
-            dt_s=self.cascade.position_dt_s,
-            steps=self.cascade.position_horizon,
-            width=self.cascade.pos_problem.nx,
-        )
 
     async def _attitude_loop(self) -> None:
         period = 1.0 / self.cfg.loops.attitude_rate_hz
@@ -747,7 +681,7 @@ class Service:
                 continue
             # the copy on the loop (the library is not thread-safe), the disk off it
             try:
-                snap = self.cascade.store_snapshot()
+                snap = experience.snapshot(self.cascade)
             except Exception as exc:  # never let saving take a loop down
                 self.counters["store_errors"] += 1
                 log.error("snapshotting the library failed: %s", exc)
@@ -766,7 +700,7 @@ class Service:
         if self.store is None:
             return
         try:
-            self.cascade.save_to(self.store)
+            experience.save(self.cascade, self.store)
         except Exception as exc:  # a full disk must not stop the flight
             self.counters["store_errors"] += 1
             log.error("saving the library failed: %s", exc)
@@ -789,7 +723,7 @@ class Service:
         if not self.cfg.store.path:
             return
         self.store = LibraryStore.open(self.cfg.store.path)
-        loaded = self.cascade.load_from(self.store)
+        loaded = experience.load(self.cascade, self.store)
         log.info("library %s: loaded %s", self.cfg.store.path, loaded)
 
     def _open_flight_log(self) -> None:
@@ -806,19 +740,16 @@ class Service:
         state: VehicleState,
         t_s: float,
         out: PositionOutput,
-        ref_now: FloatArray | None = None,
+        reference: ReferenceHorizon | None,
     ) -> None:
-        """One flight-log row; ``ref_now`` (9,): the trajectory at ``t_s`` when the tick has
-        it already (the first row of its horizon), else it is sampled here."""
+        """One flight-log row; ``reference``: what the tick flew (its stage 0 is logged), or
+        None when the tick failed before it had one (the vehicle's position is logged)."""
         if self._flight_writer is None:
             return
-        if ref_now is not None:
-            ref_pos, ref_vel = ref_now[:3], ref_now[3:6]
-        elif self.trajectory is not None:
-            row = self._reference_rows(t_s, 0.0, 0)[0]
-            ref_pos, ref_vel = row[:3], row[3:6]
+        if reference is not None:
+            ref_pos, ref_vel = reference.pos_ned_m[0], reference.vel_ned_m_s[0]
         else:
-            ref_pos, ref_vel = out.ref_pos_ned_m, np.zeros(3)
+            ref_pos, ref_vel = state.pos_ned_m, np.zeros(3)
         self._flight_writer.writerow(
             [f"{t_s:.4f}", f"{state.time_s:.4f}", self.outputs.phase.value]
             + [f"{v:.5f}" for v in (*state.pos_ned_m, *state.vel_ned_m_s, *ref_pos, *ref_vel)]

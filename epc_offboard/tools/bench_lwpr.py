@@ -29,9 +29,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from epc_offboard.control.cascade import EstimatorConfig
 from epc_offboard.control.lwpr import LWPR, LwprReference, warm_up
-from epc_offboard.control.perturbation import LwprPerturbation
+from epc_offboard.control.perturbation import EstimatorConfig, LwprPerturbation
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -215,11 +215,12 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
                       start_s=t_start)
     pos_t, att_t, rx_t = _Timer(POSITION_PARTS), _Timer(ATTITUDE_PARTS), _Timer(RECEIVE_PARTS)
     # the estimator's and the controller's calls inside the tick, timed where they are made
-    cascade.estimator = _Timed(  # type: ignore[assignment]
-        cascade.estimator, pos_t, "estimator",
+    loop = cascade.position
+    loop.estimator = _Timed(  # type: ignore[assignment]
+        loop.estimator, pos_t, "estimator",
         ("observe", "estimate", "variation", "estimate_along"),
     )
-    cascade.position = _Timed(cascade.position, pos_t, "epc", ("step",))
+    loop.controller = _Timed(loop.controller, pos_t, "epc", ("step",))
     pos_total: list[float] = []
     miss_total: list[float] = []  # position ticks that missed (intermediate controller)
     rx_total: list[float] = []
@@ -260,11 +261,10 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
                 pos_t.time("pump", misses.pump)
                 if state is None:
                     raise ServiceBenchError("no state at the start of the offboard phase")
-                rows = pos_t.time("reference", traj.horizon_from_now, t,
-                                  cascade.position_dt_s, cascade.position_horizon)
-                refs = rows[1:]  # row 0 (the reference now) is the service's flight log's
+                reference = pos_t.time("reference", traj.reference, t, loop.config.dt_s,
+                                       loop.config.horizon, loop.config.yaw_rad)
                 t0 = time.perf_counter()
-                target = cascade.position_tick(state, refs, learn=True)
+                target = cascade.position_tick(state, reference, learn=True)
                 whole = time.perf_counter() - t0
                 pos_t.tick["cascade_rest"] += whole - pos_t.tick["estimator"] - pos_t.tick["epc"]
                 sources[target.source] = sources.get(target.source, 0) + 1
@@ -287,7 +287,7 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
             misses.pump(wait=True)
     finally:
         misses.close()
-    epc_pos = cascade.position._inner if isinstance(cascade.position, _Timed) else None
+    epc_pos = loop.controller._inner if isinstance(loop.controller, _Timed) else None
     stats = epc_pos.stats if isinstance(epc_pos, ExperienceController) else None
     return {
         "recording": {"config": str(rec.config_path), "frames": len(rec.frames),

@@ -233,7 +233,7 @@ def config_problems(config_path: str) -> dict[str, MpcProblem]:
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz)
-    return {p.signature(): p for p in (cascade.pos_problem, cascade.att_problem)}
+    return {p.signature(): p for p in (cascade.position.problem, cascade.attitude.problem)}
 
 
 def validate_against_problems(

@@ -1,0 +1,358 @@
+"""The position loop (100 Hz): one tick from the vehicle state and the reference horizon to
+the attitude and thrust the vehicle should have.
+
+Pure numerics (no asyncio, no MAVLink). :meth:`PositionLoop.position_tick`:
+
+1. learn: the acceleration disturbance measured over the last prediction step,
+   ``d = (v_k - v_{k-n}) / dt - mean(a_achieved)``, where ``a_achieved`` is what the measured
+   attitude and the commanded thrust produce — so attitude-loop lag is not mistaken for wind;
+   the estimator (LWPR on velocity, a Kalman observer, or none) is updated with it at the
+   mean velocity over the same window;
+2. predict: ``d_hat`` = the estimator's low-pass-filtered estimate at the current velocity,
+   and ``d_k = d_hat + variation(v_ref[k])`` along the horizon (LWPR's learned d(v) at each
+   stage's reference velocity; no variation for the Kalman observer);
+3. model: x = [p_ned, v_ned, a_ned] with ``a`` the acceleration the attitude and thrust
+   produce, following the command u = a_cmd with the inner loop's first-order lag
+   ``tau_acc_s`` (:func:`~epc_offboard.control.models.position_model_lagged`);
+   ``x[k+1] = A x[k] + B u[k] + c~`` with ``c~ = c + E d_hat`` (thesis 3.1.1: the
+   perturbation enters the affine model; E: how an acceleration disturbance enters v), and
+   per stage ``u_p[k]``: the command that makes the lagged acceleration follow
+   ``a_ref - d_k`` — the reference's feedforward plus the input that cancels the disturbance
+   expected at that stage — so the input penalty fights neither;
+4. control: EPC (or PD / MPC-every-tick) over the reference horizon -> ``a_cmd``;
+5. map: ``a_cmd`` -> roll, pitch, yaw, thrust (thesis eq. 3.13, exact inverse, NED).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+
+from epc_offboard.common import frames
+from epc_offboard.common.frames import GRAVITY_M_S2, FloatArray
+from epc_offboard.control.baselines import MpcController, PdController
+from epc_offboard.control.decision import Controller, Decision
+from epc_offboard.control.epc import budgeted_controller
+from epc_offboard.control.models import (
+    AccelLimits,
+    AttitudeThrust,
+    accel_to_attitude,
+    acceleration_limits,
+    attitude_to_accel,
+    limit_tilt,
+    position_model_lagged,
+    velocity_disturbance_input,
+)
+from epc_offboard.control.perturbation import EstimatorConfig, PerturbationConfig, make_estimator
+from epc_offboard.control.qp import MpcProblem
+from epc_offboard.control.reference import ReferenceHorizon
+from epc_offboard.vehicle.state import VehicleState
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class PositionControlConfig:
+    # px4: a baseline, the autopilot's own position controller flies the reference
+    # (SET_POSITION_TARGET_LOCAL_NED with position, velocity and acceleration)
+    controller: Literal["epc", "pd", "mpc", "px4"] = "epc"
+    horizon: int = 20
+    dt_s: float = 0.05  # prediction step, separate from the loop period
+    q_pos: Vec3 = (20.0, 20.0, 30.0)
+    q_vel: Vec3 = (3.0, 3.0, 3.0)
+    q_acc: Vec3 = (0.0, 0.0, 0.0)  # weight on the achieved-acceleration error
+    # inner-loop lag from commanded to achieved acceleration, first order, per NED axis:
+    # horizontally the attitude loop's response (identified on the bundled SITL from
+    # commanded vs ground-truth acceleration), vertically the motors' (thrust is direct)
+    tau_acc_s: Vec3 = (0.12, 0.12, 0.03)
+    r_acc: Vec3 = (0.3, 0.3, 0.3)
+    max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
+    geofence_min_ned_m: Vec3 | None = None  # optional position box
+    geofence_max_ned_m: Vec3 | None = None
+    max_tilt_deg: float = 45.0  # PX4's MPC_TILTMAX_AIR default
+    hover_thrust_norm: float = 0.5  # PX4's MPC_THR_HOVER
+    min_thrust_norm: float = 0.08
+    max_thrust_norm: float = 0.95
+    yaw_deg: float = 0.0  # heading held while tracking
+    library_size: int = 400
+    # a library query's worst-case cost: bounds the candidates a miss checks (the most
+    # likely first: the last controller, its successors, then by importance). 3000 us of the
+    # worst-case model is ~190 position maps (a check usually exits within a few rows, at a
+    # fraction of that); 400 us (25 maps) left a saved library's controllers unchecked: a
+    # second zig-zag flight missed 122 ticks instead of 42, and a miss costs more than the
+    # checks it saves (the intermediate QP on the loop and a solve in the worker)
+    query_budget_us: float = 3000.0
+    pd_kp: Vec3 = (6.0, 6.0, 8.0)
+    pd_kd: Vec3 = (4.5, 4.5, 5.0)
+
+    def __post_init__(self) -> None:
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if self.dt_s <= 0.0:
+            raise ValueError(f"dt_s must be > 0, got {self.dt_s}")
+        if any(v <= 0.0 for v in self.max_vel_m_s):
+            raise ValueError(f"max_vel_m_s must be > 0, got {self.max_vel_m_s}")
+        if any(not t > 0.0 for t in self.tau_acc_s):
+            raise ValueError(f"tau_acc_s must be > 0, got {self.tau_acc_s}")
+        if any(q < 0.0 for q in (*self.q_pos, *self.q_vel, *self.q_acc)):
+            raise ValueError("q_pos, q_vel and q_acc must be >= 0")
+        if not 0.0 < self.min_thrust_norm < self.hover_thrust_norm < self.max_thrust_norm <= 1.0:
+            raise ValueError("need 0 < min_thrust_norm < hover_thrust_norm < max_thrust_norm <= 1")
+        if self.library_size < 1:
+            raise ValueError(f"library_size must be >= 1, got {self.library_size}")
+        if not self.query_budget_us > 0.0:
+            raise ValueError(f"query_budget_us must be > 0, got {self.query_budget_us}")
+
+    @property
+    def yaw_rad(self) -> float:
+        """The heading held while tracking a reference that has none of its own (rad)."""
+        return math.radians(self.yaw_deg)
+
+
+@dataclass(frozen=True)
+class PositionOutput:
+    """The position loop's answer: the attitude + thrust the vehicle should have."""
+
+    q_target: FloatArray  # [w, x, y, z] body FRD -> NED
+    euler_target_rad: Vec3  # roll, pitch, yaw
+    thrust_norm: float
+    acc_cmd_ned_m_s2: FloatArray
+    p_hat_ned_m_s2: FloatArray  # the acceleration disturbance estimate used
+    source: str
+    compute_us: float
+
+
+@dataclass
+class _Observation:
+    t_s: float  # when the velocity was measured (vehicle time of its position sample)
+    vel_ned_m_s: FloatArray
+    acc_achieved_ned_m_s2: FloatArray
+
+
+def position_problem(cfg: PositionControlConfig, limits: AccelLimits) -> MpcProblem:
+    """The position QP: the lagged model over ``cfg.horizon`` steps of ``cfg.dt_s``, the
+    velocity bounds and the geofence as state constraints, the tilt and thrust limits as
+    ``limits`` on the commanded acceleration."""
+    inf3 = np.full(3, math.inf)
+    vmax = np.array(cfg.max_vel_m_s, dtype=np.float64)
+    pmin = inf3 * -1 if cfg.geofence_min_ned_m is None else np.array(cfg.geofence_min_ned_m)
+    pmax = inf3 if cfg.geofence_max_ned_m is None else np.array(cfg.geofence_max_ned_m)
+    return MpcProblem(
+        position_model_lagged(cfg.dt_s, cfg.tau_acc_s),
+        horizon=cfg.horizon,
+        Q=np.concatenate([cfg.q_pos, cfg.q_vel, cfg.q_acc]),
+        R=np.array(cfg.r_acc, dtype=np.float64),
+        x_min=np.concatenate([pmin, -vmax, -inf3]),
+        x_max=np.concatenate([pmax, vmax, inf3]),
+        u_min=limits.u_min,
+        u_max=limits.u_max,
+        u_poly=(limits.P, limits.p),
+    )
+
+
+class PositionLoop:
+    """The position loop's numerics for one vehicle: its QP, controller and estimator.
+
+    ``loop_period_s``: the loop's period, the estimator's filter step. ``learn_on_miss``
+    False: an EPC miss applies the intermediate controller and queues θ for a worker
+    (``miss_solver.MissSolver``) instead of solving the full QP inside the tick.
+    """
+
+    def __init__(
+        self,
+        config: PositionControlConfig,
+        estimator: EstimatorConfig,
+        loop_period_s: float = 0.01,
+        *,
+        learn_on_miss: bool = True,
+    ) -> None:
+        cfg = self.config = config
+        self.estimator_cfg = estimator
+        self.loop_period_s = loop_period_s
+        self.acc_limits = acceleration_limits(
+            math.radians(cfg.max_tilt_deg),
+            cfg.min_thrust_norm,
+            cfg.max_thrust_norm,
+            cfg.hover_thrust_norm,
+        )
+        self.problem = position_problem(cfg, self.acc_limits)
+        self.controller: Controller
+        if cfg.controller == "epc":
+            self.controller = budgeted_controller(
+                self.problem, cfg.library_size, cfg.query_budget_us, learn_on_miss
+            )
+        elif cfg.controller == "mpc":
+            self.controller = MpcController(self.problem)
+        else:  # pd, and px4's (unused: the autopilot flies the reference)
+            self.controller = PdController(self.problem, kp=cfg.pd_kp, kd=cfg.pd_kd)
+        filtered = PerturbationConfig(
+            lwpr=replace(estimator.lwpr, dt_s=loop_period_s),
+            kf=replace(estimator.kf, dt_s=loop_period_s),
+        )
+        self.estimator = make_estimator(estimator.kind, 3, 3, filtered)
+        # a[k+1] = alpha a[k] + (1 - alpha) u[k] per axis: what the feedforward inverts
+        self.acc_alpha = np.exp(-cfg.dt_s / np.array(cfg.tau_acc_s, dtype=np.float64))
+        self._one_minus_alpha = 1.0 - self.acc_alpha
+        # (9, 3): how an acceleration disturbance enters one prediction step
+        self._e_dist = velocity_disturbance_input(self.problem.model)
+        # the disturbance estimate is not a command: it is bounded only by what the vehicle
+        # could ever compensate (clipping it to the command limits hid strong wind)
+        self._d_max = GRAVITY_M_S2 * cfg.max_thrust_norm / cfg.hover_thrust_norm
+        self._history: deque[_Observation] = deque(maxlen=64)
+        self._last_thrust_norm = math.nan
+        # the tick's scratch arrays (not kept by anything the tick returns)
+        self._z_stages = np.empty((cfg.horizon + 1, 3))  # estimator query: v of x_0..x_N
+        self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
+
+    def hold(self, pos_ned_m: FloatArray) -> ReferenceHorizon:
+        """At rest at ``pos_ned_m`` (3,) m, at the configured heading, over this horizon."""
+        return ReferenceHorizon.hold(pos_ned_m, self.config.yaw_rad, self.config.horizon)
+
+    def observe(self, state: VehicleState, achieved: FloatArray) -> None:
+        """Feed the estimator the disturbance measured over the last prediction step;
+        ``achieved`` (3,): :meth:`achieved_acceleration` at this state.
+
+        Velocities are taken on their own sample times, once per new position sample: a
+        velocity repeated while its stream lags (or stops, as when an estimator drops out)
+        would read as a disturbance cancelling the whole commanded acceleration. A sample
+        older than a prediction step clears the history: nothing is learnt across a gap.
+        """
+        dt_s = self.config.dt_s
+        if state.position_age_s > dt_s:
+            self._history.clear()
+            return
+        t_vel = state.time_s - state.position_age_s
+        if self._history and t_vel <= self._history[-1].t_s + 1e-9:
+            return  # no new velocity sample since the last observation
+        if not math.isnan(self._last_thrust_norm):
+            # ``achieved``: the measured attitude with the last commanded thrust
+            self._history.append(_Observation(t_vel, state.vel_ned_m_s.copy(), achieved))
+        if len(self._history) < 2:
+            return
+        newest = self._history[-1]
+        oldest = None
+        for obs in self._history:  # the oldest sample still within one prediction step
+            if newest.t_s - obs.t_s <= dt_s + 1e-9:
+                oldest = obs
+                break
+        if oldest is None or newest.t_s - oldest.t_s < 0.5 * dt_s:
+            return
+        span = newest.t_s - oldest.t_s
+        window = [
+            o.acc_achieved_ned_m_s2 for o in self._history if oldest.t_s <= o.t_s < newest.t_s
+        ]
+        d_meas = (newest.vel_ned_m_s - oldest.vel_ned_m_s) / span - np.mean(window, axis=0)
+        # d_meas is the mean disturbance over the window: pair it with the mean velocity
+        # over the same window (drag at the window's start would be a 1/2-window lag)
+        z = np.mean([o.vel_ned_m_s for o in self._history if o.t_s >= oldest.t_s], axis=0)
+        self.estimator.observe(z, d_meas)
+
+    def feedforward(self, refs: FloatArray) -> FloatArray:
+        """(N, 3) commands that make the model's lagged acceleration follow the reference's.
+
+        Exact inverse of ``a[k+1] = alpha a[k] + (1 - alpha) u[k]`` along the reference
+        accelerations ``refs[:, 6:9]`` (a_1..a_N, ``refs`` (N, 9) = stages 1..N); a_0 is
+        extrapolated linearly from a_1 and a_2 (exact for a piecewise-linear reference).
+        """
+        a_ref = refs[:, 6:9]
+        a_now = 2.0 * a_ref[0] - a_ref[1] if len(a_ref) >= 2 else a_ref[0]
+        return self.lag_inverse(np.vstack([a_now, a_ref]))
+
+    def lag_inverse(self, a: FloatArray) -> FloatArray:
+        """(N, 3) commands that make the lagged acceleration follow ``a`` (N+1, 3), the
+        values at x_0..x_N: ``u_k = (a_{k+1} - alpha a_k) / (1 - alpha)``."""
+        out: FloatArray = (a[1:] - self.acc_alpha * a[:-1]) / self._one_minus_alpha
+        return out
+
+    def achieved_acceleration(self, state: VehicleState) -> FloatArray:
+        """The acceleration (NED, gravity compensated) the measured attitude produces with the
+        last commanded thrust: the model's ``a`` state now."""
+        thrust = self._last_thrust_norm
+        if math.isnan(thrust):
+            thrust = self.config.hover_thrust_norm
+        roll, pitch, yaw = state.euler_rad
+        return attitude_to_accel(
+            AttitudeThrust(roll, pitch, yaw, thrust), self.config.hover_thrust_norm
+        )
+
+    def position_tick(
+        self, state: VehicleState, reference: ReferenceHorizon, *, learn: bool = True
+    ) -> PositionOutput:
+        """One position-loop tick towards ``reference`` (its stages 1..N for x[1..N], its
+        heading now for the attitude).
+
+        ``learn``: the vehicle is flying our commands, so the measured disturbance is real
+        (before offboard is confirmed, our thrust is not what flies and must not be learned).
+        """
+        t0 = time.perf_counter()
+        refs = reference.ahead
+        achieved = self.achieved_acceleration(state)
+        if learn:
+            self.observe(state, achieved)
+        else:
+            self._history.clear()
+        d_max = self._d_max
+        if isinstance(self.controller, PdController):
+            # thesis A.1: PD takes its acceleration feedforward from the reference horizon
+            # itself; the nominal input only cancels the disturbance
+            d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), -d_max, d_max)
+            u_p = np.broadcast_to(-d_hat, (self.config.horizon, 3))
+        else:
+            # the disturbance at each stage's reference velocity, as the estimator knows it
+            # (LWPR's d(v); zero change for the KF observer): the nominal input that keeps the
+            # lagged acceleration on a_ref - d along the horizon, not only on a_ref - d_hat.
+            # One prediction pass gives both the estimate at v (row 0) and its variation.
+            z_stages = self._z_stages
+            z_stages[0] = state.vel_ned_m_s
+            z_stages[1:] = refs[:, 3:6]  # v of x_0..x_N
+            p_hat, d_var = self.estimator.estimate_along(z_stages)
+            d_hat = np.clip(p_hat, -d_max, d_max)
+            d_var = np.clip(d_hat + d_var, -d_max, d_max) - d_hat
+            u_p = self.feedforward(refs) - d_hat - self.lag_inverse(d_var)
+        x0 = self._x0
+        x0[0:3] = state.pos_ned_m
+        x0[3:6] = state.vel_ned_m_s
+        x0[6:9] = achieved
+        decision: Decision = self.controller.step(
+            x0, refs, u_p, perturbation=self._e_dist @ d_hat
+        )
+        acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
+        out = self._attitude_target(acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0)
+        self._last_thrust_norm = out.thrust_norm
+        return out
+
+    def _attitude_target(
+        self, acc: FloatArray, yaw_rad: float, d_hat: FloatArray, source: str, t0: float
+    ) -> PositionOutput:
+        cfg = self.config
+        att = accel_to_attitude(acc, yaw_rad, cfg.hover_thrust_norm)
+        thrust = min(max(att.thrust_norm, cfg.min_thrust_norm), cfg.max_thrust_norm)
+        return PositionOutput(
+            q_target=frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad),
+            euler_target_rad=(att.roll_rad, att.pitch_rad, att.yaw_rad),
+            thrust_norm=thrust,
+            acc_cmd_ned_m_s2=acc,
+            p_hat_ned_m_s2=d_hat,
+            source=source,
+            compute_us=(time.perf_counter() - t0) * 1e6,
+        )
+
+    def hover(self, state: VehicleState) -> PositionOutput:
+        """The safe command when the position loop cannot answer: level, hover thrust."""
+        cfg = self.config
+        yaw = state.yaw_rad
+        self._last_thrust_norm = cfg.hover_thrust_norm
+        return PositionOutput(
+            q_target=frames.euler_to_quat(0.0, 0.0, yaw),
+            euler_target_rad=(0.0, 0.0, yaw),
+            thrust_norm=cfg.hover_thrust_norm,
+            acc_cmd_ned_m_s2=np.zeros(3),
+            p_hat_ned_m_s2=np.zeros(3),
+            source="fallback",
+            compute_us=0.0,
+        )

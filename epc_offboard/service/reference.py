@@ -1,0 +1,136 @@
+"""Which reference the position loop tracks, tick by tick.
+
+In offboard, a fresh live reference from a planner (``[reference] source = "zenoh"``) comes
+first; else the mission's trajectory, closing the gap to it after a hold (a failsafe, a
+pilot) with a :class:`~epc_offboard.control.trajectories.Rejoin`; else the hold point (the
+trajectory's anchor, or where the vehicle was when there was nothing else). Whichever it is
+arrives as one :class:`~epc_offboard.control.reference.ReferenceHorizon`: the position tick
+flies it and the flight log reads the reference now from it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+
+import numpy as np
+
+from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.position import PositionControlConfig
+from epc_offboard.control.reference import ReferenceHorizon
+from epc_offboard.control.trajectories import Rejoin, Trajectory, live_reference_horizon
+from epc_offboard.fleet.sharing import FleetSharing
+from epc_offboard.vehicle.state import VehicleState
+
+log = logging.getLogger("epc_offboard.service")
+
+
+class ReferenceSelector:
+    """Chooses the reference horizon of each position tick (the service's, one per vehicle).
+
+    ``position``: the horizon's length, step and default heading; ``live_timeout_s``: a live
+    reference older than this (wall time) is stale; ``counters``: the service's, where the
+    rejoins and stale live references are counted.
+    """
+
+    def __init__(
+        self, position: PositionControlConfig, live_timeout_s: float, counters: Counter[str]
+    ) -> None:
+        self.position = position
+        self.live_timeout_s = live_timeout_s
+        self.counters = counters
+        self.rejoin: Rejoin | None = None  # the way back onto the trajectory after a hold
+        self._hold_pos: FloatArray | None = None
+        self._live = False  # whether the last horizon came from a live reference
+
+    def hold_at(self, pos_ned_m: FloatArray) -> None:
+        """Hold ``pos_ned_m`` (3,) m when there is no trajectory nor live reference."""
+        self._hold_pos = np.asarray(pos_ned_m, dtype=np.float64).copy()
+
+    def start_rejoin(
+        self, trajectory: Trajectory | None, state: VehicleState, now_s: float
+    ) -> None:
+        """Setpoints start streaming, or offboard is (re)entered, while a trajectory has run
+        on (a failsafe, a pilot): the reference starts where the vehicle is and closes the
+        gap smoothly (trajectories.Rejoin) instead of asking for a far point at once."""
+        if trajectory is None:
+            return
+        self.rejoin = Rejoin.onto(
+            trajectory.sample(now_s), state.pos_ned_m, state.vel_ned_m_s, now_s,
+            trajectory.config.rejoin_tau_s,
+        )  # fmt: skip
+        gap = float(np.linalg.norm(self.rejoin.gap_ned_m))
+        if gap > 0.05:
+            self.counters["trajectory_rejoins"] += 1
+            log.info("rejoining the trajectory %.2f m away (tau %.1f s)", gap,
+                     self.rejoin.tau_s)  # fmt: skip
+
+    def horizon(
+        self,
+        state: VehicleState,
+        t_s: float,
+        trajectory: Trajectory | None,
+        sharing: FleetSharing | None,
+        *,
+        offboard: bool,
+    ) -> ReferenceHorizon:
+        """The position tick's reference at loop time ``t_s``: a fresh live reference from
+        ``sharing`` (``offboard`` only), else ``trajectory`` (rejoin included), else the hold."""
+        live = self._live_horizon(state, trajectory, sharing, offboard=offboard)
+        if live is not None:
+            return live
+        return self.now(state, t_s, trajectory, steps=self.position.horizon)
+
+    def now(
+        self, state: VehicleState, t_s: float, trajectory: Trajectory | None, *, steps: int = 0
+    ) -> ReferenceHorizon:
+        """The trajectory (rejoin included) or the hold, over stages 0..``steps`` from ``t_s``
+        (the default, stage 0 only: the reference now, as the px4 baseline sends it)."""
+        yaw_rad = self.position.yaw_rad
+        if trajectory is None:
+            if self._hold_pos is None:
+                self._hold_pos = state.pos_ned_m.copy()
+            return ReferenceHorizon.hold(self._hold_pos, yaw_rad, steps)
+        if self.rejoin is not None and self.rejoin.done(t_s):
+            self.rejoin = None
+        return trajectory.reference(t_s, self.position.dt_s, steps, yaw_rad, self.rejoin)
+
+    def _live_horizon(
+        self,
+        state: VehicleState,
+        trajectory: Trajectory | None,
+        sharing: FleetSharing | None,
+        *,
+        offboard: bool,
+    ) -> ReferenceHorizon | None:
+        """The horizon from a fresh live reference (offboard only), else None."""
+        ref = None
+        if sharing is not None and offboard:
+            ref = sharing.live_reference(time.monotonic(), self.live_timeout_s)
+        if (ref is not None) != self._live:
+            self._live = ref is not None
+            if ref is not None:
+                log.info("live reference: tracking from %s", list(ref.message.pos_ned_m))
+            elif sharing is not None:
+                self.counters["live_reference_stale"] += 1
+                log.warning(
+                    "live reference stale (> %.2f s): back to the %s",
+                    self.live_timeout_s,
+                    "trajectory" if trajectory is not None else "hold",
+                )
+                if trajectory is None:
+                    self.hold_at(state.pos_ned_m)
+        if ref is None:
+            return None
+        msg = ref.message
+        return live_reference_horizon(
+            msg.pos_ned_m,
+            msg.vel_ned_m_s,
+            msg.horizon_pos_ned_m,
+            msg.horizon_dt_s,
+            yaw_rad=self.position.yaw_rad if msg.yaw_rad is None else msg.yaw_rad,
+            age_s=time.monotonic() - ref.received_s,
+            dt_s=self.position.dt_s,
+            steps=self.position.horizon,
+        )

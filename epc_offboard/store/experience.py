@@ -1,0 +1,91 @@
+"""What of a vehicle's controllers is kept on disk, and how it comes back: the translation
+between a :class:`~epc_offboard.control.cascade.Cascade` and the
+:class:`~epc_offboard.store.library.LibraryStore`.
+
+Stored is experience, never gains: each EPC library (its active sets with importance, uses
+and origin, and the transitions between them) under its problem's signature, and the
+position loop's disturbance estimator as an opaque blob under the position problem's
+signature (also with a PD or MPC position controller, which keep no library).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+from epc_offboard.control.cascade import Cascade
+from epc_offboard.control.library import LibrarySnapshot, SignatureSnapshot, Transition
+from epc_offboard.store.library import LibraryStore
+
+log = logging.getLogger(__name__)
+
+
+def _estimator_key(cascade: Cascade) -> str:
+    return f"estimator.{cascade.position.estimator_cfg.kind}"
+
+
+def snapshot(cascade: Cascade) -> LibrarySnapshot:
+    """Every controller (importance, uses, transitions) and the estimator, copied now.
+
+    Take it on the thread that runs the loops (the library is not thread-safe); the copy
+    can then be saved (:meth:`LibraryStore.save_snapshot`) from a worker thread while the
+    loops fly on.
+    """
+    parts: dict[str, SignatureSnapshot] = {}
+    for _name, ctrl in cascade.experience_controllers():
+        entries = ctrl.export_library()
+        sets = [e.active_set for e in entries]
+        parts[ctrl.problem.signature()] = SignatureSnapshot(
+            tuple(entries),  # their origin travels with them (the store writes "" as solved)
+            tuple(
+                Transition(sets[a], sets[b], n) for (a, b), n in ctrl.export_transitions().items()
+            ),
+        )
+    pos_sig = cascade.position.problem.signature()
+    parts[pos_sig] = replace(
+        parts.get(pos_sig, SignatureSnapshot()),
+        models={_estimator_key(cascade): cascade.position.estimator.to_bytes()},
+    )
+    return LibrarySnapshot(parts)
+
+
+def save(cascade: Cascade, store: LibraryStore) -> None:
+    """Snapshot and save at once (on the loops' thread, e.g. at shutdown)."""
+    store.save_snapshot(snapshot(cascade))
+
+
+def load(cascade: Cascade, store: LibraryStore) -> dict[str, int]:
+    """Load the prior library (thesis M_prior) and estimator; returns counts per part.
+
+    Every stored controller is re-validated against this problem; one that fails is
+    skipped with a log line, never applied (and, as always, only KKT-checked use).
+    """
+    loaded: dict[str, int] = {}
+    for name, ctrl in cascade.experience_controllers():
+        sig = ctrl.problem.signature()
+        entries = store.load_controllers(sig)[: ctrl.max_size]
+        index = {e.active_set: i for i, e in enumerate(entries)}
+        transitions = {
+            (index[a], index[b]): n
+            for (a, b), n in store.load_transitions(sig).items()
+            if a in index and b in index and n >= 1
+        }
+        try:
+            loaded[name] = ctrl.import_entries(entries, "prior", transitions=transitions)
+        except ValueError as exc:
+            log.warning("stored %s library: %s; importing entry by entry", name, exc)
+            loaded[name] = 0
+            for e in entries:
+                try:
+                    loaded[name] += ctrl.import_entries([e], "prior")
+                except ValueError as exc_one:
+                    log.warning("stored %s controller %s skipped: %s", name, e.active_set, exc_one)
+    blob = store.load_model(_estimator_key(cascade), cascade.position.problem.signature())
+    if blob is not None:
+        try:
+            cascade.position.estimator.load_bytes(blob)
+            loaded["estimator"] = 1
+        except ValueError as exc:
+            log.warning("stored estimator ignored: %s", exc)
+    return loaded
+
