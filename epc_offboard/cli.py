@@ -11,7 +11,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Callable, Sequence
-from typing import cast
+from typing import TypeAlias, cast
 
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.errors import EXIT_RUNTIME, EXIT_USAGE, UsageError
@@ -55,7 +55,6 @@ class _HelpFormatter(argparse.HelpFormatter):
 
 def build_parser() -> argparse.ArgumentParser:
     from epc_offboard import __version__
-    from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 
     fmt = _HelpFormatter
     parser = argparse.ArgumentParser(
@@ -73,7 +72,28 @@ def build_parser() -> argparse.ArgumentParser:
         help="service config TOML (config/default.toml: a real vehicle; config/sitl.toml: "
         "flies `epc-sitl --instance 0`)",
     )  # fmt: skip
+    _add_sim(sub)
+    _add_bench(sub)
+    db = sub.add_parser(
+        "db",
+        help="the controller library on disk: info, export, import, merge",
+        description="Inspect a library file, export it, import an export or merge other "
+        "vehicles' library files into it (same problem signature only).",
+        formatter_class=fmt,
+    )
+    add_db_arguments(db)
+    _add_log(sub)
+    return parser
 
+
+# the subparsers' action: argparse has no public name for its type
+_Subparsers: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
+
+
+def _add_sim(sub: _Subparsers) -> None:
+    from epc_offboard.tools.sim.scenario import SCENARIO_DIR
+
+    fmt = _HelpFormatter
     sim = sub.add_parser(
         "sim", help="fly the bundled SITL with the service and report", formatter_class=fmt
     )
@@ -160,6 +180,10 @@ def build_parser() -> argparse.ArgumentParser:
         "e.g. --compare epc:lwpr,pd:none; writes compare.json and compare.png",
     )
 
+
+
+def _add_bench(sub: _Subparsers) -> None:
+    fmt = _HelpFormatter
     bench = sub.add_parser(
         "bench", help="compute benchmark: EPC vs OSQP vs DAQP", formatter_class=fmt
     )
@@ -190,28 +214,26 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="with --service: seconds of offboard flight to record (default: 12, one lap)",
     )
-
-    db = sub.add_parser(
-        "db",
-        help="the controller library on disk: info, export, import, merge",
-        description="Inspect a library file, export it, import an export or merge other "
-        "vehicles' library files into it (same problem signature only).",
-        formatter_class=fmt,
+    bench.add_argument(
+        "--lwpr",
+        action="store_true",
+        help="instead: LWPR's cost per control tick, compiled against the numpy reference "
+        "(ratios printed), and its learning curves",
     )
-    add_db_arguments(db)
 
+
+def _add_log(sub: _Subparsers) -> None:
     log_cmd = sub.add_parser(
         "log",
         help="export a per-tick flight log for plotting tools",
         description="Write a flight log (the service's flight_log_path CSV; sim: "
         "DIR/vehicleK/flight.csv) as MCAP with a JSON schema, which Foxglove Studio and "
         "PlotJuggler open.",
-        formatter_class=fmt,
+        formatter_class=_HelpFormatter,
     )
     log_cmd.add_argument("format", choices=["mcap"], help="the output format")
     log_cmd.add_argument("flight_csv", metavar="FLIGHT.csv", help="the per-tick flight log")
     log_cmd.add_argument("out", metavar="OUT.mcap", help="the file to write (replaced)")
-    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:

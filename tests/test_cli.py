@@ -51,3 +51,20 @@ def test_sim_help_lists_every_bundled_scenario():
     assert len(names) >= 5
     for name in names:
         assert name in text, f"scenario {name} missing from sim --help"
+
+
+def test_bench_lwpr_runs_the_lwpr_benchmark(monkeypatch):
+    """`epc-offboard bench --lwpr` is the LWPR benchmark's command (it was
+    `python -m epc_offboard.bench_lwpr` before the package layout), its --json passed on."""
+    from epc_offboard.cli import main
+    from epc_offboard.tools import bench_lwpr
+
+    seen: list[list[str] | None] = []
+
+    def fake_main(argv: list[str] | None = None) -> int:
+        seen.append(argv)
+        return 0
+
+    monkeypatch.setattr(bench_lwpr, "main", fake_main)
+    assert main(["bench", "--lwpr", "--json", "x.json"]) == 0
+    assert seen == [["--json", "x.json"]]

@@ -300,6 +300,10 @@ def format_table(report: dict[str, Any]) -> str:
 
 
 def run_bench_command(args: argparse.Namespace) -> int:
+    if getattr(args, "lwpr", False):
+        from epc_offboard.tools import bench_lwpr
+
+        return bench_lwpr.main(["--json", args.json] if args.json else [])
     if getattr(args, "service", False):
         from epc_offboard.tools.bench_service import ServiceBenchError, run_service_bench
 

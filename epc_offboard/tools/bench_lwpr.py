@@ -247,7 +247,7 @@ def bench_cross(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m epc_offboard.tools.bench_lwpr",
+        prog="epc-offboard bench --lwpr",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
