@@ -7,7 +7,7 @@ One asyncio TaskGroup with named tasks:
   rates, parameters and commands out);
 * ``position-loop``  — 100 Hz: state -> reference horizon -> Cascade.position_tick (EPC + LWPR);
 * ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
-  or the autopilot's own attitude loop fed quaternion + thrust (``attitude.mode = "autopilot"``);
+  or the autopilot's own attitude loop fed quaternion + thrust (``attitude.py``);
   both loops are ``loop.py``'s periodic loop around a tick of this module;
 * ``library-saver``  — new controllers and learned models to SQLite, off the event loop;
 * ``library-sharing`` — with ``[sharing] enabled``: offers controllers received from the
@@ -125,9 +125,6 @@ class Service:
     def outputs(self) -> Outputs:
         """The state machine's newest step."""
         return self.supervisor.outputs
-
-    def _streaming(self) -> bool:
-        return self.outputs.stream_setpoints
 
     # -- tasks ------------------------------------------------------------------------
 
@@ -425,7 +422,8 @@ class Service:
                 tg.create_task(self._saver(), name="library-saver")
                 if self.sharing is not None and self.sharing.share_library:
                     tg.create_task(self.sharing.run(), name="library-sharing")
-                tg.create_task(self.systemd.watchdog(self._streaming), name="systemd")
+                watchdog = self.systemd.watchdog(lambda: self.outputs.stream_setpoints)
+                tg.create_task(watchdog, name="systemd")
                 tg.create_task(loops.stop_watch(), name="stop")
         except* Stop:
             pass
