@@ -1,12 +1,15 @@
-"""Clocks and loop timing statistics."""
+"""Clocks, loop timing statistics, and the periodic loop both control loops run."""
 
 from __future__ import annotations
 
 import asyncio
+from collections import Counter
 
 import pytest
 
+from epc_offboard.common.logsetup import LogGate
 from epc_offboard.service.clock import VehicleClock, WallClock
+from epc_offboard.service.loop import Loops, Stop, Tick
 from epc_offboard.service.timing import LoopTiming
 
 
@@ -73,3 +76,44 @@ async def _wall_clock():
 
 def test_wall_clock_waits():
     asyncio.run(_wall_clock())
+
+
+async def _settle() -> None:
+    for _ in range(20):  # let the loop's task run until it waits again
+        await asyncio.sleep(0)
+
+
+async def _periodic(controlled: bool) -> tuple[list[tuple[float, float]], Counter[str], int]:
+    clock = VehicleClock()
+    loops = Loops(clock, Counter(), LogGate())
+    timing = LoopTiming(0.25)
+    seen: list[tuple[float, float]] = []
+
+    async def tick(t: Tick) -> bool:
+        assert t.period_s == 0.25
+        seen.append((t.start_s, t.scheduled_s))
+        return controlled
+
+    task = asyncio.create_task(loops.periodic("position", timing, tick))
+    await _settle()
+    for t_s in (0.25, 1.5):
+        clock.advance(t_s)
+        await _settle()
+    loops.stopping.set()
+    clock.advance(2.0)
+    with pytest.raises(Stop):
+        await task
+    return seen, loops.counters, timing.ticks
+
+
+def test_periodic_loop_skips_never_bursts_and_times_only_the_ticks_that_control():
+    seen, counters, timed = asyncio.run(_periodic(controlled=True))
+    # due at 0.5 but run at 1.5: one late tick, the three due times it missed skipped, then on
+    # time again at 1.5; never a burst of four catching up
+    assert seen == [(0.0, 0.0), (0.25, 0.25), (1.5, 0.5), (1.5, 1.5)]
+    assert counters["position_ticks_skipped"] == 3
+    assert timed == 4
+    seen, counters, timed = asyncio.run(_periodic(controlled=False))  # idle: not counted
+    assert len(seen) == 4
+    assert counters["position_ticks_skipped"] == 0
+    assert timed == 0

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from epc_offboard.vehicle import dialect_ardupilot as apm
 from epc_offboard.vehicle import dialect_px4 as px4
+from epc_offboard.vehicle.autopilots import choose
 from epc_offboard.vehicle.dialect import (
     MAV_CMD_DO_SET_MODE,
     Action,
@@ -19,7 +20,6 @@ from epc_offboard.vehicle.dialect import (
     FlightMode,
     Position,
     TakeoffTarget,
-    choose,
 )
 from epc_offboard.vehicle.offboard import (
     LANDED_STATE_IN_AIR,

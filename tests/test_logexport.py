@@ -9,13 +9,13 @@ import pytest
 from mcap.reader import make_reader
 
 from epc_offboard.cli import main
-from epc_offboard.service.service import _FLIGHT_LOG_COLUMNS
+from epc_offboard.service.flightlog import FLIGHT_LOG_COLUMNS
 
 
 def _row(k: int) -> list[str]:
     """Tick k as the service writes it: 4 and 5 decimals, negative and tiny values too."""
     row = []
-    for i, name in enumerate(_FLIGHT_LOG_COLUMNS):
+    for i, name in enumerate(FLIGHT_LOG_COLUMNS):
         if name == "phase":
             row.append(["streaming", "offboard", "landing"][k % 3])
         elif name == "source":
@@ -30,7 +30,7 @@ def _row(k: int) -> list[str]:
 def _write_csv(path, rows):
     with path.open("w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(_FLIGHT_LOG_COLUMNS)
+        writer.writerow(FLIGHT_LOG_COLUMNS)
         writer.writerows(rows)
     return path
 
@@ -58,12 +58,12 @@ def test_round_trip_same_values_and_times(tmp_path, capsys):
     assert channel.topic == "/flight"
     assert channel.message_encoding == "json"
     properties = json.loads(schema.data)["properties"]
-    assert list(properties) == _FLIGHT_LOG_COLUMNS
+    assert list(properties) == FLIGHT_LOG_COLUMNS
     assert properties["phase"] == {"type": "string"}
     assert properties["pos_n_m"] == {"type": ["number", "null"]}
     for row, (_, _, log_time_ns, message) in zip(rows, got, strict=True):
-        assert list(message) == _FLIGHT_LOG_COLUMNS
-        for name, cell in zip(_FLIGHT_LOG_COLUMNS, row, strict=True):
+        assert list(message) == FLIGHT_LOG_COLUMNS
+        for name, cell in zip(FLIGHT_LOG_COLUMNS, row, strict=True):
             want = cell if name in ("phase", "source") else float(cell)
             assert message[name] == want, name
         assert log_time_ns == round(float(row[1]) * 1e9)

@@ -665,3 +665,20 @@ class FleetSharing:
                 self._last_log.clear()
             self._last_log[(reason, peer)] = now
         log.warning(fmt, *args)
+
+
+async def open_or_fly_alone(
+    sharing: FleetSharing | None, counters: Counter[str]
+) -> FleetSharing | None:
+    """Join the fleet; a vehicle that cannot still flies, alone (logged, counted): returns
+    the open session, or None."""
+    if sharing is None:
+        return None
+    try:
+        await sharing.open()
+    except Exception as exc:
+        counters["sharing_open_failed"] += 1
+        log.error("fleet sharing unavailable, flying without it: %s", exc)
+        sharing.close()
+        return None
+    return sharing

@@ -23,6 +23,7 @@ import gc
 import logging
 import os
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -106,3 +107,18 @@ def apply_priority(priority: int) -> str:
     except OSError as exc:
         raise PriorityError(f"SCHED_FIFO priority {priority} refused: {exc}") from exc
     return f"SCHED_FIFO priority {priority}"
+
+
+def prepare(priority: int, monitor: GcMonitor, counters: Counter[str]) -> None:
+    """Start-up is over, the loops are next: freeze the start-up objects, time every
+    collection from now on, and raise the loops' priority if configured (a refusal is
+    logged and counted, never fatal)."""
+    frozen = freeze_startup_objects()
+    monitor.install()
+    try:
+        how = apply_priority(priority)
+    except PriorityError as exc:
+        counters["realtime_priority_refused"] += 1
+        how = "normal scheduling"
+        log.warning("loops.realtime_priority not applied: %s", exc)
+    log.info("loops: %s; %d start-up objects frozen out of the garbage collector", how, frozen)

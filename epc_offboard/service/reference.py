@@ -19,7 +19,12 @@ import numpy as np
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.position import PositionControlConfig
 from epc_offboard.control.reference import ReferenceHorizon
-from epc_offboard.control.trajectories import Rejoin, Trajectory, live_reference_horizon
+from epc_offboard.control.trajectories import (
+    Rejoin,
+    Trajectory,
+    TrajectoryConfig,
+    live_reference_horizon,
+)
 from epc_offboard.fleet.sharing import FleetSharing
 from epc_offboard.vehicle.state import VehicleState
 
@@ -27,33 +32,69 @@ log = logging.getLogger("epc_offboard.service")
 
 
 class ReferenceSelector:
-    """Chooses the reference horizon of each position tick (the service's, one per vehicle).
+    """Chooses the reference horizon of each position tick (the service's, one per vehicle),
+    and owns the mission's trajectory.
 
-    ``position``: the horizon's length, step and default heading; ``live_timeout_s``: a live
-    reference older than this (wall time) is stale; ``counters``: the service's, where the
-    rejoins and stale live references are counted.
+    ``position``: the horizon's length, step and default heading; ``trajectory_cfg``: the
+    mission's trajectory, started once offboard (:meth:`start_trajectory`) at the altitude
+    ``trajectory_altitude_m`` above home (None: where the vehicle is); ``live_timeout_s``: a
+    live reference older than this (wall time) is stale; ``counters``: the service's, where
+    the rejoins and stale live references are counted.
     """
 
     def __init__(
-        self, position: PositionControlConfig, live_timeout_s: float, counters: Counter[str]
+        self,
+        position: PositionControlConfig,
+        trajectory_cfg: TrajectoryConfig,
+        trajectory_altitude_m: float | None,
+        live_timeout_s: float,
+        counters: Counter[str],
     ) -> None:
         self.position = position
+        self.trajectory_cfg = trajectory_cfg
+        self.trajectory_altitude_m = trajectory_altitude_m
         self.live_timeout_s = live_timeout_s
         self.counters = counters
+        self.trajectory: Trajectory | None = None
         self.rejoin: Rejoin | None = None  # the way back onto the trajectory after a hold
         self._hold_pos: FloatArray | None = None
         self._live = False  # whether the last horizon came from a live reference
+
+    def start_trajectory(
+        self, state: VehicleState, altitude_m: float | None, now_s: float
+    ) -> None:
+        """Offboard is confirmed: the trajectory starts here, at its altitude above home
+        (``altitude_m``: the vehicle's height above home now, if known)."""
+        anchor = state.pos_ned_m.copy()
+        want = self.trajectory_altitude_m
+        if want is not None and altitude_m is not None:
+            anchor[2] += altitude_m - want  # down of home = down now + height above home
+        self.trajectory = Trajectory(self.trajectory_cfg, anchor, start_s=now_s)
+        self.hold_at(anchor)
+        log.info("trajectory %s started at %s", self.trajectory_cfg.shape,
+                 anchor.round(3).tolist())  # fmt: skip
+
+    def mission_complete(self, now_s: float, duration_s: float) -> bool:
+        """Whether the trajectory has been flown ``duration_s`` (> 0) seconds."""
+        traj = self.trajectory
+        return traj is not None and duration_s > 0 and now_s - traj.start_s >= duration_s
+
+    def reload(self, trajectory_cfg: TrajectoryConfig, now_s: float) -> None:
+        """A new trajectory configuration (SIGHUP): a running trajectory restarts with it
+        from its anchor."""
+        self.trajectory_cfg = trajectory_cfg
+        if self.trajectory is not None:
+            self.trajectory = Trajectory(trajectory_cfg, self.trajectory.anchor_ned_m, now_s)
 
     def hold_at(self, pos_ned_m: FloatArray) -> None:
         """Hold ``pos_ned_m`` (3,) m when there is no trajectory nor live reference."""
         self._hold_pos = np.asarray(pos_ned_m, dtype=np.float64).copy()
 
-    def start_rejoin(
-        self, trajectory: Trajectory | None, state: VehicleState, now_s: float
-    ) -> None:
+    def start_rejoin(self, state: VehicleState, now_s: float) -> None:
         """Setpoints start streaming, or offboard is (re)entered, while a trajectory has run
         on (a failsafe, a pilot): the reference starts where the vehicle is and closes the
         gap smoothly (trajectories.Rejoin) instead of asking for a far point at once."""
+        trajectory = self.trajectory
         if trajectory is None:
             return
         self.rejoin = Rejoin.onto(
@@ -67,27 +108,21 @@ class ReferenceSelector:
                      self.rejoin.tau_s)  # fmt: skip
 
     def horizon(
-        self,
-        state: VehicleState,
-        t_s: float,
-        trajectory: Trajectory | None,
-        sharing: FleetSharing | None,
-        *,
-        offboard: bool,
+        self, state: VehicleState, t_s: float, sharing: FleetSharing | None, *, offboard: bool
     ) -> ReferenceHorizon:
         """The position tick's reference at loop time ``t_s``: a fresh live reference from
-        ``sharing`` (``offboard`` only), else ``trajectory`` (rejoin included), else the hold."""
-        live = self._live_horizon(state, trajectory, sharing, offboard=offboard)
+        ``sharing`` (``offboard`` only), else the trajectory (rejoin included), else the
+        hold."""
+        live = self._live_horizon(state, sharing, offboard=offboard)
         if live is not None:
             return live
-        return self.now(state, t_s, trajectory, steps=self.position.horizon)
+        return self.now(state, t_s, steps=self.position.horizon)
 
-    def now(
-        self, state: VehicleState, t_s: float, trajectory: Trajectory | None, *, steps: int = 0
-    ) -> ReferenceHorizon:
+    def now(self, state: VehicleState, t_s: float, *, steps: int = 0) -> ReferenceHorizon:
         """The trajectory (rejoin included) or the hold, over stages 0..``steps`` from ``t_s``
         (the default, stage 0 only: the reference now, as the px4 baseline sends it)."""
         yaw_rad = self.position.yaw_rad
+        trajectory = self.trajectory
         if trajectory is None:
             if self._hold_pos is None:
                 self._hold_pos = state.pos_ned_m.copy()
@@ -97,12 +132,7 @@ class ReferenceSelector:
         return trajectory.reference(t_s, self.position.dt_s, steps, yaw_rad, self.rejoin)
 
     def _live_horizon(
-        self,
-        state: VehicleState,
-        trajectory: Trajectory | None,
-        sharing: FleetSharing | None,
-        *,
-        offboard: bool,
+        self, state: VehicleState, sharing: FleetSharing | None, *, offboard: bool
     ) -> ReferenceHorizon | None:
         """The horizon from a fresh live reference (offboard only), else None."""
         ref = None
@@ -117,9 +147,9 @@ class ReferenceSelector:
                 log.warning(
                     "live reference stale (> %.2f s): back to the %s",
                     self.live_timeout_s,
-                    "trajectory" if trajectory is not None else "hold",
+                    "trajectory" if self.trajectory is not None else "hold",
                 )
-                if trajectory is None:
+                if self.trajectory is None:
                     self.hold_at(state.pos_ned_m)
         if ref is None:
             return None

@@ -53,6 +53,7 @@ from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.trajectories import Trajectory
 from epc_offboard.service.config import load_service_config
 from epc_offboard.service.miss_solver import MissSolver
+from epc_offboard.vehicle import commands
 from epc_offboard.vehicle.state import StateTracker
 
 ATTITUDE_PERIOD_S = 0.005
@@ -60,7 +61,6 @@ POSITION_PERIOD_S = 0.01
 POSITION_PARTS = ("pump", "state", "reference", "estimator", "epc", "cascade_rest")
 ATTITUDE_PARTS = ("state", "attitude", "encode")
 RECEIVE_PARTS = ("decode", "state")
-_IGNORE_ATTITUDE = 0b10000000  # body rates + thrust, as the service sends in rates mode
 
 _T = TypeVar("_T")
 
@@ -161,18 +161,16 @@ class _Timed:
 
 
 def _encode_setpoint(
-    mav: mavlink.MAVLink, system: int, component: int, t_s: float, q: np.ndarray,
-    rates: np.ndarray | None, thrust_norm: float, rmax: np.ndarray,
+    mav: mavlink.MAVLink, to: commands.Target, t_s: float, q: np.ndarray,
+    rates: np.ndarray | None, thrust_norm: float, rmax: tuple[float, float, float],
+    hover: commands.AttitudeSetpoint,
 ) -> None:
-    """SET_ATTITUDE_TARGET packed as the service sends it (rates bounded, or the attitude
-    alone when there are no rates)."""
-    if rates is None:
-        r, mask = [0.0, 0.0, 0.0], 0b00000111
-    else:
-        r, mask = [float(v) for v in np.clip(rates, -rmax, rmax)], _IGNORE_ATTITUDE
-    mav.send(mav.set_attitude_target_encode(
-        round(t_s * 1e3), system, component, mask, [float(v) for v in q], *r,
-        min(max(float(thrust_norm), 0.0), 1.0)))
+    """SET_ATTITUDE_TARGET encoded (``vehicle/commands.py``, as the service does) and packed."""
+    setpoint = commands.AttitudeSetpoint.of(q, rates, thrust_norm)
+    msg, _ = commands.attitude_target(
+        to, t_s, setpoint, max_rate_rad_s=rmax, fallback=lambda: hover
+    )
+    mav.send(msg)
 
 
 def _wait_for_solves(misses: MissSolver) -> None:
@@ -227,7 +225,10 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
     att_total: list[float] = []
     sources: dict[str, int] = {}
     attitude_sources: dict[str, int] = {}
-    rmax = np.array(cfg.attitude.max_rate_rad_s)
+    rmax = cfg.attitude.max_rate_rad_s
+    to = commands.Target(cfg.link.target_system, cfg.link.target_component)
+    # (the service's NaN fallback is a level hover at the state's yaw; never taken here)
+    hover = commands.AttitudeSetpoint((1.0, 0.0, 0.0, 0.0), None, cfg.position.hover_thrust_norm)
     i_frame = 0
     # the frames before offboard set up the tracker's timelines (its warnings about the
     # recording's own take-off are not the replay's business)
@@ -279,9 +280,8 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
             else:
                 out = att_t.time("attitude", cascade.attitude_fallback, state, target)
             attitude_sources[out.source] = attitude_sources.get(out.source, 0) + 1
-            att_t.time("encode", _encode_setpoint, mav, cfg.link.target_system,
-                       cfg.link.target_component, t, target.q_target, out.rates_frd_rad_s,
-                       out.thrust_norm, rmax)
+            att_t.time("encode", _encode_setpoint, mav, to, t, target.q_target,
+                       out.rates_frd_rad_s, out.thrust_norm, rmax, hover)
             att_total.append(att_t.close_tick())
         if worker:
             misses.pump(wait=True)

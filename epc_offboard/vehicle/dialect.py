@@ -6,11 +6,12 @@ altitude, start offboard control, hold, land — and reads the heartbeat as one 
 *how*: the command for each intent and how a heartbeat's custom_mode decodes. Dialects are
 pure (values in, values out) and never put a NaN or an infinity into a command.
 
-    dialect = choose("auto", heartbeat.autopilot)      # or choose("ardupilot", ...)
+    dialect = autopilots.choose("auto", heartbeat.autopilot)   # or choose("ardupilot", ...)
     cmd = dialect.encode(Action.TAKEOFF, target, position)
 
 The intents and their values live here, so the state machine and the dialects share them
-without importing each other.
+without importing each other; ``autopilots.py`` is the registry that knows every dialect
+(here it would make an import cycle: each dialect imports this module).
 """
 
 from __future__ import annotations
@@ -144,22 +145,3 @@ class Dialect:
     # why offboard (GUIDED) must not be requested nor setpoints sent, given the parameters
     # read so far ("" when they may)
     offboard_refusal: Callable[[Mapping[str, float]], str]
-
-
-def choose(setting: str, heartbeat_autopilot: int | None) -> Dialect | None:
-    """The dialect for ``link.autopilot`` (``auto``: from HEARTBEAT.autopilot; None while
-    unknown or not an autopilot we speak). Raises ValueError on an unknown setting."""
-    from epc_offboard.vehicle import dialect_ardupilot, dialect_px4
-
-    if setting not in AUTOPILOT_SETTINGS:
-        known = ", ".join(AUTOPILOT_SETTINGS)
-        raise ValueError(f"autopilot must be one of {known}, got {setting!r}")
-    if setting == "px4":
-        return dialect_px4.PX4
-    if setting == "ardupilot":
-        return dialect_ardupilot.ARDUPILOT
-    if heartbeat_autopilot == MAV_AUTOPILOT_PX4:
-        return dialect_px4.PX4
-    if heartbeat_autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
-        return dialect_ardupilot.ARDUPILOT
-    return None

@@ -1,0 +1,305 @@
+"""The autopilot as the service knows it, over the link: what it says (state, dialect,
+parameters, position fix, landed state, acknowledgements, received rates) and what the
+service asks of it (message rates, parameters, the state machine's actions as commands).
+
+Messages arrive through the link's callback (:meth:`Autopilot.on_message`); every command
+is encoded by ``vehicle/commands.py``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.common.logsetup import LogGate
+from epc_offboard.common.signing import load_signing_key
+from epc_offboard.service.clock import Clock, VehicleClock
+from epc_offboard.service.config import ServiceConfig
+from epc_offboard.vehicle import commands
+from epc_offboard.vehicle.autopilots import choose
+from epc_offboard.vehicle.dialect import (
+    MAV_AUTOPILOT_INVALID,
+    Action,
+    Command,
+    Dialect,
+    EncodeError,
+    Position,
+    TakeoffTarget,
+)
+from epc_offboard.vehicle.link import MavlinkLink, TlogWriter
+from epc_offboard.vehicle.rates import RateMonitor
+from epc_offboard.vehicle.state import StateTracker, VehicleState
+
+log = logging.getLogger("epc_offboard.service")
+
+_RATE_WINDOW_S = 2.0  # received rates are measured over windows this long
+_GLOBAL_MAX_AGE_S = 1.0  # GLOBAL_POSITION_INT older than this is not used
+
+
+@dataclass(frozen=True)
+class GlobalFix:
+    """The newest GLOBAL_POSITION_INT: what an explicit takeoff altitude is computed from."""
+
+    lat_e7: int
+    lon_e7: int
+    amsl_m: float
+    relative_alt_m: float
+    received_s: float  # loop clock
+
+
+class Autopilot:
+    """The conversation with one autopilot. ``cfg`` may be replaced (SIGHUP): it is read
+    where used. Counts into the shared ``counters``."""
+
+    def __init__(
+        self,
+        cfg: ServiceConfig,
+        clock: Clock,
+        tracker: StateTracker,
+        counters: Counter[str],
+        log_gate: LogGate,
+    ) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.tracker = tracker
+        self.counters = counters
+        self._log_gate = log_gate
+        self.target = commands.Target(cfg.link.target_system, cfg.link.target_component)
+        # the autopilot's dialect: forced by link.autopilot, else from its first heartbeat
+        # (until then the state machine sees no heartbeat: nothing is commanded)
+        self.dialect: Dialect | None = choose(cfg.link.autopilot, None)
+        self.params: dict[str, float] = {}  # autopilot parameters read (PARAM_VALUE)
+        self.rates = RateMonitor(
+            {
+                "ATTITUDE_QUATERNION": cfg.loops.attitude_rate_hz,
+                "LOCAL_POSITION_NED": cfg.loops.position_rate_hz,
+            }
+        )
+        self.landed_state: int | None = None  # EXTENDED_SYS_STATE, when the autopilot says
+        self.last_rx_wall_s = -math.inf  # time.monotonic() of the last message
+        self._global: GlobalFix | None = None
+        self._params_requested_at = -math.inf
+        self._rates_requested_at = -math.inf
+        tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
+        key = load_signing_key(cfg.link.signing_key_file) if cfg.link.signing_key_file else None
+        self.link = MavlinkLink(
+            cfg.link.url,
+            system_id=cfg.link.system_id,
+            component_id=cfg.link.component_id,
+            on_message=self.on_message,
+            accept_system_ids=frozenset({cfg.link.target_system}),
+            signing_key=key,
+            tlog=tlog,
+        )
+
+    # -- what it says ----------------------------------------------------------------------
+
+    def on_message(self, msg: Any) -> None:
+        """The link's callback, for every message from the target system."""
+        self.last_rx_wall_s = time.monotonic()
+        now = self.clock.now_s()  # in lockstep vehicle time: heartbeat ages are too
+        held = self.tracker.heartbeat
+        if self.tracker.handle(msg, received_s=now) and isinstance(self.clock, VehicleClock):
+            self.clock.advance(self.tracker.vehicle_time_s)
+        mtype = msg.get_type()
+        self.rates.record(mtype)
+        hb = self.tracker.heartbeat
+        if mtype == "HEARTBEAT" and hb is not None and hb is not held:
+            # only a heartbeat the tracker accepted (the autopilot's component and kind)
+            self._adopt_dialect(hb.autopilot)
+        elif mtype == "GLOBAL_POSITION_INT":
+            amsl, rel = msg.alt * 1e-3, msg.relative_alt * 1e-3
+            if math.isfinite(amsl) and math.isfinite(rel) and abs(rel) < 1e5:
+                self._global = GlobalFix(msg.lat, msg.lon, amsl, rel, now)
+        elif mtype == "EXTENDED_SYS_STATE":
+            self.landed_state = int(msg.landed_state)
+        elif mtype == "PARAM_VALUE" and msg.get_srcSystem() == self.target.system_id:
+            self._on_param(msg)
+        elif mtype == "COMMAND_ACK":
+            # two counters, whatever the wire says: a fuzzing peer cannot grow the dict
+            accepted = msg.result in (mavlink.MAV_RESULT_ACCEPTED, 5)  # 5: in progress
+            self.counters["acks_accepted" if accepted else "acks_refused"] += 1
+            if not accepted and self._log_gate.open("ack", 1.0):
+                log.info(
+                    "command %d answered with result %d (%d refusals so far)",
+                    msg.command, msg.result, self.counters["acks_refused"],
+                )  # fmt: skip
+
+    def _adopt_dialect(self, autopilot: int) -> None:
+        """The dialect from HEARTBEAT.autopilot (link.autopilot "auto"), once; a forced one
+        that the heartbeat contradicts is kept, and the contradiction logged and counted."""
+        if autopilot == MAV_AUTOPILOT_INVALID:
+            return  # a camera or gimbal of the vehicle
+        if self.dialect is None:
+            dialect = choose("auto", autopilot)
+            if dialect is None:
+                self.counters["heartbeats_unknown_autopilot"] += 1
+                if self._log_gate.open("autopilot", 10.0):
+                    log.error(
+                        "HEARTBEAT.autopilot %d is neither PX4 (12) nor ArduPilot (3): "
+                        "nothing is commanded; set link.autopilot to fly it", autopilot,
+                    )  # fmt: skip
+                return
+            self.dialect = dialect
+            log.info(
+                "autopilot dialect %s (HEARTBEAT.autopilot %d), attitude mode %s",
+                dialect.name, autopilot, self.attitude_mode,
+            )  # fmt: skip
+            if self.cfg.attitude.mode == "epc" and dialect.default_attitude_mode != "epc":
+                log.warning(
+                    "attitude.mode = \"epc\" (body rates) on %s: its shaped rate response is "
+                    "not the identified model; \"auto\" flies quaternion mode", dialect.name,
+                )  # fmt: skip
+        elif autopilot != self.dialect.autopilot:
+            self.counters["heartbeats_other_autopilot"] += 1
+            if self._log_gate.open("autopilot", 10.0):
+                log.error(
+                    "link.autopilot = %s but HEARTBEAT.autopilot is %d: speaking %s anyway",
+                    self.cfg.link.autopilot, autopilot, self.dialect.name,
+                )  # fmt: skip
+
+    @property
+    def attitude_mode(self) -> str:
+        """attitude.mode, "auto" resolved by the dialect ("epc" until one is known)."""
+        mode = self.cfg.attitude.mode
+        if mode != "auto":
+            return mode
+        return "epc" if self.dialect is None else self.dialect.default_attitude_mode
+
+    def _on_param(self, msg: Any) -> None:
+        name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else ""
+        value = float(msg.param_value)
+        if self.dialect is None or name not in self.dialect.params_to_read:
+            return
+        if self.params.get(name) != value:
+            log.info("autopilot parameter %s = %g", name, value)
+        self.params[name] = value
+        hover = self.cfg.position.hover_thrust_norm
+        if name == "MOT_THST_HOVER" and math.isfinite(value) and abs(value - hover) > 0.05:
+            self.counters["hover_thrust_mismatch"] += 1
+            log.warning(
+                "MOT_THST_HOVER is %.3f but position.hover_thrust_norm is %.3f: set it to "
+                "the autopilot's learned hover throttle", value, hover,
+            )  # fmt: skip
+
+    def wire_thrust(self, thrust_norm: float, state: VehicleState) -> float:
+        """The collective thrust as the autopilot reads it at ``state``'s tilt (ArduCopter
+        adds its own tilt boost)."""
+        if self.dialect is None:
+            return thrust_norm
+        roll, pitch, _ = state.euler_rad
+        return self.dialect.wire_thrust(thrust_norm, math.cos(roll) * math.cos(pitch))
+
+    def offboard_refusal(self) -> str:
+        """Why offboard must not be requested, nor setpoints sent ("" when they may)."""
+        return "" if self.dialect is None else self.dialect.offboard_refusal(self.params)
+
+    def fresh_global(self) -> GlobalFix | None:
+        """The newest GLOBAL_POSITION_INT, if younger than a second of loop time."""
+        fix = self._global
+        if fix is None or self.clock.now_s() - fix.received_s > _GLOBAL_MAX_AGE_S:
+            return None
+        return fix
+
+    # -- what the service asks of it --------------------------------------------------------
+
+    def send_command(self, cmd: Command) -> None:
+        self.link.send(commands.command_message(self.target, cmd))
+        self.counters["commands_sent"] += 1
+
+    def do_action(
+        self, action: Action, takeoff: TakeoffTarget | None, state: VehicleState | None
+    ) -> None:
+        """The state machine's ``action`` as the dialect's command (``takeoff``: its target
+        when the action is TAKEOFF); not sent while the parameters refuse offboard, nor when
+        it cannot be encoded with finite values (both logged and counted)."""
+        if self.dialect is None:
+            return  # (the state machine sees no heartbeat before a dialect is chosen)
+        why = self.offboard_refusal() if action == Action.REQUEST_OFFBOARD else ""
+        if why:
+            self.counters["offboard_refused"] += 1
+            if self._log_gate.open("refusal", 10.0):
+                log.error(
+                    "not requesting offboard (%s GUIDED) nor sending setpoints: %s "
+                    "(%d refusals so far)", self.dialect.name, why,
+                    self.counters["offboard_refused"],
+                )  # fmt: skip
+            return
+        fix = self.fresh_global()
+        position = (
+            None
+            if fix is None or state is None
+            else Position(fix.lat_e7, fix.lon_e7, math.degrees(state.yaw_rad))
+        )
+        try:
+            cmd = self.dialect.encode(action, takeoff, position)
+        except EncodeError as exc:
+            self.counters["commands_not_encoded"] += 1
+            log.error("action %s not sent: %s", action.value, exc)
+            return
+        if action == Action.TAKEOFF and takeoff is not None:
+            self.counters["takeoffs_sent"] += 1
+            log.info(
+                "action: takeoff to %.2f m above home (%.2f m AMSL)",
+                takeoff.above_home_m, takeoff.amsl_m,
+            )  # fmt: skip
+        else:
+            log.info("action: %s", action.value)
+        self.send_command(cmd)
+
+    def manage(self, now: float, link_up: bool) -> None:
+        """Each supervisor step: the message rates, then the parameters."""
+        self._manage_rates(now, link_up)
+        self._manage_params(now, link_up)
+
+    def _manage_rates(self, now: float, link_up: bool) -> None:
+        """Ask for the loops' rates when the link comes up, then again (at most every
+        retry_period_s) while a measured stream falls short."""
+        measured = self.rates.sample(now, _RATE_WINDOW_S)
+        if not link_up:
+            return
+        first = self._rates_requested_at == -math.inf
+        short = measured and self.rates.short()
+        if (first or short) and now - self._rates_requested_at >= self.cfg.offboard.retry_period_s:
+            if short:
+                self.counters["rate_requests_repeated"] += 1
+                log.info(
+                    "message rates short of the loops' (%s): asking again",
+                    ", ".join(f"{k} {self.rates.rates_hz[k]:.0f} Hz" for k in short),
+                )
+            self._rates_requested_at = now
+            loops = self.cfg.loops
+            extra = () if self.dialect is None else self.dialect.extra_streams_hz
+            for cmd in commands.rate_requests(
+                loops.attitude_rate_hz, loops.position_rate_hz, extra
+            ):
+                self.send_command(cmd)
+
+    def _manage_params(self, now: float, link_up: bool) -> None:
+        """Read the dialect's parameters at link-up; again (every retry_period_s) while one
+        is missing or while they refuse offboard (the user may be setting it now)."""
+        if not link_up or self.dialect is None:
+            return
+        wanted = [
+            name
+            for name in self.dialect.params_to_read
+            if name not in self.params or self.offboard_refusal()
+        ]
+        if not wanted or now - self._params_requested_at < self.cfg.offboard.retry_period_s:
+            return
+        self._params_requested_at = now
+        for name in wanted:
+            self.link.send(commands.param_request(self.target, name))
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "autopilot": None if self.dialect is None else self.dialect.name,
+            "attitude_mode": self.attitude_mode,
+            "params": dict(self.params),
+        }

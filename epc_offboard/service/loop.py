@@ -1,0 +1,118 @@
+"""The service's tasks on the loop clock: waiting for a time, and the one periodic-loop
+skeleton both control loops run (wait, tick, timing record, next tick).
+
+In lockstep the loop clock is the vehicle's (``clock.VehicleClock``): a control tick waits
+for the vehicle time it is due at however long a loaded machine takes, since a tick run
+early, at a stale vehicle time, would make two identical lockstep runs differ.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import Counter
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import NoReturn
+
+from epc_offboard.common.logsetup import LogGate
+from epc_offboard.service.clock import Clock
+from epc_offboard.service.timing import LoopTiming
+
+log = logging.getLogger("epc_offboard.service")
+
+
+class Stop(Exception):  # noqa: N818 - control flow, not an error
+    """Raised inside the service's TaskGroup to end it cleanly."""
+
+
+@dataclass(frozen=True)
+class Tick:
+    """One tick of a periodic loop, on the loop clock (s)."""
+
+    start_s: float  # when it runs
+    scheduled_s: float  # when it was due
+    period_s: float
+
+
+class Loops:
+    """Waits on the loop clock for the service's tasks, ends them once a stop is asked, and
+    runs the periodic loops. Counts ``clock_wait_timeouts`` and, per loop, ticks skipped
+    and loop errors into ``counters``."""
+
+    def __init__(self, clock: Clock, counters: Counter[str], log_gate: LogGate) -> None:
+        self.clock = clock
+        self.counters = counters
+        self._log_gate = log_gate
+        self.stopping = asyncio.Event()
+
+    async def wait(self, t_s: float, *, until_reached: bool = False) -> None:
+        """Wait for loop time t_s; in lockstep never longer than a wall-clock second, unless
+        ``until_reached``: the control loops then wait for the vehicle clock however long it
+        takes, checking for a stop every second. Raises :class:`Stop` once a stop is asked."""
+        while True:
+            try:
+                async with asyncio.timeout(1.0):
+                    await self.clock.wait_until(t_s)
+                break
+            except TimeoutError:
+                # (not before the vehicle clock has started: an autopilot that streams nothing
+                # until asked, as ArduCopter, gives no time until the loops' rates are requested)
+                if self.clock.now_s() > 0.0:
+                    self.counters["clock_wait_timeouts"] += 1
+            if not until_reached or self.stopping.is_set():
+                break
+        if self.stopping.is_set():
+            raise Stop
+
+    async def stop_watch(self) -> NoReturn:
+        """A task that ends the TaskGroup once a stop is asked."""
+        await self.stopping.wait()
+        raise Stop
+
+    async def periodic(
+        self,
+        name: str,
+        timing: LoopTiming,
+        tick: Callable[[Tick], Awaitable[bool]],
+    ) -> NoReturn:
+        """Run ``tick`` every ``timing.period_s`` of loop time, forever. ``tick`` returns
+        whether it controlled (setpoints stream): only those ticks are timed, and only their
+        skips counted (``{name}_ticks_skipped``); before that the loops idle."""
+        period = timing.period_s
+        t_next = self.clock.now_s()
+        while True:
+            await self.wait(t_next, until_reached=True)
+            start = self.clock.now_s()
+            wall0 = time.perf_counter()
+            controlled = await tick(Tick(start, t_next, period))
+            if controlled:
+                timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
+            t_next = self._next_tick(t_next, period, name if controlled else None)
+
+    def _next_tick(self, t_next: float, period: float, counted: str | None) -> float:
+        """The next tick time; when more than a tick behind, skip (never burst), counted
+        under ``{counted}_ticks_skipped`` unless None."""
+        t_next += period
+        now = self.clock.now_s()
+        if t_next - now > period:
+            # the wait timed out: the clock did not move (lockstep, before an autopilot that
+            # streams nothing until asked sends state): run on from the clock, never ahead
+            # of it (ahead, every tick would cost a wait timeout)
+            t_next = now + period
+        if now - t_next > period:
+            skipped = int((now - t_next) / period)
+            if counted is not None:
+                self.counters[f"{counted}_ticks_skipped"] += skipped
+            t_next += skipped * period
+        return t_next
+
+    def error(self, loop: str, exc: Exception) -> None:
+        """A tick of ``loop`` degraded to hover after ``exc``: counted, logged (rate-limited)."""
+        self.counters[f"{loop}_loop_errors"] += 1
+        if self._log_gate.open("loop_error", 1.0):
+            log.error(
+                "%s loop degraded to hover after %s: %s (%d so far)",
+                loop, type(exc).__name__, exc, self.counters[f"{loop}_loop_errors"],
+            )  # fmt: skip
