@@ -330,6 +330,80 @@ def test_a_failed_solve_and_intermediate_degrade_to_bounded_hover(monkeypatch):
     assert ctrl.stats.fallback == 1
 
 
+def intermediate_reference(short: MpcProblem, theta: np.ndarray, w: float):
+    """The intermediate QP (thesis 3.1.3) built from its definition and solved by OSQP at
+    eps 1e-10, polished (exact at the active set it identifies): ``(u0 (nu,), s (m_x,))``.
+
+    ``min 1/2 U'HU + h'U + w/2 |s|^2 + w 1's`` s.t. ``Gx U - s <= gamma_x``, ``s >= 0``,
+    every input row of ``G U <= gamma`` hard."""
+    from epc_offboard.control.qp import OsqpSolver
+
+    h, gamma = short.vectors(theta)
+    is_x = np.array([r.kind == "x" for r in short.rows])
+    n_s, n_u = int(is_x.sum()), short.n_u
+    P = np.block([[short.H, np.zeros((n_u, n_s))], [np.zeros((n_s, n_u)), w * np.eye(n_s)]])
+    S = np.zeros((len(short.rows), n_s))
+    S[np.flatnonzero(is_x), np.arange(n_s)] = -1.0
+    A = np.vstack([np.hstack([short.G, S]), np.hstack([np.zeros((n_s, n_u)), -np.eye(n_s)])])
+    solver = OsqpSolver(P, A, polish=True, eps_abs=1e-10, eps_rel=1e-10, max_iter=200000)
+    res = solver.solve(np.concatenate([h, np.full(n_s, w)]), np.concatenate([gamma,
+                                                                             np.zeros(n_s)]))
+    assert res.polished, res.status
+    return short.clip_input(res.x[: short.nu]), res.x[n_u:]
+
+
+intermediate_case = st.fixed_dictionaries({
+    "tilt": st.booleans(),
+    "pos_m": st.lists(st.floats(-8, 8), min_size=3, max_size=3).map(np.array),
+    # beyond the bounds by more than one step's braking: the state bounds cannot all hold
+    "vel_m_s": st.lists(st.floats(-9, 9), min_size=3, max_size=3).map(np.array),
+    "tgt": target,
+    "p_hat": st.lists(st.floats(-0.3, 0.3), min_size=3, max_size=3).map(np.array),
+    "horizon": st.integers(1, 6),
+})
+
+
+@settings(max_examples=60, deadline=None)
+@given(case=intermediate_case)
+def test_intermediate_input_equals_an_exact_reference_solve(case):
+    """DAQP's intermediate input (a miss tick's) equals the intermediate QP's optimum solved
+    independently, also where the state bounds cannot all hold and slack takes them."""
+    full = tilt_problem(10) if case["tilt"] else position_problem(10)
+    nx = full.nx
+    x0 = np.zeros(nx)
+    x0[:3], x0[3:6] = case["pos_m"], case["vel_m_s"]
+    pert = np.zeros(nx)
+    pert[3:6] = 0.1 * case["p_hat"]  # a wind's velocity change per step, m/s
+    refs = hover_refs(full, case["tgt"])
+    w = 1e3
+    ctrl = ExperienceController(full, intermediate_horizon=case["horizon"], slack_weight=w,
+                                learn_on_miss=False)
+    qp = ctrl._intermediate_qp
+    qp.solve(full.theta(np.zeros(nx), refs))  # hot start from another tick's working set
+    u = qp.solve(full.theta(x0, refs, perturbation=pert))
+    short = full.with_horizon(case["horizon"])
+    u_ref, slack = intermediate_reference(
+        short, short.theta(x0, refs[: case["horizon"]], perturbation=pert), w
+    )
+    assert u is not None
+    assert np.allclose(u, u_ref, atol=1e-6, rtol=0), (u, u_ref, slack.max())
+    assert qp.daqp_failures == 0
+    v_max = 3.0 if case["tilt"] else V_MAX
+    if np.abs(case["vel_m_s"]).max() > v_max + 0.8:  # one step brakes < 0.3 m/s in both
+        assert slack.max() > 1e-3  # the slack was active: no input holds every bound
+
+
+def test_intermediate_falls_back_to_osqp_when_daqp_fails():
+    p = position_problem(6)
+    ctrl = ExperienceController(p)
+    qp = ctrl._intermediate_qp
+    qp._daqp.settings = {"iter_limit": 1}  # DAQP stops with exit flag -4 (iteration limit)
+    d = ctrl.step(np.array([0, 0, 0, 10.0, 0, 0]), hover_refs(p, [0, 0, 0]))
+    assert qp.daqp_failures == 1
+    assert d.source == "intermediate"
+    assert d.u[0] == pytest.approx(-A_MAX, abs=1e-3)  # OSQP answered: braking as hard
+
+
 def test_offset_only_model_change_keeps_the_maps():
     p = position_problem(6)
     ctrl = ExperienceController(p)
@@ -369,17 +443,16 @@ def test_attitude_loop_is_exact_too():
     assert ctrl.stats.hits > 50
 
 
-def test_hits_are_exact_with_the_tilt_polygon():
-    """Input polytope rows (the position loop's tilt polygon) are constraint rows like any
-    other: hits and solves equal the exact optimum, and every input satisfies P u <= p."""
+def tilt_problem(horizon: int) -> MpcProblem:
+    """The position loop's problem: lagged model, velocity bounds and the tilt polygon."""
     from epc_offboard.control.models import acceleration_limits, position_model_lagged
     from epc_offboard.control.position import PositionControlConfig
 
     pc = PositionControlConfig()
     lim = acceleration_limits(math.radians(45.0), 0.08, 0.95, 0.5)
-    p = MpcProblem(
+    return MpcProblem(
         position_model_lagged(pc.dt_s, pc.tau_acc_s),
-        horizon=8,
+        horizon=horizon,
         Q=np.concatenate([pc.q_pos, pc.q_vel, pc.q_acc]),
         R=np.array(pc.r_acc),
         x_min=[-np.inf] * 3 + [-3.0] * 3 + [-np.inf] * 3,
@@ -388,7 +461,14 @@ def test_hits_are_exact_with_the_tilt_polygon():
         u_max=lim.u_max,
         u_poly=(lim.P, lim.p),
     )
-    assert sum(r.kind == "up" for r in p.rows) == 8 * len(lim.p)
+
+
+def test_hits_are_exact_with_the_tilt_polygon():
+    """Input polytope rows (the position loop's tilt polygon) are constraint rows like any
+    other: hits and solves equal the exact optimum, and every input satisfies P u <= p."""
+    p = tilt_problem(8)
+    lim_P, lim_p = p.u_poly_P, p.u_poly_p
+    assert sum(r.kind == "up" for r in p.rows) == 8 * len(lim_p)
     ctrl = ExperienceController(p)
     rng = np.random.default_rng(3)
     active_poly = 0
@@ -400,8 +480,8 @@ def test_hits_are_exact_with_the_tilt_polygon():
             continue
         U = exact_solution(p, p.theta(x0, refs))
         assert np.allclose(d.u, U[:3], atol=1e-7, rtol=0)
-        assert np.all(lim.P @ d.u <= lim.p + 1e-7)
-        active_poly += bool(np.any(lim.P @ d.u >= lim.p - 1e-6))
+        assert np.all(lim_P @ d.u <= lim_p + 1e-7)
+        active_poly += bool(np.any(lim_P @ d.u >= lim_p - 1e-6))
     assert active_poly >= 5  # the polygon was what limited those commands
     assert ctrl.stats.hits >= 1
 

@@ -12,7 +12,10 @@ import pytest
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.service.miss_solver import MissSolver
+from tests import test_sharing
 from tests.mpc_cases import exact_solution, hover_refs, position_problem
+
+loop_factorisations = test_sharing.loop_factorisations  # the fixture, shared
 
 
 @pytest.fixture
@@ -98,6 +101,39 @@ def test_a_returned_set_not_optimal_here_is_refused(solver_and_ctrl):
     # the unconstrained set is not optimal far from the target: the loop's own check refuses
     assert not ctrl.add_solved(theta, ())
     assert ctrl.stats.size == 0
+
+
+def test_the_worker_ships_the_map_and_the_loop_only_checks_it(solver_and_ctrl,
+                                                             loop_factorisations):
+    solver, ctrl = solver_and_ctrl
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    miss(ctrl, x0, [4.0, -3.0, 1.0])
+    solver.pump()
+    assert solver.pump(wait=True) == 1
+    assert loop_factorisations[0] == 0  # no KKT map built on the loop
+    assert solver.counters["maps_built_on_the_loop"] == 0
+    d, refs = miss(ctrl, x0, [4.0, -3.0, 1.0])
+    assert d.source == "hit"
+    U = exact_solution(ctrl.problem, ctrl.problem.theta(x0, refs))
+    assert np.allclose(d.u, U[:3], atol=1e-8)
+
+
+def test_a_shipped_map_is_checked_here_and_refused_for_another_model(solver_and_ctrl):
+    _, ctrl = solver_and_ctrl
+    p = ctrl.problem
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    theta = p.theta(x0, hover_refs(p, [4.0, -3.0, 1.0]))
+    worker = ExperienceController(p)
+    entry = worker.learn_theta(theta)
+    assert entry is not None
+    amap = worker.map_of(entry.active_set)
+    assert amap is not None
+    assert ctrl.add_built(theta, amap, ctrl.model_epoch + 1) is None  # a stale model's
+    at_rest = p.theta(x0, hover_refs(p, [0.0, 0.0, 0.0]))
+    assert ctrl.add_built(at_rest, amap, ctrl.model_epoch) is False  # not optimal there
+    assert ctrl.stats.size == 0
+    assert ctrl.add_built(theta, amap, ctrl.model_epoch) is True
+    assert ctrl.stats.size == 1
 
 
 def test_fleet_candidates_are_screened_in_the_worker_and_survive_its_death(solver_and_ctrl):

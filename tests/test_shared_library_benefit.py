@@ -94,9 +94,11 @@ def test_a_late_joiner_flies_on_the_fleets_library(loop_factorisations):
     assert b.stats.received_shared >= 15
     origins = {e.origin for e in b.export_library()}
     assert origins <= {"solved", "shared:a"}
-    # the loop built only what it solved or what the worker found at a miss (add_solved
-    # checks those again); every other promotion used a map the worker built
-    assert loop_factorisations[0] == b.stats.qp_solves + solver.counters["candidates_found"]
+    # what the worker solved or found at a miss comes with the map it built (add_built
+    # checks it again), and every other promotion used a map the worker built: the loop
+    # factorised nothing
+    assert b.stats.qp_solves + solver.counters["candidates_found"] > 0
+    assert loop_factorisations[0] == 0
     assert loop_factorisations[0] < b.stats.received_shared
 
 
