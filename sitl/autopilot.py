@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -190,11 +191,10 @@ class Autopilot:
         self._att_sp: AttitudeSetpoint | None = None
         self._pos_sp: PositionSetpoint | None = None
         self._vel_integral = np.zeros(3)
-        self._rate_integral = np.zeros(3)
-        self._inertia = np.asarray(vehicle.inertia_diag_kg_m2)
-        self._rate_p = np.asarray(params.rate_p_1_s)
-        self._rate_i = np.asarray(params.rate_i_1_s2)
-        self._mix_inv = np.linalg.inv(effectiveness_matrix(vehicle))
+        self._rate_integral = [0.0, 0.0, 0.0]
+        mix_inv = np.linalg.inv(effectiveness_matrix(vehicle))
+        self._mix_collective = mix_inv[:, 0].tolist()
+        self._mix_torque = mix_inv[:, 1:]
         self._f_max_n = vehicle.k_f_n_s2 * vehicle.rotor_speed_max_rad_s**2
         self._f_idle_n = vehicle.k_f_n_s2 * vehicle.rotor_speed_min_rad_s**2
         self._last_state: FloatArray | None = None
@@ -367,16 +367,32 @@ class Autopilot:
 
     def update_inner(self, x: FloatArray, dt_s: float) -> ActuatorCommand:
         """The rate loop (physics rate): rotor speed commands for state ``x`` (17,)."""
+        return self.command(self.rotor_speeds(x[RATE].tolist(), dt_s), x[QUAT])
+
+    def rotor_speeds(self, rate_frd_rad_s: Sequence[float], dt_s: float) -> list[float]:
+        """The rate loop alone, on plain floats: rotor speed commands (4,) rad/s for the
+        body rates (3,) flown. The simulation calls it every physics step; a tick's
+        :meth:`command` then tells what the last one commanded."""
+        if self._target is None:
+            return [self._idle_speed_rad_s] * 4
+        rate_cmd, thrust_norm, _ = self._target
+        return self._rate_control(rate_frd_rad_s, rate_cmd.tolist(), thrust_norm, dt_s)
+
+    def command(self, rotor_speed_rad_s: Sequence[float], q_wxyz: FloatArray) -> ActuatorCommand:
+        """What the autopilot commands: rotor speeds (4,) from :meth:`rotor_speeds` and the
+        targets they track; ``q_wxyz`` (4,), the attitude flown, stands for the attitude
+        command while there is none (disarmed, idle)."""
+        speeds = np.array(rotor_speed_rad_s, dtype=np.float64)
         if self._target is None:
             return ActuatorCommand(
-                rotor_speed_rad_s=np.full(4, self._idle_speed_rad_s),
+                rotor_speed_rad_s=speeds,
                 thrust_norm=0.0,
                 rate_cmd_frd_rad_s=np.zeros(3),
-                q_cmd_wxyz=x[QUAT].copy(),
+                q_cmd_wxyz=np.array(q_wxyz, dtype=np.float64),
             )
         rate_cmd, thrust_norm, q_cmd = self._target
         return ActuatorCommand(
-            rotor_speed_rad_s=self._rate_control(x, rate_cmd, thrust_norm, dt_s),
+            rotor_speed_rad_s=speeds,
             thrust_norm=thrust_norm,
             rate_cmd_frd_rad_s=rate_cmd,
             q_cmd_wxyz=q_cmd,
@@ -460,7 +476,7 @@ class Autopilot:
 
     def _reset_integrators(self) -> None:
         self._vel_integral[:] = 0.0
-        self._rate_integral[:] = 0.0
+        self._rate_integral = [0.0, 0.0, 0.0]
 
     # ---- controllers ----------------------------------------------------------------------
 
@@ -559,26 +575,51 @@ class Autopilot:
         return q_cmd, rate, self._last_thrust_norm
 
     def _rate_control(
-        self, x: FloatArray, rate_cmd: FloatArray, thrust_norm: float, dt_s: float
-    ) -> FloatArray:
-        """Rate PI -> torques -> rotor forces (inverse effectiveness, desaturated) -> speeds."""
-        w = x[RATE]
-        err = rate_cmd - w
-        integral = self._rate_integral + err * dt_s
-        self._rate_integral = np.minimum(np.maximum(integral, -0.5), 0.5)
-        ang_acc = self._rate_p * err + self._rate_i * self._rate_integral
-        torque = self._inertia * ang_acc + cross3(w, self._inertia * w)
+        self,
+        rate_frd_rad_s: Sequence[float],
+        rate_cmd_frd_rad_s: Sequence[float],
+        thrust_norm: float,
+        dt_s: float,
+    ) -> list[float]:
+        """Rate PI -> torques -> rotor forces (inverse effectiveness, desaturated) -> speeds.
+
+        Plain floats (it runs at the physics rate), each operation as numpy did it."""
+        wx, wy, wz = rate_frd_rad_s
+        ex, ey, ez = (c - w for c, w in zip(rate_cmd_frd_rad_s, rate_frd_rad_s, strict=True))
+        # the integral is bounded (anti-windup): min(max(., -0.5), 0.5)
+        gx, gy, gz = self._rate_integral
+        gx, gy, gz = (
+            min(max(gx + ex * dt_s, -0.5), 0.5),
+            min(max(gy + ey * dt_s, -0.5), 0.5),
+            min(max(gz + ez * dt_s, -0.5), 0.5),
+        )
+        self._rate_integral = [gx, gy, gz]
+        (px, py, pz), (ix_, iy_, iz_) = self.params.rate_p_1_s, self.params.rate_i_1_s2
+        jx, jy, jz = self.vehicle.inertia_diag_kg_m2
+        hx, hy, hz = jx * wx, jy * wy, jz * wz  # I w; torque = I dw + w x (I w)
+        torque = np.array(
+            [
+                jx * (px * ex + ix_ * gx) + (wy * hz - wz * hy),
+                jy * (py * ey + iy_ * gy) + (wz * hx - wx * hz),
+                jz * (pz * ez + iz_ * gz) + (wx * hy - wy * hx),
+            ]
+        )
         collective_n = min(1.0, max(0.0, thrust_norm)) * self.vehicle.max_total_thrust_n
         # Forces = base (collective, equal shares) + delta (torques), via the inverse mixer.
-        base = collective_n * self._mix_inv[:, 0]
-        delta = self._mix_inv[:, 1:] @ torque
+        # (The mixer product stays numpy's: its BLAS kernel sums in its own order, and the
+        # SITL's flights must not change in the last digits.)
+        base = [collective_n * m for m in self._mix_collective]
+        delta = (self._mix_torque @ torque).tolist()
+        f_max, f_idle = self._f_max_n, self._f_idle_n
         # Keep the collective, scale the torque part down until every rotor is within limits.
         scale = 1.0
-        for b, d in zip(base.tolist(), delta.tolist(), strict=True):
-            if b + d > self._f_max_n and d > 0.0:
-                scale = min(scale, max(0.0, (self._f_max_n - b) / d))
-            elif b + d < self._f_idle_n and d < 0.0:
-                scale = min(scale, max(0.0, (self._f_idle_n - b) / d))
-        forces = np.minimum(np.maximum(base + scale * delta, self._f_idle_n), self._f_max_n)
-        speeds: FloatArray = np.sqrt(forces / self.vehicle.k_f_n_s2)
-        return speeds
+        for b, d in zip(base, delta, strict=True):
+            if b + d > f_max and d > 0.0:
+                scale = min(scale, max(0.0, (f_max - b) / d))
+            elif b + d < f_idle and d < 0.0:
+                scale = min(scale, max(0.0, (f_idle - b) / d))
+        kf = self.vehicle.k_f_n_s2
+        return [
+            math.sqrt(min(max(b + scale * d, f_idle), f_max) / kf)
+            for b, d in zip(base, delta, strict=True)
+        ]

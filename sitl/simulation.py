@@ -15,7 +15,7 @@ import numpy as np
 
 from epc_offboard.common.frames import FloatArray, euler_to_quat, quat_multiply, quat_normalize
 from sitl.ardupilot import ArduCopter
-from sitl.autopilot import ActuatorCommand, Autopilot
+from sitl.autopilot import Autopilot
 from sitl.params import SimConfig
 from sitl.physics import POS, QUAT, RATE, VEL, Environment, QuadrotorModel, initial_state
 
@@ -63,17 +63,25 @@ class Simulation:
         return self.time_us // 1000
 
     def advance_tick(self) -> None:
-        """Advance physics and the autopilot by one tick."""
-        self.autopilot.update_outer(self.state, self.time_s, self.config.sitl.lockstep_period_s)
-        cmd: ActuatorCommand = self.last_command
+        """Advance physics and the autopilot by one tick.
+
+        The substeps run on a plain list of floats (``QuadrotorModel.step_list``,
+        ``Autopilot.rotor_speeds``): the state is an array again only between ticks, where
+        the autopilot's outer loops, the telemetry and the ground truth read it."""
+        ap, env, model, dt_s = self.autopilot, self.environment, self.model, self._dt_s
+        ap.update_outer(self.state, self.time_s, self.config.sitl.lockstep_period_s)
+        x = self.state.tolist()
+        x_before = x
+        speeds = self.last_command.rotor_speed_rad_s.tolist()
         for _ in range(self._steps):
-            cmd = self.autopilot.update_inner(self.state, self._dt_s)
-            self.environment.advance(self._dt_s)
-            ext = self.environment.surface_force_ned_n(self.state[POS])
-            self.state = self.model.step(
-                self.state, cmd.rotor_speed_rad_s, self.environment.wind_ned_m_s, ext, self._dt_s
-            )
-        self.last_command = cmd
+            speeds = ap.rotor_speeds(x[RATE], dt_s)
+            env.advance(dt_s)
+            ext = env.surface_force_ned_n(x[POS]).tolist()
+            x_before = x
+            x = model.step_list(x, speeds, env.wind_ned_m_s.tolist(), ext, dt_s)
+        # what the last substep commanded, from the state it started at
+        self.last_command = ap.command(speeds, np.array(x_before[QUAT]))
+        self.state = np.array(x)
         self.tick += 1
 
     def estimate(self) -> StateEstimate:

@@ -17,6 +17,7 @@ import logging
 import math
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -217,9 +218,11 @@ class StateTracker:
                 autopilot=int(msg.autopilot),
             )
             return False
+        # Validation runs on plain floats: this is every state message (some 500 a second
+        # per vehicle), and numpy calls on 3- and 4-vectors cost several times more.
         if mtype == "ATTITUDE_QUATERNION":
-            q = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=np.float64)
-            rate = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
+            q = (msg.q1, msg.q2, msg.q3, msg.q4)
+            rate = (msg.rollspeed, msg.pitchspeed, msg.yawspeed)
             return self._set_attitude(mtype, msg.time_boot_ms * 1e-3, now, q, rate)
         if mtype == "ATTITUDE":
             # validated before it is converted: NaN or absurd angles are corrupt, not math
@@ -230,12 +233,12 @@ class StateTracker:
             if max(abs(a) for a in angles) > 2.0 * math.pi:
                 self.counters["rejected_range"] += 1
                 return False
-            q = frames.euler_to_quat(msg.roll, msg.pitch, msg.yaw)
-            rate = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
+            q = frames.euler_to_quat(msg.roll, msg.pitch, msg.yaw).tolist()
+            rate = (msg.rollspeed, msg.pitchspeed, msg.yawspeed)
             return self._set_attitude(mtype, msg.time_boot_ms * 1e-3, now, q, rate)
         if mtype == "LOCAL_POSITION_NED":
-            pos = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
-            vel = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
+            pos = (msg.x, msg.y, msg.z)
+            vel = (msg.vx, msg.vy, msg.vz)
             return self._set_position(mtype, msg.time_boot_ms * 1e-3, now, pos, vel)
         if mtype == "ODOMETRY":
             return self._handle_odometry(msg, now)
@@ -310,14 +313,15 @@ class StateTracker:
             self.counters["odometry_unsupported_frame"] += 1
             return False
         t_s = msg.time_usec * 1e-6
-        q = np.array(msg.q, dtype=np.float64)
-        rate = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
-        pos = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
-        vel = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
-        if not self._valid_quat(q):
+        q = tuple(msg.q)
+        rate = (msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+        pos: Sequence[float] = (msg.x, msg.y, msg.z)
+        vel: Sequence[float] = (msg.vx, msg.vy, msg.vz)
+        if self._quat_norm(q) is None:
             return False
         if msg.child_frame_id == MAV_FRAME_BODY_FRD:
-            vel = frames.quat_to_rotation(q) @ vel  # PX4 sends body-frame velocity
+            # PX4 sends body-frame velocity
+            vel = (frames.quat_to_rotation(np.array(q)) @ np.array(vel)).tolist()
         if not self._admit("ODOMETRY", t_s, now):
             return False
         updated = self._set_attitude(None, t_s, now, q, rate)
@@ -367,43 +371,65 @@ class StateTracker:
         self.vehicle_time_s = t_s
         return True
 
-    def _valid_quat(self, q: FloatArray) -> bool:
-        if not np.all(np.isfinite(q)):
+    def _quat_norm(self, q: Sequence[float]) -> float | None:
+        """The norm of quaternion ``q`` (4,), or None (counted) if it is not a unit one."""
+        w, x, y, z = q
+        if not (math.isfinite(w) and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             self.counters["rejected_nan"] += 1
-            return False
-        if abs(float(np.linalg.norm(q)) - 1.0) > self.limits.quat_norm_tolerance:
+            return None
+        norm = math.sqrt(w * w + x * x + y * y + z * z)
+        if abs(norm - 1.0) > self.limits.quat_norm_tolerance:
             self.counters["rejected_quaternion"] += 1
-            return False
-        return True
+            return None
+        return norm
 
     def _set_attitude(
-        self, stream: str | None, t_s: float, now: float, q: FloatArray, rate: FloatArray
+        self,
+        stream: str | None,
+        t_s: float,
+        now: float,
+        q: Sequence[float],
+        rate: Sequence[float],
     ) -> bool:
-        if not self._valid_quat(q):
+        norm = self._quat_norm(q)
+        if norm is None:
             return False
-        if not np.all(np.isfinite(rate)):
+        wx, wy, wz = rate
+        if not (math.isfinite(wx) and math.isfinite(wy) and math.isfinite(wz)):
             self.counters["rejected_nan"] += 1
             return False
-        if float(np.max(np.abs(rate))) > self.limits.max_rate_rad_s:
+        if max(abs(wx), abs(wy), abs(wz)) > self.limits.max_rate_rad_s:
             self.counters["rejected_range"] += 1
             return False
         if not self._admit(stream, t_s, now):
             return False
         if self._attitude is not None and t_s < self._attitude.vehicle_s - _ORDER_TOLERANCE_S:
             return False  # valid, but older than what another stream already gave
-        self._attitude = _Sample(t_s, now, (frames.quat_normalize(q), rate))
+        # frames.quat_normalize, on the norm already taken: unit, w >= 0
+        qw, qx, qy, qz = (c / norm for c in q)
+        if qw < 0.0:
+            qw, qx, qy, qz = -qw, -qx, -qy, -qz
+        self._attitude = _Sample(
+            t_s, now, (np.array([qw, qx, qy, qz]), np.array([wx, wy, wz], dtype=np.float64))
+        )
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
         return True
 
     def _set_position(
-        self, stream: str | None, t_s: float, now: float, pos: FloatArray, vel: FloatArray
+        self,
+        stream: str | None,
+        t_s: float,
+        now: float,
+        pos: Sequence[float],
+        vel: Sequence[float],
     ) -> bool:
-        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(vel))):
+        if not all(math.isfinite(v) for v in (*pos, *vel)):
             self.counters["rejected_nan"] += 1
             return False
+        vn, ve, vd = vel
         if (
-            float(np.max(np.abs(pos))) > self.limits.max_abs_pos_m
-            or float(np.linalg.norm(vel)) > self.limits.max_speed_m_s
+            max(abs(p) for p in pos) > self.limits.max_abs_pos_m
+            or math.sqrt(vn * vn + ve * ve + vd * vd) > self.limits.max_speed_m_s
         ):
             self.counters["rejected_range"] += 1
             return False
@@ -411,7 +437,9 @@ class StateTracker:
             return False
         if self._position is not None and t_s < self._position.vehicle_s - _ORDER_TOLERANCE_S:
             return False  # valid, but older than what another stream already gave
-        self._position = _Sample(t_s, now, (pos, vel))
+        self._position = _Sample(
+            t_s, now, (np.array(pos, dtype=np.float64), np.array(vel, dtype=np.float64))
+        )
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
         return True
 
