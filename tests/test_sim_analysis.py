@@ -132,7 +132,8 @@ def test_the_files_read_back_as_the_columns_written(tmp_path: Path) -> None:
 def test_flight_warnings_name_what_went_wrong_and_leave_out_zeros():
 
     stats = {
-        "counters": {"failsafes": 2, "position_ticks_skipped": 0, "store_errors": 1},
+        "counters": {"failsafes": 2, "position_ticks_skipped": 0, "store_errors": 1,
+                     "realtime_priority_refused": 1},
         "phase_events": [
             {"t_s": 1.0, "phase": "failsafe", "reason": "state stale (0.40 s)"},
             {"t_s": 2.0, "phase": "failsafe", "reason": "heartbeat lost"},
@@ -142,6 +143,7 @@ def test_flight_warnings_name_what_went_wrong_and_leave_out_zeros():
     assert got == {
         "failsafes": 2,
         "library store errors": 1,
+        "loops' real-time priority refused (normal scheduling)": 1,
         "stale-state failsafes": 1,
         "SITL lockstep timeouts": 3,
     }

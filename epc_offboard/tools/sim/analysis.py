@@ -39,6 +39,7 @@ _SERVICE_WARNINGS = {
     "store_errors": "library store errors",
     "offboard_refused": "offboard requests refused (ArduPilot GUID_OPTIONS)",
     "heartbeats_other_autopilot": "heartbeats of another autopilot than link.autopilot",
+    "realtime_priority_refused": "loops' real-time priority refused (normal scheduling)",
 }
 _SITL_WARNINGS = {
     "lockstep_timeouts": "SITL lockstep timeouts",
