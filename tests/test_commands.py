@@ -99,6 +99,17 @@ def test_a_non_finite_setpoint_is_replaced_by_the_fallback_and_reported(setpoint
     assert got.thrust == pytest.approx(0.45)
 
 
+def test_a_conversion_that_yields_nan_is_replaced_too():
+    """The guard judges the thrust as it goes on the wire: a dialect's conversion (ArduPilot's
+    tilt compensation) fed a non-finite tilt must not slip a NaN past it."""
+    got, replaced = attitude(
+        AttitudeSetpoint.of([1, 0, 0, 0], [0.1, 0, 0], 0.5), wire_thrust=lambda t: t * math.nan
+    )
+    assert replaced
+    assert got.type_mask == commands.IGNORE_RATES
+    assert got.thrust == pytest.approx(LEVEL.thrust_norm)  # the fallback's own, finite
+
+
 def test_the_fallback_is_asked_only_when_needed():
     def no_fallback() -> AttitudeSetpoint:
         raise AssertionError("fallback asked for a finite setpoint")

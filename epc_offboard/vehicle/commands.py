@@ -127,11 +127,14 @@ def attitude_target(
             for v, m in zip(setpoint.rates_frd_rad_s, max_rate_rad_s, strict=True)
         )
         mask = IGNORE_ATTITUDE
+    # judged on the thrust as sent: the dialect's conversion is the last step before the wire
+    thrust = wire_thrust(thrust)
     replaced = not all(math.isfinite(v) for v in (*q, *rates, thrust))
     if replaced:
         safe = fallback()
-        q, rates, thrust, mask = safe.q_ned_frd, (0.0, 0.0, 0.0), safe.thrust_norm, IGNORE_RATES
-    thrust = wire_thrust(thrust)
+        q, rates, mask = safe.q_ned_frd, (0.0, 0.0, 0.0), IGNORE_RATES
+        wired = wire_thrust(safe.thrust_norm)
+        thrust = wired if math.isfinite(wired) else safe.thrust_norm
     msg = mavlink.MAVLink_set_attitude_target_message(
         stamp_ms(time_s), target.system_id, target.component_id, mask, list(q), *rates,
         min(max(thrust, 0.0), 1.0),
