@@ -1381,12 +1381,13 @@ class _IntermediateQp:
         ])
         h, gamma = p.vectors(theta)
         n_u, n_s = p.n_u, self._n_s
+        gamma_x = gamma[self._is_x]
         self._f[:n_u] = h
-        self._upper[n_u + n_s : n_u + 2 * n_s] = gamma[self._is_x]
+        self._upper[n_u + n_s : n_u + 2 * n_s] = gamma_x
         u0 = self._solve_daqp(nu)
         if u0 is None:
             self.daqp_failures += 1
-            u0 = self._solve_osqp(h, gamma, nu)
+            u0 = self._solve_osqp(gamma_x, nu)
         if u0 is None or not np.all(np.isfinite(u0)):
             return None
         return p.clip_input(u0)
@@ -1404,12 +1405,12 @@ class _IntermediateQp:
             return None
         return np.array(z[:nu], dtype=np.float64)
 
-    def _solve_osqp(self, h: FloatArray, gamma: FloatArray, nu: int) -> FloatArray | None:
-        q = self._f.copy()
-        q[: len(h)] = h
-        self._u[: self._n_s] = gamma[self._is_x]
+    def _solve_osqp(self, gamma_x: FloatArray, nu: int) -> FloatArray | None:
+        """The same QP by OSQP: the linear cost is DAQP's (``_f``, set for this tick), the
+        state rows' bounds ``gamma_x``."""
+        self._u[: self._n_s] = gamma_x
         try:
-            res = self._osqp.solve(q, self._u, self._l)
+            res = self._osqp.solve(self._f, self._u, self._l)
         except (ValueError, RuntimeError) as exc:
             logger.debug("intermediate QP (OSQP) raised %s", exc)
             return None
