@@ -69,8 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run the offboard service (daemon)", formatter_class=fmt)
     run.add_argument(
         "--config", required=True, metavar="FILE",
-        help="service config TOML (config/default.toml: a real vehicle; config/sitl.toml: "
-        "flies `epc-sitl --instance 0`)",
+        help="service config TOML, or the name of a bundled one: default (config/default.toml:"
+        " a real vehicle), sitl (config/sitl.toml: flies `epc-sitl --instance 0`)",
     )  # fmt: skip
     _add_sim(sub)
     _add_bench(sub)

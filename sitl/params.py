@@ -14,15 +14,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common.bundled import bundled_dir
 from epc_offboard.common.configio import load_config
 from epc_offboard.common.frames import GRAVITY_M_S2
 
 AUTOPILOTS = frozenset({"px4", "ardupilot"})  # SITL personalities
 
-# The packaged default vehicle: config/ sits beside sitl/ in the distribution's source tree.
-DEFAULT_VEHICLE_FILE = (
-    Path(__file__).resolve().parent.parent / "config" / "vehicles" / "quad_x_1500g.toml"
-)
+# The packaged default vehicle: config/vehicles/, shipped in the wheel as epc_offboard's data.
+DEFAULT_VEHICLE_FILE = bundled_dir() / "vehicles" / "quad_x_1500g.toml"
 
 
 def _positive(**values: float) -> None:

@@ -308,8 +308,10 @@ class Service:
 
 
 def run_service_command(args: argparse.Namespace) -> int:
+    from epc_offboard.common.bundled import bundled_config
     from epc_offboard.common.errors import UsageError
 
+    args.config = str(bundled_config(args.config))  # `--config sitl`: the bundled one
     try:
         cfg = load_service_config(args.config)
     except ConfigError as exc:

@@ -12,11 +12,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common.bundled import bundled_dir
 from epc_offboard.common.configio import ConfigError, from_dict
 from epc_offboard.control.trajectories import TrajectoryConfig
 from epc_offboard.tools.targets import CompareConfig, TargetConfig
 
-CONFIG_DIR = Path(__file__).resolve().parents[3] / "config"
+CONFIG_DIR = bundled_dir()  # the checkout's config/, shipped in the wheel
 SCENARIO_DIR = CONFIG_DIR / "scenarios"
 SITL_SERVICE_CONFIG = CONFIG_DIR / "sitl.toml"
 
