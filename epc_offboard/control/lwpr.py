@@ -1043,7 +1043,8 @@ class LwprReference(LWPR):
     """The numpy implementation of ``LWPR``: every quantity updated as array operations over
     all fields at once. The oracle of the compiled ``LWPR`` in the tests (same predictions, to
     the rounding of a different order of operations, over sample streams), and what ``LWPR``
-    runs when numba is not installed. Same settings, methods and file format (a file saved by one loads into the other)."""
+    runs when numba is not installed. Same settings, methods and file format (a file saved by
+    one loads into the other)."""
 
     compiled: ClassVar[bool] = False
 
