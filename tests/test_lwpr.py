@@ -374,7 +374,7 @@ EPS = float(np.finfo(float).eps)
 
 def prediction_tolerance(n_updates: int, y_norm: np.ndarray) -> np.ndarray:
     """The largest difference the rounding argument above allows, normalised output units."""
-    return (n_updates + 1) * OPS_PER_UPDATE * EPS * np.maximum(1.0, np.abs(y_norm))
+    return (n_updates + 1) * OPS_PER_UPDATE * EPS * np.maximum(1.0, np.abs(y_norm))  # type: ignore[no-any-return]
 
 
 def confidence_tolerance(n_updates: int, y_norm: np.ndarray, conf_norm: np.ndarray,
