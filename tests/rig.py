@@ -25,6 +25,16 @@ from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
 from epc_offboard.vehicle.state import px4_modes
 
+# What a CI test may assert about real-time figures: safety bounds that hold on a busy 2-core
+# machine, not the figures themselves (those are `epc-offboard bench` and `sim --realtime`
+# reports). At load 6 the loops ran at 71-80 % of their nominal rates (attitude 142-159 Hz of
+# 200): a bound at 90 % failed a healthy service. Half the nominal rate still catches what the
+# tests are about, a stalled loop (the flood stalled the position loop for 0.37 s at a time,
+# inline solves starved the attitude loop), and a requested stream that never arrived
+# (PX4's defaults, ATTITUDE_QUATERNION 50 Hz and LOCAL_POSITION_NED 30 Hz, are below half of
+# the 200 Hz and 100 Hz the service asks for).
+MIN_RATE_FRACTION = 0.5
+
 
 def cpu_hog(seconds: float) -> subprocess.Popen[bytes]:
     """A process that spins one core for ``seconds`` (kill it when done)."""

@@ -23,7 +23,7 @@ from epc_offboard.control.library import LibraryEntry
 from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
 from epc_offboard.service.config import load_service_config
 from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD
-from tests.rig import Rig
+from tests.rig import MIN_RATE_FRACTION, Rig
 from tests.test_sharing import free_tcp_port
 
 pytestmark = pytest.mark.timeout(180)
@@ -90,9 +90,9 @@ def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path
     assert sharing.get("fleet_rate_limited", 0) > sharing.get("entries_offered", 0) / 20, sharing
     # nothing useless entered the library: it holds only what this vehicle solved itself
     assert stats["library"]["position"]["received_shared"] == 0
-    # the loops kept their rates through the flood
-    assert stats["loops"]["position"]["rate_hz"] >= 0.9 * 100.0
-    assert stats["loops"]["attitude"]["rate_hz"] >= 0.9 * 200.0
+    # the loops kept running through the flood (a safety bound: MIN_RATE_FRACTION)
+    assert stats["loops"]["position"]["rate_hz"] >= MIN_RATE_FRACTION * 100.0
+    assert stats["loops"]["attitude"]["rate_hz"] >= MIN_RATE_FRACTION * 200.0
     # and the vehicle held its hover point while it lasted (ground truth against the log's
     # reference, over the flood's span of the offboard flight)
     with (tmp_path / "flight.csv").open() as fh:

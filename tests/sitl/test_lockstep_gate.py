@@ -34,7 +34,9 @@ def test_answered_ticks_run_faster_than_real_time():
     )
     assert gate.waiting
     assert gate.timeouts == 0
-    assert wall < 400 * 0.005 / 3  # 2 s of vehicle time well under real time
+    # 2 s of vehicle time in less than half of it: no pacing by the wall clock (which would
+    # take the full 2 s), with room for a loaded machine (idle: ~0.05 s)
+    assert wall < 0.5 * 400 * 0.005
 
 
 def test_silence_times_out_then_falls_back_to_real_time_and_rejoins():
@@ -74,7 +76,9 @@ def test_a_slow_answer_is_waited_for_and_physics_does_not_advance_meanwhile():
 
     k_seen: list[int] = []
     run_clock(gate, 10, on_tick)
-    assert gate.timeouts >= 3  # counted...
+    # counted (4 if the process ran all along; one, at least, if a loaded machine kept it off
+    # the CPU past the answer's 45 ms: then the first timeout and the answer are both due)...
+    assert gate.timeouts >= 1
     assert ticks_before_answer == [1]  # ...but no tick ran before the answer arrived
     assert gate.waiting  # and the clock is still in lockstep
     assert k_seen == list(range(1, 11))
@@ -110,12 +114,13 @@ def test_the_clock_holds_at_its_first_tick_announcing_until_a_controller_answers
 
 
 def test_a_tick_without_new_state_needs_no_new_answer():
-    gate = LockstepGate(enabled=True, timeout_s=0.5, max_timeouts=20)
+    timeout_s = 0.5
+    gate = LockstepGate(enabled=True, timeout_s=timeout_s, max_timeouts=20)
     gate.on_answer(10)
     # the state sent so far is stamped 10 ms (e.g. a 100 Hz stream on a 200 Hz tick)
     wall = run_clock(gate, 1, on_tick=lambda k: None)
     assert gate.timeouts == 0
-    assert wall < 0.1
+    assert wall < timeout_s  # it did not wait for an answer (idle: ~5 ms, the tick's pace)
 
 
 def test_future_stamps_do_not_starve_the_event_loop():
