@@ -13,6 +13,13 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import TypeAlias, cast
 
+from epc_offboard.common.cliargs import (
+    bounded_int,
+    join_negative_values,
+    parse_wind,
+    port_number,
+    positive_number,
+)
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.errors import EXIT_RUNTIME, EXIT_USAGE, UsageError
 from epc_offboard.tools.db import add_db_arguments
@@ -25,20 +32,6 @@ _COMMANDS = {
     "db": "epc_offboard.tools.db:run_db_command",
     "log": "epc_offboard.tools.logexport:run_log_command",
 }
-
-
-def parse_wind(text: str) -> tuple[float, float]:
-    """Parse ``SPEED_M_S,DIR_DEG`` (CONTRACTS.md) into (speed_m_s, dir_deg)."""
-    parts = text.split(",")
-    if len(parts) != 2:
-        raise argparse.ArgumentTypeError(f"--wind expects SPEED_M_S,DIR_DEG, got {text!r}")
-    try:
-        speed, direction = float(parts[0]), float(parts[1])
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"--wind expects two numbers, got {text!r}") from exc
-    if not (speed >= 0.0 and abs(direction) < float("inf")):
-        raise argparse.ArgumentTypeError(f"--wind speed must be >= 0 and finite, got {text!r}")
-    return speed, direction
 
 
 class _HelpFormatter(argparse.HelpFormatter):
@@ -102,20 +95,22 @@ def _add_sim(sub: _Subparsers) -> None:
         "--scenario", default="hover", metavar="NAME",
         help=f"one of {scenarios} (config/scenarios/NAME.toml), or a path to a scenario TOML",
     )  # fmt: skip
+    # None when not given: --compare names its methods itself and rejects these
     sim.add_argument(
         "--controller",
         choices=["epc", "pd", "mpc", "px4"],
-        default="epc",
-        help="position controller: epc, pd (thesis A.1), mpc (OSQP every tick), px4 "
-        "(a baseline: the autopilot's own position controller fed position, velocity and "
+        default=None,
+        help="position controller: epc (the default), pd (thesis A.1), mpc (OSQP every tick), "
+        "px4 (a baseline: the autopilot's own position controller fed position, velocity and "
         "acceleration setpoints)",
     )
     sim.add_argument(
-        "--adaptation", choices=["lwpr", "kf", "none"], default="lwpr",
-        help="disturbance estimate: LWPR (thesis 3.1.1), a Kalman observer, or none",
+        "--adaptation", choices=["lwpr", "kf", "none"], default=None,
+        help="disturbance estimate: LWPR (thesis 3.1.1, the default), a Kalman observer, or "
+        "none",
     )  # fmt: skip
     sim.add_argument(
-        "--vehicles", type=int, default=1, metavar="N",
+        "--vehicles", type=bounded_int(1), default=1, metavar="N",
         help="N SITLs and N services, sharing their libraries over Zenoh",
     )  # fmt: skip
     mode = sim.add_mutually_exclusive_group()
@@ -133,9 +128,11 @@ def _add_sim(sub: _Subparsers) -> None:
         help="wind speed towards DIR degrees, counter-clockwise from east (default: the "
         "scenario's)",
     )  # fmt: skip
-    sim.add_argument("--seed", type=int, default=0, help="noise and gust seed")
     sim.add_argument(
-        "--gcs-port", type=int, default=None, metavar="PORT",
+        "--seed", type=bounded_int(0), default=0, help="noise and gust seed"
+    )
+    sim.add_argument(
+        "--gcs-port", type=port_number, default=None, metavar="PORT",
         help="where QGroundControl or MAVProxy watch the flight (udpin:127.0.0.1:PORT): the "
         "SITLs send their ground-station stream there, as PX4 SITL does to 14550 (default "
         "with --autopilot px4); with ardupilot, vehicle k serves TCP on PORT + 10 (k - 1) "
@@ -147,7 +144,7 @@ def _add_sim(sub: _Subparsers) -> None:
         "(thrust as throttle), as the README asks of a real ArduCopter",
     )  # fmt: skip
     sim.add_argument(
-        "--duration", type=float, default=None, metavar="S",
+        "--duration", type=positive_number, default=None, metavar="S",
         help="seconds on the trajectory (default: the scenario's duration_s)",
     )  # fmt: skip
     sim.add_argument(
@@ -238,7 +235,8 @@ def _add_log(sub: _Subparsers) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = parser.parse_args(join_negative_values(argv, ("--wind",)))
     module_name, func_name = _COMMANDS[args.command].split(":")
     try:
         module = importlib.import_module(module_name)

@@ -14,6 +14,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common.cliargs import (
+    MAX_PORT,
+    bounded_int,
+    check_port_free,
+    join_negative_values,
+    parse_wind,
+    port_number,
+    positive_number,
+)
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.errors import UsageError
 from sitl.endpoint import Counters, SitlEndpoint
@@ -26,12 +35,7 @@ from sitl.tcp import GcsTcpServer
 HOST = "127.0.0.1"
 
 
-def _wind(text: str) -> tuple[float, float]:
-    try:
-        speed, direction = (float(v) for v in text.split(","))
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"--wind wants SPEED_M_S,DIR_DEG, got {text!r}") from exc
-    return speed, direction
+MAX_INSTANCE = 254  # system id I + 1 is a MAVLink byte (1-255)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,24 +45,28 @@ def build_parser() -> argparse.ArgumentParser:
         "ArduCopter SITL instance.",
     )
     arg = ap.add_argument
-    arg("--instance", type=int, default=0, metavar="I", help="system id I+1, ports +I")
+    arg(
+        "--instance", type=bounded_int(0, MAX_INSTANCE), default=0, metavar="I",
+        help="system id I+1, ports +I",
+    )  # fmt: skip
     arg("--lockstep", action="store_true", help="advance only when the controller answered")
     arg(
         "--autopilot",
         choices=sorted(AUTOPILOTS),
         help="the autopilot personality (default: sitl.autopilot of the config, px4)",
     )
-    arg("--wind", type=_wind, metavar="SPEED_M_S,DIR_DEG", help="towards, CCW from east")
-    arg("--seed", type=int, default=0, metavar="S", help="seeds gusts and estimate noise")
+    arg("--wind", type=parse_wind, metavar="SPEED_M_S,DIR_DEG", help="towards, CCW from east")
+    arg("--seed", type=bounded_int(0), default=0, metavar="S", help="seeds gusts and noise")
     arg("--config", type=Path, default=DEFAULT_VEHICLE_FILE, metavar="FILE", help="vehicle TOML")
     arg("--groundtruth", type=Path, metavar="FILE", help="write the true state to this CSV")
     arg("--signing-key", type=Path, metavar="FILE", help="file holding a 32-byte MAVLink key")
-    arg("--speedup", type=float, default=1.0, metavar="X", help="pace = wall clock x this")
-    arg("--listen-port", type=int, metavar="P", help="default 14580+I; 0 = any free port")
-    arg("--offboard-port", type=int, metavar="P", help="telemetry to 127.0.0.1:P, 14540+I")
+    arg("--speedup", type=positive_number, default=1.0, metavar="X",
+        help="pace = wall clock x this")  # fmt: skip
+    arg("--listen-port", type=port_number, metavar="P", help="default 14580+I; 0 = any free")
+    arg("--offboard-port", type=port_number, metavar="P", help="telemetry to 127.0.0.1:P, 14540+I")
     arg(
         "--gcs-port",
-        type=int,
+        type=port_number,
         metavar="P",
         help="ground station, 0 = off: px4 sends to udp 14550; ardupilot listens on tcp "
         "5760+10*I, as ArduPilot SITL",
@@ -71,9 +79,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="set an autopilot parameter at start (ardupilot: GUID_OPTIONS, GUID_TIMEOUT, "
         "ATC_INPUT_TC), as ArduPilot SITL's --defaults; repeatable",
     )
-    arg("--lockstep-period-ms", type=float, metavar="MS", help="sitl.lockstep_period_s")
-    arg("--lockstep-timeout-ms", type=float, metavar="MS", help="sitl.lockstep_timeout_s")
-    arg("--duration", type=float, metavar="S", help="exit after S seconds of vehicle time")
+    arg("--lockstep-period-ms", type=positive_number, metavar="MS", help="sitl.lockstep_period_s")
+    arg("--lockstep-timeout-ms", type=positive_number, metavar="MS",
+        help="sitl.lockstep_timeout_s")  # fmt: skip
+    arg("--duration", type=positive_number, metavar="S",
+        help="exit after S seconds of vehicle time")  # fmt: skip
     return ap
 
 
@@ -115,6 +125,17 @@ def _personality(args: argparse.Namespace) -> str:
     return str(getattr(args, "personality", None) or args.autopilot or "px4")
 
 
+def _check_ports(args: argparse.Namespace, listen_port: int) -> None:
+    """The ports this instance binds: a port number out of range (14580 + I, 5760 + 10 I) or
+    a taken one is said now, naming it, before the simulation starts."""
+    tcp_port = gcs_tcp_port(args)
+    for kind, port, flag in (("udp", listen_port, "--listen-port"),
+                             ("tcp", tcp_port, "--gcs-port")):  # fmt: skip
+        if port > MAX_PORT:
+            raise UsageError(f"{flag}: --instance {args.instance} puts it at {port} > {MAX_PORT}")
+        check_port_free(kind, HOST, port, f"{flag} (instance {args.instance})")
+
+
 def _params(text: list[str]) -> list[tuple[str, float]]:
     out = []
     for item in text:
@@ -141,13 +162,12 @@ def _signing_key(path: Path | None) -> bytes | None:
 
 
 async def run(args: argparse.Namespace) -> Counters:
-    if args.instance < 0 or args.speedup <= 0.0:
-        raise UsageError("--instance must be >= 0 and --speedup > 0")
     config = load_sim_config(args.config, _overrides(args))
     args.personality = config.sitl.autopilot
     key = _signing_key(args.signing_key)
     sysid = args.instance + 1
     listen_port, dests = link_addresses(args)
+    _check_ports(args, listen_port)
 
     sim = Simulation(config, seed=args.seed)
     for name, value in _params(args.param):
@@ -210,7 +230,8 @@ async def run(args: argparse.Namespace) -> Counters:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(join_negative_values(argv, ("--wind",)))
     try:
         counters = asyncio.run(run(args))
     except (ConfigError, UsageError) as exc:

@@ -42,6 +42,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
 from epc_offboard.control.cascade import Cascade
@@ -219,6 +220,8 @@ class Service:
         log.info("SIGHUP: trajectory, mission and offboard settings reloaded")
 
     async def run(self) -> int:
+        if self.link.endpoint.mode == "udpin":  # a taken port: said now, not after warm-up
+            check_port_free("udp", self.link.endpoint.host, self.link.endpoint.port, "link.url")
         # numba compiles (or loads from its cache) each kernel on first use: 0.2-1 s that,
         # inside the first tick, stalled the loops into a stale-state failsafe. Done here,
         # before the link opens, before READY=1 and before any setpoint streams.

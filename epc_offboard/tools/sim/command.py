@@ -14,7 +14,7 @@ import sys
 
 from epc_offboard.common.errors import EXIT_RUNTIME
 from epc_offboard.tools.sim.options import SimOptions, sim_options
-from epc_offboard.tools.sim.orchestrate import fly_and_report, stop_on_sigterm
+from epc_offboard.tools.sim.orchestrate import check_ports, fly_and_report, stop_on_sigterm
 from epc_offboard.tools.sim.report import (
     method_targets,
     print_report,
@@ -27,6 +27,11 @@ from epc_offboard.tools.sim.report import (
 def run_sim_command(args: argparse.Namespace) -> int:
     stop_on_sigterm()
     options = sim_options(args)
+    try:
+        check_ports(options)
+    except OSError as exc:
+        print(f"epc-offboard sim: {exc}", file=sys.stderr)
+        return EXIT_RUNTIME
     if options.compare is not None:
         from epc_offboard.tools.compare import run_compare
 

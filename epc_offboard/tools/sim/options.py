@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from epc_offboard.common.cliargs import MAX_PORT
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.errors import UsageError
 from epc_offboard.tools.sim.scenario import ScenarioConfig, load_scenario
@@ -71,14 +73,16 @@ def _check_vehicles(n: int) -> None:
 def sim_options(args: argparse.Namespace) -> SimOptions:
     """The options of ``epc-offboard sim``'s parsed command line; UsageError if bad."""
     _check_vehicles(args.vehicles)
+    _check_combinations(args)
     scenario = _scenario(args.scenario, args.duration)
     wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
     compare = None if args.compare is None else _compare_methods(args.compare, scenario)
+    _check_outputs(Path(args.out), Path(args.json) if args.json else None)
     return SimOptions(
         scenario_name=args.scenario,
         scenario=scenario,
-        controller=args.controller,
-        adaptation=args.adaptation,
+        controller=args.controller or "epc",
+        adaptation=args.adaptation or "lwpr",
         vehicles=args.vehicles,
         lockstep=args.lockstep,
         wind_speed_m_s=wind[0],
@@ -94,6 +98,40 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
     )
 
 
+def _check_combinations(args: argparse.Namespace) -> None:
+    """Flags another flag makes meaningless are errors, not silently ignored."""
+    if args.vehicles == 1:
+        for flag, given in (("--stagger", args.stagger), ("--no-share", args.no_share)):
+            if given:
+                raise UsageError(f"{flag} needs --vehicles N > 1: one vehicle has no fleet")
+    if args.compare is not None:
+        for flag, given in (("--controller", args.controller), ("--adaptation", args.adaptation)):
+            if given is not None:
+                raise UsageError(
+                    f"{flag} {given} with --compare: --compare flies the methods it names "
+                    f"(e.g. --compare {args.controller or 'epc'}:{args.adaptation or 'lwpr'},"
+                    "pd:none); give them there"
+                )
+    if args.gcs_port and args.autopilot == "ardupilot":
+        last = args.gcs_port + 10 * (args.vehicles - 1)  # vehicle k serves PORT + 10 (k - 1)
+        if last > MAX_PORT:
+            raise UsageError(
+                f"--gcs-port {args.gcs_port} with --vehicles {args.vehicles}: vehicle "
+                f"{args.vehicles} would serve TCP {last}, above {MAX_PORT}"
+            )
+
+
+def _check_outputs(out_dir: Path, json_path: Path | None) -> None:
+    """Where the results go must take them: found out now, not after the flight."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"--out {out_dir}: exists and is not a folder")
+    if json_path is not None:
+        if json_path.is_dir():
+            raise UsageError(f"--json {json_path}: is a folder")
+        if not json_path.parent.is_dir():
+            raise UsageError(f"--json {json_path}: no folder {json_path.parent}")
+
+
 def _scenario(name: str, duration_s: float | None) -> ScenarioConfig:
     """The scenario named by ``--scenario`` with ``--duration`` applied."""
     try:
@@ -101,9 +139,10 @@ def _scenario(name: str, duration_s: float | None) -> ScenarioConfig:
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
     if duration_s is not None:
-        if duration_s <= scenario.settle_s:
+        if not math.isfinite(duration_s) or duration_s <= scenario.settle_s:
             raise UsageError(
-                f"--duration must exceed the scenario's settle time {scenario.settle_s} s"
+                f"--duration must be finite and exceed the scenario's settle time "
+                f"{scenario.settle_s} s, got {duration_s}"
             )
         scenario = dataclasses.replace(scenario, duration_s=duration_s)
     return scenario

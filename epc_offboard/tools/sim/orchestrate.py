@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.tools.figures import write_figure
@@ -125,6 +126,38 @@ def _sharing_flags(options: SimOptions, vehicle_id: int) -> dict[str, Any]:
         ],
         "scouting_multicast": False,
     }
+
+
+def check_ports(options: SimOptions) -> None:
+    """The ports the flight's processes will bind and sim cannot choose (the fleet's Zenoh
+    ports, ArduPilot's ground-station TCP ports): PortInUseError naming the port and the
+    vehicle now, before any process starts, instead of a service failing after its warm-up."""
+    for k in range(1, options.vehicles + 1):
+        if options.vehicles > 1 and options.share:
+            check_port_free("tcp", "127.0.0.1", ZENOH_BASE_PORT + k,
+                            f"vehicle {k}'s fleet sharing (Zenoh; --no-share: none)")  # fmt: skip
+        gcs = _gcs_port(options, k)
+        if options.autopilot == "ardupilot" and gcs:
+            check_port_free("tcp", "127.0.0.1", gcs, f"vehicle {k}'s ground station (--gcs-port)")
+
+
+def telemetry_routes(
+    options: SimOptions, vehicle_id: int, listen_port: int, offboard_port: int
+) -> str:
+    """Where vehicle k's MAVLink goes, said at start: the ground-station stream is a fixed
+    port another SITL or QGroundControl on this machine may be using too."""
+    gcs = _gcs_port(options, vehicle_id)
+    if options.autopilot == "ardupilot":
+        station = f"serves TCP 127.0.0.1:{gcs}" if gcs else "none (--gcs-port PORT to serve one)"
+    else:
+        station = f"UDP 127.0.0.1:{gcs} (--gcs-port 0: none)" if gcs else "none"
+    routes = (
+        f"vehicle {vehicle_id}: SITL (system id {vehicle_id}) on UDP 127.0.0.1:{listen_port} "
+        f"-> service on UDP 127.0.0.1:{offboard_port}; ground station: {station}"
+    )
+    if options.vehicles > 1 and options.share:
+        routes += f"; fleet sharing: Zenoh tcp/127.0.0.1:{ZENOH_BASE_PORT + vehicle_id}"
+    return routes
 
 
 def _gcs_port(options: SimOptions, vehicle_id: int) -> int:
@@ -256,6 +289,7 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
         )  # fmt: skip
         run.sitl = _start(sitl_cmd, run.sitl_log)
         runs.append(run)
+        print(telemetry_routes(options, k, listen_port, offboard_port), flush=True)
 
     for k in range(1, (1 if stagger else vehicles) + 1):
         start(k)
