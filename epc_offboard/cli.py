@@ -236,7 +236,13 @@ def _add_log(sub: _Subparsers) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else argv
-    args = parser.parse_args(join_negative_values(argv, ("--wind",)))
+    args, extra = parser.parse_known_args(join_negative_values(argv, ("--wind",)))
+    if extra and args.command == "db" and not any(e.startswith("-") for e in extra):
+        # `db import --config X LIB EXP`: argparse fills the PATH list once, with what stands
+        # before the first option, and leaves later paths over; they are the same list
+        args.paths += extra
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     module_name, func_name = _COMMANDS[args.command].split(":")
     try:
         module = importlib.import_module(module_name)

@@ -38,6 +38,8 @@ def vehicle_report(vid: int, rmse_m: float = 0.0043, received: int = 0) -> dict[
         "constraint_violations": 0,
         "library": {"size": 6, "hits": 1228, "misses": 7, "hit_rate": 0.9943, "qp_solves": 6,
                     "received_shared": received, "first_lap_misses": 3},
+        "fleet": {"controllers_received": 3 * received,
+                  "controllers_used": {"position": received, "attitude": 1 if received else 0}},
         "loops": {"position": {"rate_hz": 100.0, "compute_us_p99": 5353.0,
                                "compute_us_median": 900.0},
                   "attitude": {"rate_hz": 200.0}},
@@ -106,10 +108,14 @@ def test_report_table_is_plain_aligned_text_when_not_a_tty() -> None:
     text = out.getvalue()
     rows = assert_plain_and_aligned(text, "id")
     assert "lap-1 misses" in rows[0]
-    assert "received" in rows[0]
+    assert "fleet rcvd" in rows[0]
+    assert "fleet used" in rows[0]
+    assert "pos tick p99 us" in rows[0]  # a tick's wall time, not compute (the note says)
+    assert "pos tick: wall time" in text
     assert rows[1].split()[0] == "1"
     assert rows[2].split()[0] == "2"
-    assert rows[2].split()[8] == "14"  # vehicle 2 received 14 controllers
+    assert rows[2].split()[8] == "42"  # vehicle 2 received 42 controllers from the fleet
+    assert rows[2].split()[9] == "15"  # and used 14 + 1 of them (position, attitude)
     assert rows[1].split()[6] == "3"  # first-lap misses
     assert "note: large by design" in text
     assert "vehicle 2 warnings: none" in text

@@ -88,8 +88,13 @@ def test_second_run_starts_from_the_saved_library(tmp_path):
     # the velocity bound is below the reference speed: active on every sweep, so the library
     # must learn many active sets — what makes a saved library worth loading
     args = ("--scenario", "zigzag_bounded", "--duration", "8", "--adaptation", "none")
-    first, _, _ = sim(tmp_path, *args)
+    first, out, proc = sim(tmp_path, *args)
+    tlog = out / "vehicle1" / "session.tlog"
+    first_tlog_bytes = tlog.stat().st_size
+    assert "vehicle 1: SITL (system id 1) on UDP 127.0.0.1:" in proc.stdout  # where it goes
     second, _, _ = sim(tmp_path, *args)  # same --out: library-1.sqlite is the prior
+    # every output of the first run is replaced, the tlog too (it was appended to)
+    assert tlog.stat().st_size < 1.5 * first_tlog_bytes
     m1 = first["vehicles"][0]["library"]["misses"]
     m2 = second["vehicles"][0]["library"]["misses"]
     assert m1 >= 50

@@ -45,6 +45,7 @@ class LibraryKeeper:
         if not self.cfg.path:
             return
         self.store = LibraryStore.open(self.cfg.path)
+        self.store.label_loops(experience.loop_names(self.cascade))  # for `db info`
         loaded = experience.load(self.cascade, self.store)
         log.info("library %s: loaded %s", self.cfg.path, loaded)
 

@@ -49,6 +49,11 @@ def snapshot(cascade: Cascade) -> LibrarySnapshot:
     return LibrarySnapshot(parts)
 
 
+def loop_names(cascade: Cascade) -> dict[str, str]:
+    """signature -> the loop it is the problem of ("position", "attitude")."""
+    return {ctrl.problem.signature(): name for name, ctrl in cascade.experience_controllers()}
+
+
 def save(cascade: Cascade, store: LibraryStore) -> None:
     """Snapshot and save at once (on the loops' thread, e.g. at shutdown)."""
     store.save_snapshot(snapshot(cascade))

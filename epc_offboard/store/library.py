@@ -25,7 +25,7 @@ import logging
 import sqlite3
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from epc_offboard.common.errors import EpcError
@@ -70,6 +70,7 @@ CREATE TABLE IF NOT EXISTS models (
 """
 
 _TABLES = frozenset({"meta", "controllers", "transitions", "models"})
+_LOOP_KEY = "loop:"  # meta rows "loop:SIGNATURE" -> "position" | "attitude"
 _SET_VERSION = f"INSERT OR IGNORE INTO meta VALUES ('schema_version', '{SCHEMA_VERSION}');"
 
 _UPSERT_MODEL = (
@@ -336,6 +337,28 @@ class LibraryStore:
                         new["models"] += 1
                         self._conn.execute(_UPSERT_MODEL, (name, sig, sqlite3.Binary(blob), now))
         return new
+
+    # -- which loop a signature belongs to ----------------------------------------------
+
+    def label_loops(self, loops: Mapping[str, str]) -> None:
+        """Record which loop ("position", "attitude") each signature is the problem of: a
+        signature is a hash that says nothing by itself, and ``db info`` names the loop."""
+        with self._lock, self._conn:
+            self._conn.executemany(
+                "INSERT INTO meta VALUES (?, ?) ON CONFLICT (key) DO UPDATE SET value = "
+                "excluded.value",
+                [(f"{_LOOP_KEY}{sig}", name) for sig, name in loops.items()],
+            )
+
+    def loop_labels(self) -> dict[str, str]:
+        """signature -> loop name, as :meth:`label_loops` recorded (files written before
+        it have none)."""
+        with self._lock:
+            rows = self._conn.execute(
+                "SELECT key, value FROM meta WHERE substr(key, 1, ?) = ?",
+                (len(_LOOP_KEY), _LOOP_KEY),
+            ).fetchall()
+        return {str(k)[len(_LOOP_KEY) :]: str(v) for k, v in rows}
 
     # -- inspection ----------------------------------------------------------------------
 

@@ -30,7 +30,7 @@ from epc_offboard.tools.figures import PHASE_COLOURS, mark_events, vehicle_colou
 from epc_offboard.tools.sim.analysis import VehicleResult
 from epc_offboard.tools.sim.options import SimOptions
 from epc_offboard.tools.sim.orchestrate import fly_and_report
-from epc_offboard.tools.sim.report import targets_exit_code, write_json
+from epc_offboard.tools.sim.report import TICK_NOTE, targets_exit_code, write_json
 from epc_offboard.tools.sim.scenario import ScenarioConfig
 from epc_offboard.tools.tables import format_metric, print_table
 from epc_offboard.tools.targets import evaluate, method_name
@@ -95,7 +95,8 @@ def run_compare(options: SimOptions) -> int:
 
 
 COMPARE_COLUMNS = ("method", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "lap-1 misses",
-                   "QPs", "us med", "us p99", "pos Hz", "att Hz")  # fmt: skip
+                   "QPs", "pos tick us med", "pos tick us p99", "pos Hz",
+                   "att Hz")  # fmt: skip
 
 
 def print_compare(summary: dict[str, Any], file: TextIO | None = None) -> None:
@@ -129,6 +130,7 @@ def print_compare(summary: dict[str, Any], file: TextIO | None = None) -> None:
     print_table(title, COMPARE_COLUMNS, rows, left=1, file=file, min_width=118)
     if summary.get("note"):
         print(f"note: {summary['note']}", file=file)
+    print(TICK_NOTE, file=file)
     if summary["targets"]:
         target_rows = [
             [t["target"], format_metric(t["metric"], t["value"]),

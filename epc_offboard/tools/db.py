@@ -30,10 +30,10 @@ import binascii
 import json
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from epc_offboard.common.errors import EXIT_OK, EpcError, UsageError
 from epc_offboard.control.library import (
@@ -49,7 +49,10 @@ from epc_offboard.control.library import (
 from epc_offboard.store.library import LibraryStore, StoreError
 
 if TYPE_CHECKING:
+    from epc_offboard.control.cascade import Cascade
     from epc_offboard.mpc import MpcProblem
+
+_T = TypeVar("_T")
 
 EXPORT_FORMAT = "epc-offboard-library"
 EXPORT_VERSION = 1
@@ -222,8 +225,37 @@ class Validated:
     not_taken: tuple[str, ...]  # signatures that are not the config's problems
 
 
-def config_problems(config_path: str) -> dict[str, MpcProblem]:
+def config_problems(config_path: str | Path) -> dict[str, MpcProblem]:
     """signature -> MpcProblem of the service configured by ``config_path``."""
+    return _problems(_config_cascade(config_path))
+
+
+def _problems(cascade: Cascade) -> dict[str, MpcProblem]:
+    return {p.signature(): p for p in (cascade.position.problem, cascade.attitude.problem)}
+
+
+_LOOPS_SHOWN = ("position", "attitude")
+
+
+def _loop_rank(loops: dict[str, str], sig: str) -> tuple[int, str]:
+    """``db info`` lists the position loop's signature, the attitude loop's, then others."""
+    loop = loops.get(sig, "")
+    return (_LOOPS_SHOWN.index(loop) if loop in _LOOPS_SHOWN else len(_LOOPS_SHOWN), sig)
+
+
+def _bundled_loops() -> dict[str, str]:
+    """signature -> loop of the bundled service configs (config/default.toml, sitl.toml):
+    names the loops of a library written before the service labelled them."""
+    from epc_offboard.common.bundled import bundled_config, bundled_names
+    from epc_offboard.store.experience import loop_names
+
+    out: dict[str, str] = {}
+    for name in bundled_names():
+        out.update(loop_names(_config_cascade(bundled_config(name))))
+    return out
+
+
+def _config_cascade(config_path: str | Path) -> Cascade:
     from epc_offboard.common.configio import ConfigError
     from epc_offboard.control.cascade import Cascade
     from epc_offboard.service.config import load_service_config
@@ -232,8 +264,7 @@ def config_problems(config_path: str) -> dict[str, MpcProblem]:
         cfg = load_service_config(config_path)
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
-    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz)
-    return {p.signature(): p for p in (cascade.position.problem, cascade.attitude.problem)}
+    return Cascade(cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz)
 
 
 def validate_against_problems(
@@ -336,7 +367,12 @@ def run_db_command(args: argparse.Namespace) -> int:
 
 
 def read_library(path: Path) -> tuple[LibrarySnapshot, int]:
-    """The whole library file and its count of unreadable rows, leaving nothing beside it.
+    """The whole library file and its count of unreadable rows (:func:`_read_store`)."""
+    return _read_store(path, lambda store: (store.snapshot(), store.skipped_rows))
+
+
+def _read_store(path: Path, read: Callable[[LibraryStore], _T]) -> _T:
+    """``read`` of the library file, leaving nothing beside it.
 
     A WAL-mode file opened read-only the ordinary way gets ``-wal`` and ``-shm`` files that
     a read-only connection cannot remove. With no ``-wal`` beside it no process has the file
@@ -348,11 +384,11 @@ def read_library(path: Path) -> tuple[LibrarySnapshot, int]:
     if not wal.exists() and path.is_file():
         before = _file_identity(path)
         with LibraryStore.open_readonly(path, immutable=True) as store:
-            snap, skipped = store.snapshot(), store.skipped_rows
+            result = read(store)
         if not wal.exists() and _file_identity(path) == before:
-            return snap, skipped
+            return result
     with LibraryStore.open_readonly(path) as store:
-        return store.snapshot(), store.skipped_rows
+        return read(store)
 
 
 def _file_identity(path: Path) -> tuple[int, int, int]:
@@ -363,18 +399,25 @@ def _file_identity(path: Path) -> tuple[int, int, int]:
 def _info(path: Path, signatures: list[str] | None) -> int:
     whole, skipped = read_library(path)
     snap = select(whole, signatures)
+    loops = _read_store(path, lambda store: store.loop_labels())
+    if set(snap.signatures) - set(loops):  # a file from before the labels, or a merge
+        loops = {**_bundled_loops(), **loops}
     print(f"{path}: {len(snap.signatures)} problem signature(s)")
-    for sig, part in sorted(snap.signatures.items()):
+    for sig, part in sorted(snap.signatures.items(), key=lambda kv: _loop_rank(loops, kv[0])):
+        loop = f"{loops.get(sig, 'unknown')} loop"
         origins: dict[str, int] = {}
         for c in part.controllers:
             kind = c.origin.split(":", 1)[0]
             origins[kind] = origins.get(kind, 0) + 1
         by_origin = ", ".join(f"{k} {v}" for k, v in sorted(origins.items())) or "none"
         print(
-            f"  {sig}: {len(part.controllers)} controllers ({by_origin}), "
+            f"  {loop:<13}  {sig}: {len(part.controllers)} controllers ({by_origin}), "
             f"{len(part.transitions)} transitions, {len(part.models)} models"
             + (f" [{', '.join(sorted(part.models))}]" if part.models else "")
         )
+    if set(snap.signatures) - set(loops):
+        print("  (unknown loop: a problem of no bundled config, in a file the service did not "
+              "write; the service records each signature's loop in the files it writes)")
     if skipped:
         print(f"  {skipped} unreadable row(s) skipped")
     return EXIT_OK
@@ -400,7 +443,10 @@ def _export(path: Path, out: Path, signatures: list[str] | None) -> int:
 def _write(
     library: Path, sources: list[tuple[str, LibrarySnapshot]], args: argparse.Namespace
 ) -> int:
-    problems = config_problems(args.config)
+    from epc_offboard.store.experience import loop_names
+
+    cascade = _config_cascade(args.config)
+    problems = _problems(cascade)
     prepared = []
     invalid = 0
     for name, snap in sources:  # validate everything before touching the library
@@ -420,6 +466,7 @@ def _write(
             "--skip-invalid writes the rest and leaves these out"
         )
     with LibraryStore.open(library, repair=False) as store:
+        store.label_loops(loop_names(cascade))  # for `db info`
         for name, snap in prepared:
             new = store.write_snapshot(
                 snap, origin=f"{args.action}:{Path(name).name}"[:64], models=args.models

@@ -144,6 +144,22 @@ def flight_warnings(stats: dict[str, Any], sitl: dict[str, int]) -> dict[str, in
     return {k: v for k, v in out.items() if v}
 
 
+def fleet_figures(stats: dict[str, Any]) -> dict[str, Any]:
+    """What the fleet gave this vehicle: the controllers that arrived (new to it, both loops'
+    problems) and those it used, i.e. promoted into its library once the KKT check proved one
+    optimal at a state it flew. They differ: a controller for states this vehicle never
+    visits arrives and stays a candidate (with --stagger a landed vehicle still receives the
+    later ones'), so "used" alone read 0 while the log showed candidates arriving."""
+    libs = stats.get("library", {})
+    return {
+        "controllers_received": int(stats.get("sharing", {}).get("entries_offered", 0)),
+        "controllers_used": {
+            loop: int(libs.get(loop, {}).get("received_shared", 0))
+            for loop in ("position", "attitude")
+        },
+    }
+
+
 def analyse(
     record: FlightRecord, scenario: ScenarioConfig, vel_bounds_m_s: FloatArray
 ) -> VehicleResult:
@@ -192,6 +208,7 @@ def analyse(
             "received_shared": int(lib.get("received_shared", 0)),
             "first_lap_misses": first_lap_misses,
         },
+        "fleet": fleet_figures(stats),
         "loops": stats.get("loops", {}),
         # what the autopilot actually streamed (the service asks for the loops' rates) and
         # how many takeoffs the service commanded (one per flight, never in the air)

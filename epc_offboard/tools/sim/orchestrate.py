@@ -58,6 +58,10 @@ class VehicleRun:
         return self.out_dir / "stats.json"
 
     @property
+    def tlog(self) -> Path:
+        return self.out_dir / "session.tlog"
+
+    @property
     def sitl_log(self) -> Path:
         return self.out_dir / "sitl.log"
 
@@ -100,7 +104,7 @@ def service_config_for(
         "store": {"path": str(library_path)},
         "log": {
             "flight_log_path": str(run_dir / "flight.csv"),
-            "tlog_path": str(run_dir / "session.tlog"),
+            "tlog_path": str(VehicleRun(vehicle_id, run_dir).tlog),
             "stats_path": str(run_dir / "stats.json"),
         },
     }
@@ -262,7 +266,9 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
         run = VehicleRun(k, out_dir / f"vehicle{k}")
         run.out_dir.mkdir(parents=True, exist_ok=True)
         run.stats.unlink(missing_ok=True)  # with --stagger its appearance means "landed"
-        for stale in (run.flight_log, run.groundtruth):  # the progress bar reads their tails
+        # a re-run into the same --out replaces every file of the last one; the service
+        # appends to its tlog (a restarted daemon keeps its earlier sessions), so it goes too
+        for stale in (run.flight_log, run.groundtruth, run.tlog):  # the bar reads the first two
             stale.unlink(missing_ok=True)
         offboard_port = _free_udp_port()
         listen_port = _free_udp_port()

@@ -5,6 +5,7 @@ warnings and target verdicts, and the exit code the targets decide. The figures 
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any, TextIO
@@ -15,8 +16,16 @@ from epc_offboard.tools.sim.options import SimOptions
 from epc_offboard.tools.tables import format_metric, print_table
 from epc_offboard.tools.targets import evaluate
 
+# "fleet rcvd": controllers that arrived from the fleet; "fleet used": those promoted into the
+# library (both loops). "pos tick p99 us": wall time of a position tick, see TICK_NOTE
 REPORT_COLUMNS = ("id", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "lap-1 misses",
-                  "QPs", "received", "pos Hz", "pos p99 us", "att Hz")  # fmt: skip
+                  "QPs", "fleet rcvd", "fleet used", "pos Hz", "pos tick p99 us",
+                  "att Hz")  # fmt: skip
+TICK_NOTE = (
+    "pos tick: wall time of a position tick, start to end; in lockstep it includes waiting "
+    "for the miss worker's QP solve (so runs are repeatable), and on a busy machine time "
+    "off the CPU: no compute figure (`epc-offboard bench --service` measures those)"
+)
 
 
 def make_report(options: SimOptions, results: list[VehicleResult]) -> dict[str, Any]:
@@ -34,9 +43,22 @@ def make_report(options: SimOptions, results: list[VehicleResult]) -> dict[str, 
     }
 
 
+def strict_json(value: Any) -> Any:
+    """``value`` with every non-finite float as None: JSON has no NaN or Infinity (Python
+    writes a bare ``NaN`` that strict parsers reject), and null says "no figure" (a vehicle
+    with no tracking window has no RMSE)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [strict_json(v) for v in value]
+    return value
+
+
 def write_json(report: dict[str, Any], *paths: Path | None) -> None:
-    """The report, indented, to each path given (None: skipped)."""
-    text = json.dumps(report, indent=2)
+    """The report, indented, to each path given (None: skipped); strict JSON."""
+    text = json.dumps(strict_json(report), indent=2, allow_nan=False)
     for path in paths:
         if path is not None:
             path.write_text(text)
@@ -65,12 +87,19 @@ def report_rows(report: dict[str, Any]) -> list[list[str]]:
             f"{lib['hit_rate'] * 100:.1f}%" if epc else "-",
             str(lib.get("first_lap_misses", "-")) if epc else "-",
             str(lib["qp_solves"]) if epc else "-",
-            str(lib.get("received_shared", 0)) if epc else "-",
+            *_fleet_cells(v.get("fleet"), epc),
             f"{pos.get('rate_hz', 0.0):.1f}",
             f"{pos.get('compute_us_p99', 0.0):.0f}",
             f"{att.get('rate_hz', 0.0):.1f}",
         ])  # fmt: skip
     return rows
+
+
+def _fleet_cells(fleet: dict[str, Any] | None, epc: bool) -> list[str]:
+    """"fleet rcvd" and "fleet used" ("-" without EPC, or from a report without them)."""
+    if not epc or not fleet:
+        return ["-", "-"]
+    return [str(fleet["controllers_received"]), str(sum(fleet["controllers_used"].values()))]
 
 
 def print_report(report: dict[str, Any], file: TextIO | None = None) -> None:
@@ -81,6 +110,7 @@ def print_report(report: dict[str, Any], file: TextIO | None = None) -> None:
     print_table(title, REPORT_COLUMNS, report_rows(report), file=out)
     if report.get("note"):
         print(f"note: {report['note']}", file=out)
+    print(TICK_NOTE, file=out)
     for v in report["vehicles"]:
         warnings = v.get("warnings", {})
         text = ", ".join(f"{name} {n}" for name, n in warnings.items()) or "none"
