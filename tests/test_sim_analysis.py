@@ -194,9 +194,9 @@ def test_compare_options_name_the_methods_flown() -> None:
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (("--vehicles", "0"), "--vehicles must be >= 1"),
         (("--scenario", "nowhere"), "unknown scenario 'nowhere'"),
-        (("--duration", "3"), "--duration must exceed the scenario's settle time 3.0 s"),
+        (("--duration", "3"), "--duration must be finite and exceed the scenario's settle "
+                              "time 3.0 s, got 3.0"),
         (("--compare", "epc:lwpr,epc:lwpr"), "--compare repeats a method"),
         (("--compare", "epc:magic"), "--compare: method 'epc:magic'"),
     ],
