@@ -36,7 +36,7 @@ sitl=$!
 epc-offboard run --config "$SERVICE_CONFIG" > service.log 2>&1 &
 svc=$!
 i=0
-while [ $i -lt 900 ] && ! grep -q "offboard confirmed" service.log; do
+while [ $i -lt 2400 ] && ! grep -q "offboard confirmed" service.log; do
     kill -0 $svc 2>/dev/null || break; sleep 0.1; i=$((i+1))
 done
 kill -TERM $svc; wait $svc; rc=$?
@@ -91,9 +91,12 @@ def wheel_venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _user_env(bin_dir: Path) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["PATH"] = f"{bin_dir}{os.pathsep}{env.get('PATH', '')}"
+    # numba's cache is keyed by source path: the wheel's files compile once for the test
+    env["NUMBA_CACHE_DIR"] = str(bin_dir.parent.parent / "numba-cache")
     return env
 
 
+@pytest.mark.timeout(720)  # waits are safety bounds for a loaded machine; idle: ~30 s
 def test_the_wheel_ships_its_configs_and_flies_from_any_folder(
     wheel_venv: Path, tmp_path: Path
 ) -> None:
@@ -128,26 +131,28 @@ def test_the_wheel_ships_its_configs_and_flies_from_any_folder(
         )
         fly_env["SERVICE_CONFIG"] = "./sitl.toml"
         fly_env["SITL_PORTS"] = f"--listen-port 0 --offboard-port {port}"
-    flight = subprocess.Popen(cmd, cwd=fly_dir, env=fly_env)
 
-    # meanwhile the demo, as the README runs it, on free ports
+    # the demo, as the README runs it, on free ports; it compiles the kernels of the wheel's
+    # files into the shared cache, so the service after it starts warm
     sim_dir = tmp_path / "sim"
     sim_dir.mkdir()
     sim = subprocess.run(
         ["epc-offboard", "sim", "--gcs-port", "0", "--duration", "3.5"],
-        cwd=sim_dir, env=env, capture_output=True, text=True, timeout=240,
+        cwd=sim_dir, env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
-    try:
-        flight_rc = flight.wait(timeout=240)
-    finally:
-        if flight.poll() is None:
-            flight.send_signal(signal.SIGKILL)
     assert sim.returncode == 0, sim.stdout + sim.stderr
     report = (sim_dir / "out" / "report.json").read_text()
     assert '"scenario": "hover"' in report
 
+    flight = subprocess.Popen(cmd, cwd=fly_dir, env=fly_env)
+    try:
+        flight_rc = flight.wait(timeout=300)
+    finally:
+        if flight.poll() is None:
+            flight.send_signal(signal.SIGKILL)
     service_log = (fly_dir / "service.log").read_text()
-    assert "offboard confirmed" in service_log, service_log
+    sitl_log = (fly_dir / "sitl.log").read_text()
+    assert "offboard confirmed" in service_log, service_log + sitl_log
     assert flight_rc == 0, service_log  # SIGTERM: hold, save the library, exit 0
 
 
