@@ -50,9 +50,7 @@ def fly_method(options: SimOptions, method: str, out_dir: Path) -> tuple[MethodR
     run_dir.mkdir(parents=True, exist_ok=True)
     for old in run_dir.glob("library-*.sqlite*"):  # learn from scratch: reproducible
         old.unlink()
-    report, results, bounds = fly_and_report(
-        options.flying(method), run_dir, f"{options.scenario_name}: {method}"
-    )
+    report, results, bounds = fly_and_report(options.flying(method), run_dir, options.scenario_name)
     return MethodRun(method, report, results), bounds
 
 
