@@ -117,7 +117,8 @@ def test_a_flight_that_never_entered_offboard_is_reported_as_a_failure() -> None
     assert "vehicle 3: never flew under offboard" in flight_failures(report)
     # a service that never streamed at all: a flight log with a header only
     empty = {k: np.zeros(0) for k in _flight()}
-    assert analyse(FlightRecord(3, empty, _truth()), SCENARIO, BOUNDS_M_S).report["flew_offboard"] is False
+    never = analyse(FlightRecord(3, empty, _truth()), SCENARIO, BOUNDS_M_S).report
+    assert never["flew_offboard"] is False
 
 
 ENVELOPE = Envelope(max_error_m=0.35, max_drift_m=1.0, max_tilt_deg=60.0, ceiling_m=3.0,
@@ -173,24 +174,29 @@ def test_the_scenario_envelope_is_derived_from_it_and_the_service_limits() -> No
         EnvelopeConfig(max_error_m=0.0)
 
 
-SERVICE_LOG = """\
-2026-11-26 00:16:34,633 INFO    epc_offboard.service: control kernels compiled
-2026-11-26 00:16:35,001 ERROR   epc_offboard.store.library: library /tmp/a/library-1.sqlite is unusable (file is not a database): moved aside to /tmp/a/library-1.sqlite.corrupt-20261126T001635, starting empty
-2026-11-26 00:16:36,145 WARNING epc_offboard.vehicle.state: heartbeat mode/arming flapping (1 flaps so far): forged heartbeats? a mode change now needs 1.0 s to be believed
-2026-11-26 00:16:38,145 WARNING epc_offboard.vehicle.state: heartbeat mode/arming flapping (2 flaps so far): forged heartbeats? a mode change now needs 1.0 s to be believed
-{"ts": 1.0, "level": "error", "logger": "epc_offboard.fleet.sharing", "msg": "fleet sharing unavailable, flying without it: address 127.0.0.1:7447 in use"}
-{"ts": 1.0, "level": "info", "logger": "epc_offboard.service", "msg": "running"}
-/x/y.py:12: RuntimeWarning: overflow encountered in exp
-Traceback (most recent call last):
-  File "x.py", line 1, in <module>
-ValueError: bad thing 42
-"""
+SERVICE_LOG = "\n".join([
+    "2026-11-26 00:16:34,633 INFO    epc_offboard.service: control kernels compiled",
+    "2026-11-26 00:16:35,001 ERROR   epc_offboard.store.library: library "
+    "/tmp/a/library-1.sqlite is unusable (file is not a database): moved aside to "
+    "/tmp/a/library-1.sqlite.corrupt-20261126T001635, starting empty",
+    *(f"2026-11-26 00:16:3{n},145 WARNING epc_offboard.vehicle.state: heartbeat mode/arming "
+      f"flapping ({n} flaps so far): forged heartbeats? a mode change now needs 1.0 s to be "
+      "believed" for n in (1, 2)),
+    '{"ts": 1.0, "level": "error", "logger": "epc_offboard.fleet.sharing", "msg": "fleet '
+    'sharing unavailable, flying without it: address 127.0.0.1:7447 in use"}',
+    '{"ts": 1.0, "level": "info", "logger": "epc_offboard.service", "msg": "running"}',
+    "/x/y.py:12: RuntimeWarning: overflow encountered in exp",
+    "Traceback (most recent call last):",
+    '  File "x.py", line 1, in <module>',
+    "ValueError: bad thing 42",
+])  # fmt: skip
 
 
 def test_every_logged_warning_and_error_is_counted_by_kind_with_its_first_line() -> None:
     kinds = {k.key: k for k in log_kinds(SERVICE_LOG, "service")}
-    flap = ("service WARNING epc_offboard.vehicle.state: heartbeat mode/arming flapping (<n> "
-            "flaps so far): forged heartbeats? a mode change now needs <n> s to be believed")  # fmt: skip
+    flap = ("service WARNING epc_offboard.vehicle.state: heartbeat mode/arming flapping "
+            "(<n> flaps so far): forged heartbeats? a mode change now needs <n> s to be "
+            "believed")  # fmt: skip
     assert kinds[flap].count == 2
     assert "(1 flaps so far)" in kinds[flap].first
     aside = ("service ERROR epc_offboard.store.library: library <path> is unusable (file is not "

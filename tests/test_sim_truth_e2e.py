@@ -53,12 +53,14 @@ def test_a_corrupt_library_moved_aside_fails_the_flight_and_its_error_is_reporte
     report, proc, _wall = sim(out, "--duration", "4")
     assert proc.returncode == 1, proc.stdout + proc.stderr
     v = report["vehicles"][0]
-    assert v["flew_offboard"] and v["finished"]  # the flight itself was fine
+    assert v["flew_offboard"]  # the flight itself was fine
+    assert v["finished"]
     [aside] = v["library_moved_aside"]
     assert ".corrupt-" in aside
     assert "its library was unusable and moved aside" in proc.stderr
     errors = [k for k in v["warnings"] if k.startswith("service ERROR epc_offboard.store")]
-    assert errors and "moved aside" in errors[0], v["warnings"]
+    assert errors, v["warnings"]
+    assert "moved aside" in errors[0]
     assert "moved aside to" in v["warning_examples"][errors[0]]
     assert errors[0] in proc.stdout  # printed under the table, not only in report.json
     assert any("moved aside" in f for f in report["failures"])
@@ -85,7 +87,8 @@ def test_a_fleet_whose_sharing_cannot_open_fails_and_says_so(tmp_path):
     assert "vehicle 1: fleet sharing was asked for and is unavailable" in proc.stderr
     assert "vehicle 2: fleet sharing" not in proc.stderr
     kinds = [k for k in v1["warnings"] if "fleet sharing unavailable" in k]
-    assert kinds and kinds[0].startswith("service ERROR"), v1["warnings"]
+    assert kinds, v1["warnings"]
+    assert kinds[0].startswith("service ERROR")
 
 
 def test_a_wind_beyond_the_vehicles_authority_ends_the_flight_outside_its_envelope(tmp_path):
