@@ -86,8 +86,9 @@ def target_failures(verdicts: list[dict[str, Any]]) -> list[str]:
     return [f"target failed: {v['target']}" for v in verdicts if v["verdict"] == "FAIL"]
 
 
-def _cm(value_m: float) -> str:
-    return "-" if not math.isfinite(value_m) else f"{value_m * 100:.2f}"
+def cm(value_m: float | None) -> str:
+    """A length in metres as the tables print it: centimetres, "-" when not measured."""
+    return "-" if value_m is None or not math.isfinite(value_m) else f"{value_m * 100:.2f}"
 
 
 def report_rows(report: dict[str, Any]) -> list[list[str]]:
@@ -100,8 +101,8 @@ def report_rows(report: dict[str, Any]) -> list[list[str]]:
         epc = lib["hits"] + lib["misses"] > 0
         rows.append([
             str(v["id"]),
-            _cm(v["tracking"]["rmse_m"]),
-            _cm(v["tracking"]["max_error_m"]),
+            cm(v["tracking"]["rmse_m"]),
+            cm(v["tracking"]["max_error_m"]),
             f"{v['max_speed_m_s']:.2f}",
             str(v["constraint_violations"]),
             f"{lib['hit_rate'] * 100:.1f}%" if epc else "-",
