@@ -446,8 +446,8 @@ def _draw_altitude(ax: Axes, results: list[VehicleResult], settle_s: float) -> N
     ceiling = _envelope_bound(results, "ceiling_m")
     if np.isfinite(ceiling):
         ax.axhline(ceiling, color="red", ls=":", lw=1.2, label=f"envelope ceiling {ceiling:g} m")
-    if lines:
-        _note(ax, "\n".join(lines))
+    if lines:  # above the flight's altitude, below the ceiling
+        _note(ax, "\n".join(lines), y=0.62)
     lo, hi = ax.get_ylim()
     ax.set_ylim(min(0.0, lo), hi + 0.1 * (hi - min(0.0, lo)))
     ax.set(xlabel="time since offboard entry [s]", ylabel="altitude above home [m]",
@@ -468,16 +468,18 @@ def _draw_tilt(ax: Axes, results: list[VehicleResult]) -> None:
         peak = max(peak, float(np.max(tilt)))
     limit = _envelope_bound(results, "command_tilt_deg")
     bound = _envelope_bound(results, "max_tilt_deg")
-    if np.isfinite(limit):
+    # the limits drawn only where they do not squash the curve; else written out
+    show = bool(np.isfinite(bound)) and peak >= 0.3 * limit
+    if show:
         ax.axhline(limit, color="darkorange", ls="--", lw=1.2,
                    label=f"command limit {limit:g}° (position.max_tilt_deg)")  # fmt: skip
-    if np.isfinite(bound):
         ax.axhline(bound, color="red", ls=":", lw=1.2, label=f"envelope {bound:g}°")
-    top = max(peak * 1.2, 10.0)
-    show = np.isfinite(bound) and peak >= 0.3 * limit  # else the limits squash the curve
-    ax.set_ylim(0.0, max(top, bound * 1.05) if show else top)
-    if np.isfinite(bound) and not show:
-        _note(ax, f"limits off scale: command {limit:g}°, envelope {bound:g}°", y=0.97, va="top")
+        ax.set_ylim(0.0, max(peak * 1.1, bound * 1.05))
+    else:
+        ax.set_ylim(0.0, max(peak * 1.2, 10.0))
+        if np.isfinite(bound):
+            _note(ax, f"limits off scale: command {limit:g}°, envelope {bound:g}°", y=0.97,
+                  va="top")  # fmt: skip
     ax.set(xlabel="time since offboard entry [s]", ylabel="tilt [deg]",
            title="tilt (ground truth) vs its limit")  # fmt: skip
     if ax.get_legend_handles_labels()[1]:

@@ -198,6 +198,9 @@ def fly(recipe: Recipe, work_dir: Path, results_dir: Path) -> int:
     from epc_offboard.cli import main
 
     out = work_dir / recipe.name
+    if out.exists():  # from an empty library, as a first flight: reproducible
+        for old in out.glob("**/library-*.sqlite*"):
+            old.unlink()
     argv = ["sim", *recipe.argv, "--out", str(out)]
     print(f"epc-offboard {' '.join(argv)}   (about {recipe.minutes:g} min)", file=sys.stderr)
     code = main(argv)
