@@ -28,7 +28,7 @@ REPORT_COLUMNS = ("id", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "lap-1 
 
 def make_report(options: SimOptions, results: list[VehicleResult]) -> dict[str, Any]:
     """The CONTRACTS.md `sim --json` report of one flight."""
-    return {
+    report: dict[str, Any] = {
         "scenario": options.scenario_name,
         "controller": options.controller,
         "adaptation": options.adaptation,
@@ -39,6 +39,9 @@ def make_report(options: SimOptions, results: list[VehicleResult]) -> dict[str, 
         "lockstep": bool(options.lockstep),
         "vehicles": [r.report for r in results],
     }
+    # why the flights failed (the targets' verdicts are added by the caller that judges them)
+    report["failures"] = flight_failures(report)
+    return report
 
 
 def write_json(report: dict[str, Any], *paths: Path | None) -> None:
