@@ -24,6 +24,7 @@ import argparse
 import json
 import re
 import shutil
+import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -195,15 +196,14 @@ def rewrite(text: str, results_dir: Path) -> str:
 def fly(recipe: Recipe, work_dir: Path, results_dir: Path) -> int:
     """Fly one recipe into ``work_dir/NAME`` and copy its report and figure to
     ``results_dir``; sim's exit code."""
-    from epc_offboard.cli import main
-
     out = work_dir / recipe.name
     if out.exists():  # from an empty library, as a first flight: reproducible
         for old in out.glob("**/library-*.sqlite*"):
             old.unlink()
     argv = ["sim", *recipe.argv, "--out", str(out)]
     print(f"epc-offboard {' '.join(argv)}   (about {recipe.minutes:g} min)", file=sys.stderr)
-    code = main(argv)
+    # the command line a user runs, as its own process (its output passes through)
+    code = subprocess.run([sys.executable, "-m", "epc_offboard", *argv], check=False).returncode
     compare = "--compare" in recipe.argv
     report = out / ("compare.json" if compare else "report.json")
     figure = out / ("compare.png" if compare else "flight.png")
