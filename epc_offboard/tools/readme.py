@@ -14,7 +14,8 @@ without the README, fails CI: they cannot drift apart.
 
 Keys: ``REPORT.METHOD.FIELD`` for a ``--compare`` report (METHOD as ``controller:adaptation``),
 ``REPORT.vK.FIELD`` for vehicle K of a single flight's; FIELD is one of :data:`FIELDS`, or
-``duration_s``; ``REPORT`` is the JSON's name in ``tests/results/`` without ``.json``.
+``duration_s``, and ``REPORT.targets`` (PASS or FAIL: every declared target of a
+``--compare``); ``REPORT`` is the JSON's name in ``tests/results/`` without ``.json``.
 Derived numbers (a percentage between two reports) are in :data:`DERIVED`.
 """
 
@@ -113,6 +114,8 @@ def values_from(results_dir: Path) -> dict[str, str]:
         data = json.loads(path.read_text())
         name = path.stem
         reports = data.get("reports", [data])
+        if "all_pass" in data:  # a --compare: its declared targets' verdict
+            out[f"{name}.targets"] = "PASS" if data["all_pass"] else "FAIL"
         for report in reports:
             out[f"{name}.duration_s"] = f"{report['duration_s']:g}"
             for v in report["vehicles"]:
