@@ -196,6 +196,20 @@ def rewrite(text: str, results_dir: Path) -> str:
     )
 
 
+def _warn_if_not_lockstep(recipe: Recipe, data: dict[str, Any]) -> None:
+    """Say so when a flight's SITL advanced without the controller's answer (the machine was
+    too loaded for lockstep): such a result may not be what a quiet machine reproduces."""
+    timeouts = sum(
+        v.get("warnings", {}).get("SITL lockstep timeouts", 0)
+        for report in data.get("reports", [data])
+        for v in report["vehicles"]
+    )
+    if timeouts:
+        print(f"epc-offboard figures: {recipe.name}: {timeouts} SITL lockstep timeouts (the "
+              "machine was too loaded for lockstep): fly it again on a quieter machine for a "
+              "reproducible result", file=sys.stderr)  # fmt: skip
+
+
 def fly(recipe: Recipe, work_dir: Path, results_dir: Path) -> int:
     """Fly one recipe into ``work_dir/NAME`` and copy its report and figure to
     ``results_dir``; sim's exit code."""
@@ -212,6 +226,7 @@ def fly(recipe: Recipe, work_dir: Path, results_dir: Path) -> int:
     figure = out / ("compare.png" if compare else "flight.png")
     if report.exists():
         shutil.copyfile(report, results_dir / f"{recipe.name}.json")
+        _warn_if_not_lockstep(recipe, json.loads(report.read_text()))
     if figure.exists() and not recipe.name.startswith("stagger"):
         shutil.copyfile(figure, results_dir / f"{recipe.name}.png")
     return code
