@@ -53,3 +53,19 @@ def test_a_number_changed_by_hand_or_a_new_result_is_rewritten(tmp_path: Path) -
     )
     with pytest.raises(UsageError, match=r"no number in .*: nowhere\.v1\.rmse_cm"):
         rewrite("<!-- n:nowhere.v1.rmse_cm -->1<!-- /n -->", tmp_path)
+
+
+def test_the_command_rewrites_a_readme_from_results_without_flying(tmp_path: Path, capsys) -> None:
+    from epc_offboard.cli import main
+
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "stagger_shared.json").write_text(json.dumps(_report(0.0123, 75)))
+    readme = tmp_path / "README.md"
+    readme.write_text("shared: <!-- n:stagger_shared.v2.first_lap_misses -->81<!-- /n -->\n")
+    argv = ["figures", "readme", "--numbers-only", "--results", str(results),
+            "--readme", str(readme)]  # fmt: skip
+    assert main(argv) == 0
+    assert "first_lap_misses -->75<!-- /n -->" in readme.read_text()
+    assert main(["figures", "readme", "nope", "--results", str(results)]) == 2
+    assert "unknown recipe nope" in capsys.readouterr().err
