@@ -135,7 +135,7 @@ def print_warnings(v: dict[str, Any], file: TextIO) -> None:
     if not warnings:
         print(f"vehicle {v['id']} warnings: none", file=file)
         return
-    print(f"vehicle {v['id']} warnings: {counted or 'no counter'}", file=file)
+    print(f"vehicle {v['id']} warnings:{' ' + counted if counted else ''}", file=file)
     for key in logged:
         print(f"  {warnings.get(key, 0)}x {key}", file=file)
 
