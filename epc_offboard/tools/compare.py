@@ -256,7 +256,7 @@ def write_compare_figure(
     bounds = first.report.get("envelope", {}).get("bounds", {})
     limit = float(bounds.get("command_tilt_deg", np.nan))
     if np.isfinite(limit):
-        line = ax_tilt.axhline(limit, color="darkorange", ls="--", lw=1.4)
+        line = ax_tilt.axhline(limit, color="darkred", ls="-.", lw=1.4)
         handles.append(line)
         labels.append(f"tilt limit {limit:g}° (position.max_tilt_deg)")
         ax_tilt.set_ylim(0.0, max(1.1 * limit, 1.1 * tilt_peak))
