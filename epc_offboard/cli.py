@@ -31,6 +31,7 @@ _COMMANDS = {
     "bench": "epc_offboard.tools.bench:run_bench_command",
     "db": "epc_offboard.tools.db:run_db_command",
     "log": "epc_offboard.tools.logexport:run_log_command",
+    "figures": "epc_offboard.tools.readme:run_figures_command",
 }
 
 
@@ -76,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_db_arguments(db)
     _add_log(sub)
+    _add_figures(sub)
     return parser
 
 
@@ -231,6 +233,30 @@ def _add_log(sub: _Subparsers) -> None:
     log_cmd.add_argument("format", choices=["mcap"], help="the output format")
     log_cmd.add_argument("flight_csv", metavar="FLIGHT.csv", help="the per-tick flight log")
     log_cmd.add_argument("out", metavar="OUT.mcap", help="the file to write (replaced)")
+
+
+def _add_figures(sub: _Subparsers) -> None:
+    from epc_offboard.tools.readme import README, RECIPES, RESULTS_DIR
+
+    figures = sub.add_parser(
+        "figures",
+        help="regenerate the README's figures and the numbers it quotes",
+        description="Fly the README's recipes (each an `epc-offboard sim` command), copy "
+        "their figures and reports into tests/results/, and rewrite every number the README "
+        "quotes from those reports.",
+        formatter_class=_HelpFormatter,
+    )
+    figures.add_argument("what", choices=["readme"], help="the document to regenerate")
+    figures.add_argument("names", nargs="*", metavar="NAME",
+                         help=f"recipes to fly (default: all): {', '.join(RECIPES)}")  # fmt: skip
+    figures.add_argument("--numbers-only", action="store_true",
+                         help="fly nothing: rewrite the README from the results")  # fmt: skip
+    figures.add_argument("--results", default=str(RESULTS_DIR), metavar="DIR",
+                         help="where the figures and reports go")  # fmt: skip
+    figures.add_argument("--readme", default=str(README), metavar="FILE",
+                         help="the README to rewrite")  # fmt: skip
+    figures.add_argument("--work", default="out/readme", metavar="DIR",
+                         help="where the flights write their full output")  # fmt: skip
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.tools.compare import MethodRun, print_compare, write_compare_figure
-from epc_offboard.tools.figures import phase_spans, write_figure
+from epc_offboard.tools.figures import events, flight_title, phase_spans, write_figure
 from epc_offboard.tools.sim.analysis import VehicleResult
 from epc_offboard.tools.sim.orchestrate import VehicleRun, flight_progress
 from epc_offboard.tools.sim.report import print_report, print_targets
@@ -220,3 +220,46 @@ def test_compare_figure(tmp_path: Path) -> None:
     write_compare_figure(flown, np.array([3.0, 3.0, 2.0]), path, load_scenario("zigzag"), "zigzag",
                          (1.5, -135.0))  # fmt: skip
     assert path.stat().st_size > 10_000
+
+
+def test_only_failsafes_and_stops_are_drawn_red_not_a_healthy_start() -> None:
+    # ArduPilot's normal start waits for a fresh state (its EKF) before arming: a healthy
+    # phase, drawn red like a failsafe before
+    r = synthetic_result(1, path=False)
+    healthy = [{"t_s": -30.0, "phase": "wait_heartbeat"}, {"t_s": -29.0, "phase": "wait_state"},
+               *EVENTS[:4], *EVENTS[5:]]  # fmt: skip
+    r.report["phase_events"] = healthy
+    assert events(r) == []
+    faulty = [*healthy[:6], {"t_s": 4.2, "phase": "failsafe"}, {"t_s": 5.0, "phase": "wait_state"},
+              {"t_s": 6.0, "phase": "pilot"}, *healthy[6:]]  # fmt: skip
+    r.report["phase_events"] = faulty
+    assert events(r) == [(4.2, "failsafe", "red"), (5.0, "wait_state", "darkorange"),
+                         (6.0, "pilot", "darkorange")]  # fmt: skip
+    r.report["stopped"] = "stopped by sim: it left its envelope"
+    assert events(r)[-1] == (float(r.truth_t_s[-1]), "stopped by sim", "red")
+
+
+def test_every_title_names_the_wind_the_autopilot_and_the_controller() -> None:
+    title = flight_title("figure8", "epc:lwpr", "ardupilot", (3.0, 45.0))
+    assert title == ("figure8: epc + lwpr, bundled SITL as ArduPilot, wind 3 m/s towards 45° "
+                     "(CCW from east)")  # fmt: skip
+    assert "no wind" in flight_title("hover", "pd:none", "px4", (0.0, 0.0))
+    assert "2 vehicles" in flight_title("circle", "epc:lwpr", "px4", (0.0, 0.0), vehicles=2)
+
+
+def test_deadline_misses_and_logged_warnings_are_printed_with_the_table() -> None:
+    report = sim_report(1)
+    v = report["vehicles"][0]
+    v["loops"]["position"]["deadline_misses"] = 2
+    v["loops"]["attitude"]["deadline_misses"] = 344
+    key = "service WARNING epc_offboard.x: something odd (<n> so far)"
+    v["warnings"] = {"failsafes": 1, key: 3}
+    v["warning_examples"] = {key: "2026-11-26 00:00:00,000 WARNING epc_offboard.x: odd (1)"}
+    buf = io.StringIO()
+    print_report(report, file=buf)
+    text = buf.getvalue()
+    rows = assert_plain_and_aligned(text, "id")
+    assert rows[0].endswith("deadline misses pos/att")
+    assert rows[1].endswith("2/344")
+    assert "vehicle 1 warnings: failsafes 1" in text
+    assert f"  3x {key}" in text

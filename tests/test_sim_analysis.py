@@ -20,7 +20,16 @@ from epc_offboard.tools.sim.analysis import (
     read_flight,
     sitl_counters,
 )
+from epc_offboard.tools.sim.envelope import (
+    Envelope,
+    EnvelopeConfig,
+    breaches,
+    envelope_for,
+    tilt_deg_of,
+)
+from epc_offboard.tools.sim.logscan import log_kinds
 from epc_offboard.tools.sim.options import SimOptions, sim_options
+from epc_offboard.tools.sim.report import flight_failures
 from epc_offboard.tools.sim.scenario import ScenarioConfig, load_scenario
 
 # A flight logged at 1 Hz: streaming at t = 9 s, offboard from 10 s to 14 s, hovering at
@@ -99,10 +108,114 @@ def test_library_use_first_lap_misses_and_times_since_offboard() -> None:
     assert r.report["id"] == 3
 
 
-def test_a_flight_that_never_entered_offboard_is_an_error() -> None:
+def test_a_flight_that_never_entered_offboard_is_reported_as_a_failure() -> None:
     flight = {**_flight(), "phase": np.full(6, "streaming")}
-    with pytest.raises(RuntimeError, match="vehicle 3: never flew in offboard"):
-        analyse(FlightRecord(3, flight, _truth()), SCENARIO, BOUNDS_M_S)
+    report = {"vehicles": [analyse(FlightRecord(3, flight, _truth()), SCENARIO, BOUNDS_M_S).report]}
+    v = report["vehicles"][0]
+    assert v["flew_offboard"] is False
+    assert math.isnan(v["tracking"]["rmse_m"])
+    assert "vehicle 3: never flew under offboard" in flight_failures(report)
+    # a service that never streamed at all: a flight log with a header only
+    empty = {k: np.zeros(0) for k in _flight()}
+    never = analyse(FlightRecord(3, empty, _truth()), SCENARIO, BOUNDS_M_S).report
+    assert never["flew_offboard"] is False
+
+
+ENVELOPE = Envelope(max_error_m=0.35, max_drift_m=1.0, max_tilt_deg=60.0, ceiling_m=3.0,
+                    max_flight_s=14.0)  # fmt: skip
+
+
+def test_the_envelope_is_judged_on_every_truth_sample_and_names_where_it_was_left() -> None:
+    # under offboard (10-14 s) the 0.4 m east at 13 s is beyond 0.35 m; before it the 5 m
+    # north at 10 s... is at the first offboard tick: 3-D; the drift bound (1 m) is not left
+    v = analyse(_record(), SCENARIO, BOUNDS_M_S, ENVELOPE).report
+    left = {b["what"]: b for b in v["envelope"]["left"]}
+    assert set(left) == {"distance from the reference", "flight time"}
+    assert left["distance from the reference"]["worst"] == pytest.approx(5.0)
+    assert left["distance from the reference"]["t_s"] == pytest.approx(0.0)  # since offboard
+    assert left["flight time"]["worst"] == pytest.approx(15.0)  # the truth runs to 15 s
+    assert v["envelope"]["worst"]["altitude_m"] == pytest.approx(2.0)
+    failures = flight_failures({"vehicles": [v]})
+    assert any("left its envelope: distance from the reference 5 m" in f for f in failures)
+    # the same flight inside a wider envelope: nothing to report
+    wide = Envelope(max_error_m=6.0, max_drift_m=1.0, max_tilt_deg=60.0, ceiling_m=3.0,
+                    max_flight_s=20.0)  # fmt: skip
+    ok = analyse(_record(), SCENARIO, BOUNDS_M_S, wide).report
+    assert ok["envelope"]["left"] == []
+    assert flight_failures({"vehicles": [ok]}) == ["vehicle 3: the flight did not finish "
+                                                   "(last phase: none)"]  # fmt: skip
+
+
+def test_tilt_and_altitude_beyond_the_envelope_are_breaches() -> None:
+    t = np.array([0.0, 1.0, 2.0])
+    pos = np.array([[0.0, 0.0, -2.0], [0.0, 0.0, -3.5], [0.0, 0.0, -2.0]])
+    # 70 deg about x at 2 s: w = cos(35 deg), x = sin(35 deg)
+    q = np.array([[1.0, 0, 0, 0], [1.0, 0, 0, 0], [math.cos(0.6109), math.sin(0.6109), 0, 0]])
+    tilt = tilt_deg_of(q)
+    assert tilt == pytest.approx([0.0, 0.0, 70.0], abs=0.01)
+    found = {b.what: b for b in breaches(ENVELOPE, t, pos, tilt, pos, np.zeros(3, bool),
+                                          flight_s=t)}  # fmt: skip
+    assert set(found) == {"altitude", "tilt"}
+    assert (found["altitude"].t_s, found["altitude"].worst) == (1.0, 3.5)
+    assert found["tilt"].t_s == 2.0
+    # drift while the autopilot flies alone is judged horizontally, against its own bound
+    far = pos + np.array([0.0, 0.8, -5.0])  # 5 m higher: the ceiling is still judged
+    alone = breaches(ENVELOPE, t, far, np.zeros(3), pos, np.ones(3, bool), flight_s=t)
+    assert [b.what for b in alone] == ["altitude"]  # 0.8 m of drift is within 1 m
+
+
+def test_the_scenario_envelope_is_derived_from_it_and_the_service_limits() -> None:
+    env = envelope_for(EnvelopeConfig(), altitude_m=2.5, climb_m=1.0, duration_s=20.0,
+                       max_tilt_deg=45.0)  # fmt: skip
+    assert (env.max_error_m, env.max_drift_m, env.max_tilt_deg) == (2.0, 10.0, 60.0)
+    assert env.ceiling_m == pytest.approx(5.5)
+    assert env.max_flight_s == pytest.approx(140.0)
+    with pytest.raises(ValueError, match="max_error_m must be > 0"):
+        EnvelopeConfig(max_error_m=0.0)
+
+
+SERVICE_LOG = "\n".join([
+    "2026-11-26 00:16:34,633 INFO    epc_offboard.service: control kernels compiled",
+    "2026-11-26 00:16:35,001 ERROR   epc_offboard.store.library: library "
+    "/tmp/a/library-1.sqlite is unusable (file is not a database): moved aside to "
+    "/tmp/a/library-1.sqlite.corrupt-20261126T001635, starting empty",
+    *(f"2026-11-26 00:16:3{n},145 WARNING epc_offboard.vehicle.state: heartbeat mode/arming "
+      f"flapping ({n} flaps so far): forged heartbeats? a mode change now needs 1.0 s to be "
+      "believed" for n in (1, 2)),
+    '{"ts": 1.0, "level": "error", "logger": "epc_offboard.fleet.sharing", "msg": "fleet '
+    'sharing unavailable, flying without it: address 127.0.0.1:7447 in use"}',
+    '{"ts": 1.0, "level": "info", "logger": "epc_offboard.service", "msg": "running"}',
+    "/x/y.py:12: RuntimeWarning: overflow encountered in exp",
+    "Traceback (most recent call last):",
+    '  File "x.py", line 1, in <module>',
+    "ValueError: bad thing 42",
+])  # fmt: skip
+
+
+def test_every_logged_warning_and_error_is_counted_by_kind_with_its_first_line() -> None:
+    kinds = {k.key: k for k in log_kinds(SERVICE_LOG, "service")}
+    flap = ("service WARNING epc_offboard.vehicle.state: heartbeat mode/arming flapping "
+            "(<n> flaps so far): forged heartbeats? a mode change now needs <n> s to be "
+            "believed")  # fmt: skip
+    assert kinds[flap].count == 2
+    assert "(1 flaps so far)" in kinds[flap].first
+    aside = ("service ERROR epc_offboard.store.library: library <path> is unusable (file is not "
+             "a database): moved aside to <path>, starting empty")  # fmt: skip
+    assert kinds[aside].count == 1
+    assert "library-1.sqlite.corrupt-20261126T001635" in kinds[aside].first
+    assert kinds["service ERROR epc_offboard.fleet.sharing: fleet sharing unavailable, flying "
+                 "without it: address <n>.<n>:<n> in use"].count == 1  # fmt: skip
+    assert kinds["service WARNING RuntimeWarning: overflow encountered in exp"].count == 1
+    assert kinds["service ERROR traceback: ValueError: bad thing <n>"].count == 1
+    assert len(kinds) == 5  # the INFO lines are not warnings
+    sitl = log_kinds("epc-sitl: instance 0\nepc-sitl: [Errno 98] in use\nepc-sitl: counters a=1\n",
+                     "sitl")  # fmt: skip
+    assert [k.key for k in sitl] == ["sitl ERROR epc-sitl: [Errno <n>] in use"]
+    # in the report: counted among the warnings, the first line beside them
+    record = FlightRecord(3, _flight(), _truth(), {}, {}, logs={"service": SERVICE_LOG})
+    v = analyse(record, SCENARIO, BOUNDS_M_S).report
+    assert v["warnings"][flap] == 2
+    assert v["warning_examples"][flap] == kinds[flap].first
 
 
 def test_the_files_read_back_as_the_columns_written(tmp_path: Path) -> None:

@@ -3,8 +3,8 @@
 One flight by default; ``--compare`` flies several methods (:mod:`epc_offboard.tools.compare`).
 Writes, to ``--out``: ``report.json`` (CONTRACTS.md shape) with the scenario's targets this
 method can be judged on, ``flight.png``, and per vehicle the flight log, the .tlog, the ground
-truth and both processes' logs. Exit code 0, 1 when a flight or a declared target failed, 2 on
-bad usage.
+truth and both processes' logs. Exit code 0, 1 when a flight or a declared target failed
+(:mod:`.report` says what fails a flight), 2 on bad usage.
 """
 
 from __future__ import annotations
@@ -16,10 +16,12 @@ from epc_offboard.common.errors import EXIT_RUNTIME
 from epc_offboard.tools.sim.options import SimOptions, sim_options
 from epc_offboard.tools.sim.orchestrate import check_ports, fly_and_report, stop_on_sigterm
 from epc_offboard.tools.sim.report import (
+    exit_code,
+    flight_failures,
     method_targets,
     print_report,
     print_targets,
-    targets_exit_code,
+    target_failures,
     write_json,
 )
 
@@ -43,15 +45,16 @@ def run_one(options: SimOptions) -> int:
     """One flight of one method, reported; the exit code."""
     out_dir = options.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
-    title = f"{options.scenario_name}: {options.controller} + {options.adaptation}"
     try:
-        report, _results, _bounds = fly_and_report(options, out_dir, title)
+        report, _results, _bounds = fly_and_report(options, out_dir, options.scenario_name)
     except RuntimeError as exc:
         print(f"epc-offboard sim: {exc}", file=sys.stderr)
         return EXIT_RUNTIME
     report["targets"] = method_targets(options, report)
+    failures = flight_failures(report)
+    report["failures"] = failures + target_failures(report["targets"])
     write_json(report, out_dir / "report.json", options.json_path)
     print_report(report)
     print_targets(report["targets"])
     print(f"report: {out_dir / 'report.json'}  figure: {out_dir / 'flight.png'}")
-    return targets_exit_code(report["targets"])
+    return exit_code(failures, report["targets"])

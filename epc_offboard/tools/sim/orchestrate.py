@@ -26,13 +26,15 @@ import numpy as np
 from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
-from epc_offboard.tools.figures import write_figure
+from epc_offboard.tools.figures import flight_title, write_figure
 from epc_offboard.tools.sim.analysis import VehicleResult, analyse, read_flight
+from epc_offboard.tools.sim.envelope import Envelope, breaches, envelope_for, tilt_deg_of
 from epc_offboard.tools.sim.options import SimOptions
 from epc_offboard.tools.sim.report import make_report, write_json
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
 
 ZENOH_BASE_PORT = 7446  # vehicle k listens on tcp/127.0.0.1:(7446 + k) (CONTRACTS.md)
+STOPPED_OUTSIDE = "stopped by sim: it left its envelope"  # how a VehicleRun.stopped begins
 
 
 @dataclass
@@ -44,6 +46,8 @@ class VehicleRun:
     sitl: subprocess.Popen[bytes] | None = None
     service: subprocess.Popen[bytes] | None = None
     offboard_entry_s: float | None = None  # vehicle time offboard began (the progress bar)
+    stopped: str = ""  # why sim ended this flight before it finished ("": it did not)
+    aside_before: frozenset[Path] = frozenset()  # moved-aside libraries before it started
 
     @property
     def groundtruth(self) -> Path:
@@ -72,6 +76,22 @@ class VehicleRun:
     @property
     def service_config(self) -> Path:
         return self.out_dir / "service.toml"
+
+    @property
+    def library(self) -> Path:
+        return self.out_dir.parent / f"library-{self.vehicle_id}.sqlite"
+
+    def moved_aside(self) -> frozenset[Path]:
+        """The library files the service has moved aside as corrupt (``NAME.corrupt-...``)."""
+        return frozenset(self.library.parent.glob(f"{self.library.name}.corrupt-*"))
+
+    def stop(self, why: str) -> None:
+        """End this flight now, saying why: the service first (it commands Hold and writes
+        its stats), then its SITL."""
+        if not self.stopped:
+            self.stopped = why
+        stop_process(self.service)
+        stop_process(self.sitl)
 
 
 def _free_udp_port() -> int:
@@ -248,6 +268,59 @@ def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
     return f"offboard {done_s:.1f}/{duration_s:g} s", done_s
 
 
+def flight_envelope(options: SimOptions, service_cfg: dict[str, Any]) -> Envelope:
+    """The envelope a flight of ``options`` is judged sane within (:mod:`.envelope`)."""
+    scenario = options.scenario
+    return envelope_for(
+        scenario.envelope,
+        altitude_m=scenario.altitude_m,
+        climb_m=scenario.climb_m,
+        duration_s=scenario.duration_s,
+        max_tilt_deg=float(service_cfg.get("position", {}).get("max_tilt_deg", 45.0)),
+    )
+
+
+def _float_row(header: list[str], row: list[str]) -> dict[str, float]:
+    out = {}
+    for name, cell in zip(header, row, strict=False):
+        try:
+            out[name] = float(cell)
+        except ValueError:
+            continue
+    return out
+
+
+def _watch(run: VehicleRun, envelope: Envelope) -> str:
+    """Why this flight must end now ("" if it need not): its ground truth's newest sample is
+    outside the envelope (against the reference the service is tracking now, or the last one
+    it tracked, or home before it streamed: see :mod:`.envelope`), or its SITL has exited."""
+    if run.stopped or run.service is None or run.service.poll() is not None:
+        return ""
+    if run.sitl is not None and run.sitl.poll() is not None:
+        return f"its SITL exited early with {run.sitl.returncode} (see {run.sitl_log})"
+    if run.stats.exists():  # landed (a lingering staggered service)
+        return ""
+    truth = _float_row(*_last_row(run.groundtruth))
+    if "t_s" not in truth or "pos_d_m" not in truth:
+        return ""
+    header, last = _last_row(run.flight_log)
+    flight = _float_row(header, last)
+    phase = dict(zip(header, last, strict=False)).get("phase", "")
+    pos = np.array([[truth.get(f"pos_{a}_m", 0.0) for a in "ned"]])
+    ref = np.zeros((1, 3))  # before offboard: home
+    under_offboard = False
+    if run.offboard_entry_s is not None and "ref_pos_n_m" in flight:
+        ref = np.array([[flight.get(f"ref_pos_{a}_m", 0.0) for a in "ned"]])
+        # the log grows under offboard; after it, the last reference is where it landed
+        under_offboard = phase == "offboard" and truth["t_s"] <= flight["vehicle_t_s"] + 0.5
+    q = np.array([[truth.get(f"q_{a}", 0.0) for a in "wxyz"]])
+    found = breaches(envelope, np.array([truth["t_s"]]), pos, tilt_deg_of(q), ref,
+                     np.array([not under_offboard]), flight_s=np.array([truth["t_s"]]))  # fmt: skip
+    if not found:
+        return ""
+    return f"{STOPPED_OUTSIDE} ({found[0].describe()} of vehicle time)"
+
+
 def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
     """Start every SITL and service, wait for the services to finish, stop the SITLs.
 
@@ -272,8 +345,8 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
             stale.unlink(missing_ok=True)
         offboard_port = _free_udp_port()
         listen_port = _free_udp_port()
-        library = out_dir / f"library-{k}.sqlite"
-        cfg = service_config_for(options, k, offboard_port, run.out_dir, library)
+        run.aside_before = run.moved_aside()
+        cfg = service_config_for(options, k, offboard_port, run.out_dir, run.library)
         run.service_config.write_text(dump_toml(cfg))
         sitl_cmd = [
             sys.executable, "-m", "sitl.main", "--instance", str(k - 1),
@@ -299,9 +372,12 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
 
     for k in range(1, (1 if stagger else vehicles) + 1):
         start(k)
-    expected_s = scenario.duration_s + 20.0  # takeoff, offboard entry, landing
+    envelope = flight_envelope(options, tomllib.loads(runs[0].service_config.read_text()))
     flights = vehicles if stagger else 1
-    deadline = time.monotonic() + flights * max(120.0, 20.0 * expected_s)
+    # wall time: lockstep flies faster than real time even at load 6; a SITL that stops
+    # advancing (its vehicle time is bounded by the envelope) is caught here
+    wall_budget_s = flights * max(120.0, 4.0 * envelope.max_flight_s)
+    deadline = time.monotonic() + wall_budget_s
     # the bar counts the scenario's seconds under offboard, the only ones the scenario names;
     # takeoff and landing show as the phase in its label
     total_s = scenario.duration_s * (vehicles if stagger else 1)
@@ -317,9 +393,15 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
             task = progress.add_task(f"{name}: takeoff", total=total_s)
             while any(r.service is not None and r.service.poll() is None for r in runs):
                 if time.monotonic() > deadline:
-                    raise RuntimeError("the flight did not finish in time (see the vehicle logs)")
-                if any(r.sitl is not None and r.sitl.poll() is not None for r in runs):
-                    raise RuntimeError("a SITL process exited early (see sitl.log)")
+                    for r in runs:
+                        if r.service is not None and r.service.poll() is None:
+                            r.stop(f"stopped by sim: not finished after {wall_budget_s:.0f} s "
+                                   "of wall time")  # fmt: skip
+                    break
+                for r in runs:
+                    why = _watch(r, envelope)
+                    if why:
+                        r.stop(why)
                 if stagger and runs[-1].stats.exists():  # the newest vehicle has landed
                     if len(runs) < vehicles:
                         start(len(runs) + 1)
@@ -339,29 +421,34 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
             stop_process(r.service)
             stop_process(r.sitl)
     for r in runs:
-        if r.service is not None and r.service.returncode != 0:
-            raise RuntimeError(
-                f"vehicle {r.vehicle_id}: service exited with {r.service.returncode} "
-                f"(see {r.service_log})"
-            )
+        code = r.service.returncode if r.service is not None else None
+        if code not in (0, None) and not r.stopped:
+            r.stopped = f"its service exited with {code} (see {r.service_log})"
     return runs
 
 
 def fly_and_report(
     options: SimOptions, out_dir: Path, title: str
 ) -> tuple[dict[str, Any], list[VehicleResult], FloatArray]:
-    """Fly, analyse on ground truth, write ``report.json`` and ``flight.png`` to ``out_dir``;
-    returns (report, results, velocity bounds m/s (3,) NED). RuntimeError if a flight
-    failed."""
+    """Fly, analyse on ground truth, write ``report.json`` and ``flight.png`` (``title``: the
+    scenario's name as the figure names it) to ``out_dir``;
+    returns (report, results, velocity bounds m/s (3,) NED). A flight that failed is reported
+    all the same (its ``stopped``, the report's ``failures``); RuntimeError only when a
+    vehicle left nothing to report (no ground truth)."""
     runs = fly(options, out_dir)
     cfg = tomllib.loads(runs[0].service_config.read_text())
     bounds = np.array(cfg["position"]["max_vel_m_s"], dtype=np.float64)
+    envelope = flight_envelope(options, cfg)
     results = [
         analyse(
             read_flight(r.vehicle_id, flight_log=r.flight_log, groundtruth=r.groundtruth,
-                        stats=r.stats, sitl_log=r.sitl_log),
+                        stats=r.stats, sitl_log=r.sitl_log, service_log=r.service_log,
+                        sharing_asked=bool(_sharing_flags(options, r.vehicle_id)["enabled"]),
+                        moved_aside=tuple(str(p) for p in sorted(r.moved_aside() - r.aside_before)),
+                        stopped=r.stopped),
             options.scenario,
             bounds,
+            envelope,
         )
         for r in runs
     ]  # fmt: skip
@@ -371,6 +458,8 @@ def fly_and_report(
         flight_csv_to_mcap(r.flight_log, r.flight_log.with_suffix(".mcap"))
     report = make_report(options, results)
     write_json(report, out_dir / "report.json")
+    title = flight_title(title, options.method, options.autopilot, options.wind,
+                         options.vehicles)  # fmt: skip
     write_figure(results, bounds, out_dir / "flight.png", title,
                  settle_s=options.scenario.settle_s)  # fmt: skip
     return report, results, bounds

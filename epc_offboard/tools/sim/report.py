@@ -1,6 +1,11 @@
 """What `sim` hands a user: the CONTRACTS.md report (``report.json``), its table, the
-warnings and target verdicts, and the exit code the targets decide. The figures are
-:mod:`epc_offboard.tools.figures`."""
+warnings, target verdicts and failures, and the exit code they decide. The figures are
+:mod:`epc_offboard.tools.figures`.
+
+The exit code is 1 when any flight failed, not only a declared target (issue 22): a vehicle
+that left its envelope, a flight that did not finish (stopped by sim, a process that died),
+a library moved aside as corrupt, fleet sharing asked for and unavailable. Each is named, on
+stdout under the table and on stderr, and listed in the report's ``failures``."""
 
 from __future__ import annotations
 
@@ -20,7 +25,7 @@ from epc_offboard.tools.targets import evaluate
 # library (both loops). "pos tick p99 us": wall time of a position tick, see TICK_NOTE
 REPORT_COLUMNS = ("id", "RMSE cm", "max cm", "max m/s", "viol.", "hits", "lap-1 misses",
                   "QPs", "fleet rcvd", "fleet used", "pos Hz", "pos tick p99 us",
-                  "att Hz")  # fmt: skip
+                  "att Hz", "deadline misses pos/att")  # fmt: skip
 TICK_NOTE = (
     "pos tick: wall time of a position tick, start to end; in lockstep it includes waiting "
     "for the miss worker's QP solve (so runs are repeatable), and on a busy machine time "
@@ -30,7 +35,7 @@ TICK_NOTE = (
 
 def make_report(options: SimOptions, results: list[VehicleResult]) -> dict[str, Any]:
     """The CONTRACTS.md `sim --json` report of one flight."""
-    return {
+    report: dict[str, Any] = {
         "scenario": options.scenario_name,
         "controller": options.controller,
         "adaptation": options.adaptation,
@@ -41,6 +46,9 @@ def make_report(options: SimOptions, results: list[VehicleResult]) -> dict[str, 
         "lockstep": bool(options.lockstep),
         "vehicles": [r.report for r in results],
     }
+    # why the flights failed (the targets' verdicts are added by the caller that judges them)
+    report["failures"] = flight_failures(report)
+    return report
 
 
 def strict_json(value: Any) -> Any:
@@ -70,6 +78,42 @@ def method_targets(options: SimOptions, report: dict[str, Any]) -> list[dict[str
     return [v for v in verdicts if v["verdict"] != "n/a"]
 
 
+def flight_failures(report: dict[str, Any]) -> list[str]:
+    """Why the flights of a report failed, one sentence each (none: they did not)."""
+    out = []
+    for v in report["vehicles"]:
+        who = f"vehicle {v['id']}"
+        left = v.get("envelope", {}).get("left", [])
+        for b in left:
+            out.append(f"{who} left its envelope: {b['text']}")
+        if v.get("stopped") and not (left and "left its envelope" in v["stopped"]):
+            out.append(f"{who}: {v['stopped']}")
+        elif not v.get("finished", True) and not v.get("stopped"):
+            events = v.get("phase_events") or [{"phase": "none"}]
+            out.append(f"{who}: the flight did not finish (last phase: {events[-1]['phase']})")
+        if not v.get("flew_offboard", True) and not v.get("stopped"):
+            out.append(f"{who}: never flew under offboard")
+        if left and v.get("stopped"):
+            out.append(f"{who}: {v['stopped'].split(' (')[0]}")
+        for path in v.get("library_moved_aside", []):
+            out.append(f"{who}: its library was unusable and moved aside to {path} (the "
+                       "flight started with an empty library)")  # fmt: skip
+        sharing = v.get("sharing", {})
+        if sharing.get("asked") and not sharing.get("open"):
+            out.append(f"{who}: fleet sharing was asked for and is unavailable (flew alone: "
+                       "see its service.log)")  # fmt: skip
+    return out
+
+
+def target_failures(verdicts: list[dict[str, Any]]) -> list[str]:
+    return [f"target failed: {v['target']}" for v in verdicts if v["verdict"] == "FAIL"]
+
+
+def cm(value_m: float | None) -> str:
+    """A length in metres as the tables print it: centimetres, "-" when not measured."""
+    return "-" if value_m is None or not math.isfinite(value_m) else f"{value_m * 100:.2f}"
+
+
 def report_rows(report: dict[str, Any]) -> list[list[str]]:
     """One row per vehicle of REPORT_COLUMNS: errors in cm, as the columns say."""
     rows = []
@@ -80,8 +124,8 @@ def report_rows(report: dict[str, Any]) -> list[list[str]]:
         epc = lib["hits"] + lib["misses"] > 0
         rows.append([
             str(v["id"]),
-            f"{v['tracking']['rmse_m'] * 100:.2f}",
-            f"{v['tracking']['max_error_m'] * 100:.2f}",
+            cm(v["tracking"]["rmse_m"]),
+            cm(v["tracking"]["max_error_m"]),
             f"{v['max_speed_m_s']:.2f}",
             str(v["constraint_violations"]),
             f"{lib['hit_rate'] * 100:.1f}%" if epc else "-",
@@ -91,6 +135,7 @@ def report_rows(report: dict[str, Any]) -> list[list[str]]:
             f"{pos.get('rate_hz', 0.0):.1f}",
             f"{pos.get('compute_us_p99', 0.0):.0f}",
             f"{att.get('rate_hz', 0.0):.1f}",
+            deadline_misses(loops),
         ])  # fmt: skip
     return rows
 
@@ -100,6 +145,26 @@ def _fleet_cells(fleet: dict[str, Any] | None, epc: bool) -> list[str]:
     if not epc or not fleet:
         return ["-", "-"]
     return [str(fleet["controllers_received"]), str(sum(fleet["controllers_used"].values()))]
+
+
+def deadline_misses(loops: dict[str, Any]) -> str:
+    """ "position/attitude" ticks that missed their deadline ("-" for a loop not reported)."""
+    return "/".join(str(loops.get(k, {}).get("deadline_misses", "-"))
+                    for k in ("position", "attitude"))  # fmt: skip
+
+
+def print_warnings(v: dict[str, Any], file: TextIO) -> None:
+    """A vehicle's warnings: the counters on one line, each kind of logged line on its own
+    (count, then its key: process, level, logger, message with variable parts masked)."""
+    warnings = v.get("warnings", {})
+    logged = v.get("warning_examples", {})
+    counted = ", ".join(f"{name} {n}" for name, n in warnings.items() if name not in logged)
+    if not warnings:
+        print(f"vehicle {v['id']} warnings: none", file=file)
+        return
+    print(f"vehicle {v['id']} warnings:{' ' + counted if counted else ''}", file=file)
+    for key in logged:
+        print(f"  {warnings.get(key, 0)}x {key}", file=file)
 
 
 def print_report(report: dict[str, Any], file: TextIO | None = None) -> None:
@@ -112,9 +177,20 @@ def print_report(report: dict[str, Any], file: TextIO | None = None) -> None:
         print(f"note: {report['note']}", file=out)
     print(TICK_NOTE, file=out)
     for v in report["vehicles"]:
-        warnings = v.get("warnings", {})
-        text = ", ".join(f"{name} {n}" for name, n in warnings.items()) or "none"
-        print(f"vehicle {v['id']} warnings: {text}", file=out)
+        print_warnings(v, out)
+
+
+def exit_code(
+    failures: list[str], verdicts: list[dict[str, Any]], file: TextIO | None = None
+) -> int:
+    """Each flight failure on stdout (``FAILED: ...``), them and the failed targets on
+    stderr; the exit code (1 when any)."""
+    for f in failures:
+        print(f"FAILED: {f}", file=file)
+    if failures:
+        print(f"epc-offboard sim: failed: {'; '.join(failures)}", file=sys.stderr)
+    targets = targets_exit_code(verdicts)
+    return EXIT_RUNTIME if failures else targets
 
 
 def print_targets(verdicts: list[dict[str, Any]], file: TextIO | None = None) -> None:

@@ -15,6 +15,7 @@ from typing import Any
 from epc_offboard.common.bundled import bundled_dir
 from epc_offboard.common.configio import ConfigError, from_dict
 from epc_offboard.control.trajectories import TrajectoryConfig
+from epc_offboard.tools.sim.envelope import EnvelopeConfig
 from epc_offboard.tools.targets import CompareConfig, TargetConfig
 
 CONFIG_DIR = bundled_dir()  # the checkout's config/, shipped in the wheel
@@ -36,6 +37,13 @@ class ScenarioConfig:
     service: dict[str, Any] = field(default_factory=dict)  # overrides of config/sitl.toml
     compare: CompareConfig = field(default_factory=CompareConfig)  # `sim --compare` methods
     targets: tuple[TargetConfig, ...] = ()  # acceptance targets (epc_offboard.tools.targets)
+    envelope: EnvelopeConfig = field(default_factory=EnvelopeConfig)  # where a flight is sane
+
+    @property
+    def climb_m(self) -> float:
+        """How far the trajectory's reference climbs above ``altitude_m`` at most."""
+        traj = self.trajectory
+        return max([0.0, -traj.dz_m, *(-w[2] for w in traj.waypoints_ned_m)])
 
     def __post_init__(self) -> None:
         if self.duration_s <= 0.0:

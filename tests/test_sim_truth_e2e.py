@@ -1,0 +1,135 @@
+"""`sim`'s report is the truth (issue 22): a flight that went wrong says so and exits 1.
+
+Real lockstep flights (SITL + service processes over UDP MAVLink, no ground-station stream),
+each a few seconds of vehicle time: a real corrupt SQLite library, a real socket holding a
+fleet vehicle's Zenoh port, a wind beyond the vehicle's authority, a wind that blows it away
+before it is ever airborne, and a flight that outlasts its vehicle-time budget. Each of these
+ended in "warnings: none" and exit 0 (or never ended) before.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from epc_offboard.tools.sim.orchestrate import ZENOH_BASE_PORT
+from epc_offboard.tools.sim.scenario import SCENARIO_DIR
+
+pytestmark = pytest.mark.timeout(300)
+
+
+def sim(out: Path, *args: str) -> tuple[dict[str, Any], subprocess.CompletedProcess[str], float]:
+    """One `sim` run into ``out``: (report, process, wall seconds)."""
+    t0 = time.monotonic()
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "sim", "--gcs-port", "0", "--out", str(out),
+         *args],
+        capture_output=True, text=True, timeout=280, check=False,
+    )  # fmt: skip
+    wall_s = time.monotonic() - t0
+    report: dict[str, Any] = json.loads((out / "report.json").read_text())
+    return report, proc, wall_s
+
+
+def test_a_corrupt_library_moved_aside_fails_the_flight_and_its_error_is_reported(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    library = out / "library-1.sqlite"
+    with sqlite3.connect(library) as db:  # a real SQLite file, then its header destroyed
+        db.execute("CREATE TABLE t (x)")
+        db.executemany("INSERT INTO t VALUES (?)", [(i,) for i in range(500)])
+    db.close()
+    data = bytearray(library.read_bytes())
+    data[:100] = b"\xa5" * 100
+    library.write_bytes(bytes(data))
+    report, proc, _wall = sim(out, "--duration", "4")
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    v = report["vehicles"][0]
+    assert v["flew_offboard"]  # the flight itself was fine
+    assert v["finished"]
+    [aside] = v["library_moved_aside"]
+    assert ".corrupt-" in aside
+    assert "its library was unusable and moved aside" in proc.stderr
+    errors = [k for k in v["warnings"] if k.startswith("service ERROR epc_offboard.store")]
+    assert errors, v["warnings"]
+    assert "moved aside" in errors[0]
+    assert "moved aside to" in v["warning_examples"][errors[0]]
+    assert errors[0] in proc.stdout  # printed under the table, not only in report.json
+    assert any("moved aside" in f for f in report["failures"])
+
+
+def test_a_fleet_whose_sharing_cannot_open_fails_and_says_so(tmp_path):
+    # vehicle 1's Zenoh listening port held by a real socket: its session cannot open
+    holder = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
+    try:
+        holder.bind(("127.0.0.1", ZENOH_BASE_PORT + 1))
+    except OSError:
+        holder.close()
+        pytest.skip(f"port {ZENOH_BASE_PORT + 1} is in use by another process")
+    holder.listen()
+    try:
+        report, proc, _wall = sim(tmp_path / "out", "--vehicles", "2", "--duration", "4")
+    finally:
+        holder.close()
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    v1, v2 = report["vehicles"]
+    assert v1["sharing"] == {"asked": True, "open": False}
+    assert v2["sharing"] == {"asked": True, "open": True}
+    assert "vehicle 1: fleet sharing was asked for and is unavailable" in proc.stderr
+    assert "vehicle 2: fleet sharing" not in proc.stderr
+    kinds = [k for k in v1["warnings"] if "fleet sharing unavailable" in k]
+    assert kinds, v1["warnings"]
+    assert kinds[0].startswith("service ERROR")
+
+
+def test_a_wind_beyond_the_vehicles_authority_ends_the_flight_outside_its_envelope(tmp_path):
+    # 15 m/s of wind on SIH's drag needs 15 m/s^2 of horizontal acceleration: 57 deg of tilt,
+    # beyond the 45 deg limit. Before: RMSE 20.7 m, exit 0, "warnings: none".
+    report, proc, wall_s = sim(tmp_path / "out", "--duration", "4", "--wind", "15,45")
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    v = report["vehicles"][0]
+    assert v["envelope"]["left"], v["envelope"]
+    assert v["stopped"].startswith("stopped by sim: it left its envelope")
+    assert not v["finished"]
+    assert "left its envelope" in proc.stderr
+    assert "FAILED: vehicle 1 left its envelope" in proc.stdout
+    assert wall_s < 150.0
+
+
+def test_a_vehicle_blown_away_before_it_is_airborne_is_stopped_in_bounded_time(tmp_path):
+    # 300 m/s: the service never trusts the state (too fast to be plausible) and waited for it
+    # while the vehicle drifted 89 km of vehicle time; sim never ended
+    report, proc, wall_s = sim(tmp_path / "out", "--duration", "4", "--wind", "300,45")
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    v = report["vehicles"][0]
+    assert not v["flew_offboard"]
+    assert v["stopped"]
+    assert v["envelope"]["worst"]["drift_m"] > v["envelope"]["bounds"]["max_drift_m"]
+    assert v["envelope"]["worst"]["flight_s"] < v["envelope"]["bounds"]["max_flight_s"]
+    assert wall_s < 150.0
+    assert (tmp_path / "out" / "flight.png").stat().st_size > 10_000  # drawn all the same
+
+
+def test_a_flight_that_outlasts_its_vehicle_time_budget_is_stopped_and_failed(tmp_path):
+    # a budget no takeoff can meet: the flight-time bound, not the distance, ends it
+    scenario = tmp_path / "tight.toml"
+    scenario.write_text(
+        (SCENARIO_DIR / "hover.toml").read_text()
+        + "\n[envelope]\ntakeoff_budget_s = 0.5\nlanding_budget_s = 0.5\n"
+    )
+    report, proc, _wall = sim(tmp_path / "out", "--scenario", str(scenario), "--duration", "4")
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    v = report["vehicles"][0]
+    assert v["envelope"]["bounds"]["max_flight_s"] == pytest.approx(5.0)
+    assert [b["what"] for b in v["envelope"]["left"]] == ["flight time"]
+    assert "flight time" in v["stopped"]
+    assert v["envelope"]["worst"]["flight_s"] < 5.0 + 5.0  # stopped soon after the bound
