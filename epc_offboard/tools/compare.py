@@ -39,12 +39,12 @@ from epc_offboard.tools.sim.analysis import VehicleResult
 from epc_offboard.tools.sim.options import SimOptions
 from epc_offboard.tools.sim.orchestrate import fly_and_report
 from epc_offboard.tools.sim.report import (
+    TICK_NOTE,
     cm,
     deadline_misses,
     exit_code,
     flight_failures,
     print_warnings,
-    TICK_NOTE,
     target_failures,
     write_json,
 )
