@@ -84,6 +84,9 @@ class ArduCopter(Autopilot):
                 offboard_loss_timeout_s=ardupilot.guid_timeout_s,
                 disarm_preflight_s=ardupilot.disarm_delay_s,
                 arm_refusals_after_boot=0,
+                # ArduCopter's lag is in its input shaping (below), not its rate loop
+                rate_dead_time_s=0.0,
+                rate_time_constant_s=0.0,
             ),
         )
         self.ardupilot = ardupilot

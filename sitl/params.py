@@ -150,6 +150,16 @@ class AutopilotParams:
     disarm_after_land_s: float = 2.0
     # PX4 refuses the first arming right after boot ("no heading reference"); a retry succeeds
     arm_refusals_after_boot: int = 1
+    # How a body-rate command (SET_ATTITUDE_TARGET) shows in the measured rates, as measured
+    # on PX4 main + SIH: a dead time (the onboard link, uORB, the loops' scheduling, the
+    # motors spinning up), then a first-order lag (PX4's rate loop and SIH's motors). The
+    # dead time delays every offboard setpoint inside the autopilot (by this minus the
+    # vehicle's motor_time_constant_s, which the physics adds), so quaternion and position
+    # setpoints see it too; the lag is the rate loop's closed-loop time constant, for the
+    # attitude controller's rate setpoints as well. 0 and 0: the setpoint acts at once and
+    # the rate loop is as stiff as its gains make it.
+    rate_dead_time_s: float = 0.045
+    rate_time_constant_s: float = 0.1
 
     def __post_init__(self) -> None:
         _positive(
@@ -164,6 +174,34 @@ class AutopilotParams:
         )
         if self.arm_refusals_after_boot < 0:
             raise ValueError("arm_refusals_after_boot must be >= 0")
+        _non_negative(
+            rate_dead_time_s=self.rate_dead_time_s,
+            rate_time_constant_s=self.rate_time_constant_s,
+        )
+        if self.rate_dead_time_s > 0.5 or self.rate_time_constant_s > 1.0:
+            raise ValueError(
+                "rate_dead_time_s must be <= 0.5 and rate_time_constant_s <= 1.0 "
+                f"(no autopilot flies with {self.rate_dead_time_s} s, "
+                f"{self.rate_time_constant_s} s)"
+            )
+
+    # The motors' lag sits between the rate loop and the measured rates. A step through it
+    # and the rate loop's reference lag fits as about one motor time constant more dead time
+    # and one less lag (the feedforward catches up); so each piece is set apart by it, and
+    # the fit (tests/sitl/identify.py) returns the configured figures within a few ms.
+
+    def setpoint_delay_s(self, vehicle: VehicleParams) -> float:
+        """How long an offboard setpoint waits inside the autopilot: the dead time less what
+        the motors' lag adds to it (never negative; SimConfig rejects a shorter dead time)."""
+        if self.rate_dead_time_s <= 0.0:
+            return 0.0
+        return max(0.0, self.rate_dead_time_s - vehicle.motor_time_constant_s)
+
+    def rate_reference_time_constant_s(self, vehicle: VehicleParams) -> float:
+        """The time constant of the rate loop's reference model (0: none)."""
+        if self.rate_time_constant_s <= 0.0:
+            return 0.0
+        return self.rate_time_constant_s + vehicle.motor_time_constant_s
 
 
 @dataclass(frozen=True)
@@ -287,6 +325,14 @@ class SimConfig:
     autopilot: AutopilotParams = field(default_factory=AutopilotParams)
     sitl: SitlParams = field(default_factory=SitlParams)
     ardupilot: ArduPilotParams = field(default_factory=ArduPilotParams)
+
+    def __post_init__(self) -> None:
+        dead_s, motor_s = self.autopilot.rate_dead_time_s, self.vehicle.motor_time_constant_s
+        if 0.0 < dead_s < motor_s:
+            raise ValueError(
+                f"autopilot.rate_dead_time_s ({dead_s} s) is shorter than the motors' lag "
+                f"alone (vehicle.motor_time_constant_s = {motor_s} s): use 0 or >= {motor_s}"
+            )
 
 
 def load_sim_config(

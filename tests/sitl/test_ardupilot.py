@@ -15,7 +15,7 @@ from sitl.ardupilot import BRAKE, GUIDED, LAND, LOITER, RTL, STABILIZE, ArduCopt
 from sitl.autopilot import HOLD, IGNORE_ATTITUDE, OFFBOARD, AttitudeSetpoint, Result
 from sitl.endpoint import Counters, SitlEndpoint
 from sitl.params import load_sim_config
-from sitl.physics import QUAT, RATE
+from sitl.physics import QUAT
 from sitl.simulation import Simulation
 from tests.sitl.test_endpoint import PEER, TELEMETRY, Peer, RecordingTransport, emitted
 
@@ -150,29 +150,6 @@ def test_guid_timeout_levels_and_holds_altitude_in_guided_and_setpoints_resume()
     fly(sim, 0.5, sp(thrust=hover))
     assert ap.mode == OFFBOARD
     assert ap.failsafe_count == 1
-
-
-def _roll_rate_after(sim: Simulation, seconds: float) -> float:
-    rates = sp(rates=(2.0, 0.0, 0.0), mask=IGNORE_ATTITUDE,
-               thrust=sim.config.vehicle.hover_thrust_norm)  # fmt: skip
-    fly(sim, seconds, rates)
-    return float(sim.state[RATE][0])
-
-
-def test_body_rates_are_shaped_slower_than_px4s_rate_loop():
-    sim, _ap = airborne()
-    ardupilot_rate = _roll_rate_after(sim, 0.06)
-    px4 = Simulation(dataclasses.replace(PX4_CFG, autopilot=dataclasses.replace(
-        PX4_CFG.autopilot, arm_refusals_after_boot=0)), seed=0)  # fmt: skip
-    px4.autopilot.arm(True, 0.0)
-    px4.autopilot.takeoff(3.0, 0.0)
-    fly(px4, 4.0)
-    for k in range(10):
-        px4.autopilot.on_attitude_setpoint(sp(), px4.time_s + k * 0.01)
-    px4.autopilot.set_mode(OFFBOARD, px4.time_s)
-    px4_rate = _roll_rate_after(px4, 0.06)
-    assert px4_rate > 1.0
-    assert ardupilot_rate < 0.6 * px4_rate  # ATC_INPUT_TC 0.15 s
 
 
 def test_land_loiter_and_disarm_on_touchdown():
