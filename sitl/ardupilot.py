@@ -87,6 +87,7 @@ class ArduCopter(Autopilot):
                 # ArduCopter's lag is in its input shaping (below), not its rate loop
                 rate_dead_time_s=0.0,
                 rate_time_constant_s=0.0,
+                attitude_quaternion_max_hz=0.0,  # ArduCopter reaches the 200 Hz asked for
             ),
         )
         self.ardupilot = ardupilot

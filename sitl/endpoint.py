@@ -141,7 +141,10 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         self._allowed_sysids = frozenset(sim.config.sitl.allowed_source_sysids)
         rates = sim.config.sitl.telemetry
         self._default_interval_us = {
-            STREAMS[name]: _interval_us(getattr(rates, name)) for name in STREAMS
+            STREAMS[name]: max(
+                _interval_us(getattr(rates, name)), self._min_interval_us(STREAMS[name])
+            )
+            for name in STREAMS
         }
         ap = sim.autopilot
         if not ap.sends_odometry:  # (ArduPilot: SET_MESSAGE_INTERVAL for it is denied)
@@ -384,9 +387,16 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         elif interval_us == 0:
             self._interval_us[msg_id] = self._default_interval_us[msg_id]
         else:
-            self._interval_us[msg_id] = int(interval_us)
+            self._interval_us[msg_id] = max(int(interval_us), self._min_interval_us(msg_id))
         self._next_due_us[msg_id] = self.sim.time_us
-        return Result.ACCEPTED
+        return Result.ACCEPTED  # (also when capped: PX4 acknowledges, then sends slower)
+
+    def _min_interval_us(self, msg_id: int) -> int:
+        """The shortest interval the autopilot delivers ``msg_id`` at, whatever is asked."""
+        cap_hz = self.sim.autopilot.params.attitude_quaternion_max_hz
+        if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION and cap_hz > 0.0:
+            return _interval_us(cap_hz)
+        return 0
 
     def _on_set_mode(self, msg: Any, addr: Address) -> None:
         self.counters.commands += 1

@@ -160,6 +160,9 @@ class AutopilotParams:
     # the rate loop is as stiff as its gains make it.
     rate_dead_time_s: float = 0.045
     rate_time_constant_s: float = 0.1
+    # PX4 delivers ATTITUDE_QUATERNION at about 123 Hz however high SET_MESSAGE_INTERVAL
+    # asks (and acknowledges the request as accepted); 0: as fast as asked
+    attitude_quaternion_max_hz: float = 123.0
 
     def __post_init__(self) -> None:
         _positive(
@@ -177,6 +180,7 @@ class AutopilotParams:
         _non_negative(
             rate_dead_time_s=self.rate_dead_time_s,
             rate_time_constant_s=self.rate_time_constant_s,
+            attitude_quaternion_max_hz=self.attitude_quaternion_max_hz,
         )
         if self.rate_dead_time_s > 0.5 or self.rate_time_constant_s > 1.0:
             raise ValueError(
