@@ -166,6 +166,7 @@ class Autopilot:
     mav_autopilot = 12  # MAV_AUTOPILOT_PX4
     streams_by_default = True  # PX4 streams its onboard link's messages unasked
     sends_odometry = True
+    heartbeat_on_mode_change = False  # PX4's mode shows in its next 1 Hz heartbeat
     rtl_count = 0  # RTLs entered (PX4's RTL is not modelled: always 0 here)
 
     def __init__(self, vehicle: VehicleParams, params: AutopilotParams) -> None:
@@ -243,6 +244,10 @@ class Autopilot:
     def set_parameter(self, name: str, value: float) -> bool:
         """PARAM_SET: False (unchanged) here; PX4's view is read-only."""
         return False
+
+    def has_position(self, t_s: float) -> bool:
+        """Whether the estimator has a local position to stream at vehicle time ``t_s``."""
+        return True
 
     # ---- commands -------------------------------------------------------------------------
 
