@@ -73,6 +73,8 @@ class ArduCopter(Autopilot):
     mav_autopilot = 3  # MAV_AUTOPILOT_ARDUPILOTMEGA
     streams_by_default = False
     sends_odometry = False
+    # ArduCopter sends a HEARTBEAT at once on every mode change, besides its 1 Hz ones
+    heartbeat_on_mode_change = True
 
     def __init__(
         self, vehicle: VehicleParams, params: AutopilotParams, ardupilot: ArduPilotParams
@@ -84,9 +86,14 @@ class ArduCopter(Autopilot):
                 offboard_loss_timeout_s=ardupilot.guid_timeout_s,
                 disarm_preflight_s=ardupilot.disarm_delay_s,
                 arm_refusals_after_boot=0,
+                # ArduCopter's lag is in its input shaping (below), not its rate loop
+                rate_dead_time_s=0.0,
+                rate_time_constant_s=0.0,
+                attitude_quaternion_max_hz=0.0,  # ArduCopter reaches the 200 Hz asked for
             ),
         )
         self.ardupilot = ardupilot
+        self._setpoint_delay_s = ardupilot.setpoint_delay_s
         self.number = STABILIZE  # the mode number the heartbeat shows
         self.rtl_count = 0  # RTLs entered: a client that meant something else
         self.ignored_setpoints = 0  # outside GUIDED, or rates neither all nor none
@@ -148,6 +155,10 @@ class ArduCopter(Autopilot):
         except ValueError:  # out of range: the parameter keeps its value
             return False
         return True
+
+    def has_position(self, t_s: float) -> bool:
+        """ArduCopter streams no LOCAL_POSITION_NED until its EKF has an origin."""
+        return t_s >= self.ardupilot.ekf_origin_after_boot_s
 
     # ---- modes and commands -------------------------------------------------------------------
 
@@ -235,8 +246,12 @@ class ArduCopter(Autopilot):
         alpha = min(1.0, self._outer_dt_s / self.ardupilot.input_tc_s)
         target = q.copy() if self._att_target is None else self._att_target
         if sp.type_mask & IGNORE_ATTITUDE:
-            # body rates: filtered, integrated into the attitude target it tracks
-            self._shaped_rate += alpha * (np.asarray(sp.rate_frd_rad_s) - self._shaped_rate)
+            # body rates: filtered, their change limited to ATC_ACCEL_*_MAX, integrated into
+            # the attitude target it tracks (AC_AttitudeControl's input_shaping_ang_vel)
+            alpha_rate = min(1.0, self._outer_dt_s / self.ardupilot.rate_input_tc_s)
+            step = alpha_rate * (np.asarray(sp.rate_frd_rad_s) - self._shaped_rate)
+            limit = self._outer_dt_s * np.asarray(self.ardupilot.accel_max_frd_rad_s2)
+            self._shaped_rate += np.clip(step, -limit, limit)
             half = 0.5 * self._outer_dt_s * self._shaped_rate
             target = quat_normalize(quat_multiply(target, np.array([1.0, *half])))
             rate = self._shaped_rate + self._attitude_control(q, target)

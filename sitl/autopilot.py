@@ -166,6 +166,7 @@ class Autopilot:
     mav_autopilot = 12  # MAV_AUTOPILOT_PX4
     streams_by_default = True  # PX4 streams its onboard link's messages unasked
     sends_odometry = True
+    heartbeat_on_mode_change = False  # PX4's mode shows in its next 1 Hz heartbeat
     rtl_count = 0  # RTLs entered (PX4's RTL is not modelled: always 0 here)
 
     def __init__(self, vehicle: VehicleParams, params: AutopilotParams) -> None:
@@ -190,6 +191,13 @@ class Autopilot:
         self._setpoint_times_s: deque[float] = deque(maxlen=64)
         self._att_sp: AttitudeSetpoint | None = None
         self._pos_sp: PositionSetpoint | None = None
+        # setpoints received but not yet seen by the controllers: (due time s, setpoint)
+        self._in_transit: deque[tuple[float, AttitudeSetpoint | PositionSetpoint]] = deque()
+        self._setpoint_delay_s = params.setpoint_delay_s(vehicle)
+        self._rate_ref_tc_s = params.rate_reference_time_constant_s(vehicle)
+        # the rate loop's reference (rad/s, FRD): the rate setpoint through a first-order lag
+        # of rate_time_constant_s; None until the loop runs (it starts at the rates flown)
+        self._rate_ref: list[float] | None = None
         self._vel_integral = np.zeros(3)
         self._rate_integral = [0.0, 0.0, 0.0]
         mix_inv = np.linalg.inv(effectiveness_matrix(vehicle))
@@ -236,6 +244,10 @@ class Autopilot:
     def set_parameter(self, name: str, value: float) -> bool:
         """PARAM_SET: False (unchanged) here; PX4's view is read-only."""
         return False
+
+    def has_position(self, t_s: float) -> bool:
+        """Whether the estimator has a local position to stream at vehicle time ``t_s``."""
+        return True
 
     # ---- commands -------------------------------------------------------------------------
 
@@ -308,16 +320,35 @@ class Autopilot:
         return Result.ACCEPTED
 
     def on_attitude_setpoint(self, sp: AttitudeSetpoint, t_s: float) -> None:
-        self._att_sp = sp
-        self._pos_sp = None
-        if not sp.type_mask & IGNORE_THRUST:
-            self._last_thrust_norm = sp.thrust_norm
-        self._setpoint_times_s.append(t_s)
+        self._receive(sp, t_s)
 
     def on_position_setpoint(self, sp: PositionSetpoint, t_s: float) -> None:
-        self._pos_sp = sp
-        self._att_sp = None
+        self._receive(sp, t_s)
+
+    def _receive(self, sp: AttitudeSetpoint | PositionSetpoint, t_s: float) -> None:
+        """A setpoint arrived: the stream counts at once (PX4's commander sees the offboard
+        signal on receipt), the controllers see its value ``_setpoint_delay_s`` later."""
         self._setpoint_times_s.append(t_s)
+        if self._setpoint_delay_s <= 0.0:
+            self._apply_setpoint(sp)
+        else:
+            self._in_transit.append((t_s + self._setpoint_delay_s, sp))
+
+    def _deliver_setpoints(self, t_s: float) -> None:
+        """Hand the controllers every setpoint whose delay has passed, in arrival order."""
+        transit = self._in_transit
+        while transit and transit[0][0] <= t_s + 1e-9:
+            self._apply_setpoint(transit.popleft()[1])
+
+    def _apply_setpoint(self, sp: AttitudeSetpoint | PositionSetpoint) -> None:
+        if isinstance(sp, AttitudeSetpoint):
+            self._att_sp = sp
+            self._pos_sp = None
+            if not sp.type_mask & IGNORE_THRUST:
+                self._last_thrust_norm = sp.thrust_norm
+        else:
+            self._pos_sp = sp
+            self._att_sp = None
 
     def offboard_stream_ok(self, t_s: float) -> bool:
         """PX4's entry condition: a setpoint stream above ``offboard_min_rate_hz`` is present.
@@ -342,6 +373,7 @@ class Autopilot:
         Runs at the tick rate; sets the body-rate and thrust target the inner loop tracks.
         """
         self._last_state = x
+        self._deliver_setpoints(t_s)
         self._supervise(x, t_s)
         self._return_to_intended(t_s)
         q = x[QUAT]
@@ -477,6 +509,7 @@ class Autopilot:
     def _reset_integrators(self) -> None:
         self._vel_integral[:] = 0.0
         self._rate_integral = [0.0, 0.0, 0.0]
+        self._rate_ref = None
 
     # ---- controllers ----------------------------------------------------------------------
 
@@ -583,8 +616,23 @@ class Autopilot:
     ) -> list[float]:
         """Rate PI -> torques -> rotor forces (inverse effectiveness, desaturated) -> speeds.
 
+        With ``rate_time_constant_s`` > 0 the loop tracks a reference model: the setpoint
+        through a first-order lag of that time constant, its slope fed forward as angular
+        acceleration, so the closed loop answers a step as that lag (plus the motors'),
+        whatever the gains; the gains then only reject disturbances.
+
         Plain floats (it runs at the physics rate), each operation as numpy did it."""
         wx, wy, wz = rate_frd_rad_s
+        tau_s = self._rate_ref_tc_s
+        fx = fy = fz = 0.0  # angular acceleration fed forward, rad/s^2
+        if tau_s > 0.0:
+            ref = list(rate_frd_rad_s) if self._rate_ref is None else self._rate_ref
+            fx, fy, fz = ((c - r) / tau_s for c, r in zip(rate_cmd_frd_rad_s, ref, strict=True))
+            alpha = -math.expm1(-dt_s / tau_s)  # the exact discretisation of the lag
+            rate_cmd_frd_rad_s = [
+                r + alpha * (c - r) for c, r in zip(rate_cmd_frd_rad_s, ref, strict=True)
+            ]
+            self._rate_ref = rate_cmd_frd_rad_s
         ex, ey, ez = (c - w for c, w in zip(rate_cmd_frd_rad_s, rate_frd_rad_s, strict=True))
         # the integral is bounded (anti-windup): min(max(., -0.5), 0.5)
         gx, gy, gz = self._rate_integral
@@ -599,9 +647,9 @@ class Autopilot:
         hx, hy, hz = jx * wx, jy * wy, jz * wz  # I w; torque = I dw + w x (I w)
         torque = np.array(
             [
-                jx * (px * ex + ix_ * gx) + (wy * hz - wz * hy),
-                jy * (py * ey + iy_ * gy) + (wz * hx - wx * hz),
-                jz * (pz * ez + iz_ * gz) + (wx * hy - wy * hx),
+                jx * (px * ex + ix_ * gx + fx) + (wy * hz - wz * hy),
+                jy * (py * ey + iy_ * gy + fy) + (wz * hx - wx * hz),
+                jz * (pz * ez + iz_ * gz + fz) + (wx * hy - wy * hx),
             ]
         )
         collective_n = min(1.0, max(0.0, thrust_norm)) * self.vehicle.max_total_thrust_n
