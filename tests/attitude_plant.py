@@ -94,7 +94,7 @@ def fly(loop: AttitudeLoop, plant: Plant, goal: PositionOutput, duration_s: floa
         s = plant.state()
         now = plant.t_s
         if gated and not loop.rate_model_trusted(now):
-            loop.attitude_delegated(s, now)
+            loop.attitude_delegated(s, goal, now)
             err = frames.quat_multiply(frames.quat_conjugate(s.q_ned_frd), goal.q_target)
             cmd = np.clip(2.0 * 6.5 * np.sign(err[0]) * err[1:], -4.0, 4.0)
             delegated += 1

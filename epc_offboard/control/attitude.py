@@ -18,6 +18,7 @@ is a P law on the angle error.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -31,6 +32,7 @@ from epc_offboard.control.position import PositionOutput
 from epc_offboard.control.qp import MpcProblem
 from epc_offboard.control.rate_response import (
     MAX_DEAD_TIME_S,
+    PX4_RATE_RESPONSE,
     CommandHistory,
     IdentifiedResponse,
     RateIdentifier,
@@ -50,15 +52,16 @@ class AttitudeControlConfig:
     # auto: epc on PX4, autopilot on ArduPilot (ArduCopter shapes body-rate targets with
     # ATC_INPUT_TC, so its rate response is not the identified first-order rate model)
     mode: Literal["auto", "epc", "autopilot"] = "auto"
-    # The QP predicts over horizon * dt_s = 250 ms from where the command sent now starts
-    # to act: it must see the rate loop's lag (100 ms on PX4) play out, which 10 steps of
-    # the 5 ms tick did not. (A coarser step than the loop's: the loop still answers every
-    # 5 ms with the QP's first input, and a library hit is still the QP's optimum.)
+    # The QP predicts over horizon * dt_s from where the command sent now starts to act: it
+    # must see the rate loop's lag play out (2.5 lags), which 10 steps of the old 10 ms did
+    # not. Unset: 25 ms (PX4: 250 ms for a 100 ms lag), longer for a slower response
+    # (ArduPilot's 0.3 s: 75 ms). A coarser step than the loop's: the loop still answers
+    # every 5 ms with the QP's first input, and a library hit is still the QP's optimum.
     horizon: int = 10
-    dt_s: float = 0.025
+    dt_s: float | None = None
     # The autopilot's rate response (rate_response.py): unset, the measured one of the
     # autopilot flown (link.autopilot; PX4's when "auto"): PX4 45 ms, 100 ms, gain 1;
-    # ArduPilot 100 ms, 100 ms, gain 0.35.
+    # ArduPilot 100 ms, 300 ms, gain 0.9 (rate_response.py says why not 0.35).
     rate_dead_time_s: float | None = None
     rate_time_constant_s: float | None = None  # first-order lag
     rate_gain: float | None = None  # achieved / commanded rate
@@ -90,9 +93,17 @@ class AttitudeControlConfig:
     rates_max_error_deg: float = 35.0
 
     def __post_init__(self) -> None:
-        if self.horizon < 1 or self.dt_s <= 0.0:
+        if self.horizon < 1 or (self.dt_s is not None and not self.dt_s > 0.0):
             raise ValueError("horizon >= 1 and dt_s > 0 are required")
-        self.rate_response("px4")  # a bad dead time, lag or gain names itself (ValueError)
+        for key, field_name in (("rate_dead_time_s", "dead_time_s"),
+                                ("rate_time_constant_s", "time_constant_s"),
+                                ("rate_gain", "gain")):  # fmt: skip
+            if getattr(self, key) is None:
+                continue
+            try:
+                dataclasses.replace(PX4_RATE_RESPONSE, **{field_name: getattr(self, key)})
+            except ValueError as exc:
+                raise ValueError(f"{key}: {exc}") from exc
         if not 0.0 < self.identify_max_dead_time_s <= MAX_DEAD_TIME_S:
             raise ValueError(
                 f"identify_max_dead_time_s must be in (0, {MAX_DEAD_TIME_S}], "
@@ -120,6 +131,13 @@ class AttitudeControlConfig:
         )
 
 
+    def prediction_dt_s(self, response: RateResponse) -> float:
+        """The QP's step: ``dt_s``, or unset one whose horizon spans 2.5 lags (>= 25 ms)."""
+        if self.dt_s is not None:
+            return self.dt_s
+        return max(0.025, round(2.5 * response.time_constant_s / self.horizon, 3))
+
+
 def _or(value: float | None, default: float) -> float:
     return default if value is None else value
 
@@ -133,11 +151,11 @@ class AttitudeOutput:
 
 def attitude_problem(cfg: AttitudeControlConfig, response: RateResponse) -> MpcProblem:
     """The attitude QP: Euler angles and body rates over ``cfg.horizon`` steps of
-    ``cfg.dt_s`` with ``response``'s lag and gain (its dead time is predicted over before
+    ``cfg.prediction_dt_s`` with ``response``'s lag and gain (its dead time is predicted over before
     the QP starts), body-rate commands bounded by ``cfg.max_rate_rad_s``."""
     rmax = np.array(cfg.max_rate_rad_s, dtype=np.float64)
     return MpcProblem(
-        attitude_model(cfg.dt_s, response.time_constant_s, response.gain),
+        attitude_model(cfg.prediction_dt_s(response), response.time_constant_s, response.gain),
         horizon=cfg.horizon,
         Q=np.concatenate([cfg.q_angle, cfg.q_rate]),
         R=np.array(cfg.r_rate, dtype=np.float64),
@@ -275,21 +293,31 @@ class AttitudeLoop:
         self._sent(now, u, valid=True)
         return AttitudeOutput(u, target.thrust_norm, d.source)
 
+    def _p_law(self, state: VehicleState, target: PositionOutput) -> FloatArray:
+        x0, refs = self._refs(state, target)
+        rmax = np.array(self.config.max_rate_rad_s)
+        out: FloatArray = np.clip(
+            self.config.fallback_gain_1_s * (refs[0, :3] - x0[:3]), -rmax, rmax
+        )
+        return out
+
     def attitude_fallback(
         self, state: VehicleState, target: PositionOutput, now_s: float | None = None
     ) -> AttitudeOutput:
         now = state.time_s if now_s is None else now_s
-        x0, refs = self._refs(state, target)
-        rmax = np.array(self.config.max_rate_rad_s)
-        rates = np.clip(self.config.fallback_gain_1_s * (refs[0, :3] - x0[:3]), -rmax, rmax)
+        rates = self._p_law(state, target)
         self._sent(now, rates, valid=True)
         return AttitudeOutput(rates, target.thrust_norm, "fallback")
 
-    def attitude_delegated(self, state: VehicleState, now_s: float) -> None:
+    def attitude_delegated(
+        self, state: VehicleState, target: PositionOutput, now_s: float
+    ) -> None:
         """A tick that sent the attitude (quaternion) instead of body rates: the autopilot's
-        own loop flies it; the measured rate stands in for its unseen rate commands."""
+        own attitude loop flies it, a P law on the attitude error like ours, which stands in
+        for its unseen rate setpoints (a lone late tick then spoils neither the prediction
+        nor the identification; a longer run is no evidence, see CommandHistory.push)."""
         self._observe(state, now_s)
-        self._sent(now_s, state.rate_frd_rad_s / self.response.gain, valid=False)
+        self._sent(now_s, self._p_law(state, target), valid=False)
 
     def rate_model_stats(self) -> dict[str, Any]:
         """The rate response in use and identified, the model's error, the gate's count."""

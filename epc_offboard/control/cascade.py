@@ -94,8 +94,10 @@ class Cascade:
     ) -> AttitudeOutput:
         return self.attitude.attitude_fallback(state, target, now_s)
 
-    def attitude_delegated(self, state: VehicleState, now_s: float) -> None:
-        self.attitude.attitude_delegated(state, now_s)
+    def attitude_delegated(
+        self, state: VehicleState, target: PositionOutput, now_s: float
+    ) -> None:
+        self.attitude.attitude_delegated(state, target, now_s)
 
     def warm_up(self) -> float:
         """Run both ticks of a scratch cascade with this configuration at hover, so every

@@ -81,7 +81,7 @@ class SetpointSender:
                 self._loop_error("attitude", exc)
                 out = cascade.attitude_fallback(state, target, now_s)
         if out.rates_frd_rad_s is None and self.autopilot.attitude_mode != "autopilot":
-            cascade.attitude_delegated(state, now_s)  # the commands in flight: none of ours
+            cascade.attitude_delegated(state, target, now_s)  # the autopilot's, in flight
         self._model_events()
 
         def hover() -> commands.AttitudeSetpoint:
