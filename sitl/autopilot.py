@@ -553,6 +553,18 @@ class Autopilot:
     ) -> tuple[FloatArray, float]:
         """PX4's cascade: P on position, PI on velocity, plus acceleration feedforward ->
         acceleration -> (attitude quaternion, normalised thrust)."""
+        acc = self._acceleration_command(x, pos_ref, vel_ref, dt_s, acc_ff)
+        return self._attitude_for_acceleration(x, acc, yaw_ref)
+
+    def _acceleration_command(
+        self,
+        x: FloatArray,
+        pos_ref: FloatArray,
+        vel_ref: FloatArray,
+        dt_s: float,
+        acc_ff: FloatArray,
+    ) -> FloatArray:
+        """PX4's MPC: P on position, PI on velocity, plus feedforward -> acceleration (3,)."""
         p = self.params
         # position P -> velocity setpoint (+ feedforward) -> velocity PI -> acceleration
         vel_sp = vel_ref + np.asarray(p.position_p_1_s) * (pos_ref - x[POS])
@@ -565,7 +577,13 @@ class Autopilot:
             -_MAX_INTEGRAL_ACC_M_S2 / i_gain,
             _MAX_INTEGRAL_ACC_M_S2 / i_gain,
         )
-        acc = acc_ff + np.asarray(p.velocity_p_1_s) * vel_err + i_gain * self._vel_integral
+        return acc_ff + np.asarray(p.velocity_p_1_s) * vel_err + i_gain * self._vel_integral
+
+    def _attitude_for_acceleration(
+        self, x: FloatArray, acc: FloatArray, yaw_ref: float
+    ) -> tuple[FloatArray, float]:
+        """Acceleration (3,) NED -> (attitude quaternion, normalised thrust), tilt-limited."""
+        p = self.params
         # Specific force the rotors must produce (NED): f = a - g.
         f = acc - np.array([0.0, 0.0, GRAVITY_M_S2])
         f[2] = min(f[2], -0.2 * GRAVITY_M_S2)  # never command thrust pointing down
