@@ -260,7 +260,8 @@ class Autopilot:
                 return self._refuse("Arming denied: not landed")
             if self._arm_refusals_left > 0:
                 self._arm_refusals_left -= 1
-                return self._refuse("Arming denied: no heading reference")
+                # PX4 main's estimator check (HealthAndArmingChecks/estimatorCheck.cpp)
+                return self._refuse("Preflight Fail: heading estimate not stable")
             self.armed = True
             self._arm_time_s = t_s
             self._has_flown = False

@@ -148,8 +148,12 @@ class AutopilotParams:
     offboard_min_rate_hz: float = 2.0  # entry needs a setpoint stream above this rate
     disarm_preflight_s: float = 10.0  # armed on the ground without taking off
     disarm_after_land_s: float = 2.0
-    # PX4 refuses the first arming right after boot ("no heading reference"); a retry succeeds
-    arm_refusals_after_boot: int = 1
+    # Armings refused right after boot, each with PX4's "Preflight Fail: heading estimate not
+    # stable". PX4 main refuses to arm only while EKF2 is initialising or its pre-flight
+    # heading innovation check fails (commander's estimatorCheck.cpp), a window of seconds
+    # after boot, never a count; PX4 + SIH accepted the first arming in independent flights,
+    # so by default none is refused. 1 rehearses a client's retry.
+    arm_refusals_after_boot: int = 0
     # How a body-rate command (SET_ATTITUDE_TARGET) shows in the measured rates, as measured
     # on PX4 main + SIH: a dead time (the onboard link, uORB, the loops' scheduling, the
     # motors spinning up), then a first-order lag (PX4's rate loop and SIH's motors). The
