@@ -15,9 +15,15 @@ control (observed on ArduCopter 4.7 / 4.8-dev SITL, see ../shared/DESIGN.md):
   progress, as ArduCopter's guided angle control does); body rates all three or none;
 * thrust: a CLIMB RATE by default (0.5 holds altitude; PILOT_SPEED_UP / _DN at 1 / 0), or
   with GUID_OPTIONS bit 3 throttle, divided by the current tilt's cosine (angle boost);
-* targets pass ArduCopter's input shaping: body rates through a first-order filter of time
-  constant ATC_INPUT_TC integrated into an attitude target, quaternions approached with the
-  same time constant — a slower response than PX4's rate loop;
+* every setpoint waits ``setpoint_delay_s`` (the link, the scheduler), then passes
+  ArduCopter's input shaping: body rates through a first-order filter (``rate_input_tc_s``)
+  with ATC_ACCEL_*_MAX limits, integrated into an attitude target; quaternions approached
+  with ATC_INPUT_TC. The achieved rate matches a body-rate command best about 200 ms later
+  at about 0.35 gain, as on ArduCopter 4.8-dev SITL;
+* an extra HEARTBEAT the moment the mode changes; no LOCAL_POSITION_NED until the EKF has
+  an origin (``ekf_origin_after_boot_s`` after boot);
+* GUIDED position targets flown by AC_PosControl: P on position, PID on velocity with
+  velocity feedforward, the target's acceleration fed forward, jerk-limited;
 * GUID_TIMEOUT (3 s) without setpoints: ArduCopter's guided angle control levels the vehicle
   (yaw kept) and holds altitude (climb rate 0), still in GUIDED — it does not hold position:
   in wind it drifts. New setpoints take control again;

@@ -9,6 +9,11 @@ quaternion (thesis 3.13, without the small-angle linearisation) -> attitude P on
 quaternion error -> body rates -> rate PI -> torques -> inverse effectiveness (the x-layout
 generalisation of thesis 3.11) -> rotor forces -> rotor speeds.
 
+Timing as PX4 main + SIH measured it: offboard setpoints reach the controllers after a dead
+time, and the rate loop answers its setpoint as a first-order lag (a reference model), so a
+body-rate command shows in the measured rates after ``rate_dead_time_s`` then follows with
+``rate_time_constant_s``.
+
 Thrust normalisation (SET_ATTITUDE_TARGET): ``thrust_norm * 4 k_F w_max^2`` is the collective
 rotor force; 0.52 hovers the default vehicle.
 """
