@@ -9,6 +9,11 @@ quaternion (thesis 3.13, without the small-angle linearisation) -> attitude P on
 quaternion error -> body rates -> rate PI -> torques -> inverse effectiveness (the x-layout
 generalisation of thesis 3.11) -> rotor forces -> rotor speeds.
 
+Timing as PX4 main + SIH measured it: offboard setpoints reach the controllers after a dead
+time, and the rate loop answers its setpoint as a first-order lag (a reference model), so a
+body-rate command shows in the measured rates after ``rate_dead_time_s`` then follows with
+``rate_time_constant_s``.
+
 Thrust normalisation (SET_ATTITUDE_TARGET): ``thrust_norm * 4 k_F w_max^2`` is the collective
 rotor force; 0.52 hovers the default vehicle.
 """
@@ -260,7 +265,8 @@ class Autopilot:
                 return self._refuse("Arming denied: not landed")
             if self._arm_refusals_left > 0:
                 self._arm_refusals_left -= 1
-                return self._refuse("Arming denied: no heading reference")
+                # PX4 main's estimator check (HealthAndArmingChecks/estimatorCheck.cpp)
+                return self._refuse("Preflight Fail: heading estimate not stable")
             self.armed = True
             self._arm_time_s = t_s
             self._has_flown = False
@@ -553,6 +559,18 @@ class Autopilot:
     ) -> tuple[FloatArray, float]:
         """PX4's cascade: P on position, PI on velocity, plus acceleration feedforward ->
         acceleration -> (attitude quaternion, normalised thrust)."""
+        acc = self._acceleration_command(x, pos_ref, vel_ref, dt_s, acc_ff)
+        return self._attitude_for_acceleration(x, acc, yaw_ref)
+
+    def _acceleration_command(
+        self,
+        x: FloatArray,
+        pos_ref: FloatArray,
+        vel_ref: FloatArray,
+        dt_s: float,
+        acc_ff: FloatArray,
+    ) -> FloatArray:
+        """PX4's MPC: P on position, PI on velocity, plus feedforward -> acceleration (3,)."""
         p = self.params
         # position P -> velocity setpoint (+ feedforward) -> velocity PI -> acceleration
         vel_sp = vel_ref + np.asarray(p.position_p_1_s) * (pos_ref - x[POS])
@@ -565,7 +583,13 @@ class Autopilot:
             -_MAX_INTEGRAL_ACC_M_S2 / i_gain,
             _MAX_INTEGRAL_ACC_M_S2 / i_gain,
         )
-        acc = acc_ff + np.asarray(p.velocity_p_1_s) * vel_err + i_gain * self._vel_integral
+        return acc_ff + np.asarray(p.velocity_p_1_s) * vel_err + i_gain * self._vel_integral
+
+    def _attitude_for_acceleration(
+        self, x: FloatArray, acc: FloatArray, yaw_ref: float
+    ) -> tuple[FloatArray, float]:
+        """Acceleration (3,) NED -> (attitude quaternion, normalised thrust), tilt-limited."""
+        p = self.params
         # Specific force the rotors must produce (NED): f = a - g.
         f = acc - np.array([0.0, 0.0, GRAVITY_M_S2])
         f[2] = min(f[2], -0.2 * GRAVITY_M_S2)  # never command thrust pointing down

@@ -148,8 +148,12 @@ class AutopilotParams:
     offboard_min_rate_hz: float = 2.0  # entry needs a setpoint stream above this rate
     disarm_preflight_s: float = 10.0  # armed on the ground without taking off
     disarm_after_land_s: float = 2.0
-    # PX4 refuses the first arming right after boot ("no heading reference"); a retry succeeds
-    arm_refusals_after_boot: int = 1
+    # Armings refused right after boot, each with PX4's "Preflight Fail: heading estimate not
+    # stable". PX4 main refuses to arm only while EKF2 is initialising or its pre-flight
+    # heading innovation check fails (commander's estimatorCheck.cpp), a window of seconds
+    # after boot, never a count; PX4 + SIH accepted the first arming in independent flights,
+    # so by default none is refused. 1 rehearses a client's retry.
+    arm_refusals_after_boot: int = 0
     # How a body-rate command (SET_ATTITUDE_TARGET) shows in the measured rates, as measured
     # on PX4 main + SIH: a dead time (the onboard link, uORB, the loops' scheduling, the
     # motors spinning up), then a first-order lag (PX4's rate loop and SIH's motors). The
@@ -233,6 +237,19 @@ class ArduPilotParams:
     # the scheduler), fitted to that figure on a 0.6-2.9 Hz multi-sine
     rate_input_tc_s: float = 0.4
     setpoint_delay_s: float = 0.055
+    # AC_PosControl (GUIDED's position control) and its defaults: P on position (PSC_POSXY_P,
+    # PSC_POSZ_P), PID on velocity (PSC_VELXY_P/_I/_D; z: PSC_VELZ_P and the integral its
+    # PSC_ACCZ_I gives), the target's acceleration fed forward, jerk-limited (PSC_JERK_XY/_Z)
+    psc_pos_p_1_s: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    psc_vel_p_1_s: tuple[float, float, float] = (2.0, 2.0, 5.0)
+    psc_vel_i_1_s2: tuple[float, float, float] = (1.0, 1.0, 2.0)
+    psc_vel_d: tuple[float, float, float] = (0.5, 0.5, 0.0)
+    psc_vel_d_filter_hz: float = 5.0
+    # PSC_VELXY_FF / the z one: velocity target fed forward as acceleration. ArduCopter ships
+    # 0; tuned here to the default airframe's drag (SIH's: 1 m/s^2 per m/s), which is what
+    # lets GUIDED fly the circle as accurately as the real ArduCopter flies it on its own
+    psc_vel_ff_1_s: tuple[float, float, float] = (1.0, 1.0, 0.0)
+    psc_jerk_m_s3: tuple[float, float, float] = (5.0, 5.0, 5.0)
 
     def __post_init__(self) -> None:
         _positive(
@@ -246,7 +263,15 @@ class ArduPilotParams:
             ekf_origin_after_boot_s=self.ekf_origin_after_boot_s,
             setpoint_delay_s=self.setpoint_delay_s,
         )
-        _positive(rate_input_tc_s=self.rate_input_tc_s)
+        _positive(
+            rate_input_tc_s=self.rate_input_tc_s, psc_vel_d_filter_hz=self.psc_vel_d_filter_hz
+        )
+        for name in ("psc_pos_p_1_s", "psc_vel_p_1_s", "psc_jerk_m_s3"):
+            for i, v in enumerate(getattr(self, name)):
+                _positive(**{f"{name}[{i}]": v})
+        for name in ("psc_vel_i_1_s2", "psc_vel_d", "psc_vel_ff_1_s"):
+            for i, v in enumerate(getattr(self, name)):
+                _non_negative(**{f"{name}[{i}]": v})
         for i, v in enumerate(self.accel_max_frd_rad_s2):
             _positive(**{f"accel_max_frd_rad_s2[{i}]": v})
         if self.setpoint_delay_s > 0.5:

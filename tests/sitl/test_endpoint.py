@@ -68,7 +68,7 @@ def test_replies_go_to_the_sender_and_to_telemetry():
     assert [(a.command, a.result, a.target_system) for a in acks] == [(400, 2, 245), (400, 0, 245)]
     texts = [m.text for m in got if m.get_type() == "STATUSTEXT"]
     assert len(texts) == 1
-    assert texts[0].startswith("Arming denied")
+    assert texts[0].startswith("Preflight Fail")
     assert any(dest == TELEMETRY for _, dest in transport.sent)
     assert sim.autopilot.armed
 
