@@ -68,3 +68,4 @@ def test_body_rates_hold_a_level_hover_on_ardupilots_shaped_response(tmp_path):
     model = stats["attitude_rate_model"]
     assert model["model"]["time_constant_s"] == pytest.approx(0.3)  # ArduPilot's, configured
     assert stats["counters"].get("failsafes", 0) == 0
+

@@ -74,7 +74,7 @@ class AttitudeControlConfig:
     # quaternion for model_fallback_hold_s (doubling after each failed try), then body rates
     # again on probation until good for model_probation_s.
     model_check: bool = True
-    model_error_max_rad_s: float = 0.25
+    model_error_max_rad_s: float = 0.4
     model_error_ratio: float = 0.6
     model_fallback_hold_s: float = 2.0
     model_probation_s: float = 1.0
