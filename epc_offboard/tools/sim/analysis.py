@@ -169,9 +169,11 @@ def analyse(
     # tilt over the whole offboard phase (entry included): an attitude loop that oscillates
     # shows here first; cos(tilt) = 1 - 2 (qx² + qy²)
     offboard = (tt >= start) & (tt <= float(t_vehicle[tracking][-1]))
-    qx, qy = truth["q_x"][offboard], truth["q_y"][offboard]
-    cos_tilt = np.clip(1.0 - 2.0 * (qx * qx + qy * qy), -1.0, 1.0)
-    max_tilt_deg = float(np.degrees(np.arccos(cos_tilt.min()))) if len(cos_tilt) else 0.0
+    max_tilt_deg = math.nan  # (a ground truth without the attitude says nothing)
+    if "q_x" in truth and "q_y" in truth and np.any(offboard):
+        qx, qy = truth["q_x"][offboard], truth["q_y"][offboard]
+        cos_tilt = np.clip(1.0 - 2.0 * (qx * qx + qy * qy), -1.0, 1.0)
+        max_tilt_deg = float(np.degrees(np.arccos(cos_tilt.min())))
     lib = stats.get("library", {}).get("position", {})
     hits, misses = int(lib.get("hits", 0)), int(lib.get("misses", 0))
     # what a vehicle had to solve on its first lap: the measure of what a prior library (its
