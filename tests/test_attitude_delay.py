@@ -282,3 +282,21 @@ def test_rate_response_is_configurable_per_autopilot_and_validated():
                 {"model_error_max_rad_s": 0.0}, {"rate_lag_s": 0.1}):  # fmt: skip
         with pytest.raises(ConfigError, match=next(iter(bad))):
             from_dict(AttitudeControlConfig, bad, source="x.toml")
+
+
+def test_setpoints_streamed_before_offboard_are_no_evidence():
+    """Before offboard is confirmed the autopilot flies its own mode and ignores what we
+    stream: rates that do not answer our commands must neither suspend body rates nor teach
+    the identifier (in 3 m/s wind the sim's entry suspended them, 2.4 rad/s "off")."""
+    goal = target(STEP_DEG)
+    for acting in (True, False):
+        loop = AttitudeLoop(AttitudeControlConfig())
+        plant = Plant(0.045, 0.1, noise_rad_s=0.01, sample_hz=123.0)  # holding level
+        for _ in range(round(3.0 / TICK_S)):
+            loop.attitude_tick(plant.state(), goal, plant.t_s, acting=acting)
+            plant.step(np.zeros(3))
+        if acting:  # (what the check is for: commands that do not act)
+            assert loop.gate.fallbacks >= 1
+        else:
+            assert loop.gate.fallbacks == 0
+            assert loop.identifier.updates == 0

@@ -278,10 +278,16 @@ class AttitudeLoop:
         return x0, np.tile(row, (self.config.horizon, 1))
 
     def attitude_tick(
-        self, state: VehicleState, target: PositionOutput, now_s: float | None = None
+        self,
+        state: VehicleState,
+        target: PositionOutput,
+        now_s: float | None = None,
+        *,
+        acting: bool = True,
     ) -> AttitudeOutput:
         """Body rates for tick ``now_s`` (default: the state's time): the QP from the state
-        predicted to when this command starts to act."""
+        predicted to when this command starts to act. ``acting``: the autopilot flies our
+        setpoints (in offboard); before, what is streamed is no evidence about the response."""
         now = state.time_s if now_s is None else now_s
         self._observe(state, now)
         x0, refs = self._refs(state, target)
@@ -290,7 +296,7 @@ class AttitudeLoop:
         x0[3:] = ahead.rates_frd_rad_s
         d = self.controller.step(x0, refs)
         u = np.asarray(d.u, dtype=np.float64)
-        self._sent(now, u, valid=True)
+        self._sent(now, u, valid=acting)
         return AttitudeOutput(u, target.thrust_norm, d.source)
 
     def _p_law(self, state: VehicleState, target: PositionOutput) -> FloatArray:

@@ -85,9 +85,14 @@ class Cascade:
         return self.attitude.rate_model_trusted(now_s)
 
     def attitude_tick(
-        self, state: VehicleState, target: PositionOutput, now_s: float | None = None
+        self,
+        state: VehicleState,
+        target: PositionOutput,
+        now_s: float | None = None,
+        *,
+        acting: bool = True,
     ) -> AttitudeOutput:
-        return self.attitude.attitude_tick(state, target, now_s)
+        return self.attitude.attitude_tick(state, target, now_s, acting=acting)
 
     def attitude_fallback(
         self, state: VehicleState, target: PositionOutput, now_s: float | None = None

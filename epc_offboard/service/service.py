@@ -190,7 +190,8 @@ class Service:
             # the autopilot's own attitude loop keeps tracking whatever we do next.
             period = tick.period_s
             late = tick.start_s - tick.scheduled_s > period or state.attitude_age_s > 2 * period
-            self.setpoints.attitude(state, target, tick.start_s, late=late)
+            offboard = self.outputs.phase == Phase.OFFBOARD
+            self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard)
         elif self.clock.vehicle_time and state is not None:
             # lockstep: the simulator advances only on an answer for each tick; when no
             # setpoint streams (before takeoff, landing) the answer is a SYSTEM_TIME

@@ -58,10 +58,17 @@ class SetpointSender:
         self.autopilot.link.send(msg)
 
     def attitude(
-        self, state: VehicleState, target: PositionOutput, now_s: float, *, late: bool = False
+        self,
+        state: VehicleState,
+        target: PositionOutput,
+        now_s: float,
+        *,
+        late: bool = False,
+        acting: bool = True,
     ) -> None:
         """Fly ``target`` from ``state`` at tick ``now_s`` (the loops' clock); ``late``: the
-        tick or its attitude sample is late."""
+        tick or its attitude sample is late; ``acting``: the autopilot flies our setpoints
+        (offboard), so the rates measured answer them."""
         cascade = self.cascade
         if self.autopilot.attitude_mode == "autopilot":
             out = AttitudeOutput(None, target.thrust_norm, "delegated")
@@ -76,7 +83,7 @@ class SetpointSender:
             out = AttitudeOutput(None, target.thrust_norm, "model")
         else:
             try:
-                out = cascade.attitude_tick(state, target, now_s)
+                out = cascade.attitude_tick(state, target, now_s, acting=acting)
             except Exception as exc:
                 self._loop_error("attitude", exc)
                 out = cascade.attitude_fallback(state, target, now_s)
