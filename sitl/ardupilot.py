@@ -15,9 +15,15 @@ control (observed on ArduCopter 4.7 / 4.8-dev SITL, see ../shared/DESIGN.md):
   progress, as ArduCopter's guided angle control does); body rates all three or none;
 * thrust: a CLIMB RATE by default (0.5 holds altitude; PILOT_SPEED_UP / _DN at 1 / 0), or
   with GUID_OPTIONS bit 3 throttle, divided by the current tilt's cosine (angle boost);
-* targets pass ArduCopter's input shaping: body rates through a first-order filter of time
-  constant ATC_INPUT_TC integrated into an attitude target, quaternions approached with the
-  same time constant — a slower response than PX4's rate loop;
+* every setpoint waits ``setpoint_delay_s`` (the link, the scheduler), then passes
+  ArduCopter's input shaping: body rates through a first-order filter (``rate_input_tc_s``)
+  with ATC_ACCEL_*_MAX limits, integrated into an attitude target; quaternions approached
+  with ATC_INPUT_TC. The achieved rate matches a body-rate command best about 200 ms later
+  at about 0.35 gain, as on ArduCopter 4.8-dev SITL;
+* an extra HEARTBEAT the moment the mode changes; no LOCAL_POSITION_NED until the EKF has
+  an origin (``ekf_origin_after_boot_s`` after boot);
+* GUIDED position targets flown by AC_PosControl: P on position, PID on velocity with
+  velocity feedforward, the target's acceleration fed forward, jerk-limited;
 * GUID_TIMEOUT (3 s) without setpoints: ArduCopter's guided angle control levels the vehicle
   (yaw kept) and holds altitude (climb rate 0), still in GUIDED — it does not hold position:
   in wind it drifts. New setpoints take control again;
@@ -52,7 +58,7 @@ from sitl.autopilot import (
     Result,
 )
 from sitl.params import ArduPilotParams, AutopilotParams, VehicleParams
-from sitl.physics import QUAT, VEL, on_ground
+from sitl.physics import POS, QUAT, VEL, on_ground
 
 STABILIZE = 0
 GUIDED = 4
@@ -64,6 +70,7 @@ GUIDED_NOGPS = 20
 GUIDED_MODES = frozenset({GUIDED, GUIDED_NOGPS})
 _RATES = IGNORE_ROLL_RATE | IGNORE_PITCH_RATE | IGNORE_YAW_RATE
 GUID_OPTIONS_THRUST_AS_THROTTLE = 8
+_IMAX_M_S2 = 10.0  # PSC_VELXY_IMAX (1000 cm/s^2): the velocity integral's share, bounded
 
 
 class ArduCopter(Autopilot):
@@ -73,6 +80,8 @@ class ArduCopter(Autopilot):
     mav_autopilot = 3  # MAV_AUTOPILOT_ARDUPILOTMEGA
     streams_by_default = False
     sends_odometry = False
+    # ArduCopter sends a HEARTBEAT at once on every mode change, besides its 1 Hz ones
+    heartbeat_on_mode_change = True
 
     def __init__(
         self, vehicle: VehicleParams, params: AutopilotParams, ardupilot: ArduPilotParams
@@ -84,9 +93,14 @@ class ArduCopter(Autopilot):
                 offboard_loss_timeout_s=ardupilot.guid_timeout_s,
                 disarm_preflight_s=ardupilot.disarm_delay_s,
                 arm_refusals_after_boot=0,
+                # ArduCopter's lag is in its input shaping (below), not its rate loop
+                rate_dead_time_s=0.0,
+                rate_time_constant_s=0.0,
+                attitude_quaternion_max_hz=0.0,  # ArduCopter reaches the 200 Hz asked for
             ),
         )
         self.ardupilot = ardupilot
+        self._setpoint_delay_s = ardupilot.setpoint_delay_s
         self.number = STABILIZE  # the mode number the heartbeat shows
         self.rtl_count = 0  # RTLs entered: a client that meant something else
         self.ignored_setpoints = 0  # outside GUIDED, or rates neither all nor none
@@ -96,6 +110,9 @@ class ArduCopter(Autopilot):
         self._att_target: FloatArray | None = None  # the shaped attitude target
         self._shaped_rate = np.zeros(3)
         self._climb_integral = 0.0  # m: the climb-rate loop's integral (GUID_OPTIONS 0)
+        self._acc_target = np.zeros(3)  # the jerk-limited acceleration target, m/s^2
+        self._vel_err_prev: FloatArray | None = None
+        self._vel_err_rate = np.zeros(3)  # filtered derivative of the velocity error
 
     # ---- what the endpoint asks ---------------------------------------------------------------
 
@@ -148,6 +165,10 @@ class ArduCopter(Autopilot):
         except ValueError:  # out of range: the parameter keeps its value
             return False
         return True
+
+    def has_position(self, t_s: float) -> bool:
+        """ArduCopter streams no LOCAL_POSITION_NED until its EKF has an origin."""
+        return t_s >= self.ardupilot.ekf_origin_after_boot_s
 
     # ---- modes and commands -------------------------------------------------------------------
 
@@ -235,8 +256,12 @@ class ArduCopter(Autopilot):
         alpha = min(1.0, self._outer_dt_s / self.ardupilot.input_tc_s)
         target = q.copy() if self._att_target is None else self._att_target
         if sp.type_mask & IGNORE_ATTITUDE:
-            # body rates: filtered, integrated into the attitude target it tracks
-            self._shaped_rate += alpha * (np.asarray(sp.rate_frd_rad_s) - self._shaped_rate)
+            # body rates: filtered, their change limited to ATC_ACCEL_*_MAX, integrated into
+            # the attitude target it tracks (AC_AttitudeControl's input_shaping_ang_vel)
+            alpha_rate = min(1.0, self._outer_dt_s / self.ardupilot.rate_input_tc_s)
+            step = alpha_rate * (np.asarray(sp.rate_frd_rad_s) - self._shaped_rate)
+            limit = self._outer_dt_s * np.asarray(self.ardupilot.accel_max_frd_rad_s2)
+            self._shaped_rate += np.clip(step, -limit, limit)
             half = 0.5 * self._outer_dt_s * self._shaped_rate
             target = quat_normalize(quat_multiply(target, np.array([1.0, *half])))
             rate = self._shaped_rate + self._attitude_control(q, target)
@@ -254,6 +279,44 @@ class ArduCopter(Autopilot):
         self._att_target = target
         lim = np.asarray(self.params.rate_max_rad_s)
         return target, np.clip(rate, -lim, lim), self._thrust(x, sp.thrust_norm)
+
+    def _acceleration_command(
+        self,
+        x: FloatArray,
+        pos_ref: FloatArray,
+        vel_ref: FloatArray,
+        dt_s: float,
+        acc_ff: FloatArray,
+    ) -> FloatArray:
+        """AC_PosControl: the target's acceleration, jerk-limited, plus P on position and PID
+        on velocity (the integral bounded in acceleration, as its IMAX) with the velocity
+        target fed forward -> acceleration (3,)."""
+        ap = self.ardupilot
+        jerk = np.asarray(ap.psc_jerk_m_s3) * dt_s
+        self._acc_target = self._acc_target + np.clip(acc_ff - self._acc_target, -jerk, jerk)
+        vel_sp = vel_ref + np.asarray(ap.psc_pos_p_1_s) * (pos_ref - x[POS])
+        vmax = np.asarray(self.params.max_speed_m_s)
+        vel_err = np.clip(vel_sp, -vmax, vmax) - x[VEL]
+        i_gain = np.asarray(ap.psc_vel_i_1_s2)
+        bound = np.divide(_IMAX_M_S2, i_gain, out=np.zeros(3), where=i_gain > 0.0)
+        self._vel_integral = np.clip(self._vel_integral + vel_err * dt_s, -bound, bound)
+        if self._vel_err_prev is not None:
+            alpha = -math.expm1(-2.0 * math.pi * ap.psc_vel_d_filter_hz * dt_s)
+            slope = (vel_err - self._vel_err_prev) / dt_s
+            self._vel_err_rate += alpha * (slope - self._vel_err_rate)
+        self._vel_err_prev = vel_err
+        return (
+            self._acc_target
+            + np.asarray(ap.psc_vel_p_1_s) * vel_err
+            + i_gain * self._vel_integral
+            + np.asarray(ap.psc_vel_d) * self._vel_err_rate
+            + np.asarray(ap.psc_vel_ff_1_s) * vel_sp
+        )
+
+    def _reset_integrators(self) -> None:
+        super()._reset_integrators()
+        self._vel_err_prev = None
+        self._vel_err_rate = np.zeros(3)
 
     def _thrust(self, x: FloatArray, thrust: float) -> float:
         """SET_ATTITUDE_TARGET's thrust as the collective thrust this vehicle produces."""

@@ -9,6 +9,11 @@ quaternion (thesis 3.13, without the small-angle linearisation) -> attitude P on
 quaternion error -> body rates -> rate PI -> torques -> inverse effectiveness (the x-layout
 generalisation of thesis 3.11) -> rotor forces -> rotor speeds.
 
+Timing as PX4 main + SIH measured it: offboard setpoints reach the controllers after a dead
+time, and the rate loop answers its setpoint as a first-order lag (a reference model), so a
+body-rate command shows in the measured rates after ``rate_dead_time_s`` then follows with
+``rate_time_constant_s``.
+
 Thrust normalisation (SET_ATTITUDE_TARGET): ``thrust_norm * 4 k_F w_max^2`` is the collective
 rotor force; 0.52 hovers the default vehicle.
 """
@@ -166,6 +171,7 @@ class Autopilot:
     mav_autopilot = 12  # MAV_AUTOPILOT_PX4
     streams_by_default = True  # PX4 streams its onboard link's messages unasked
     sends_odometry = True
+    heartbeat_on_mode_change = False  # PX4's mode shows in its next 1 Hz heartbeat
     rtl_count = 0  # RTLs entered (PX4's RTL is not modelled: always 0 here)
 
     def __init__(self, vehicle: VehicleParams, params: AutopilotParams) -> None:
@@ -190,6 +196,13 @@ class Autopilot:
         self._setpoint_times_s: deque[float] = deque(maxlen=64)
         self._att_sp: AttitudeSetpoint | None = None
         self._pos_sp: PositionSetpoint | None = None
+        # setpoints received but not yet seen by the controllers: (due time s, setpoint)
+        self._in_transit: deque[tuple[float, AttitudeSetpoint | PositionSetpoint]] = deque()
+        self._setpoint_delay_s = params.setpoint_delay_s(vehicle)
+        self._rate_ref_tc_s = params.rate_reference_time_constant_s(vehicle)
+        # the rate loop's reference (rad/s, FRD): the rate setpoint through a first-order lag
+        # of rate_time_constant_s; None until the loop runs (it starts at the rates flown)
+        self._rate_ref: list[float] | None = None
         self._vel_integral = np.zeros(3)
         self._rate_integral = [0.0, 0.0, 0.0]
         mix_inv = np.linalg.inv(effectiveness_matrix(vehicle))
@@ -237,6 +250,10 @@ class Autopilot:
         """PARAM_SET: False (unchanged) here; PX4's view is read-only."""
         return False
 
+    def has_position(self, t_s: float) -> bool:
+        """Whether the estimator has a local position to stream at vehicle time ``t_s``."""
+        return True
+
     # ---- commands -------------------------------------------------------------------------
 
     def arm(self, arm: bool, t_s: float, force: bool = False) -> Result:
@@ -248,7 +265,8 @@ class Autopilot:
                 return self._refuse("Arming denied: not landed")
             if self._arm_refusals_left > 0:
                 self._arm_refusals_left -= 1
-                return self._refuse("Arming denied: no heading reference")
+                # PX4 main's estimator check (HealthAndArmingChecks/estimatorCheck.cpp)
+                return self._refuse("Preflight Fail: heading estimate not stable")
             self.armed = True
             self._arm_time_s = t_s
             self._has_flown = False
@@ -308,16 +326,35 @@ class Autopilot:
         return Result.ACCEPTED
 
     def on_attitude_setpoint(self, sp: AttitudeSetpoint, t_s: float) -> None:
-        self._att_sp = sp
-        self._pos_sp = None
-        if not sp.type_mask & IGNORE_THRUST:
-            self._last_thrust_norm = sp.thrust_norm
-        self._setpoint_times_s.append(t_s)
+        self._receive(sp, t_s)
 
     def on_position_setpoint(self, sp: PositionSetpoint, t_s: float) -> None:
-        self._pos_sp = sp
-        self._att_sp = None
+        self._receive(sp, t_s)
+
+    def _receive(self, sp: AttitudeSetpoint | PositionSetpoint, t_s: float) -> None:
+        """A setpoint arrived: the stream counts at once (PX4's commander sees the offboard
+        signal on receipt), the controllers see its value ``_setpoint_delay_s`` later."""
         self._setpoint_times_s.append(t_s)
+        if self._setpoint_delay_s <= 0.0:
+            self._apply_setpoint(sp)
+        else:
+            self._in_transit.append((t_s + self._setpoint_delay_s, sp))
+
+    def _deliver_setpoints(self, t_s: float) -> None:
+        """Hand the controllers every setpoint whose delay has passed, in arrival order."""
+        transit = self._in_transit
+        while transit and transit[0][0] <= t_s + 1e-9:
+            self._apply_setpoint(transit.popleft()[1])
+
+    def _apply_setpoint(self, sp: AttitudeSetpoint | PositionSetpoint) -> None:
+        if isinstance(sp, AttitudeSetpoint):
+            self._att_sp = sp
+            self._pos_sp = None
+            if not sp.type_mask & IGNORE_THRUST:
+                self._last_thrust_norm = sp.thrust_norm
+        else:
+            self._pos_sp = sp
+            self._att_sp = None
 
     def offboard_stream_ok(self, t_s: float) -> bool:
         """PX4's entry condition: a setpoint stream above ``offboard_min_rate_hz`` is present.
@@ -342,6 +379,7 @@ class Autopilot:
         Runs at the tick rate; sets the body-rate and thrust target the inner loop tracks.
         """
         self._last_state = x
+        self._deliver_setpoints(t_s)
         self._supervise(x, t_s)
         self._return_to_intended(t_s)
         q = x[QUAT]
@@ -477,6 +515,7 @@ class Autopilot:
     def _reset_integrators(self) -> None:
         self._vel_integral[:] = 0.0
         self._rate_integral = [0.0, 0.0, 0.0]
+        self._rate_ref = None
 
     # ---- controllers ----------------------------------------------------------------------
 
@@ -520,6 +559,18 @@ class Autopilot:
     ) -> tuple[FloatArray, float]:
         """PX4's cascade: P on position, PI on velocity, plus acceleration feedforward ->
         acceleration -> (attitude quaternion, normalised thrust)."""
+        acc = self._acceleration_command(x, pos_ref, vel_ref, dt_s, acc_ff)
+        return self._attitude_for_acceleration(x, acc, yaw_ref)
+
+    def _acceleration_command(
+        self,
+        x: FloatArray,
+        pos_ref: FloatArray,
+        vel_ref: FloatArray,
+        dt_s: float,
+        acc_ff: FloatArray,
+    ) -> FloatArray:
+        """PX4's MPC: P on position, PI on velocity, plus feedforward -> acceleration (3,)."""
         p = self.params
         # position P -> velocity setpoint (+ feedforward) -> velocity PI -> acceleration
         vel_sp = vel_ref + np.asarray(p.position_p_1_s) * (pos_ref - x[POS])
@@ -532,7 +583,13 @@ class Autopilot:
             -_MAX_INTEGRAL_ACC_M_S2 / i_gain,
             _MAX_INTEGRAL_ACC_M_S2 / i_gain,
         )
-        acc = acc_ff + np.asarray(p.velocity_p_1_s) * vel_err + i_gain * self._vel_integral
+        return acc_ff + np.asarray(p.velocity_p_1_s) * vel_err + i_gain * self._vel_integral
+
+    def _attitude_for_acceleration(
+        self, x: FloatArray, acc: FloatArray, yaw_ref: float
+    ) -> tuple[FloatArray, float]:
+        """Acceleration (3,) NED -> (attitude quaternion, normalised thrust), tilt-limited."""
+        p = self.params
         # Specific force the rotors must produce (NED): f = a - g.
         f = acc - np.array([0.0, 0.0, GRAVITY_M_S2])
         f[2] = min(f[2], -0.2 * GRAVITY_M_S2)  # never command thrust pointing down
@@ -583,8 +640,23 @@ class Autopilot:
     ) -> list[float]:
         """Rate PI -> torques -> rotor forces (inverse effectiveness, desaturated) -> speeds.
 
+        With ``rate_time_constant_s`` > 0 the loop tracks a reference model: the setpoint
+        through a first-order lag of that time constant, its slope fed forward as angular
+        acceleration, so the closed loop answers a step as that lag (plus the motors'),
+        whatever the gains; the gains then only reject disturbances.
+
         Plain floats (it runs at the physics rate), each operation as numpy did it."""
         wx, wy, wz = rate_frd_rad_s
+        tau_s = self._rate_ref_tc_s
+        fx = fy = fz = 0.0  # angular acceleration fed forward, rad/s^2
+        if tau_s > 0.0:
+            ref = list(rate_frd_rad_s) if self._rate_ref is None else self._rate_ref
+            fx, fy, fz = ((c - r) / tau_s for c, r in zip(rate_cmd_frd_rad_s, ref, strict=True))
+            alpha = -math.expm1(-dt_s / tau_s)  # the exact discretisation of the lag
+            rate_cmd_frd_rad_s = [
+                r + alpha * (c - r) for c, r in zip(rate_cmd_frd_rad_s, ref, strict=True)
+            ]
+            self._rate_ref = rate_cmd_frd_rad_s
         ex, ey, ez = (c - w for c, w in zip(rate_cmd_frd_rad_s, rate_frd_rad_s, strict=True))
         # the integral is bounded (anti-windup): min(max(., -0.5), 0.5)
         gx, gy, gz = self._rate_integral
@@ -599,9 +671,9 @@ class Autopilot:
         hx, hy, hz = jx * wx, jy * wy, jz * wz  # I w; torque = I dw + w x (I w)
         torque = np.array(
             [
-                jx * (px * ex + ix_ * gx) + (wy * hz - wz * hy),
-                jy * (py * ey + iy_ * gy) + (wz * hx - wx * hz),
-                jz * (pz * ez + iz_ * gz) + (wx * hy - wy * hx),
+                jx * (px * ex + ix_ * gx + fx) + (wy * hz - wz * hy),
+                jy * (py * ey + iy_ * gy + fy) + (wz * hx - wx * hz),
+                jz * (pz * ez + iz_ * gz + fz) + (wx * hy - wy * hx),
             ]
         )
         collective_n = min(1.0, max(0.0, thrust_norm)) * self.vehicle.max_total_thrust_n

@@ -141,7 +141,10 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         self._allowed_sysids = frozenset(sim.config.sitl.allowed_source_sysids)
         rates = sim.config.sitl.telemetry
         self._default_interval_us = {
-            STREAMS[name]: _interval_us(getattr(rates, name)) for name in STREAMS
+            STREAMS[name]: max(
+                _interval_us(getattr(rates, name)), self._min_interval_us(STREAMS[name])
+            )
+            for name in STREAMS
         }
         ap = sim.autopilot
         if not ap.sends_odometry:  # (ArduPilot: SET_MESSAGE_INTERVAL for it is denied)
@@ -154,6 +157,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         # byte-stream peers (a ground station on TCP): each gets all telemetry and replies
         self.stream_peers: dict[Address, Callable[[bytes], None]] = {}
         self._next_due_us = dict.fromkeys(self._interval_us, 0)
+        self._mode_announced = sim.autopilot.custom_mode  # the mode the last heartbeat showed
         self._estimate: StateEstimate | None = None
         self._builders: dict[int, Callable[[], Any]] = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
@@ -211,6 +215,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
                 # Decoded but unusable (e.g. a value out of range for an int field): the link
                 # never dies on what a peer sends.
                 self.counters.handler_errors += 1
+        self._announce_mode_change()
 
     def stream_received(self, msgs: list[Any], addr: Address) -> None:
         """Messages a byte-stream peer (TCP) sent, already parsed: handled as a datagram's."""
@@ -220,6 +225,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
                 self._dispatch(msg, addr)
             except Exception:
                 self.counters.handler_errors += 1
+        self._announce_mode_change()
 
     def _reset_parser(self) -> None:
         self.mav.buf = bytearray()
@@ -254,14 +260,18 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         decodes the whole tick before it answers, so a lockstep run does not depend on how
         the scheduler interleaves datagrams.
         """
+        self._announce_mode_change()
         previous = self._previous
         self._estimate = self.sim.estimate()
         now_us = self.sim.time_us
         self._previous = _Sample(now_us, self._estimate)
         batch = bytearray()
+        has_position = self.sim.autopilot.has_position(self.sim.time_s)
         for msg_id, interval in self._interval_us.items():
             if interval <= 0 or now_us < self._next_due_us[msg_id]:
                 continue
+            if msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED and not has_position:
+                continue  # (ArduCopter before its EKF origin; due at once when it comes)
             due = self._next_due_us[msg_id] + interval
             self._next_due_us[msg_id] = due if due > now_us else now_us + interval
             if msg_id == mavlink.MAVLINK_MSG_ID_ODOMETRY:
@@ -275,6 +285,16 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             if msg_id in STATE_STREAMS:
                 self.newest_state_stamp_ms = max(self.newest_state_stamp_ms, stamp_ms)
         self._send_bytes(bytes(batch))
+
+    def _announce_mode_change(self) -> None:
+        """ArduCopter's extra HEARTBEAT the moment its mode changes (a command's, or its
+        own: a failsafe, a landing); the 1 Hz heartbeats keep their own schedule."""
+        mode = self.sim.autopilot.custom_mode
+        if mode == self._mode_announced:
+            return
+        self._mode_announced = mode
+        if self.sim.autopilot.heartbeat_on_mode_change:
+            self.send(self._heartbeat())
 
     def announce(self) -> None:
         """While lockstep waits for a controller to join: the heartbeat and state of the
@@ -384,9 +404,16 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         elif interval_us == 0:
             self._interval_us[msg_id] = self._default_interval_us[msg_id]
         else:
-            self._interval_us[msg_id] = int(interval_us)
+            self._interval_us[msg_id] = max(int(interval_us), self._min_interval_us(msg_id))
         self._next_due_us[msg_id] = self.sim.time_us
-        return Result.ACCEPTED
+        return Result.ACCEPTED  # (also when capped: PX4 acknowledges, then sends slower)
+
+    def _min_interval_us(self, msg_id: int) -> int:
+        """The shortest interval the autopilot delivers ``msg_id`` at, whatever is asked."""
+        cap_hz = self.sim.autopilot.params.attitude_quaternion_max_hz
+        if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION and cap_hz > 0.0:
+            return _interval_us(cap_hz)
+        return 0
 
     def _on_set_mode(self, msg: Any, addr: Address) -> None:
         self.counters.commands += 1

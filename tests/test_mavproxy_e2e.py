@@ -96,12 +96,10 @@ def test_mavproxy_shows_the_vehicle_its_mode_and_position(tmp_path):
         # MAVProxy announces a mode at most every 2 s: let the next one through
         time.sleep(_ANNOUNCE_HOLDOFF_S)
 
-        # PX4 refuses the first arming after boot; a retry is accepted
-        for _ in range(2):
-            operator.mav.command_long_send(
-                1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0
-            )
-            time.sleep(0.3)
+        # the first arming after boot is accepted (as PX4 + SIH)
+        operator.mav.command_long_send(
+            1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0
+        )
         out.wait_for(r"^ARMED", deadline)
         operator.mav.command_long_send(
             1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan, math.nan, math.nan

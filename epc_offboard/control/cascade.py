@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from epc_offboard.control import kernels, lwpr, trajectories
+from epc_offboard.control import kernels, lwpr, rate_response, trajectories
 from epc_offboard.control.attitude import AttitudeControlConfig, AttitudeLoop, AttitudeOutput
 from epc_offboard.control.decision import Controller
 from epc_offboard.control.epc import ExperienceController
@@ -44,7 +44,9 @@ class Cascade:
     """Both loops of one vehicle, built from the service config.
 
     ``loop_period_s``: the position loop's period (its estimator's filter step);
-    ``learn_on_miss``: as :class:`~epc_offboard.control.position.PositionLoop`'s.
+    ``learn_on_miss``: as :class:`~epc_offboard.control.position.PositionLoop`'s;
+    ``attitude_period_s`` and ``autopilot``: as :class:`~epc_offboard.control.attitude.
+    AttitudeLoop`'s (its tick; whose rate response fills what the config leaves unset).
     """
 
     def __init__(
@@ -55,11 +57,17 @@ class Cascade:
         loop_period_s: float = 0.01,
         *,
         learn_on_miss: bool = True,
+        attitude_period_s: float = 0.005,
+        autopilot: str = "px4",
     ) -> None:
         self.position = PositionLoop(
             position_cfg, estimator_cfg, loop_period_s, learn_on_miss=learn_on_miss
         )
-        self.attitude = AttitudeLoop(attitude_cfg, learn_on_miss=learn_on_miss)
+        self.attitude = AttitudeLoop(
+            attitude_cfg, learn_on_miss=learn_on_miss, period_s=attitude_period_s,
+            autopilot=autopilot,
+        )  # fmt: skip
+        self._autopilot = autopilot
 
     def position_tick(
         self, state: VehicleState, reference: ReferenceHorizon, *, learn: bool = True
@@ -73,11 +81,28 @@ class Cascade:
     def rates_trusted(self, state: VehicleState, target: PositionOutput) -> bool:
         return self.attitude.rates_trusted(state, target)
 
-    def attitude_tick(self, state: VehicleState, target: PositionOutput) -> AttitudeOutput:
-        return self.attitude.attitude_tick(state, target)
+    def rate_model_trusted(self, now_s: float) -> bool:
+        return self.attitude.rate_model_trusted(now_s)
 
-    def attitude_fallback(self, state: VehicleState, target: PositionOutput) -> AttitudeOutput:
-        return self.attitude.attitude_fallback(state, target)
+    def attitude_tick(
+        self,
+        state: VehicleState,
+        target: PositionOutput,
+        now_s: float | None = None,
+        *,
+        acting: bool = True,
+    ) -> AttitudeOutput:
+        return self.attitude.attitude_tick(state, target, now_s, acting=acting)
+
+    def attitude_fallback(
+        self, state: VehicleState, target: PositionOutput, now_s: float | None = None
+    ) -> AttitudeOutput:
+        return self.attitude.attitude_fallback(state, target, now_s)
+
+    def attitude_delegated(
+        self, state: VehicleState, target: PositionOutput, now_s: float
+    ) -> None:
+        self.attitude.attitude_delegated(state, target, now_s)
 
     def warm_up(self) -> float:
         """Run both ticks of a scratch cascade with this configuration at hover, so every
@@ -89,7 +114,12 @@ class Cascade:
             lwpr.warm_up()  # every LWPR kernel, whatever the few scratch ticks exercise
         kernels.warm_up()  # the library scan: an empty scratch library never runs it
         trajectories.warm_up()  # the reference horizon the service hands in
-        scratch = Cascade(pos.config, self.attitude.config, pos.estimator_cfg, pos.loop_period_s)
+        rate_response.warm_up()  # the identifier runs only once the vehicle is excited
+        att = self.attitude
+        scratch = Cascade(
+            pos.config, att.config, pos.estimator_cfg, pos.loop_period_s,
+            attitude_period_s=att.period_s, autopilot=self._autopilot,
+        )  # fmt: skip
         for k in range(3):
             state = VehicleState(
                 time_s=k * pos.loop_period_s,
@@ -102,7 +132,7 @@ class Cascade:
             )
             reference = scratch.position.hold(state.pos_ned_m)
             target = scratch.position_tick(state, reference, learn=True)
-            scratch.attitude_tick(state, target)
+            scratch.attitude_tick(state, target, state.time_s)
         return time.perf_counter() - t0
 
     def experience_controllers(self) -> list[tuple[str, ExperienceController]]:

@@ -182,22 +182,29 @@ def velocity_disturbance_input(model: LinearModel) -> FloatArray:
     return E
 
 
-def attitude_model(dt_s: float, rate_time_constant_s: float) -> LinearModel:
+def attitude_model(dt_s: float, rate_time_constant_s: float, gain: float = 1.0) -> LinearModel:
     """Near-hover attitude model, ZOH at ``dt_s``.
 
     The autopilot's rate loop follows the body-rate command ``w_cmd`` with a first-order lag of
-    time constant tau; near hover Euler-angle rates equal body rates (thesis 3.2.2)::
+    time constant tau and a static gain K (1 on PX4; ArduCopter's input shaping answers about
+    0.35 of a command); near hover Euler-angle rates equal body rates (thesis 3.2.2)::
 
         [roll, pitch, yaw]' = [p, q, r]
-        [p, q, r]'          = (w_cmd - [p, q, r]) / tau
+        [p, q, r]'          = (K w_cmd - [p, q, r]) / tau
+
+    The inner loop's dead time is not in these matrices: the attitude loop predicts the
+    state over it with the commands already sent (:mod:`epc_offboard.control.rate_response`)
+    and starts the QP there, so theta stays (x0, r, c~, U_p) of this 6-state model.
     """
     if not rate_time_constant_s > 0.0:
         raise ModelError(f"rate_time_constant_s must be > 0, got {rate_time_constant_s}")
+    if not (math.isfinite(gain) and gain > 0.0):
+        raise ModelError(f"gain must be > 0, got {gain}")
     ac = np.zeros((ATT_NX, ATT_NX))
     ac[0:3, 3:6] = np.eye(3)
     ac[3:6, 3:6] = -np.eye(3) / rate_time_constant_s
     bc = np.zeros((ATT_NX, ATT_NU))
-    bc[3:6, :] = np.eye(3) / rate_time_constant_s
+    bc[3:6, :] = gain * np.eye(3) / rate_time_constant_s
     A, B = zoh_discretize(ac, bc, dt_s)
     return LinearModel(A, B, dt_s=dt_s)
 

@@ -154,7 +154,18 @@ class Autopilot:
             if self.cfg.attitude.mode == "epc" and dialect.default_attitude_mode != "epc":
                 log.warning(
                     "attitude.mode = \"epc\" (body rates) on %s: its shaped rate response is "
-                    "not the identified model; \"auto\" flies quaternion mode", dialect.name,
+                    "slow; \"auto\" flies quaternion mode", dialect.name,
+                )  # fmt: skip
+            cfg = self.cfg
+            if cfg.attitude.mode != "autopilot" and cfg.link.autopilot == "auto" and (
+                dialect.name != "px4"
+            ):
+                # the attitude loop was built before the dialect was known: its model of the
+                # rate response is PX4's (control/rate_response.py) unless configured
+                log.warning(
+                    "link.autopilot = \"auto\": the attitude loop models PX4's body-rate "
+                    "response; set link.autopilot = \"%s\" for %s's", dialect.name,
+                    dialect.name,
                 )  # fmt: skip
         elif autopilot != self.dialect.autopilot:
             self.counters["heartbeats_other_autopilot"] += 1

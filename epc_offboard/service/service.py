@@ -81,7 +81,8 @@ class Service:
         )
         self.cascade = Cascade(
             cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz,
-            learn_on_miss=False,
+            learn_on_miss=False, attitude_period_s=1.0 / cfg.loops.attitude_rate_hz,
+            autopilot=cfg.link.autopilot,
         )  # fmt: skip
         controllers = self.cascade.experience_controllers()
         self.misses = MissSolver(dict(controllers), slice_s=cfg.sharing.candidate_slice_s)
@@ -190,7 +191,8 @@ class Service:
             # the autopilot's own attitude loop keeps tracking whatever we do next.
             period = tick.period_s
             late = tick.start_s - tick.scheduled_s > period or state.attitude_age_s > 2 * period
-            self.setpoints.attitude(state, target, late=late)
+            offboard = self.outputs.phase == Phase.OFFBOARD
+            self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard)
         elif self.clock.vehicle_time and state is not None:
             # lockstep: the simulator advances only on an answer for each tick; when no
             # setpoint streams (before takeoff, landing) the answer is a SYSTEM_TIME
@@ -290,6 +292,8 @@ class Service:
             "takeoffs_sent": self.supervisor.sm.takeoffs_sent,
             "rates_hz": {k: round(v, 1) for k, v in self.autopilot.rates.rates_hz.items()},
             "library": self.cascade.library_stats(),
+            # the body-rate response: in use, identified, the model's error, its fallbacks
+            "attitude_rate_model": self.cascade.attitude.rate_model_stats(),
             "loops": {
                 "position": self.position_timing.report().as_dict(),
                 "attitude": self.attitude_timing.report().as_dict(),

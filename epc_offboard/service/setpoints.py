@@ -5,13 +5,16 @@ autopilot's own position controller (SET_POSITION_TARGET_LOCAL_NED).
 Body rates from the cascade's attitude EPC when they can be trusted; else the attitude
 itself, which the autopilot's own attitude loop tracks: with ``attitude.mode =
 "autopilot"`` always, on a late tick or an old attitude sample (rates computed now would be
-flown until the next tick, stale), and outside the envelope where the EPC's hover
-linearisation holds. An exception in the attitude EPC degrades to the cascade's fallback
-rates; a non-finite setpoint to a level hover (``vehicle/commands.py``). Each is counted.
+flown until the next tick, stale), outside the envelope where the EPC's hover
+linearisation holds, and while the attitude loop's model of the autopilot's rate response
+does not predict the measured rates (``control/rate_response.py``; said once in the log per
+change). An exception in the attitude EPC degrades to the cascade's fallback rates; a
+non-finite setpoint to a level hover (``vehicle/commands.py``). Each is counted.
 """
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from collections.abc import Callable
 
@@ -22,6 +25,8 @@ from epc_offboard.control.reference import ReferenceHorizon
 from epc_offboard.service.autopilot import Autopilot
 from epc_offboard.vehicle import commands
 from epc_offboard.vehicle.state import VehicleState
+
+log = logging.getLogger("epc_offboard.service")
 
 
 class SetpointSender:
@@ -52,8 +57,18 @@ class SetpointSender:
             return
         self.autopilot.link.send(msg)
 
-    def attitude(self, state: VehicleState, target: PositionOutput, *, late: bool = False) -> None:
-        """Fly ``target`` from ``state``; ``late``: the tick or its attitude sample is late."""
+    def attitude(
+        self,
+        state: VehicleState,
+        target: PositionOutput,
+        now_s: float,
+        *,
+        late: bool = False,
+        acting: bool = True,
+    ) -> None:
+        """Fly ``target`` from ``state`` at tick ``now_s`` (the loops' clock); ``late``: the
+        tick or its attitude sample is late; ``acting``: the autopilot flies our setpoints
+        (offboard), so the rates measured answer them."""
         cascade = self.cascade
         if self.autopilot.attitude_mode == "autopilot":
             out = AttitudeOutput(None, target.thrust_norm, "delegated")
@@ -63,12 +78,18 @@ class SetpointSender:
         elif not cascade.rates_trusted(state, target):
             self.counters["attitude_envelope_fallbacks"] += 1
             out = AttitudeOutput(None, target.thrust_norm, "envelope")
+        elif not cascade.rate_model_trusted(now_s):
+            self.counters["attitude_model_fallback_ticks"] += 1
+            out = AttitudeOutput(None, target.thrust_norm, "model")
         else:
             try:
-                out = cascade.attitude_tick(state, target)
+                out = cascade.attitude_tick(state, target, now_s, acting=acting)
             except Exception as exc:
                 self._loop_error("attitude", exc)
-                out = cascade.attitude_fallback(state, target)
+                out = cascade.attitude_fallback(state, target, now_s)
+        if out.rates_frd_rad_s is None and self.autopilot.attitude_mode != "autopilot":
+            cascade.attitude_delegated(state, target, now_s)  # the autopilot's, in flight
+        self._model_events()
 
         def hover() -> commands.AttitudeSetpoint:
             level = cascade.hover(state)
@@ -83,3 +104,12 @@ class SetpointSender:
         if replaced:  # never a NaN to the autopilot: level at hover thrust instead, counted
             self.counters["non_finite_setpoints_replaced"] += 1
         self.autopilot.link.send(msg)
+
+    def _model_events(self) -> None:
+        """The rate-model gate's changes, once each in the log; its fallbacks counted."""
+        gate = self.cascade.attitude.gate
+        for event in gate.events:
+            log.warning("attitude loop: %s", event)
+        gate.events.clear()
+        if gate.fallbacks != self.counters["attitude_model_fallbacks"]:
+            self.counters["attitude_model_fallbacks"] = gate.fallbacks

@@ -276,9 +276,9 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
             if state is None or target is None:  # (the first tick is a position tick)
                 raise ServiceBenchError("no state at the start of the offboard phase")
             if att_t.time("attitude", cascade.rates_trusted, state, target):
-                out = att_t.time("attitude", cascade.attitude_tick, state, target)
+                out = att_t.time("attitude", cascade.attitude_tick, state, target, t)
             else:
-                out = att_t.time("attitude", cascade.attitude_fallback, state, target)
+                out = att_t.time("attitude", cascade.attitude_fallback, state, target, t)
             attitude_sources[out.source] = attitude_sources.get(out.source, 0) + 1
             att_t.time("encode", _encode_setpoint, mav, to, t, target.q_target,
                        out.rates_frd_rad_s, out.thrust_norm, rmax, hover)

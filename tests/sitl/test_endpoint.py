@@ -68,7 +68,7 @@ def test_replies_go_to_the_sender_and_to_telemetry():
     assert [(a.command, a.result, a.target_system) for a in acks] == [(400, 2, 245), (400, 0, 245)]
     texts = [m.text for m in got if m.get_type() == "STATUSTEXT"]
     assert len(texts) == 1
-    assert texts[0].startswith("Arming denied")
+    assert texts[0].startswith("Preflight Fail")
     assert any(dest == TELEMETRY for _, dest in transport.sent)
     assert sim.autopilot.armed
 
@@ -247,3 +247,28 @@ def test_ground_station_ritual_params_and_empty_mission():
     loss = [m.param_value for m in values if m.param_id == "COM_OF_LOSS_T"]
     assert loss == [sim.config.autopilot.offboard_loss_timeout_s] * 2
     assert [m.count for m in got if m.get_type() == "MISSION_COUNT"] == [0]
+
+
+@pytest.mark.parametrize(("autopilot", "delivered_hz"), [("px4", 123.0), ("ardupilot", 200.0)])
+def test_attitude_quaternion_is_capped_near_what_px4_delivers(autopilot, delivered_hz):
+    """PX4 accepts SET_MESSAGE_INTERVAL at 200 Hz for ATTITUDE_QUATERNION and delivers about
+    123 Hz; ArduCopter delivers the 200 Hz. ATTITUDE is not capped on either."""
+    cfg = load_sim_config(None, {"sitl": {"autopilot": autopilot}})
+    sim = Simulation(cfg, seed=0)
+    ep = SitlEndpoint(sim, 1, [TELEMETRY], Counters())
+    transport = RecordingTransport()
+    ep.connection_made(transport)  # type: ignore[arg-type]
+    peer = Peer()
+    for msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_ATTITUDE):
+        ask = peer.mav.command_long_encode(1, 1, 511, 0, msg_id, 5000, 0, 0, 0, 0, 0)
+        ep.datagram_received(peer.pack(ask), PEER)
+    acks = [m for m in peer.decode(transport) if m.get_type() == "COMMAND_ACK"]
+    assert [a.result for a in acks] == [mavlink.MAV_RESULT_ACCEPTED] * 2
+    transport.sent.clear()
+    seconds = 2.0
+    for _ in range(round(seconds / cfg.sitl.lockstep_period_s)):
+        sim.advance_tick()
+        ep.emit()
+    types = [m.get_type() for t in emitted(ep, transport) for m in t]
+    assert types.count("ATTITUDE_QUATERNION") / seconds == pytest.approx(delivered_hz, abs=2.0)
+    assert types.count("ATTITUDE") / seconds == pytest.approx(200.0, abs=1.0)

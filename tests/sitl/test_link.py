@@ -48,8 +48,7 @@ def test_offboard_flight_with_failsafe_to_hold(client):
         assert client.command(SET_MODE, CUSTOM, 6) != mavlink.MAV_RESULT_ACCEPTED  # no stream
 
         hover = lambda t_ms: (0.5, LEVEL)  # noqa: E731 - ignored outside offboard
-        # as PX4: the first arming after boot is refused, the retry succeeds
-        assert client.command_while_pumping(ARM, (1,), hover) == mavlink.MAV_RESULT_DENIED
+        # as PX4 + SIH: the first arming after boot is accepted
         assert client.command_while_pumping(ARM, (1,), hover) == mavlink.MAV_RESULT_ACCEPTED
         home = client.pump(lambda m: m.get_type() == "GLOBAL_POSITION_INT", hover)
         takeoff = client.command_while_pumping(
@@ -104,8 +103,7 @@ def test_signing_rejects_unsigned_and_wrongly_signed_commands(tmp_path):
             c.wait("COMMAND_ACK", timeout_s=0.5)
         hb = c.wait("HEARTBEAT", timeout_s=3)
         assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-        # correctly signed: reaches the autopilot (which refuses the first arming, as PX4)
-        assert c.command(ARM, 1) == mavlink.MAV_RESULT_DENIED
+        # correctly signed: reaches the autopilot, which arms
         assert c.command(ARM, 1) == mavlink.MAV_RESULT_ACCEPTED
         hb = c.wait("HEARTBEAT", timeout_s=3)
         assert hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED

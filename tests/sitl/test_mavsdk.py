@@ -1,7 +1,7 @@
 """A standard client flies the SITL: MAVSDK's offboard plugin, as users fly PX4 with it.
 
-MAVSDK's own ritual, unchanged: connect, arm (twice: PX4 refuses the first after boot),
-send one attitude setpoint, start offboard (its plugin then streams the setpoint at 20 Hz),
+MAVSDK's own ritual, unchanged: connect, arm (accepted at once, as PX4 + SIH did), send
+one attitude setpoint, start offboard (its plugin then streams the setpoint at 20 Hz),
 climb, stop offboard -> Hold. This is what caught the SITL denying MAVSDK's arm (NaN in the
 unused command params, as MAVSDK sends them) and its one-setpoint offboard entry (accepted
 by PX4).
@@ -13,7 +13,6 @@ import asyncio
 import time
 
 import mavsdk.asyncio as mavsdk
-import pytest
 
 from tests.sitl.mavclient import MavClient, start_sitl, stop_sitl
 
@@ -25,7 +24,6 @@ def test_mavsdk_offboard_plugin_arms_climbs_and_stops_to_hold():
     from mavsdk.asyncio.plugins.action import ActionAsync
     from mavsdk.asyncio.plugins.offboard import OffboardAsync
     from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
-    from mavsdk.plugins.action import ActionError
     from mavsdk.plugins.offboard import Attitude
 
     port_holder = MavClient()  # only to pick a free port MAVSDK will listen on
@@ -41,10 +39,7 @@ def test_mavsdk_offboard_plugin_arms_climbs_and_stops_to_hold():
             assert system is not None, "MAVSDK did not discover the SITL's autopilot"
             action, offboard = ActionAsync(system), OffboardAsync(system)
             telemetry = TelemetryAsync(system)
-            # as on PX4 right after boot: the first arming is refused, a retry succeeds
-            with pytest.raises(ActionError):
-                await action.arm()
-            await action.arm()
+            await action.arm()  # the first arming after boot, accepted as PX4 + SIH did
             climb = Attitude(0.0, 0.0, 0.0, 0.65)
             await offboard.set_attitude(climb)
             await offboard.start()

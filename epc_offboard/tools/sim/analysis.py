@@ -39,6 +39,7 @@ _SERVICE_WARNINGS = {
     "sharing_open_failed": "fleet sharing failed to open (flew alone)",
     "hover_thrust_mismatch": "hover thrust differs from the autopilot's",
     "heartbeats_unknown_autopilot": "heartbeats of an unknown autopilot",
+    "attitude_model_fallbacks": "body rates suspended: the rate model did not predict",
     "clock_wait_timeouts": "loop clock waits timed out",
     "non_finite_setpoints_replaced": "non-finite setpoints replaced",
     "commands_not_encoded": "commands not encoded",
@@ -282,6 +283,14 @@ def analyse(
     truth_use = (tt >= start + scenario.settle_s) & (tt <= end)
     tvel = np.column_stack([truth[f"vel_{a}_m_s"][truth_use] for a in "ned"])
     violations = int(np.sum(np.any(np.abs(tvel) > vel_bounds_m_s + 1e-9, axis=1)))
+    # tilt over the whole offboard phase (entry included): an attitude loop that oscillates
+    # shows here first; cos(tilt) = 1 - 2 (qx² + qy²)
+    offboard = (tt >= start) & (tt <= float(t_vehicle[tracking][-1]))
+    max_tilt_deg = math.nan  # (a ground truth without the attitude says nothing)
+    if "q_x" in truth and "q_y" in truth and np.any(offboard):
+        qx, qy = truth["q_x"][offboard], truth["q_y"][offboard]
+        cos_tilt = np.clip(1.0 - 2.0 * (qx * qx + qy * qy), -1.0, 1.0)
+        max_tilt_deg = float(np.degrees(np.arccos(cos_tilt.min())))
     lib = stats.get("library", {}).get("position", {})
     hits, misses = int(lib.get("hits", 0)), int(lib.get("misses", 0))
     # what a vehicle had to solve on its first lap: the measure of what a prior library (its
@@ -306,6 +315,7 @@ def analyse(
         if len(tvel)
         else [0.0] * 3,
         "constraint_violations": violations,
+        "max_tilt_deg": max_tilt_deg,
         "library": {
             "size": int(lib.get("size", 0)),
             "hits": hits,
@@ -323,6 +333,7 @@ def analyse(
         "takeoffs_sent": int(stats.get("takeoffs_sent", 0)),
         "autopilot": stats.get("autopilot"),
         "attitude_mode": stats.get("attitude_mode"),
+        "attitude_rate_model": stats.get("attitude_rate_model", {}),
         "miss_worker": stats.get("miss_worker", {}),
         "warnings": flight_warnings(stats, record.sitl_counters, logged),
         # the first line of each kind of logged warning or error, by its key in "warnings"

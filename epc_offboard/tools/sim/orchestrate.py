@@ -114,7 +114,9 @@ def service_config_for(
     # what PX4 users set as MPC_THR_HOVER, known exactly for the simulated airframe
     hover = load_sim_config().vehicle.hover_thrust_norm
     flags: dict[str, Any] = {
-        "link": {"url": f"udpin://127.0.0.1:{port}", "target_system": vehicle_id},
+        # the autopilot flown is known: the attitude loop models its body-rate response
+        "link": {"url": f"udpin://127.0.0.1:{port}", "target_system": vehicle_id,
+                 "autopilot": options.autopilot},
         "loops": {"clock": "vehicle" if options.lockstep else "wall"},
         "position": {"controller": options.controller, "hover_thrust_norm": hover},
         "estimator": {"kind": options.adaptation},
