@@ -409,7 +409,9 @@ class MavlinkLink:
     def _schedule_reopen(self) -> None:
         if self._closed or self._loop is None:
             return
-        self._reopen = self._loop.call_later(SERIAL_REOPEN_PERIOD_S, self._try_reopen, self._loop)
+        self._reopen = self._loop.call_later(
+            SERIAL_REOPEN_PERIOD_S, self._try_reopen, self._loop
+        )
 
     def _try_reopen(self, loop: asyncio.AbstractEventLoop) -> None:
         self._reopen = None

@@ -13,9 +13,9 @@ fails, counted by reason:
    ArduPilot speak MAVLink 2 on the links this service uses, and MAVLink 1 can be neither
    signed nor extended, so accepting it would only widen what a forger can send;
 2. the header (one ``struct`` unpack): incompatibility flags (only "signed" is defined),
-   the frame fits in what arrived, system id, component id, message id (only the ids the
-   service reads), the payload length against the message's range (MAVLink 2 truncates
-   trailing zero bytes: 1 .. full length);
+   system id, component id, message id (only the ids the service reads), the payload
+   length against the message's range (MAVLink 2 truncates trailing zero bytes: 1 .. full
+   length), the frame fits in what arrived;
 3. the CRC with the message's CRC_EXTRA (X.25, computed by the C code of
    ``binascii.crc_hqx`` on bit-reversed bytes: see :func:`x25_crc`);
 4. the signature, when signing is configured (:class:`~epc_offboard.common.signing.
@@ -66,6 +66,7 @@ MIN_FRAME_LEN = HEADER_LEN + MIN_PAYLOAD_LEN + CRC_LEN
 # Frames examined in one datagram: PX4 packs up to an MTU (1500 bytes, ~115 minimal frames)
 # into one; more is an attack on the scanner's loop.
 MAX_FRAMES_PER_DATAGRAM = 256
+INCOMPLETE = -1  # a stream's frame whose header passed and whose rest is still to come
 
 _HEADER = struct.Struct("<BBBBBBBHB")  # ..., msgid low 16 bits, msgid high 8 bits
 _CRC = struct.Struct("<H")
@@ -399,7 +400,7 @@ class FrameReceiver:
         for _ in range(MAX_FRAMES_PER_DATAGRAM):
             if pos >= end:
                 return out, failures
-            if end - pos < MIN_FRAME_LEN or data[pos] != MAGIC_V2:
+            if end - pos < HEADER_LEN or data[pos] != MAGIC_V2:
                 self._malformed("bad_length" if data[pos] == MAGIC_V2 else "not_mavlink")
                 return out, failures + 1
             size, msg = self._frame(data, pos, end)
@@ -434,11 +435,9 @@ class FrameReceiver:
             pos = start
             if end - pos < HEADER_LEN:
                 break
-            plen, flags = view[pos + 1], view[pos + 2]
-            size = HEADER_LEN + plen + CRC_LEN + (SIGNATURE_LEN if flags & IFLAG_SIGNED else 0)
-            if end - pos < size:
-                break  # the rest has not arrived yet (a frame is at most 280 bytes)
-            used, msg = self._frame(view, pos, end)
+            used, msg = self._frame(view, pos, end, stream=True)
+            if used == INCOMPLETE:
+                break  # a plausible frame whose rest has not arrived (at most 280 bytes)
             if msg is not None:
                 out.append(msg)
             # a frame delivered is skipped whole; anything else resynchronises on the next
@@ -450,19 +449,17 @@ class FrameReceiver:
 
     # -- one frame --------------------------------------------------------------------------
 
-    def _frame(self, data: bytes, pos: int, end: int) -> tuple[int, Any]:
-        """Check and decode the frame at ``data[pos]`` (a magic byte, at least
-        MIN_FRAME_LEN bytes before ``end``). Returns (its size, or 0 when its extent is not
-        to be trusted; the message or None)."""
+    def _frame(self, data: bytes, pos: int, end: int, *, stream: bool = False) -> tuple[int, Any]:
+        """Check and decode the frame at ``data[pos]`` (a magic byte, at least HEADER_LEN
+        bytes before ``end``). Returns (its size, or 0 when its extent is not to be trusted,
+        or INCOMPLETE on a ``stream`` whose frame, its header accepted, has not all arrived;
+        the message or None)."""
         _, plen, iflags, _, seq, sysid, compid, id_lo, id_hi = _HEADER.unpack_from(data, pos)
         if iflags & ~IFLAG_SIGNED:
             self._malformed("bad_flags")
             return 0, None
         signed = iflags & IFLAG_SIGNED
         size = HEADER_LEN + plen + CRC_LEN + (SIGNATURE_LEN if signed else 0)
-        if pos + size > end or plen < MIN_PAYLOAD_LEN:
-            self._malformed("bad_length")
-            return 0, None
         counters = self.counters
         if self._systems is not None and sysid not in self._systems:
             counters["wrong_system"] += 1
@@ -475,9 +472,14 @@ class FrameReceiver:
         if spec is None:
             counters["unknown_message"] += 1
             return size, None
-        if plen > spec.max_len:
+        if not MIN_PAYLOAD_LEN <= plen <= spec.max_len:
             self._malformed("bad_length")
-            return size, None
+            return 0, None
+        if pos + size > end:
+            if stream:
+                return INCOMPLETE, None
+            self._malformed("bad_length")
+            return 0, None
         crc_at = pos + HEADER_LEN + plen
         if _CRC.unpack_from(data, crc_at)[0] != x25_crc(data[pos + 1 : crc_at], spec.crc_extra):
             self._malformed("bad_crc")
