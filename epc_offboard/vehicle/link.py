@@ -10,8 +10,10 @@ encodes and signs what is sent.
 
 Connection URLs (as MAVSDK and mavutil spell them):
 
-* ``udpin://HOST:PORT``  — bind HOST:PORT, reply to whoever last sent us a valid message
-  (the usual companion-computer setup: PX4 sends to us on 14540);
+* ``udpin://HOST:PORT``  — bind HOST:PORT, reply to the first address that sent us a valid
+  message (the usual companion-computer setup: PX4 sends to us on 14540); while it keeps
+  talking, valid messages from any other address are counted (``other_sender``) and, on an
+  unsigned link, dropped: a second sender can take over neither its setpoints nor its state;
 * ``udpout://HOST:PORT`` — send to HOST:PORT from an ephemeral port (we speak first);
 * ``serial:///dev/DEVICE:BAUD`` — a UART (PX4's TELEM2 to a companion computer), raw 8N1,
   no flow control; BAUD defaults to 57600 (PX4's SER_TEL2_BAUD). Mind the bandwidth: a
@@ -485,9 +487,28 @@ class MavlinkLink:
             self.counters["throttled"] += 1
             return
         msgs = self._receive(data, source, now)
-        if msgs:
-            gate.delivered(source, now)
+        if not msgs:
+            return
+        if self._peer_live(now):
+            # The autopilot is talking to us from its address: on an unsigned link, a second
+            # address sending well-formed frames of its ids is a forger (or a stray route),
+            # and what it says is neither flown nor worth the tracker's time. Charged like
+            # garbage. (Signed frames prove themselves, whatever their route: delivered.)
+            self.counters["other_sender"] += len(msgs)
+            gate.charge(source, len(msgs), now)
+            return
+        gate.delivered(source, now)
         self._deliver(msgs, addr)
+
+    def _peer_live(self, now: float) -> bool:
+        """Whether messages from an address other than the peer are dropped: an unsigned
+        udpin link whose peer has spoken within peer_timeout_s."""
+        return (
+            self.endpoint.mode == "udpin"
+            and self.signature is None
+            and self._peer is not None
+            and now - self._peer_heard <= self._peer_timeout_s
+        )
 
     def _receive(
         self, data: bytes, source: tuple[Any, int] | None = None, now: float = 0.0
@@ -543,11 +564,10 @@ class MavlinkLink:
     def _dispatch(self, msg: Any, addr: tuple[Any, int]) -> None:
         """One message that passed the receiver's checks: the peer's bookkeeping, the tlog,
         the callback."""
-        self.counters["received"] += 1
         if self.endpoint.mode == "udpin":
             # The peer is the first address that spoke; it only moves once it has been silent
             # for peer_timeout_s (the autopilot restarted on another port). A second sender
-            # cannot redirect our setpoints while the vehicle is talking to us.
+            # can neither redirect our setpoints nor feed us state while the vehicle talks.
             sender = (str(addr[0]), int(addr[1]))
             now = time.monotonic()
             if sender == self._peer:
@@ -558,6 +578,9 @@ class MavlinkLink:
                 self._peer, self._peer_heard = sender, now
             else:
                 self.counters["other_sender"] += 1
+                if self._peer_live(now):
+                    return
+        self.counters["received"] += 1
         if self._tlog is not None:
             self._tlog.write(bytes(msg.get_msgbuf()))
         self._on_message(msg)
