@@ -493,7 +493,11 @@ class FrameReceiver:
                 counters["bad_signature"] += 1
                 return size, None
         if spec.unpacker is None:
-            msg = self._decode_other(bytearray(frame))
+            try:
+                msg = self._decode_other(bytearray(frame))
+            except Exception:  # pymavlink's: one frame lost, not the rest of the datagram
+                counters["decode_errors"] += 1
+                return size, None
             if signed:
                 msg._signed = self._signature is not None
                 msg._link_id = frame[-SIGNATURE_LEN]
