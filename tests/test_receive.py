@@ -264,6 +264,17 @@ def test_a_stream_cut_anywhere_gives_the_same_messages(cuts, noise):
     assert [m.get_type() for m in got].count("COMMAND_ACK") == 1
 
 
+def test_a_stream_shared_with_another_system_counts_its_frames_once():
+    """A radio link carries another system's frames too: each counted as a wrong system,
+    none as junk, and ours all delivered."""
+    mav, other = codec(), codec(sysid=42)
+    data = b"".join(_attitude(m, t) for t, m in enumerate([mav, other, other, mav, other]))
+    rx, counters = receiver()
+    assert [m.time_boot_ms for m in rx.stream(data)] == [0, 3]
+    assert counters["wrong_system"] == 3
+    assert counters["bad_data"] == 0
+
+
 def test_signed_frames():
     check = enable_signing(mavlink.MAVLink(None), KEY)
     rx, counters = receiver(signature=check)

@@ -423,14 +423,17 @@ class FrameReceiver:
         pos = 0
         end = len(buf)
         view = bytes(buf)
+        # the extent a rejected header claimed: the bytes in it are that frame's, counted
+        # with it, not again as junk
+        claimed = 0
         while True:
             start = view.find(MAGIC_V2, pos, end)
             if start < 0:
-                if pos < end:
+                if claimed < end > pos:
                     self._malformed("not_mavlink")
                 pos = end
                 break
-            if start > pos:
+            if start > pos and start > claimed:
                 self._malformed("not_mavlink")
             pos = start
             if end - pos < HEADER_LEN:
@@ -440,10 +443,12 @@ class FrameReceiver:
                 break  # a plausible frame whose rest has not arrived (at most 280 bytes)
             if msg is not None:
                 out.append(msg)
-            # a frame delivered is skipped whole; anything else resynchronises on the next
-            # magic byte, which may start a genuine frame (a rejected header's length byte
-            # is not to be trusted on a stream)
-            pos += used if used > 0 and msg is not None else 1
+                pos += used
+                continue
+            # anything else resynchronises on the next magic byte, which may start a
+            # genuine frame (a rejected header's length byte is not to be trusted here)
+            claimed = max(claimed, pos + used)
+            pos += 1
         del buf[:pos]
         return out
 
