@@ -7,6 +7,7 @@ Datagrams:
 * genuine: the autopilot's streams as PX4 sends them to the service (ATTITUDE,
   ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY, HEARTBEAT in the proportions of their
   rates), one frame each, realistic values;
+* genuine_signed: the same, signed (MAVLink 2 signing configured on both sides);
 * garbage: the fuzzer's mix (``tools/fuzz_mavlink.py``: random bytes, bad CRCs, MAVLink 1,
   unknown ids, other systems, the vehicle's ids with NaN or jumped stamps), also by kind.
 
@@ -33,11 +34,14 @@ import random
 import statistics
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from epc_offboard.common.signing import enable_signing
 from epc_offboard.tools.fuzz_mavlink import Fuzzer
 from epc_offboard.vehicle.link import MavlinkLink
 from epc_offboard.vehicle.receive import SERVICE_MESSAGE_IDS, FrameReceiver
@@ -52,11 +56,15 @@ _GENUINE_MIX = {
 }
 _AUTOPILOT = ("127.0.0.1", 14580)
 _FUZZER = ("127.0.0.1", 40000)
+_KEY = bytes(range(32))
 
 
-def genuine_datagrams(n: int, seed: int = 0) -> list[bytes]:
+def genuine_datagrams(n: int, seed: int = 0, key: bytes | None = None) -> list[bytes]:
+    """``key``: signed with it (each frame a newer timestamp, as the autopilot signs)."""
     rng = random.Random(seed)
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    if key is not None:
+        enable_signing(mav, key)
     kinds = list(_GENUINE_MIX)
     weights = list(_GENUINE_MIX.values())
     out = []
@@ -86,9 +94,11 @@ def garbage_datagrams(n: int, seed: int = 0) -> list[tuple[str, bytes]]:
     return [fuzzer.datagram() for _ in range(n)]
 
 
-def _old_path() -> Callable[[bytes], int]:
+def _old_path(key: bytes | None = None) -> Callable[[bytes], int]:
     mav = mavlink.MAVLink(None, srcSystem=245, srcComponent=191)
     mav.robust_parsing = True
+    if key is not None:
+        enable_signing(mav, key)
     accept = frozenset({1})
 
     def receive(data: bytes) -> int:
@@ -109,28 +119,28 @@ def _old_path() -> Callable[[bytes], int]:
     return receive
 
 
-def _new_path() -> Callable[[bytes], Any]:
-    from collections import Counter
-
+def _new_path(key: bytes | None = None) -> Callable[[bytes], Any]:
     rx = FrameReceiver(
         Counter(),
         accept_ids=SERVICE_MESSAGE_IDS,
         accept_systems=frozenset({1}),
         accept_components=frozenset({1}),
-        signature=None,
+        signature=None if key is None else enable_signing(mavlink.MAVLink(None), key),
         decode_other=mavlink.MAVLink(None).decode,
     )
     return rx.datagram
 
 
-def _link_path(source: tuple[str, int]) -> Callable[[bytes], None]:
+def _link_path(source: tuple[str, int], key: bytes | None = None) -> Callable[[bytes], None]:
     link = MavlinkLink(
         "udpin://127.0.0.1:0", system_id=245, component_id=191, on_message=lambda _m: None,
         accept_system_ids=frozenset({1}), accept_component_ids=frozenset({1}),
-        accept_message_ids=SERVICE_MESSAGE_IDS,
+        accept_message_ids=SERVICE_MESSAGE_IDS, signing_key=key,
     )  # fmt: skip
-    # the autopilot is the link's peer, as it is in flight
-    link._on_datagram(genuine_datagrams(1)[0], _AUTOPILOT)
+    # the autopilot is the link's peer, as it is in flight (signed: its first frame makes it
+    # so, since a frame signed now would make the stream's older frames replays)
+    if key is None:
+        link._on_datagram(genuine_datagrams(1, seed=1)[0], _AUTOPILOT)
 
     def receive(data: bytes) -> None:
         link._on_datagram(data, source)
@@ -138,11 +148,15 @@ def _link_path(source: tuple[str, int]) -> Callable[[bytes], None]:
     return receive
 
 
-def _time(fn: Callable[[bytes], Any], datagrams: list[bytes], repeats: int) -> dict[str, float]:
+def _time(
+    make: Callable[[], Callable[[bytes], Any]], datagrams: list[bytes], repeats: int
+) -> dict[str, float]:
+    """Each repeat on a path made afresh (a signed stream's replay state starts clean)."""
     per: list[float] = []
     means: list[float] = []
     clock = time.perf_counter_ns
     for _ in range(repeats):
+        fn = make()
         t_batch = time.perf_counter()
         for d in datagrams:
             t0 = clock()
@@ -169,13 +183,17 @@ def run_link_bench(n: int = 20_000, repeats: int = 3) -> dict[str, Any]:
         "python": sys.version.split()[0],
         "streams": {},
     }
-    sets = {"genuine": genuine, "garbage": garbage_bytes}
-    for name, data in sets.items():
-        source = _AUTOPILOT if name == "genuine" else _FUZZER
+    sets = {
+        "genuine": (genuine, None),
+        "garbage": (garbage_bytes, None),
+        "genuine_signed": (genuine_datagrams(n, seed=2, key=_KEY), _KEY),
+    }
+    for name, (data, key) in sets.items():
+        source = _FUZZER if name == "garbage" else _AUTOPILOT
         row: dict[str, Any] = {
-            "old": _time(_old_path(), data, repeats),
-            "new": _time(_new_path(), data, repeats),
-            "link": _time(_link_path(source), data, repeats),
+            "old": _time(partial(_old_path, key), data, repeats),
+            "new": _time(partial(_new_path, key), data, repeats),
+            "link": _time(partial(_link_path, source, key), data, repeats),
         }
         row["ratio_old_new_median"] = row["old"]["median_us"] / row["new"]["median_us"]
         row["ratio_old_new_mean"] = row["old"]["mean_us"] / row["new"]["mean_us"]
@@ -183,7 +201,7 @@ def run_link_bench(n: int = 20_000, repeats: int = 3) -> dict[str, Any]:
     by_kind: dict[str, dict[str, float]] = {}
     for kind in Fuzzer.KINDS:
         data = [d for k, d in garbage if k == kind]
-        old, new = _time(_old_path(), data, 1), _time(_new_path(), data, 1)
+        old, new = _time(_old_path, data, 1), _time(_new_path, data, 1)
         by_kind[kind] = {
             "old_median_us": old["median_us"],
             "new_median_us": new["median_us"],
