@@ -214,6 +214,12 @@ def _add_bench(sub: _Subparsers) -> None:
         help="with --service: seconds of offboard flight to record (default: 12, one lap)",
     )
     bench.add_argument(
+        "--link",
+        action="store_true",
+        help="instead: the MAVLink receive path's cost per datagram, genuine and fuzzed, "
+        "pymavlink's parser against the header-first path (ratios printed)",
+    )
+    bench.add_argument(
         "--lwpr",
         action="store_true",
         help="instead: LWPR's cost per control tick, compiled against the numpy reference "

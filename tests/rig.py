@@ -49,7 +49,7 @@ def cpu_hog(seconds: float) -> subprocess.Popen[bytes]:
 DEPLOYED_NICE = -5
 
 
-def _deployed_priority() -> None:
+def deployed_priority() -> None:
     with contextlib.suppress(PermissionError):
         os.nice(DEPLOYED_NICE)
 
@@ -112,7 +112,7 @@ class Rig:
             [sys.executable, "-m", "sitl.main", *self.sitl_args],
             stdout=(self.tmp / "sitl.log").open("wb"),
             stderr=subprocess.STDOUT,
-            preexec_fn=_deployed_priority,
+            preexec_fn=deployed_priority,
         )
         self.gcs = mavutil.mavlink_connection(
             f"udpin:127.0.0.1:{self.gcs_port}", source_system=250, source_component=190
@@ -132,7 +132,7 @@ class Rig:
             stdout=(self.tmp / "service.log").open("ab"),
             stderr=subprocess.STDOUT,
             env=env,
-            preexec_fn=_deployed_priority,
+            preexec_fn=deployed_priority,
         )
 
     def __enter__(self) -> Rig:

@@ -232,6 +232,7 @@ async def _hijack():
     await intruder.open()
     intruder.send(heartbeat(intruder))
     await settle(lambda: server.counters["other_sender"] == 1)
+    assert len(got_server) == 1  # what the second sender says is not delivered either
     server.send(heartbeat(server))
     await settle(lambda: got_client)  # the reply still goes to the first peer
     assert server.peer == ("127.0.0.1", client.local_address[1])
@@ -340,3 +341,33 @@ async def _bad_message_in_a_datagram():
 
 def test_one_bad_message_costs_one_counted_drop_not_its_datagram():
     asyncio.run(_bad_message_in_a_datagram())
+
+
+async def _peer_moves():
+    got: list = []
+    server = MavlinkLink(
+        "udpin://127.0.0.1:0", system_id=255, component_id=191, on_message=got.append,
+        peer_timeout_s=0.2,
+    )  # fmt: skip
+    await server.open()
+    port = server.local_address[1]
+    first, second = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    vehicle = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    frame = bytes(vehicle.attitude_encode(1, 0, 0, 0, 0, 0, 0).pack(vehicle))
+    try:
+        first.sendto(frame, ("127.0.0.1", port))
+        await settle(lambda: len(got) == 1)
+        second.sendto(frame, ("127.0.0.1", port))  # the first still talks: dropped
+        await settle(lambda: server.counters["other_sender"] == 1)
+        await asyncio.sleep(0.3)  # the first falls silent (an autopilot restarted)
+        second.sendto(frame, ("127.0.0.1", port))
+        await settle(lambda: len(got) == 2)
+        assert server.peer == ("127.0.0.1", second.getsockname()[1])
+    finally:
+        first.close()
+        second.close()
+        server.close()
+
+
+def test_a_second_sender_is_heard_only_once_the_peer_is_silent():
+    asyncio.run(_peer_moves())

@@ -34,6 +34,7 @@ from epc_offboard.vehicle.dialect import (
 )
 from epc_offboard.vehicle.link import MavlinkLink, TlogWriter
 from epc_offboard.vehicle.rates import RateMonitor
+from epc_offboard.vehicle.receive import SERVICE_MESSAGE_IDS
 from epc_offboard.vehicle.state import StateTracker, VehicleState
 
 log = logging.getLogger("epc_offboard.service")
@@ -94,6 +95,11 @@ class Autopilot:
             component_id=cfg.link.component_id,
             on_message=self.on_message,
             accept_system_ids=frozenset({cfg.link.target_system}),
+            # the autopilot's component sends every stream read (0: any component)
+            accept_component_ids=(
+                frozenset({cfg.link.target_component}) if cfg.link.target_component else None
+            ),
+            accept_message_ids=SERVICE_MESSAGE_IDS,
             signing_key=key,
             tlog=tlog,
         )

@@ -304,6 +304,10 @@ def run_bench_command(args: argparse.Namespace) -> int:
         from epc_offboard.tools import bench_lwpr
 
         return bench_lwpr.main(["--json", args.json] if args.json else [])
+    if getattr(args, "link", False):
+        from epc_offboard.tools.bench_link import run_link_bench_command
+
+        return run_link_bench_command(args.json, int(args.steps) * 10)
     if getattr(args, "service", False):
         from epc_offboard.tools.bench_service import ServiceBenchError, run_service_bench
 

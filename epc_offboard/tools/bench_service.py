@@ -11,7 +11,8 @@ the trajectory) and drives them on the recorded vehicle clock, every 5 ms (attit
 (position) tick of the offboard part, timing each component with ``perf_counter``:
 
 * receive (the service's message callback, between ticks): ``decode`` (the frames received
-  since the last 5 ms tick, through pymavlink's parser) and ``state`` (the tracker takes them);
+  since the last 5 ms tick, through the service's receive path, ``vehicle/receive.py``)
+  and ``state`` (the tracker takes them);
 * attitude tick, as the service's attitude loop times it: ``state`` (the snapshot),
   ``attitude`` (envelope check + attitude EPC), ``encode`` (SET_ATTITUDE_TARGET packed);
 * position tick, as the service's position loop times it: ``pump`` (the miss worker's
@@ -37,6 +38,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import wait
 from dataclasses import dataclass
@@ -54,6 +56,7 @@ from epc_offboard.control.trajectories import Trajectory
 from epc_offboard.service.config import load_service_config
 from epc_offboard.service.miss_solver import MissSolver
 from epc_offboard.vehicle import commands
+from epc_offboard.vehicle.receive import SERVICE_MESSAGE_IDS, FrameReceiver
 from epc_offboard.vehicle.state import StateTracker
 
 ATTITUDE_PERIOD_S = 0.005
@@ -205,8 +208,18 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
                            component_id=cfg.link.target_component, limits=cfg.state_limits)
     mav = mavlink.MAVLink(io.BytesIO(), srcSystem=cfg.link.system_id,
                           srcComponent=cfg.link.component_id)
-    parser = mavlink.MAVLink(None)
-    parser.robust_parsing = True
+    # the service's receive path, with the service's header filters
+    receiver = FrameReceiver(
+        Counter(), accept_ids=SERVICE_MESSAGE_IDS,
+        accept_systems=frozenset({cfg.link.target_system}),
+        accept_components=(frozenset({cfg.link.target_component})
+                           if cfg.link.target_component else None),
+        signature=None, decode_other=mavlink.MAVLink(None).decode,
+    )  # fmt: skip
+
+    def decode(frame: bytes) -> list[Any]:
+        return receiver.datagram(frame)[0]
+
     t_start, t_end = rec.offboard_s
     probe = Trajectory(cfg.trajectory, np.zeros(3), start_s=t_start)
     traj = Trajectory(cfg.trajectory, rec.ref_pos0_ned_m - probe.sample(t_start).pos_ned_m,
@@ -236,7 +249,7 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
     level = quiet.level
     quiet.setLevel(logging.ERROR)
     while i_frame < len(rec.frames) and rec.frames[i_frame][0] < t_start - 1.0:
-        for msg in parser.parse_buffer(rec.frames[i_frame][1]) or []:
+        for msg in decode(rec.frames[i_frame][1]):
             tracker.handle(msg, received_s=rec.frames[i_frame][0])
         i_frame += 1
     quiet.setLevel(level)
@@ -250,7 +263,7 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
                 batch.append(rec.frames[i_frame])
                 i_frame += 1
             for t_rx, frame in batch:
-                msgs = rx_t.time("decode", parser.parse_buffer, frame) or []
+                msgs = rx_t.time("decode", decode, frame)
                 for msg in msgs:
                     rx_t.time("state", tracker.handle, msg, received_s=t_rx)
             if batch:

@@ -1,15 +1,19 @@
-"""MAVLink 2 over UDP, TCP or serial for asyncio: pymavlink's sans-IO codec driven by the loop.
+"""MAVLink 2 over UDP, TCP or serial for asyncio: a sans-IO receive path driven by the loop.
 
 No blocking ``recv_match`` anywhere: datagrams (a DatagramProtocol) or serial bytes (a
 non-blocking tty watched by ``loop.add_reader``) arrive on the event loop, are fed to
-``MAVLink.parse_buffer`` and handed to a callback as decoded messages. Bad bytes never raise:
-the codec runs with ``robust_parsing`` so corrupt frames, bad CRCs and bad signatures come back
-as ``BAD_DATA`` and are counted here, by reason.
+the receive path of ``vehicle/receive.py`` (every frame judged by its header, CRC and
+signature before its payload is decoded; the loops' streams decoded by precompiled ``struct``
+layouts, the rest by pymavlink; a budget per sending address) and handed to a callback as
+decoded messages. Bad bytes never raise: they are counted here, by reason. pymavlink's codec
+encodes and signs what is sent.
 
 Connection URLs (as MAVSDK and mavutil spell them):
 
-* ``udpin://HOST:PORT``  — bind HOST:PORT, reply to whoever last sent us a valid message
-  (the usual companion-computer setup: PX4 sends to us on 14540);
+* ``udpin://HOST:PORT``  — bind HOST:PORT, reply to the first address that sent us a valid
+  message (the usual companion-computer setup: PX4 sends to us on 14540); while it keeps
+  talking, valid messages from any other address are counted (``other_sender``) and, on an
+  unsigned link, dropped: a second sender can take over neither its setpoints nor its state;
 * ``udpout://HOST:PORT`` — send to HOST:PORT from an ephemeral port (we speak first);
 * ``serial:///dev/DEVICE:BAUD`` — a UART (PX4's TELEM2 to a companion computer), raw 8N1,
   no flow control; BAUD defaults to 57600 (PX4's SER_TEL2_BAUD). Mind the bandwidth: a
@@ -47,6 +51,12 @@ from pymavlink.dialects.v20 import common as mavlink
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate
 from epc_offboard.common.signing import SignatureCheck, enable_signing
+from epc_offboard.vehicle.receive import (
+    ALL_MESSAGE_IDS,
+    FrameReceiver,
+    ReceiveBudget,
+    SourceGate,
+)
 
 log = logging.getLogger(__name__)
 
@@ -166,8 +176,10 @@ class MavlinkLink:
     """One MAVLink 2 connection over UDP, TCP or serial.
 
     ``on_message`` is called on the event loop for every valid message that passed the
-    system-id filter (``accept_system_ids``; None accepts all). ``counters`` counts what was
-    received, sent and rejected, by reason.
+    header filters: ``accept_system_ids``, ``accept_component_ids`` (None accepts any) and
+    ``accept_message_ids`` (default: every id of pymavlink's common dialect; the service
+    gives the few it reads). ``counters`` counts what was received, sent and rejected, by
+    reason. ``budget``: what header-check failures a UDP sender other than the peer may cost.
     """
 
     def __init__(
@@ -178,13 +190,15 @@ class MavlinkLink:
         component_id: int,
         on_message: MessageHandler,
         accept_system_ids: frozenset[int] | None = None,
+        accept_component_ids: frozenset[int] | None = None,
+        accept_message_ids: frozenset[int] = ALL_MESSAGE_IDS,
         signing_key: bytes | None = None,
         tlog: TlogWriter | None = None,
         peer_timeout_s: float = 3.0,
+        budget: ReceiveBudget | None = None,
     ) -> None:
         self.endpoint = parse_url(url)
         self._on_message = on_message
-        self._accept = accept_system_ids
         self._tlog = tlog
         self._transport: asyncio.DatagramTransport | None = None
         self._peer: tuple[str, int] | None = (
@@ -203,10 +217,22 @@ class MavlinkLink:
         self.counters: Counter[str] = Counter()
         self._log_gate = LogGate()
         self.mav = mavlink.MAVLink(_SendFile(self), srcSystem=system_id, srcComponent=component_id)
-        self.mav.robust_parsing = True
         self.signature: SignatureCheck | None = None
         if signing_key is not None:
             self.signature = enable_signing(self.mav, signing_key)
+        # pymavlink decodes the accepted messages that have no fast layout, after the
+        # receiver's checks: unsigned, so that it neither checks nor records a signature twice
+        decoder = mavlink.MAVLink(None)
+        self.receiver = FrameReceiver(
+            self.counters,
+            accept_ids=accept_message_ids,
+            accept_systems=accept_system_ids,
+            accept_components=accept_component_ids,
+            signature=self.signature,
+            decode_other=decoder.decode,
+            on_mavlink1=self._warn_mavlink1,
+        )
+        self.gate = SourceGate(budget or ReceiveBudget())
 
     @property
     def peer(self) -> tuple[str, int] | None:
@@ -445,30 +471,77 @@ class MavlinkLink:
         self._schedule_tcp_connect()
 
     def _reset_parser(self) -> None:
-        self.mav.buf = bytearray()
-        self.mav.buf_index = 0
-        self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+        self.receiver.reset_stream()
 
     # -- receiving ------------------------------------------------------------------------
 
     def _on_datagram(self, data: bytes, addr: tuple[Any, int]) -> None:
         self.counters["datagrams"] += 1
-        self._on_bytes(data, addr, stream=False)
+        source = (addr[0], addr[1])
+        if source == self._peer:  # the autopilot: never throttled
+            self._deliver(self._receive(data), addr)
+            return
+        now = time.monotonic()
+        gate = self.gate
+        if not gate.admits(source, now):
+            self.counters["throttled"] += 1
+            return
+        msgs = self._receive(data, source, now)
+        if not msgs:
+            return
+        if self._peer_live(now):
+            # The autopilot is talking to us from its address: on an unsigned link, a second
+            # address sending well-formed frames of its ids is a forger (or a stray route),
+            # and what it says is neither flown nor worth the tracker's time. Charged like
+            # garbage. (Signed frames prove themselves, whatever their route: delivered.)
+            self.counters["other_sender"] += len(msgs)
+            gate.charge(source, len(msgs), now)
+            return
+        gate.delivered(source, now)
+        self._deliver(msgs, addr)
+
+    def _peer_live(self, now: float) -> bool:
+        """Whether messages from an address other than the peer are dropped: an unsigned
+        udpin link whose peer has spoken within peer_timeout_s."""
+        return (
+            self.endpoint.mode == "udpin"
+            and self.signature is None
+            and self._peer is not None
+            and now - self._peer_heard <= self._peer_timeout_s
+        )
+
+    def _receive(
+        self, data: bytes, source: tuple[Any, int] | None = None, now: float = 0.0
+    ) -> list[Any]:
+        """The messages of one datagram; its failures are charged to ``source`` (None: the
+        peer, not charged)."""
+        try:
+            msgs, failures = self.receiver.datagram(data)
+        except Exception as exc:  # the receive path must never take the loop down
+            self.counters["bad_data"] += 1
+            self.counters["decode_errors"] += 1
+            log.debug("undecodable datagram: %s", exc)
+            return []
+        if failures and source is not None:
+            self.gate.charge(source, failures, now)
+        return msgs
 
     def _on_bytes(self, data: bytes, addr: tuple[Any, int], *, stream: bool) -> None:
-        try:
-            msgs = self.mav.parse_buffer(data) or []
-        except Exception as exc:  # the codec must never take the loop down
-            self.counters["bad_data"] += 1
-            log.debug("unparseable bytes from %s: %s", addr, exc)
+        """A byte stream's next bytes (serial, TCP; ``stream`` False: one datagram)."""
+        if not stream:
+            self._deliver(self._receive(data), addr)
             return
-        if not stream and self.mav.buf_len() > 0:
-            # A datagram carries whole messages: a leftover is garbage, and kept it would
-            # swallow the first message of the next datagram.
+        try:
+            msgs = self.receiver.stream(data)
+        except Exception as exc:  # the receive path must never take the loop down
             self.counters["bad_data"] += 1
-            self.mav.buf = bytearray()
-            self.mav.buf_index = 0
-            self.mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+            self.counters["decode_errors"] += 1
+            self.receiver.reset_stream()
+            log.debug("undecodable bytes from %s: %s", addr, exc)
+            return
+        self._deliver(msgs, addr)
+
+    def _deliver(self, msgs: list[Any], addr: tuple[Any, int]) -> None:
         for msg in msgs:
             try:
                 self._dispatch(msg, addr)
@@ -480,24 +553,21 @@ class MavlinkLink:
                         msg.get_type(), type(exc).__name__, exc, self.counters["dispatch_errors"],
                     )  # fmt: skip
 
+    def _warn_mavlink1(self) -> None:
+        if self._log_gate.open("mavlink1", 10.0):
+            log.warning(
+                "MAVLink 1 frames received and dropped (%d so far): this link speaks MAVLink "
+                "2 only; set the autopilot's link to MAVLink 2 (ArduPilot SERIALn_PROTOCOL = "
+                "2, PX4 MAV_PROTO_VER = 2)", self.counters["mavlink1"],
+            )  # fmt: skip
+
     def _dispatch(self, msg: Any, addr: tuple[Any, int]) -> None:
-        mtype = msg.get_type()
-        if mtype == "BAD_DATA":
-            reason = str(getattr(msg, "reason", ""))
-            key = "bad_signature" if "signature" in reason.lower() else "bad_data"
-            self.counters[key] += 1
-            return
-        if mtype == "UNKNOWN" or mtype.startswith("UNKNOWN_"):
-            self.counters["unknown_message"] += 1
-            return
-        if self._accept is not None and msg.get_srcSystem() not in self._accept:
-            self.counters["wrong_system"] += 1
-            return
-        self.counters["received"] += 1
+        """One message that passed the receiver's checks: the peer's bookkeeping, the tlog,
+        the callback."""
         if self.endpoint.mode == "udpin":
             # The peer is the first address that spoke; it only moves once it has been silent
             # for peer_timeout_s (the autopilot restarted on another port). A second sender
-            # cannot redirect our setpoints while the vehicle is talking to us.
+            # can neither redirect our setpoints nor feed us state while the vehicle talks.
             sender = (str(addr[0]), int(addr[1]))
             now = time.monotonic()
             if sender == self._peer:
@@ -508,6 +578,9 @@ class MavlinkLink:
                 self._peer, self._peer_heard = sender, now
             else:
                 self.counters["other_sender"] += 1
+                if self._peer_live(now):
+                    return
+        self.counters["received"] += 1
         if self._tlog is not None:
             self._tlog.write(bytes(msg.get_msgbuf()))
         self._on_message(msg)
