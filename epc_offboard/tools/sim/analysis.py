@@ -285,7 +285,7 @@ def analyse(
     violations = int(np.sum(np.any(np.abs(tvel) > vel_bounds_m_s + 1e-9, axis=1)))
     # tilt over the whole offboard phase (entry included): an attitude loop that oscillates
     # shows here first; cos(tilt) = 1 - 2 (qx² + qy²)
-    offboard = (tt >= start) & (tt <= float(t_vehicle[tracking][-1]))
+    offboard = (tt >= start) & (tt <= end)
     max_tilt_deg = math.nan  # (a ground truth without the attitude says nothing)
     if "q_x" in truth and "q_y" in truth and np.any(offboard):
         qx, qy = truth["q_x"][offboard], truth["q_y"][offboard]
