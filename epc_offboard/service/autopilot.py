@@ -40,6 +40,7 @@ log = logging.getLogger("epc_offboard.service")
 
 _RATE_WINDOW_S = 2.0  # received rates are measured over windows this long
 _GLOBAL_MAX_AGE_S = 1.0  # GLOBAL_POSITION_INT older than this is not used
+_MAX_TIMESYNC_PENDING = 8  # TIMESYNC requests awaiting an answer (older ones forgotten)
 
 
 @dataclass(frozen=True)
@@ -86,6 +87,8 @@ class Autopilot:
         self._global: GlobalFix | None = None
         self._params_requested_at = -math.inf
         self._rates_requested_at = -math.inf
+        self._timesync_sent: dict[int, float] = {}  # ts1 (ns) -> local send time, bounded
+        self._timesync_at = -math.inf
         tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
         key = load_signing_key(cfg.link.signing_key_file) if cfg.link.signing_key_file else None
         self.link = MavlinkLink(
@@ -117,6 +120,8 @@ class Autopilot:
             amsl, rel = msg.alt * 1e-3, msg.relative_alt * 1e-3
             if math.isfinite(amsl) and math.isfinite(rel) and abs(rel) < 1e5:
                 self._global = GlobalFix(msg.lat, msg.lon, amsl, rel, now)
+        elif mtype == "TIMESYNC":
+            self._on_timesync(msg, now)
         elif mtype == "EXTENDED_SYS_STATE":
             self.landed_state = int(msg.landed_state)
         elif mtype == "PARAM_VALUE" and msg.get_srcSystem() == self.target.system_id:
@@ -130,6 +135,14 @@ class Autopilot:
                     "command %d answered with result %d (%d refusals so far)",
                     msg.command, msg.result, self.counters["acks_refused"],
                 )  # fmt: skip
+
+    def _on_timesync(self, msg: Any, now: float) -> None:
+        """An answer to one of our TIMESYNC requests (tc1 != 0, ts1 one we sent) maps the
+        autopilot's clock to ours; its own requests (tc1 = 0) and unknown ts1 are not."""
+        sent_s = self._timesync_sent.pop(int(msg.ts1), None)
+        if msg.tc1 == 0 or sent_s is None or self.clock.vehicle_time:
+            return
+        self.tracker.clock.timesync(sent_s, msg.tc1 * 1e-9, now)
 
     def _adopt_dialect(self, autopilot: int) -> None:
         """The dialect from HEARTBEAT.autopilot (link.autopilot "auto"), once; a forced one
@@ -254,9 +267,27 @@ class Autopilot:
         self.send_command(cmd)
 
     def manage(self, now: float, link_up: bool) -> None:
-        """Each supervisor step: the message rates, then the parameters."""
+        """Each supervisor step: the message rates, the parameters, the clock."""
         self._manage_rates(now, link_up)
         self._manage_params(now, link_up)
+        self._manage_timesync(now, link_up)
+
+    def _manage_timesync(self, now: float, link_up: bool) -> None:
+        """A TIMESYNC request every state_limits.timesync_period_s in real time (lockstep
+        runs on the autopilot's clock itself: nothing to map, nothing sent)."""
+        period = self.cfg.state_limits.timesync_period_s
+        if not link_up or period <= 0.0 or self.clock.vehicle_time:
+            return
+        if now - self._timesync_at < period:
+            return
+        self._timesync_at = now
+        sent = self._timesync_sent
+        if len(sent) >= _MAX_TIMESYNC_PENDING:
+            del sent[next(iter(sent))]  # unanswered: the oldest is forgotten
+        sent_s = self.clock.now_s()  # as close to the send as the round trip's start can be
+        msg = commands.timesync_request(sent_s)
+        sent[int(msg.ts1)] = sent_s
+        self.link.send(msg)
 
     def _manage_rates(self, now: float, link_up: bool) -> None:
         """Ask for the loops' rates when the link comes up, then again (at most every

@@ -3,8 +3,11 @@
 The tracker is fed decoded pymavlink messages by the service and keeps the newest *valid*
 sample of each kind. A sample with a NaN, an out-of-range value or a non-unit quaternion is
 rejected, counted by reason, and never replaces a good one. Two times are kept per sample:
-the vehicle's own timestamp (``time_boot_ms``/``time_usec``; drives the lockstep clock) and
-the local receipt time (``time.monotonic``; drives staleness checks in real operation).
+the vehicle's own timestamp (``time_boot_ms``/``time_usec``) and the local receipt time
+(``time.monotonic``). Age is judged by when a sample was MEASURED: in lockstep the stamp is
+the clock; in real operation the stamp is mapped to the local clock (``timesync.py``: the
+fastest delivery seen, and MAVLink TIMESYNC round trips), so a sample read late is old
+whatever its receipt time says.
 
 PX4 sends LOCAL_POSITION_NED and ODOMETRY at only 30 Hz by default while the position loop
 runs at 100 Hz, so ``snapshot`` predicts the position forward at constant velocity to the
@@ -25,6 +28,7 @@ import numpy as np
 
 from epc_offboard.common import frames
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.vehicle.timesync import AutopilotClock
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +102,18 @@ class StateLimits:
     # The autopilot's (MAV_TYPE, MAV_AUTOPILOT) is learnt from its first heartbeat, and
     # learnt again only after this long without one.
     heartbeat_relearn_s: float = 5.0
+    # The autopilot's clock on ours (timesync.py): how fast the offset may drift without
+    # new evidence (s/s; crystals drift 1e-4), the longest TIMESYNC round trip trusted,
+    # and how often one is asked for in real time (0: never; lockstep never does).
+    max_clock_drift: float = 1.0e-3
+    timesync_max_rtt_s: float = 0.05
+    timesync_period_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.max_clock_drift < 0.1:
+            raise ValueError(f"max_clock_drift must be in [0, 0.1), got {self.max_clock_drift}")
+        if self.timesync_max_rtt_s <= 0.0 or self.timesync_period_s < 0.0:
+            raise ValueError("timesync_max_rtt_s must be > 0 and timesync_period_s >= 0")
 
 
 @dataclass(frozen=True)
@@ -197,6 +213,10 @@ class StateTracker:
     # changes claimed since the mode held was last claimed: mode -> first claimed (bounded)
     _claims: dict[tuple[bool, int], float] = field(default_factory=dict)
     _flap_logged_s: float = -math.inf
+    clock: AutopilotClock = field(init=False)  # the autopilot's stamps on the local clock
+
+    def __post_init__(self) -> None:
+        self.clock = AutopilotClock(self.limits.max_clock_drift, self.limits.timesync_max_rtt_s)
 
     def handle(self, msg: Any, received_s: float | None = None) -> bool:
         """Consume one decoded message; True when it updated the state."""
@@ -369,6 +389,7 @@ class StateTracker:
         self._candidates.clear()
         self._attitude = self._position = None
         self.vehicle_time_s = t_s
+        self.clock.reset()  # stamps of the old timeline say nothing of the new one's offset
         return True
 
     def _quat_norm(self, q: Sequence[float]) -> float | None:
@@ -413,6 +434,7 @@ class StateTracker:
             t_s, now, (np.array([qw, qx, qy, qz]), np.array([wx, wy, wz], dtype=np.float64))
         )
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
+        self.clock.observe(t_s, now)
         return True
 
     def _set_position(
@@ -441,17 +463,28 @@ class StateTracker:
             t_s, now, (np.array(pos, dtype=np.float64), np.array(vel, dtype=np.float64))
         )
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
+        self.clock.observe(t_s, now)
         return True
 
     def age_s(self, now_s: float, *, vehicle_clock: bool) -> float:
-        """Age of the older of the two samples: by vehicle time or by local receipt time."""
+        """Age of the older of the two samples since it was MEASURED: ``now_s`` is vehicle
+        time (lockstep), or local time, to which the sample's stamp is mapped (a sample
+        read late is old, whatever its receipt time)."""
         if self._attitude is None or self._position is None:
             return math.inf
-        if vehicle_clock:
-            oldest = min(self._attitude.vehicle_s, self._position.vehicle_s)
-        else:
-            oldest = min(self._attitude.received_s, self._position.received_s)
+        oldest = min(self._attitude.vehicle_s, self._position.vehicle_s)
+        if not vehicle_clock:
+            measured = self.clock.to_local(oldest, now_s)
+            if measured is None:  # (no mapping: cannot happen once a sample is held)
+                measured = min(self._attitude.received_s, self._position.received_s)
+            oldest = measured
         return max(0.0, now_s - oldest)
+
+    def vehicle_time_at(self, now_s: float, *, vehicle_clock: bool) -> float | None:
+        """The vehicle time the state should be predicted to at loop time ``now_s``: in
+        lockstep None (the newest sample's time, as the clock is), else ``now_s`` on the
+        autopilot's clock (None before any sample)."""
+        return None if vehicle_clock else self.clock.to_autopilot(now_s)
 
     def snapshot(self, at_vehicle_s: float | None = None) -> VehicleState | None:
         """The state predicted to vehicle time ``at_vehicle_s`` (default: newest sample time).
