@@ -1,0 +1,148 @@
+"""Old state is not flown as fresh (issue 20, 2), end to end in REAL TIME.
+
+A real PX4 never waits for the companion; on a starved CPU the service read PX4's messages
+2.4 s late, judged them by when it read them, flew them as fresh and climbed to 19.7 m.
+Here a UDP relay between the SITL (real time, not lockstep: lockstep would slow the
+simulation instead) and the service delays every datagram to the service by 1 s from
+mid-flight on. The SITL keeps sending; the service reads late. It must fail safe within
+max_state_age_s + 0.1 s of the delay starting, stay there while the delay lasts, and the
+vehicle must not climb.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import select
+import socket
+import threading
+import time
+
+import pytest
+
+from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD
+from tests.rig import Rig
+
+pytestmark = pytest.mark.timeout(240)
+
+DELAY_S = 1.0
+DELAYED_FOR_S = 5.0
+HOVER_ALT_M = 2.5
+
+
+class DelayRelay:
+    """Datagrams from the SITL to the service leave ``delay_s`` after they came (set at
+    any time; a real queue, FIFO); the service's datagrams go to the SITL at once."""
+
+    def __init__(self, service_port: int, sitl_port: int) -> None:
+        self.from_sitl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.from_sitl.bind(("127.0.0.1", 0))
+        self.to_service = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.to_service.bind(("127.0.0.1", 0))
+        self.port = int(self.from_sitl.getsockname()[1])
+        self._service = ("127.0.0.1", service_port)
+        self._sitl = ("127.0.0.1", sitl_port)
+        self.delay_s = 0.0
+        self._queue: list[tuple[float, int, bytes]] = []
+        self._seq = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="delay-relay", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.from_sitl.close()
+        self.to_service.close()
+
+    def _run(self) -> None:
+        socks = [self.from_sitl, self.to_service]
+        while not self._stop.is_set():
+            now = time.monotonic()
+            while self._queue and self._queue[0][0] <= now:
+                _, _, data = heapq.heappop(self._queue)
+                self.to_service.sendto(data, self._service)
+            timeout = 0.001 if self._queue else 0.05
+            readable, _, _ = select.select(socks, [], [], timeout)
+            for sock in readable:
+                data = sock.recv(65536)
+                if sock is self.from_sitl:
+                    self._seq += 1
+                    due = time.monotonic() + self.delay_s
+                    heapq.heappush(self._queue, (due, self._seq, data))
+                else:
+                    self.from_sitl.sendto(data, self._sitl)
+
+
+def last_phase(log: str) -> str:
+    lines = [line for line in log.splitlines() if " phase " in line and " -> " in line]
+    return lines[-1].split(" -> ")[1].split()[0] if lines else ""
+
+
+def wait_phase(rig: Rig, phase: str, settled_s: float, timeout_s: float) -> None:
+    """Until the service's log says it has been in ``phase`` for ``settled_s`` (a loaded
+    machine may fail safe on a real stall first: the flight re-enters by itself)."""
+    path = rig.tmp / "service.log"
+    t0 = time.monotonic()
+    since = None
+    while time.monotonic() - t0 < timeout_s:
+        in_phase = last_phase(path.read_text(errors="replace")) == phase
+        since = (since or time.monotonic()) if in_phase else None
+        if since is not None and time.monotonic() - since >= settled_s:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"service not in {phase} for {settled_s} s:\n{rig.log()}")
+
+
+def test_state_read_late_fails_safe_and_the_vehicle_does_not_climb(tmp_path):
+    overrides = {
+        "mission": {"duration_s": 120.0, "land_at_end": True},
+        "trajectory": {"shape": "hover"},
+    }
+    probe = Rig(tmp_path, lockstep=False, speedup=1.0)  # (only for its ports)
+    relay = DelayRelay(probe.offboard_port, probe.sitl_port)
+    rig = Rig(
+        tmp_path,
+        lockstep=False,
+        speedup=1.0,
+        service_overrides=overrides,
+        sitl_offboard_port=relay.port,
+    )
+    rig.offboard_port, rig.sitl_port = probe.offboard_port, probe.sitl_port
+    rig.sitl_args[rig.sitl_args.index("--listen-port") + 1] = str(probe.sitl_port)
+    rig.config["link"]["url"] = f"udpin://127.0.0.1:{probe.offboard_port}"
+    from epc_offboard.common.configio import dump_toml
+
+    rig.config_path.write_text(dump_toml(rig.config))
+    max_age_s = float(rig.config["offboard"]["max_state_age_s"])
+    relay.start()
+    try:
+        with rig:
+            rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=120)
+            wait_phase(rig, "offboard", settled_s=2.0, timeout_s=60.0)
+            relay.delay_s = DELAY_S
+            delay_started_s = time.monotonic()
+            time.sleep(DELAYED_FOR_S)
+            delay_ended_s = time.monotonic()
+            code, _ = rig.stop_service()
+            log = rig.log()
+            truth = rig.groundtruth()
+            stats = rig.stats()
+    finally:
+        relay.close()
+    assert code == 0, log
+    events = [e for e in stats["phase_events"] if delay_started_s <= e["t_s"] <= delay_ended_s]
+    assert events, f"no phase change while the state came 1 s late:\n{log}"
+    first = events[0]
+    assert first["phase"] == "failsafe", events
+    assert first["t_s"] - delay_started_s <= max_age_s + 0.1, events
+    # while every sample stays a second old, nothing is flown again
+    flying = {"streaming", "offboard_requested", "offboard", "preflight"}
+    assert not [e for e in events if e["phase"] in flying], events
+    # ground truth: from offboard on, the vehicle never climbed (loose: holds at load 6)
+    offboard = [k for k, m in enumerate(truth["main_mode"]) if m == PX4_MAIN_MODE_OFFBOARD]
+    alt_m = [-d for d in truth["pos_d_m"][offboard[0] :]]
+    assert max(alt_m) <= HOVER_ALT_M + 1.0, max(alt_m)
+    assert all(math.isfinite(a) for a in alt_m)
