@@ -34,14 +34,13 @@ class DelayRelay:
     """Datagrams from the SITL to the service leave ``delay_s`` after they came (set at
     any time; a real queue, FIFO); the service's datagrams go to the SITL at once."""
 
-    def __init__(self, service_port: int, sitl_port: int) -> None:
+    def __init__(self) -> None:
         self.from_sitl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.from_sitl.bind(("127.0.0.1", 0))
         self.to_service = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.to_service.bind(("127.0.0.1", 0))
         self.port = int(self.from_sitl.getsockname()[1])
-        self._service = ("127.0.0.1", service_port)
-        self._sitl = ("127.0.0.1", sitl_port)
+        self.service_port = self.sitl_port = 0  # set before start()
         self.delay_s = 0.0
         self._queue: list[tuple[float, int, bytes]] = []
         self._seq = 0
@@ -63,7 +62,7 @@ class DelayRelay:
             now = time.monotonic()
             while self._queue and self._queue[0][0] <= now:
                 _, _, data = heapq.heappop(self._queue)
-                self.to_service.sendto(data, self._service)
+                self.to_service.sendto(data, ("127.0.0.1", self.service_port))
             timeout = 0.001 if self._queue else 0.05
             readable, _, _ = select.select(socks, [], [], timeout)
             for sock in readable:
@@ -73,7 +72,7 @@ class DelayRelay:
                     due = time.monotonic() + self.delay_s
                     heapq.heappush(self._queue, (due, self._seq, data))
                 else:
-                    self.from_sitl.sendto(data, self._sitl)
+                    self.from_sitl.sendto(data, ("127.0.0.1", self.sitl_port))
 
 
 def last_phase(log: str) -> str:
@@ -101,8 +100,7 @@ def test_state_read_late_fails_safe_and_the_vehicle_does_not_climb(tmp_path):
         "mission": {"duration_s": 120.0, "land_at_end": True},
         "trajectory": {"shape": "hover"},
     }
-    probe = Rig(tmp_path, lockstep=False, speedup=1.0)  # (only for its ports)
-    relay = DelayRelay(probe.offboard_port, probe.sitl_port)
+    relay = DelayRelay()
     rig = Rig(
         tmp_path,
         lockstep=False,
@@ -110,12 +108,7 @@ def test_state_read_late_fails_safe_and_the_vehicle_does_not_climb(tmp_path):
         service_overrides=overrides,
         sitl_offboard_port=relay.port,
     )
-    rig.offboard_port, rig.sitl_port = probe.offboard_port, probe.sitl_port
-    rig.sitl_args[rig.sitl_args.index("--listen-port") + 1] = str(probe.sitl_port)
-    rig.config["link"]["url"] = f"udpin://127.0.0.1:{probe.offboard_port}"
-    from epc_offboard.common.configio import dump_toml
-
-    rig.config_path.write_text(dump_toml(rig.config))
+    relay.service_port, relay.sitl_port = rig.offboard_port, rig.sitl_port
     max_age_s = float(rig.config["offboard"]["max_state_age_s"])
     relay.start()
     try:
