@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -44,6 +44,7 @@ _NOT_AUTOPILOT_TYPES = frozenset(
 )
 _MAV_TYPE_END = 49
 _FLAP_LOG_PERIOD_S = 10.0
+_HEARD_KEPT = 16  # heartbeats kept to judge forgeries: a period's worth under a flood
 _MAX_CLAIMS = 8  # changes being confirmed at once; past it the oldest claim is forgotten
 # time_boot_ms is truncated to whole ms while ODOMETRY's time_usec is not: samples of one
 # instant can differ by up to a millisecond and must not count as out of order.
@@ -87,16 +88,23 @@ class StateLimits:
     # the tracker's timeline (an autopilot reboot restarting time_boot_ms at 0, or a bad
     # stamp accepted first) move the tracker to their timeline: a resync, never a lockout.
     resync_samples: int = 5
-    # Heartbeats: a mode or arming change that comes sooner than heartbeat_min_interval_s
-    # (half PX4's 1 Hz period) after the heartbeat before it, or is undone within
-    # heartbeat_flap_window_s (a period plus jitter), is a flap: a forged heartbeat between
-    # two genuine ones. Changes are adopted at once until a flap (an early one is held
-    # back, an undoing adopted); for heartbeat_calm_s after the last, a change is adopted
-    # only once it has been claimed for heartbeat_confirm_s (PX4's heartbeat period) with
-    # the mode held not claimed meanwhile: while the vehicle keeps sending the mode held,
-    # no forgery lasts that long; a genuine change then lags a heartbeat, on a calm link none.
-    heartbeat_min_interval_s: float = 0.5
-    heartbeat_flap_window_s: float = 1.5
+    # Heartbeats. A genuine autopilot sends one every heartbeat_period_s (PX4, ArduPilot:
+    # 1 Hz; regular ones arrive heartbeat_jitter_s early or late at most, in order), and
+    # ArduPilot one more at once on every mode change. Every change is adopted at once on a
+    # calm link. A flap is A, B, A where the two A are a period apart (within the jitter)
+    # and nothing follows the second A for a period less the jitter: B lies inside one
+    # period of the schedule, and the schedule contradicts it, with no heartbeat of its
+    # own (ArduPilot's) changing back: a forged heartbeat between two genuine ones. No
+    # genuine sequence is one: PX4's heartbeats are a period apart, so A, B, A spans two;
+    # an ArduPilot change back to A comes with its own heartbeat, and the regular one
+    # follows it within the period. Judged when the heartbeat after the second A comes.
+    # Four heartbeats within a period less the jitter (a regular one and three mode
+    # changes: no autopilot changes modes that fast) are a flood of forgeries: a flap too.
+    # For heartbeat_calm_s after a flap, a change is adopted only once it has been claimed
+    # for heartbeat_confirm_s (a period) with the mode held not claimed meanwhile: while
+    # the vehicle keeps sending the mode held, no forgery lasts that long.
+    heartbeat_period_s: float = 1.0
+    heartbeat_jitter_s: float = 0.3
     heartbeat_calm_s: float = 10.0
     heartbeat_confirm_s: float = 1.0
     # The autopilot's (MAV_TYPE, MAV_AUTOPILOT) is learnt from its first heartbeat, and
@@ -206,9 +214,10 @@ class StateTracker:
     _candidates: dict[str, list[list[_Timeline]]] = field(default_factory=dict)
     _kind: tuple[int, int] | None = None  # the autopilot's (MAV_TYPE, MAV_AUTOPILOT)
     _mode: tuple[bool, int] | None = None  # (armed, custom_mode) of the heartbeat held
-    _mode_before: tuple[bool, int] | None = None  # what the last adopted change replaced
-    _mode_changed_s: float = -math.inf
-    _mode_heard_s: float = -math.inf  # the last heartbeat accepted
+    # the last heartbeats heard from the autopilot (held or not): (time, mode)
+    _heard: deque[tuple[float, tuple[bool, int]]] = field(
+        default_factory=lambda: deque(maxlen=_HEARD_KEPT)
+    )
     _flap_s: float = -math.inf  # the last flap: changes need confirming until calm again
     # changes claimed since the mode held was last claimed: mode -> first claimed (bounded)
     _claims: dict[tuple[bool, int], float] = field(default_factory=dict)
@@ -272,34 +281,59 @@ class StateTracker:
             self.counters["heartbeat_ignored"] += 1
             return False
         mode = (bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED), int(msg.custom_mode))
+        self._heard.append((now, mode))
+        if self._forged_between() or self._flooded():
+            self._flapped(now)
+        limits = self.limits
         held, claims = self._mode, self._claims
         if held is None or mode == held:
             if claims:  # changes held back, contradicted: still flapping
                 self._flapped(now)
                 claims.clear()
-            self._mode, self._mode_heard_s = mode, now
+            self._mode = mode
             return True
-        limits = self.limits
-        calm = now - self._flap_s >= limits.heartbeat_calm_s
-        # an undoing restores what the vehicle said before the forgery: adopted
-        undone = (
-            calm
-            and mode == self._mode_before
-            and now - self._mode_changed_s <= limits.heartbeat_flap_window_s
-        )
-        if calm and (undone or now - self._mode_heard_s < limits.heartbeat_min_interval_s):
-            self._flapped(now)
-        if not undone and now - self._flap_s < limits.heartbeat_calm_s:
+        if now - self._flap_s < limits.heartbeat_calm_s:
             first_s = claims.setdefault(mode, now)
             if now - first_s < limits.heartbeat_confirm_s:
                 if len(claims) > _MAX_CLAIMS:
                     del claims[next(iter(claims))]
                 self.counters["heartbeat_changes_held"] += 1
                 return False
-        self._mode_before, self._mode, self._mode_changed_s = held, mode, now
-        self._mode_heard_s = now
+        self._mode = mode
         claims.clear()
         return True
+
+    def _flooded(self) -> bool:
+        """Whether four heartbeats came within a period less the jitter: one regular and
+        three mode changes, more than any autopilot makes (a flood of forgeries)."""
+        heard = self._heard
+        limits = self.limits
+        quiet = limits.heartbeat_period_s - limits.heartbeat_jitter_s
+        return len(heard) >= 4 and heard[-1][0] - heard[-4][0] < quiet
+
+    def _forged_between(self) -> bool:
+        """Whether the heartbeats heard show a forgery: h0 says A after a quiet period,
+        those after it, all inside the period, say other modes, then h2 says A a period
+        after h0, and the newest came a period less the jitter or more after h2 (see
+        StateLimits)."""
+        heard = list(self._heard)
+        if len(heard) < 4:
+            return False
+        limits = self.limits
+        period, jitter = limits.heartbeat_period_s, limits.heartbeat_jitter_s
+        quiet = period - jitter
+        t3, _ = heard[-1]
+        t2, m2 = heard[-2]
+        if t3 - t2 < quiet or heard[-3][1] == m2:
+            return False
+        for k in range(len(heard) - 3, -1, -1):
+            t0, m0 = heard[k]
+            if m0 != m2:
+                continue
+            run_ok = heard[k + 1][0] - t0 > 0.0 and heard[-3][0] - t0 < quiet
+            quiet_before = k == 0 or t0 - heard[k - 1][0] >= quiet
+            return run_ok and quiet_before and abs(t2 - t0 - period) <= jitter
+        return False
 
     def _from_autopilot(self, msg: Any, now: float) -> bool:
         if self.component_id and msg.get_srcComponent() != self.component_id:
