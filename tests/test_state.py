@@ -56,7 +56,9 @@ def test_snapshot_needs_both_samples_and_predicts_position_forward():
     s = tr.snapshot(1.05)
     assert s is not None
     np.testing.assert_allclose(s.pos_ned_m, [1.05, 2.0, -3.025], atol=1e-6)
-    np.testing.assert_allclose(s.euler_rad, (0.1, -0.2, 0.3), atol=1e-6)
+    # and the attitude rotated on by its body rates over the same 50 ms
+    q_pred = frames.quat_integrate_body_rate(q, np.array([0.1, 0.2, 0.3]), 0.05)
+    assert frames.angle_between_deg(s.q_ned_frd, q_pred) == pytest.approx(0.0, abs=1e-4)
     assert s.position_age_s == pytest.approx(0.05)
     # prediction is capped at max_predict_s
     s = tr.snapshot(2.0)

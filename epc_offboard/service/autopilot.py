@@ -86,7 +86,7 @@ class Autopilot:
         self.last_rx_wall_s = -math.inf  # time.monotonic() of the last message
         self._global: GlobalFix | None = None
         self._params_requested_at = -math.inf
-        self._rates_requested_at = -math.inf
+        self._withheld_logged: set[str] = set()  # streams whose absence was logged
         self._timesync_sent: dict[int, float] = {}  # ts1 (ns) -> local send time, bounded
         self._timesync_at = -math.inf
         tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
@@ -290,27 +290,41 @@ class Autopilot:
         self.link.send(msg)
 
     def _manage_rates(self, now: float, link_up: bool) -> None:
-        """Ask for the loops' rates when the link comes up, then again (at most every
-        retry_period_s) while a measured stream falls short."""
+        """Ask for the loops' rates when the link comes up, again while a measured stream
+        falls short, a few times, then accept what the autopilot grants (logged once); a
+        stream not sent at all is asked for less and less often (RateMonitor.plan)."""
         measured = self.rates.sample(now, _RATE_WINDOW_S)
         if not link_up:
             return
-        first = self._rates_requested_at == -math.inf
-        short = measured and self.rates.short()
-        if (first or short) and now - self._rates_requested_at >= self.cfg.offboard.retry_period_s:
-            if short:
-                self.counters["rate_requests_repeated"] += 1
+        rates = self.rates
+        plan = rates.plan(now, self.cfg.offboard.retry_period_s, measured=measured)
+        for name, hz in plan.accepted_hz.items():
+            log.info(
+                "%s: accepting %.0f Hz, what the autopilot grants (%.0f Hz asked for, %d "
+                "requests)", name, hz, rates.wanted_hz[name], rates.requests,
+            )  # fmt: skip
+        if not plan.ask:
+            return
+        if plan.short or plan.withheld:
+            self.counters["rate_requests_repeated"] += 1
+        if plan.short:
+            log.info(
+                "message rates short of the loops' (%s): asking again (%d of %d)",
+                ", ".join(f"{k} {rates.rates_hz[k]:.0f} Hz" for k in plan.short),
+                rates.requests, rates.settle_requests,
+            )  # fmt: skip
+        for name in plan.withheld:
+            if name not in self._withheld_logged:
+                self._withheld_logged.add(name)
                 log.info(
-                    "message rates short of the loops' (%s): asking again",
-                    ", ".join(f"{k} {self.rates.rates_hz[k]:.0f} Hz" for k in short),
-                )
-            self._rates_requested_at = now
-            loops = self.cfg.loops
-            extra = () if self.dialect is None else self.dialect.extra_streams_hz
-            for cmd in commands.rate_requests(
-                loops.attitude_rate_hz, loops.position_rate_hz, extra
-            ):
-                self.send_command(cmd)
+                    "%s not streamed (ArduPilot sends no position until its EKF has an "
+                    "origin): asking again less and less often, up to every %.0f s",
+                    name, rates.max_backoff_s,
+                )  # fmt: skip
+        loops = self.cfg.loops
+        extra = () if self.dialect is None else self.dialect.extra_streams_hz
+        for cmd in commands.rate_requests(loops.attitude_rate_hz, loops.position_rate_hz, extra):
+            self.send_command(cmd)
 
     def _manage_params(self, now: float, link_up: bool) -> None:
         """Read the dialect's parameters at link-up; again (every retry_period_s) while one
@@ -333,4 +347,6 @@ class Autopilot:
             "autopilot": None if self.dialect is None else self.dialect.name,
             "attitude_mode": self.attitude_mode,
             "params": dict(self.params),
+            "rate_requests": self.rates.requests,
+            "rates_accepted_hz": {k: round(v, 1) for k, v in self.rates.accepted_hz.items()},
         }

@@ -531,15 +531,20 @@ class StateTracker:
         q, rate = self._attitude.values
         pos, vel = self._position.values
         dt_pos = t - self._position.vehicle_s
-        # Constant-velocity prediction over the gap between position samples, never further
-        # than max_predict_s: beyond that the sample is stale and the service must hold.
-        dt_pred = min(max(dt_pos, 0.0), self.limits.max_predict_s)
+        dt_att = t - self._attitude.vehicle_s
+        # Constant-velocity prediction over the gap between position samples, and the
+        # attitude rotated on by the measured body rates over the gap between attitude
+        # samples (PX4 gives ~123 Hz to a 200 Hz loop), never further than max_predict_s:
+        # beyond that the sample is stale and the service must hold.
+        horizon = self.limits.max_predict_s
+        dt_pred = min(max(dt_pos, 0.0), horizon)
+        dt_att_pred = min(max(dt_att, 0.0), horizon)
         return VehicleState(
             time_s=t,
             pos_ned_m=pos + vel * dt_pred,
             vel_ned_m_s=vel.copy(),
-            q_ned_frd=q.copy(),
+            q_ned_frd=frames.quat_integrate_body_rate(q, rate, dt_att_pred),
             rate_frd_rad_s=rate.copy(),
             position_age_s=max(dt_pos, 0.0),
-            attitude_age_s=max(t - self._attitude.vehicle_s, 0.0),
+            attitude_age_s=max(dt_att, 0.0),
         )
