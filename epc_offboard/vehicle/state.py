@@ -20,7 +20,7 @@ import logging
 import math
 import time
 from collections import Counter, deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -115,13 +115,28 @@ class StateLimits:
     # and how often one is asked for in real time (0: never; lockstep never does).
     max_clock_drift: float = 1.0e-3
     timesync_max_rtt_s: float = 0.05
-    timesync_period_s: float = 1.0
+    timesync_period_s: float = 0.5
+    # Innovation gates, as an EKF's: a position further than max_innovation_m (plus what
+    # innovation_accel_m_s2 allows over the gap) from where the last sample predicts it, or
+    # an attitude further than max_innovation_rad (plus innovation_ang_accel_rad_s2's) from
+    # the last one rotated on by its rates, is not flown. resync_samples rejected samples in
+    # a row that agree with each other, with none accepted between, are the vehicle's own
+    # estimator reset: adopted. With accepted ones between, two streams contradict each
+    # other under one system id (forgery): counted, warned once, the held one flown.
+    max_innovation_m: float = 1.0
+    innovation_accel_m_s2: float = 20.0
+    max_innovation_rad: float = 0.35
+    innovation_ang_accel_rad_s2: float = 100.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.max_clock_drift < 0.1:
             raise ValueError(f"max_clock_drift must be in [0, 0.1), got {self.max_clock_drift}")
         if self.timesync_max_rtt_s <= 0.0 or self.timesync_period_s < 0.0:
             raise ValueError("timesync_max_rtt_s must be > 0 and timesync_period_s >= 0")
+        for name in ("max_innovation_m", "innovation_accel_m_s2", "max_innovation_rad",
+                     "innovation_ang_accel_rad_s2"):  # fmt: skip
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -166,6 +181,36 @@ class _Sample:
     vehicle_s: float
     received_s: float
     values: tuple[FloatArray, ...]
+
+
+def _position_innovation(held: _Sample, new: _Sample, limits: StateLimits) -> float:
+    """How far (m) ``new``'s position lies outside the gate around ``held``'s prediction
+    (<= 0: inside)."""
+    pos, vel = held.values
+    dt_s = new.vehicle_s - held.vehicle_s
+    miss_m = float(np.linalg.norm(new.values[0] - (pos + vel * dt_s)))
+    gate_m = limits.max_innovation_m + 0.5 * limits.innovation_accel_m_s2 * dt_s * dt_s
+    return miss_m - gate_m
+
+
+def _attitude_innovation(held: _Sample, new: _Sample, limits: StateLimits) -> float:
+    """How far (rad) ``new``'s attitude lies outside the gate around ``held`` rotated on by
+    its rates (<= 0: inside)."""
+    q, rate = held.values
+    dt_s = new.vehicle_s - held.vehicle_s
+    predicted = frames.quat_integrate_body_rate(q, rate, dt_s)
+    dot = min(1.0, abs(float(np.dot(predicted, new.values[0]))))
+    gate_rad = limits.max_innovation_rad + 0.5 * limits.innovation_ang_accel_rad_s2 * dt_s**2
+    return 2.0 * math.acos(dot) - gate_rad
+
+
+@dataclass
+class _Gate:
+    """One kind of state's innovation gate: the run of rejected samples that agree with
+    each other, and whether any sample was accepted since it began."""
+
+    run: list[_Sample] = field(default_factory=list)
+    accepted_since: bool = False
 
 
 @dataclass
@@ -223,6 +268,8 @@ class StateTracker:
     _claims: dict[tuple[bool, int], float] = field(default_factory=dict)
     _flap_logged_s: float = -math.inf
     clock: AutopilotClock = field(init=False)  # the autopilot's stamps on the local clock
+    _gates: dict[str, _Gate] = field(default_factory=dict)  # "attitude", "position"
+    _conflict_logged: bool = False
 
     def __post_init__(self) -> None:
         self.clock = AutopilotClock(self.limits.max_clock_drift, self.limits.timesync_max_rtt_s)
@@ -421,7 +468,15 @@ class StateTracker:
         )  # fmt: skip
         self._timelines = {stream: _Timeline(t_s, now)}
         self._candidates.clear()
-        self._attitude = self._position = None
+        # The state held is kept, re-stamped on the new timeline where it was measured by
+        # our clock: its age goes on, nothing is wiped (a wiped state failed safe 3 ms after
+        # a forged time jump: "state stale (inf s)"), and the new timeline's samples must
+        # pass the innovation gates against it.
+        for sample in (self._attitude, self._position):
+            if sample is not None:
+                measured = self.clock.to_local(sample.vehicle_s, now)
+                local = sample.received_s if measured is None else measured
+                sample.vehicle_s = t_s - (now - local)
         self.vehicle_time_s = t_s
         self.clock.reset()  # stamps of the old timeline say nothing of the new one's offset
         return True
@@ -464,9 +519,12 @@ class StateTracker:
         qw, qx, qy, qz = (c / norm for c in q)
         if qw < 0.0:
             qw, qx, qy, qz = -qw, -qx, -qy, -qz
-        self._attitude = _Sample(
+        sample = _Sample(
             t_s, now, (np.array([qw, qx, qy, qz]), np.array([wx, wy, wz], dtype=np.float64))
         )
+        if not self._gated("attitude", self._attitude, sample, _attitude_innovation):
+            return False
+        self._attitude = sample
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
         self.clock.observe(t_s, now)
         return True
@@ -493,12 +551,55 @@ class StateTracker:
             return False
         if self._position is not None and t_s < self._position.vehicle_s - _ORDER_TOLERANCE_S:
             return False  # valid, but older than what another stream already gave
-        self._position = _Sample(
+        sample = _Sample(
             t_s, now, (np.array(pos, dtype=np.float64), np.array(vel, dtype=np.float64))
         )
+        if not self._gated("position", self._position, sample, _position_innovation):
+            return False
+        self._position = sample
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
         self.clock.observe(t_s, now)
         return True
+
+    def _gated(
+        self,
+        kind: str,
+        held: _Sample | None,
+        new: _Sample,
+        innovation: Callable[[_Sample, _Sample, StateLimits], float],
+    ) -> bool:
+        """Whether ``new`` may replace ``held``: inside the innovation gate around the held
+        sample's prediction, or the last of a run of rejected samples that agree with each
+        other with none accepted between (the vehicle's estimator reset). Rejections and
+        conflicts (a run with accepted samples between: two streams under one id) counted;
+        a conflict warned once."""
+        gate = self._gates.setdefault(kind, _Gate())
+        limits = self.limits
+        if held is None or innovation(held, new, limits) <= 0.0:
+            gate.accepted_since = True
+            return True
+        self.counters["rejected_innovation"] += 1
+        if gate.run and innovation(gate.run[-1], new, limits) <= 0.0:
+            gate.run.append(new)
+        else:
+            gate.run, gate.accepted_since = [new], False
+        if len(gate.run) < limits.resync_samples:
+            return False
+        two_streams = gate.accepted_since
+        gate.run, gate.accepted_since = [], False
+        if not two_streams:
+            self.counters["estimator_resets"] += 1
+            log.warning("%s jumped and stayed: the vehicle's estimator reset, adopted", kind)
+            return True
+        self.counters["state_conflicts"] += 1
+        if not self._conflict_logged:
+            self._conflict_logged = True
+            log.warning(
+                "two %s streams contradict each other under system id %d: flying the one "
+                "that agrees with the vehicle's motion; forged telemetry? MAVLink signing "
+                "(link.signing_key_file) stops it", kind, self.system_id,
+            )  # fmt: skip
+        return False
 
     def age_s(self, now_s: float, *, vehicle_clock: bool) -> float:
         """Age of the older of the two samples since it was MEASURED: ``now_s`` is vehicle
