@@ -301,7 +301,7 @@ class Service:
             "gc": self.gc_monitor.stats(),
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
-            "state": dict(self.tracker.counters),
+            "state": {**self.tracker.counters, **self.tracker.clock.counters},
             "sharing": self.sharing.stats() if self.sharing is not None else {},
         }
 

@@ -65,7 +65,7 @@ class AutopilotClock:
             raise ValueError(f"max_drift {max_drift} must be in [0, 0.1), max_rtt_s > 0")
         self.max_drift = max_drift
         self.max_rtt_s = max_rtt_s
-        self.counters = {"timesync_accepted": 0, "timesync_rejected_rtt": 0, "resets": 0}
+        self.counters = {"timesync_accepted": 0, "timesync_rejected_rtt": 0, "clock_resets": 0}
         self.reset(count=False)
 
     def reset(self, *, count: bool = True) -> None:
@@ -75,7 +75,7 @@ class AutopilotClock:
         self._last_delay_s = math.inf  # received - stamp of the previous sample
         self._sync: RoundTrip | None = None
         if count:
-            self.counters["resets"] += 1
+            self.counters["clock_resets"] += 1
 
     @property
     def synced(self) -> bool:
