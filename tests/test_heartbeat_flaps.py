@@ -183,3 +183,22 @@ def test_ardupilot_immediate_heartbeat_on_a_mode_change_is_believed_at_once(gap_
     assert feed(tracker, arrivals, APM) == [(b.armed, b.custom) for _, b in arrivals]
     assert tracker.counters["heartbeat_flaps"] == 0
     assert tracker.counters["heartbeat_changes_held"] == 0
+
+
+def test_heartbeats_on_a_clock_that_stands_still_are_no_flood():
+    """Lockstep: vehicle time stands at 0 until state streams, and the ArduPilot
+    personality, streaming nothing until asked, repeats its heartbeat meanwhile (with
+    sitl-timing's immediate heartbeat, a sim flight warned of forgery at start)."""
+    tracker = StateTracker(system_id=1)
+    beats = [Beat(0.0, False, 0)] * 4 + [Beat(0.0, False, 4, extra=True)]
+    arrivals = [(0.0, b) for b in beats] + [(0.995 + k, Beat(1.0 + k, False, 4)) for k in range(3)]
+    feed(tracker, arrivals, APM)
+    assert tracker.counters["heartbeat_flaps"] == 0
+
+
+def test_a_flood_of_forged_heartbeats_is_a_flap():
+    tracker = StateTracker(system_id=1)
+    arrivals = [(0.0, Beat(0.0, True, 4)), (1.0, Beat(1.0, True, 4))]
+    arrivals += [(1.1 + 0.15 * k, Beat(-1.0, k % 2 == 0, 9)) for k in range(4)]
+    feed(tracker, arrivals, APM)
+    assert tracker.counters["heartbeat_flaps"] >= 1

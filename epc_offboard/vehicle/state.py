@@ -16,6 +16,7 @@ requested time, up to ``max_predict_s``, and reports how old the underlying samp
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
@@ -354,9 +355,15 @@ class StateTracker:
         """Whether four heartbeats came within a period less the jitter: one regular and
         three mode changes, more than any autopilot makes (a flood of forgeries)."""
         heard = self._heard
+        if len(heard) < 4:
+            return False
+        times = [heard[k][0] for k in range(-4, 0)]
+        if any(b <= a for a, b in itertools.pairwise(times)):
+            # a clock that did not move is no evidence: lockstep's vehicle time stands still
+            # until state streams (the simulator repeats its heartbeat meanwhile)
+            return False
         limits = self.limits
-        quiet = limits.heartbeat_period_s - limits.heartbeat_jitter_s
-        return len(heard) >= 4 and heard[-1][0] - heard[-4][0] < quiet
+        return times[-1] - times[0] < limits.heartbeat_period_s - limits.heartbeat_jitter_s
 
     def _forged_between(self) -> bool:
         """Whether the heartbeats heard show a forgery: h0 says A after a quiet period,
