@@ -102,11 +102,12 @@ class RateMonitor:
                 continue
             if rate <= 0.0:
                 withheld.append(name)
-            elif self.requests >= self.settle_requests and runs[name] >= 2:
-                # (two windows short in a row: not a stream that has just begun)
-                self.accepted_hz[name] = newly[name] = rate
-            else:
+            elif self.requests < self.settle_requests:
                 short.append(name)
+            elif runs[name] >= 2:
+                # (two windows short in a row: not a stream that has just begun, which is
+                # given another window)
+                self.accepted_hz[name] = newly[name] = rate
         plan = RatePlan(False, tuple(short), tuple(withheld), newly)
         if not short and not withheld:
             return plan
