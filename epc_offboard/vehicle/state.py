@@ -182,25 +182,41 @@ class _Sample:
     vehicle_s: float
     received_s: float
     values: tuple[FloatArray, ...]
+    # the same values as plain floats: the gates run on every state message (~500/s), where
+    # numpy on 3- and 4-vectors costs several times more
+    flat: tuple[float, ...] = ()
 
 
 def _position_innovation(held: _Sample, new: _Sample, limits: StateLimits) -> float:
     """How far (m) ``new``'s position lies outside the gate around ``held``'s prediction
-    (<= 0: inside)."""
-    pos, vel = held.values
+    (<= 0: inside). ``flat``: (x, y, z, vx, vy, vz)."""
+    px, py, pz, vx, vy, vz = held.flat
+    nx, ny, nz = new.flat[:3]
     dt_s = new.vehicle_s - held.vehicle_s
-    miss_m = float(np.linalg.norm(new.values[0] - (pos + vel * dt_s)))
+    ex, ey, ez = nx - px - vx * dt_s, ny - py - vy * dt_s, nz - pz - vz * dt_s
     gate_m = limits.max_innovation_m + 0.5 * limits.innovation_accel_m_s2 * dt_s * dt_s
-    return miss_m - gate_m
+    return math.sqrt(ex * ex + ey * ey + ez * ez) - gate_m
 
 
 def _attitude_innovation(held: _Sample, new: _Sample, limits: StateLimits) -> float:
     """How far (rad) ``new``'s attitude lies outside the gate around ``held`` rotated on by
-    its rates (<= 0: inside)."""
-    q, rate = held.values
+    its rates (<= 0: inside), as frames.quat_integrate_body_rate, in floats. ``flat``:
+    (w, x, y, z, rate x, y, z)."""
+    w, x, y, z, rx, ry, rz = held.flat
     dt_s = new.vehicle_s - held.vehicle_s
-    predicted = frames.quat_integrate_body_rate(q, rate, dt_s)
-    dot = min(1.0, abs(float(np.dot(predicted, new.values[0]))))
+    norm = math.sqrt(rx * rx + ry * ry + rz * rz)
+    half = 0.5 * norm * dt_s
+    if abs(half) > 1e-12:
+        c, k = math.cos(half), math.sin(half) / norm
+        bx, by, bz = rx * k, ry * k, rz * k
+        w, x, y, z = (
+            w * c - x * bx - y * by - z * bz,
+            w * bx + x * c + y * bz - z * by,
+            w * by - x * bz + y * c + z * bx,
+            w * bz + x * by - y * bx + z * c,
+        )
+    nw, nx, ny, nz = new.flat[:4]
+    dot = min(1.0, abs(w * nw + x * nx + y * ny + z * nz))
     gate_rad = limits.max_innovation_rad + 0.5 * limits.innovation_ang_accel_rad_s2 * dt_s**2
     return 2.0 * math.acos(dot) - gate_rad
 
@@ -527,7 +543,10 @@ class StateTracker:
         if qw < 0.0:
             qw, qx, qy, qz = -qw, -qx, -qy, -qz
         sample = _Sample(
-            t_s, now, (np.array([qw, qx, qy, qz]), np.array([wx, wy, wz], dtype=np.float64))
+            t_s,
+            now,
+            (np.array([qw, qx, qy, qz]), np.array([wx, wy, wz], dtype=np.float64)),
+            (qw, qx, qy, qz, wx, wy, wz),
         )
         if not self._gated("attitude", self._attitude, sample, _attitude_innovation):
             return False
@@ -559,7 +578,10 @@ class StateTracker:
         if self._position is not None and t_s < self._position.vehicle_s - _ORDER_TOLERANCE_S:
             return False  # valid, but older than what another stream already gave
         sample = _Sample(
-            t_s, now, (np.array(pos, dtype=np.float64), np.array(vel, dtype=np.float64))
+            t_s,
+            now,
+            (np.array(pos, dtype=np.float64), np.array(vel, dtype=np.float64)),
+            (*pos, *vel),
         )
         if not self._gated("position", self._position, sample, _position_innovation):
             return False
