@@ -31,8 +31,10 @@ HOVER_ALT_M = 2.5
 
 
 class DelayRelay:
-    """Datagrams from the SITL to the service leave ``delay_s`` after they came (set at
-    any time; a real queue, FIFO); the service's datagrams go to the SITL at once."""
+    """Datagrams from the SITL to the service leave a delay after they came: from
+    ``start_delay(max_s, ramp_s)`` on, growing from 0 to ``max_s`` over ``ramp_s`` (0: at
+    once; a ramp slower than real time keeps them in order, a real FIFO queue); the
+    service's datagrams go to the SITL at once."""
 
     def __init__(self) -> None:
         self.from_sitl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -41,7 +43,9 @@ class DelayRelay:
         self.to_service.bind(("127.0.0.1", 0))
         self.port = int(self.from_sitl.getsockname()[1])
         self.service_port = self.sitl_port = 0  # set before start()
-        self.delay_s = 0.0
+        self._delay_from_s = math.inf
+        self._max_delay_s = 0.0
+        self._ramp_s = 0.0
         self._queue: list[tuple[float, int, bytes]] = []
         self._seq = 0
         self._stop = threading.Event()
@@ -49,6 +53,20 @@ class DelayRelay:
 
     def start(self) -> None:
         self._thread.start()
+
+    def start_delay(self, max_s: float, ramp_s: float = 0.0) -> float:
+        """Delay from now on; returns now (time.monotonic)."""
+        self._max_delay_s, self._ramp_s = max_s, ramp_s
+        self._delay_from_s = time.monotonic()
+        return self._delay_from_s
+
+    def delay_s(self, now_s: float) -> float:
+        since_s = now_s - self._delay_from_s
+        if since_s < 0.0:
+            return 0.0
+        if self._ramp_s <= 0.0:
+            return self._max_delay_s
+        return min(self._max_delay_s, self._max_delay_s * since_s / self._ramp_s)
 
     def close(self) -> None:
         self._stop.set()
@@ -69,7 +87,8 @@ class DelayRelay:
                 data = sock.recv(65536)
                 if sock is self.from_sitl:
                     self._seq += 1
-                    due = time.monotonic() + self.delay_s
+                    now = time.monotonic()
+                    due = now + self.delay_s(now)
                     heapq.heappush(self._queue, (due, self._seq, data))
                 else:
                     self.from_sitl.sendto(data, ("127.0.0.1", self.sitl_port))
@@ -95,7 +114,14 @@ def wait_phase(rig: Rig, phase: str, settled_s: float, timeout_s: float) -> None
     raise AssertionError(f"service not in {phase} for {settled_s} s:\n{rig.log()}")
 
 
-def test_state_read_late_fails_safe_and_the_vehicle_does_not_climb(tmp_path):
+@pytest.mark.parametrize("ramp_s", [0.0, 2.0], ids=["step", "ramp"])
+def test_state_read_late_fails_safe_and_the_vehicle_does_not_climb(tmp_path, ramp_s):
+    """step: every datagram 1 s late from one instant (a 1 s gap, then old state flowing);
+    ramp: the lateness grows to 1 s over 2 s, with no gap at all (the receipt times say
+    fresh all along). Either way the failsafe must come within 0.1 s of the state read
+    becoming older than max_state_age_s: on the step, max_state_age_s after it (nothing is
+    read for a second); on the ramp, a sample read at t was relayed at r with r + r/2 = t,
+    so it is t/3 old: max_state_age_s x 3 after the ramp began."""
     overrides = {
         "mission": {"duration_s": 120.0, "land_at_end": True},
         "trajectory": {"shape": "hover"},
@@ -115,8 +141,7 @@ def test_state_read_late_fails_safe_and_the_vehicle_does_not_climb(tmp_path):
         with rig:
             rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=120)
             wait_phase(rig, "offboard", settled_s=2.0, timeout_s=60.0)
-            relay.delay_s = DELAY_S
-            delay_started_s = time.monotonic()
+            delay_started_s = relay.start_delay(DELAY_S, ramp_s)
             time.sleep(DELAYED_FOR_S)
             delay_ended_s = time.monotonic()
             code, _ = rig.stop_service()
@@ -130,8 +155,9 @@ def test_state_read_late_fails_safe_and_the_vehicle_does_not_climb(tmp_path):
     assert events, f"no phase change while the state came 1 s late:\n{log}"
     first = events[0]
     assert first["phase"] == "failsafe", events
+    bound_s = max_age_s * (1.0 + ramp_s / DELAY_S) + 0.1
     print(f"failsafe {first['t_s'] - delay_started_s:.3f} s after the delay began: {first}")
-    assert first["t_s"] - delay_started_s <= max_age_s + 0.1, events
+    assert first["t_s"] - delay_started_s <= bound_s, events
     # while every sample stays a second old, nothing is flown again
     flying = {"streaming", "offboard_requested", "offboard", "preflight"}
     assert not [e for e in events if e["phase"] in flying], events
