@@ -81,6 +81,23 @@ def test_the_vehicles_own_estimator_reset_is_adopted():
     assert tr.counters["state_conflicts"] == 0
 
 
+def test_an_estimator_reset_with_a_trailing_sample_of_the_old_estimate_is_adopted():
+    """PX4's ODOMETRY trails LOCAL_POSITION_NED by a few ms: one sample of the estimate
+    before the reset may come after the first one after it. Not a second stream."""
+    tr = StateTracker(system_id=1)
+    for k in range(100):
+        hover_tick(tr, 10 * k)
+    jumped = (3.0, -1.0, -2.5)
+    tr.handle(lpos(1000, jumped, STILL), received_s=101.0)
+    tr.handle(lpos(998, HOVER, STILL), received_s=101.001)  # the old estimate, trailing
+    for k in range(101, 110):
+        tr.handle(lpos(10 * k, jumped, STILL), received_s=100.0 + k * 0.01)
+    state = tr.snapshot()
+    assert state is not None
+    np.testing.assert_allclose(state.pos_ned_m, jumped, atol=1e-9)
+    assert tr.counters["state_conflicts"] == 0
+
+
 def test_a_resync_after_a_forged_time_jump_keeps_the_last_good_state():
     """The resync wiped the state and the supervisor failed safe 3 ms later with "state
     stale (inf s)". Now the held state is kept, on the new timeline, with its true age."""

@@ -224,7 +224,7 @@ def _attitude_innovation(held: _Sample, new: _Sample, limits: StateLimits) -> fl
 @dataclass
 class _Gate:
     """One kind of state's innovation gate: the run of rejected samples that agree with
-    each other, and whether any sample was accepted since it began."""
+    each other, and whether a sample measured after its first was accepted."""
 
     run: list[_Sample] = field(default_factory=list)
     accepted_since: bool = False
@@ -605,7 +605,10 @@ class StateTracker:
         gate = self._gates.setdefault(kind, _Gate())
         limits = self.limits
         if held is None or innovation(held, new, limits) <= 0.0:
-            gate.accepted_since = True
+            # (one measured before the run began is no second stream: PX4's ODOMETRY
+            # trails LOCAL_POSITION_NED, and may still say the estimate before its reset)
+            if gate.run and new.vehicle_s > gate.run[0].vehicle_s:
+                gate.accepted_since = True
             return True
         self.counters["rejected_innovation"] += 1
         if gate.run and innovation(gate.run[-1], new, limits) <= 0.0:
