@@ -70,7 +70,10 @@ class Rig:
         lockstep: bool = True,
         speedup: float = 4.0,
         service_env: dict[str, str] | None = None,
+        sitl_offboard_port: int | None = None,
     ) -> None:
+        """``sitl_offboard_port``: where the SITL sends the service's telemetry, when not
+        straight to the service's port (a relay between them)."""
         self.tmp = tmp
         self.offboard_port = free_port()
         self.sitl_port = free_port()
@@ -96,7 +99,8 @@ class Rig:
         self.config_path = tmp / "service.toml"
         self.config_path.write_text(dump_toml(self.config))
         self.sitl_args = [
-            "--listen-port", str(self.sitl_port), "--offboard-port", str(self.offboard_port),
+            "--listen-port", str(self.sitl_port),
+            "--offboard-port", str(sitl_offboard_port or self.offboard_port),
             "--gcs-port", str(self.gcs_port), "--groundtruth", str(tmp / "groundtruth.csv"),
             "--speedup", str(speedup), *sitl_args,
         ]  # fmt: skip

@@ -263,6 +263,16 @@ def test_flight_warnings_name_what_went_wrong_and_leave_out_zeros():
     assert flight_warnings({}, {}) == {}
 
 
+def test_flight_warnings_name_what_the_state_tracker_would_not_believe():
+    stats = {"state": {"heartbeat_flaps": 1, "state_conflicts": 2, "rejected_innovation": 40,
+                       "timesync_accepted": 9}}  # fmt: skip
+    assert flight_warnings(stats, {}) == {
+        "heartbeat flaps (forged heartbeats?)": 1,
+        "contradicting state streams (forged telemetry?)": 2,
+        "state samples far from the prediction (not flown)": 40,
+    }
+
+
 def test_sitl_counters_are_read_from_its_closing_line(tmp_path):
 
     log = tmp_path / "sitl.log"

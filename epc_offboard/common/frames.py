@@ -82,6 +82,19 @@ def quat_multiply(p: npt.ArrayLike, q: npt.ArrayLike) -> FloatArray:
     )
 
 
+def quat_integrate_body_rate(q: FloatArray, rate_frd_rad_s: FloatArray, dt_s: float) -> FloatArray:
+    """``q`` (4,) rotated on by constant body rates (3,) FRD for ``dt_s``: the exact solution
+    of q' = 1/2 q ⊗ [0, w], ``q ⊗ [cos(|w| dt/2), sin(|w| dt/2) w/|w|]``; unit, w >= 0."""
+    wx, wy, wz = (float(v) for v in rate_frd_rad_s)
+    norm = math.sqrt(wx * wx + wy * wy + wz * wz)
+    half = 0.5 * norm * dt_s
+    if half < 1e-12:
+        return np.array(q, dtype=np.float64)
+    k = math.sin(half) / norm
+    out = quat_multiply(q, (math.cos(half), wx * k, wy * k, wz * k))
+    return -out if out[0] < 0.0 else out
+
+
 def quat_conjugate(q: npt.ArrayLike) -> FloatArray:
     qa = np.asarray(q, dtype=np.float64)
     return np.array([qa[0], -qa[1], -qa[2], -qa[3]])

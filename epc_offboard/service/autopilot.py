@@ -41,6 +41,7 @@ log = logging.getLogger("epc_offboard.service")
 
 _RATE_WINDOW_S = 2.0  # received rates are measured over windows this long
 _GLOBAL_MAX_AGE_S = 1.0  # GLOBAL_POSITION_INT older than this is not used
+_MAX_TIMESYNC_PENDING = 8  # TIMESYNC requests awaiting an answer (older ones forgotten)
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,9 @@ class Autopilot:
         self.last_rx_wall_s = -math.inf  # time.monotonic() of the last message
         self._global: GlobalFix | None = None
         self._params_requested_at = -math.inf
-        self._rates_requested_at = -math.inf
+        self._withheld_logged: set[str] = set()  # streams whose absence was logged
+        self._timesync_sent: dict[int, float] = {}  # ts1 (ns) -> local send time, bounded
+        self._timesync_at = -math.inf
         tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
         key = load_signing_key(cfg.link.signing_key_file) if cfg.link.signing_key_file else None
         self.link = MavlinkLink(
@@ -123,6 +126,8 @@ class Autopilot:
             amsl, rel = msg.alt * 1e-3, msg.relative_alt * 1e-3
             if math.isfinite(amsl) and math.isfinite(rel) and abs(rel) < 1e5:
                 self._global = GlobalFix(msg.lat, msg.lon, amsl, rel, now)
+        elif mtype == "TIMESYNC":
+            self._on_timesync(msg, now)
         elif mtype == "EXTENDED_SYS_STATE":
             self.landed_state = int(msg.landed_state)
         elif mtype == "PARAM_VALUE" and msg.get_srcSystem() == self.target.system_id:
@@ -136,6 +141,14 @@ class Autopilot:
                     "command %d answered with result %d (%d refusals so far)",
                     msg.command, msg.result, self.counters["acks_refused"],
                 )  # fmt: skip
+
+    def _on_timesync(self, msg: Any, now: float) -> None:
+        """An answer to one of our TIMESYNC requests (tc1 != 0, ts1 one we sent) maps the
+        autopilot's clock to ours; its own requests (tc1 = 0) and unknown ts1 are not."""
+        sent_s = self._timesync_sent.pop(int(msg.ts1), None)
+        if msg.tc1 == 0 or sent_s is None or self.clock.vehicle_time:
+            return
+        self.tracker.clock.timesync(sent_s, msg.tc1 * 1e-9, now)
 
     def _adopt_dialect(self, autopilot: int) -> None:
         """The dialect from HEARTBEAT.autopilot (link.autopilot "auto"), once; a forced one
@@ -271,32 +284,64 @@ class Autopilot:
         self.send_command(cmd)
 
     def manage(self, now: float, link_up: bool) -> None:
-        """Each supervisor step: the message rates, then the parameters."""
+        """Each supervisor step: the message rates, the parameters, the clock."""
         self._manage_rates(now, link_up)
         self._manage_params(now, link_up)
+        self._manage_timesync(now, link_up)
+
+    def _manage_timesync(self, now: float, link_up: bool) -> None:
+        """A TIMESYNC request every state_limits.timesync_period_s in real time (lockstep
+        runs on the autopilot's clock itself: nothing to map, nothing sent)."""
+        period = self.cfg.state_limits.timesync_period_s
+        if not link_up or period <= 0.0 or self.clock.vehicle_time:
+            return
+        if now - self._timesync_at < period:
+            return
+        self._timesync_at = now
+        sent = self._timesync_sent
+        if len(sent) >= _MAX_TIMESYNC_PENDING:
+            del sent[next(iter(sent))]  # unanswered: the oldest is forgotten
+        sent_s = self.clock.now_s()  # as close to the send as the round trip's start can be
+        msg = commands.timesync_request(sent_s)
+        sent[int(msg.ts1)] = sent_s
+        self.link.send(msg)
 
     def _manage_rates(self, now: float, link_up: bool) -> None:
-        """Ask for the loops' rates when the link comes up, then again (at most every
-        retry_period_s) while a measured stream falls short."""
+        """Ask for the loops' rates when the link comes up, again while a measured stream
+        falls short, a few times, then accept what the autopilot grants (logged once); a
+        stream not sent at all is asked for less and less often (RateMonitor.plan)."""
         measured = self.rates.sample(now, _RATE_WINDOW_S)
         if not link_up:
             return
-        first = self._rates_requested_at == -math.inf
-        short = measured and self.rates.short()
-        if (first or short) and now - self._rates_requested_at >= self.cfg.offboard.retry_period_s:
-            if short:
-                self.counters["rate_requests_repeated"] += 1
+        rates = self.rates
+        plan = rates.plan(now, self.cfg.offboard.retry_period_s, measured=measured)
+        for name, hz in plan.accepted_hz.items():
+            log.info(
+                "%s: accepting %.0f Hz, what the autopilot grants (%.0f Hz asked for, %d "
+                "requests)", name, hz, rates.wanted_hz[name], rates.requests,
+            )  # fmt: skip
+        if not plan.ask:
+            return
+        if plan.short or plan.withheld:
+            self.counters["rate_requests_repeated"] += 1
+        if plan.short:
+            log.info(
+                "message rates short of the loops' (%s): asking again (%d of %d)",
+                ", ".join(f"{k} {rates.rates_hz[k]:.0f} Hz" for k in plan.short),
+                rates.requests, rates.settle_requests,
+            )  # fmt: skip
+        for name in plan.withheld:
+            if name not in self._withheld_logged:
+                self._withheld_logged.add(name)
                 log.info(
-                    "message rates short of the loops' (%s): asking again",
-                    ", ".join(f"{k} {self.rates.rates_hz[k]:.0f} Hz" for k in short),
-                )
-            self._rates_requested_at = now
-            loops = self.cfg.loops
-            extra = () if self.dialect is None else self.dialect.extra_streams_hz
-            for cmd in commands.rate_requests(
-                loops.attitude_rate_hz, loops.position_rate_hz, extra
-            ):
-                self.send_command(cmd)
+                    "%s not streamed (ArduPilot sends no position until its EKF has an "
+                    "origin): asking again less and less often, up to every %.0f s",
+                    name, rates.max_backoff_s,
+                )  # fmt: skip
+        loops = self.cfg.loops
+        extra = () if self.dialect is None else self.dialect.extra_streams_hz
+        for cmd in commands.rate_requests(loops.attitude_rate_hz, loops.position_rate_hz, extra):
+            self.send_command(cmd)
 
     def _manage_params(self, now: float, link_up: bool) -> None:
         """Read the dialect's parameters at link-up; again (every retry_period_s) while one
@@ -319,4 +364,6 @@ class Autopilot:
             "autopilot": None if self.dialect is None else self.dialect.name,
             "attitude_mode": self.attitude_mode,
             "params": dict(self.params),
+            "rate_requests": self.rates.requests,
+            "rates_accepted_hz": {k: round(v, 1) for k, v in self.rates.accepted_hz.items()},
         }

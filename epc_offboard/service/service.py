@@ -145,8 +145,14 @@ class Service:
                 refs.start_trajectory(state, out.altitude_m, self.clock.now_s())
             await self.loops.wait(now + period)
 
+    def _state_at(self, now_s: float) -> VehicleState | None:
+        """The state predicted to loop time ``now_s`` (the autopilot's clock mapped to ours
+        in real time: the prediction spans how old the samples really are)."""
+        tracker, lockstep = self.tracker, self.clock.vehicle_time
+        return tracker.snapshot(tracker.vehicle_time_at(now_s, vehicle_clock=lockstep))
+
     async def _position_step(self, tick: Tick) -> bool:
-        state = self.tracker.snapshot()
+        state = self._state_at(tick.start_s)
         # misses solved by the worker join the library here; in lockstep the tick waits
         # for the solve in flight, so it joins at the same tick every run
         self.misses.pump(wait=self.clock.vehicle_time)
@@ -175,7 +181,7 @@ class Service:
         return out
 
     async def _attitude_step(self, tick: Tick) -> bool:
-        state = self.tracker.snapshot()
+        state = self._state_at(tick.start_s)
         if self.clock.vehicle_time:
             # lockstep: the answer releases the simulator's next tick, so it goes last,
             # after whatever the other tasks woken at this tick send (commands)
@@ -302,7 +308,7 @@ class Service:
             "gc": self.gc_monitor.stats(),
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
-            "state": dict(self.tracker.counters),
+            "state": {**self.tracker.counters, **self.tracker.clock.counters},
             "sharing": self.sharing.stats() if self.sharing is not None else {},
         }
 

@@ -93,8 +93,9 @@ class Supervisor:
         hb = None if silent or autopilot.dialect is None else self.tracker.heartbeat
         if autopilot.dialect is not None:
             self.sm.dialect = autopilot.dialect  # how the heartbeat's modes read
-        age = self.tracker.age_s(now, vehicle_clock=self.clock.vehicle_time)
-        state = self.tracker.snapshot()
+        lockstep = self.clock.vehicle_time
+        age = self.tracker.age_s(now, vehicle_clock=lockstep)
+        state = self.tracker.snapshot(self.tracker.vehicle_time_at(now, vehicle_clock=lockstep))
         fix = autopilot.fresh_global()
         out = self.sm.step(
             Inputs(

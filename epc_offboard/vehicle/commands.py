@@ -8,7 +8,8 @@ messages out (pymavlink's generated message classes; the link sends them).
 * :func:`attitude_target` — SET_ATTITUDE_TARGET: rates bounded, never a NaN (a non-finite
   setpoint is replaced by the caller's level hover and reported);
 * :func:`position_target` — SET_POSITION_TARGET_LOCAL_NED, only ever finite;
-* :func:`system_time` — the lockstep answer of a tick that sends no setpoint.
+* :func:`system_time` — the lockstep answer of a tick that sends no setpoint;
+* :func:`timesync_request` — TIMESYNC asking the autopilot for its clock.
 
 Every message is stamped with :func:`stamp_ms`, the vehicle time of the state it answers.
 """
@@ -165,3 +166,9 @@ def system_time(time_s: float) -> mavlink.MAVLink_message:
     """SYSTEM_TIME stamped with the tick's vehicle time: the lockstep answer of a tick that
     sends no setpoint (time_unix_usec 0: no autopilot takes it as a clock)."""
     return mavlink.MAVLink_system_time_message(0, stamp_ms(time_s))
+
+
+def timesync_request(sent_s: float) -> mavlink.MAVLink_message:
+    """TIMESYNC request (tc1 = 0) carrying our send time in ns as ts1, which the autopilot
+    echoes beside its own time (tc1, ns since its boot: the time_boot_ms clock)."""
+    return mavlink.MAVLink_timesync_message(0, round(sent_s * 1e9))

@@ -3,8 +3,11 @@
 The tracker is fed decoded pymavlink messages by the service and keeps the newest *valid*
 sample of each kind. A sample with a NaN, an out-of-range value or a non-unit quaternion is
 rejected, counted by reason, and never replaces a good one. Two times are kept per sample:
-the vehicle's own timestamp (``time_boot_ms``/``time_usec``; drives the lockstep clock) and
-the local receipt time (``time.monotonic``; drives staleness checks in real operation).
+the vehicle's own timestamp (``time_boot_ms``/``time_usec``) and the local receipt time
+(``time.monotonic``). Age is judged by when a sample was MEASURED: in lockstep the stamp is
+the clock; in real operation the stamp is mapped to the local clock (``timesync.py``: the
+fastest delivery seen, and MAVLink TIMESYNC round trips), so a sample read late is old
+whatever its receipt time says.
 
 PX4 sends LOCAL_POSITION_NED and ODOMETRY at only 30 Hz by default while the position loop
 runs at 100 Hz, so ``snapshot`` predicts the position forward at constant velocity to the
@@ -13,11 +16,12 @@ requested time, up to ``max_predict_s``, and reports how old the underlying samp
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
-from collections import Counter
-from collections.abc import Sequence
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +29,7 @@ import numpy as np
 
 from epc_offboard.common import frames
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.vehicle.timesync import AutopilotClock
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +45,7 @@ _NOT_AUTOPILOT_TYPES = frozenset(
 )
 _MAV_TYPE_END = 49
 _FLAP_LOG_PERIOD_S = 10.0
+_HEARD_KEPT = 16  # heartbeats kept to judge forgeries: a period's worth under a flood
 _MAX_CLAIMS = 8  # changes being confirmed at once; past it the oldest claim is forgotten
 # time_boot_ms is truncated to whole ms while ODOMETRY's time_usec is not: samples of one
 # instant can differ by up to a millisecond and must not count as out of order.
@@ -83,21 +89,55 @@ class StateLimits:
     # the tracker's timeline (an autopilot reboot restarting time_boot_ms at 0, or a bad
     # stamp accepted first) move the tracker to their timeline: a resync, never a lockout.
     resync_samples: int = 5
-    # Heartbeats: a mode or arming change that comes sooner than heartbeat_min_interval_s
-    # (half PX4's 1 Hz period) after the heartbeat before it, or is undone within
-    # heartbeat_flap_window_s (a period plus jitter), is a flap: a forged heartbeat between
-    # two genuine ones. Changes are adopted at once until a flap (an early one is held
-    # back, an undoing adopted); for heartbeat_calm_s after the last, a change is adopted
-    # only once it has been claimed for heartbeat_confirm_s (PX4's heartbeat period) with
-    # the mode held not claimed meanwhile: while the vehicle keeps sending the mode held,
-    # no forgery lasts that long; a genuine change then lags a heartbeat, on a calm link none.
-    heartbeat_min_interval_s: float = 0.5
-    heartbeat_flap_window_s: float = 1.5
+    # Heartbeats. A genuine autopilot sends one every heartbeat_period_s (PX4, ArduPilot:
+    # 1 Hz; regular ones arrive heartbeat_jitter_s early or late at most, in order), and
+    # ArduPilot one more at once on every mode change. Every change is adopted at once on a
+    # calm link. A flap is A, B, A where the two A are a period apart (within the jitter)
+    # and nothing follows the second A for a period less the jitter: B lies inside one
+    # period of the schedule, and the schedule contradicts it, with no heartbeat of its
+    # own (ArduPilot's) changing back: a forged heartbeat between two genuine ones. No
+    # genuine sequence is one: PX4's heartbeats are a period apart, so A, B, A spans two;
+    # an ArduPilot change back to A comes with its own heartbeat, and the regular one
+    # follows it within the period. Judged when the heartbeat after the second A comes.
+    # Four heartbeats within a period less the jitter (a regular one and three mode
+    # changes: no autopilot changes modes that fast) are a flood of forgeries: a flap too.
+    # For heartbeat_calm_s after a flap, a change is adopted only once it has been claimed
+    # for heartbeat_confirm_s (a period) with the mode held not claimed meanwhile: while
+    # the vehicle keeps sending the mode held, no forgery lasts that long.
+    heartbeat_period_s: float = 1.0
+    heartbeat_jitter_s: float = 0.3
     heartbeat_calm_s: float = 10.0
     heartbeat_confirm_s: float = 1.0
     # The autopilot's (MAV_TYPE, MAV_AUTOPILOT) is learnt from its first heartbeat, and
     # learnt again only after this long without one.
     heartbeat_relearn_s: float = 5.0
+    # The autopilot's clock on ours (timesync.py): how fast the offset may drift without
+    # new evidence (s/s; crystals drift 1e-4), the longest TIMESYNC round trip trusted,
+    # and how often one is asked for in real time (0: never; lockstep never does).
+    max_clock_drift: float = 1.0e-3
+    timesync_max_rtt_s: float = 0.05
+    timesync_period_s: float = 0.5
+    # Innovation gates, as an EKF's: a position further than max_innovation_m (plus what
+    # innovation_accel_m_s2 allows over the gap) from where the last sample predicts it, or
+    # an attitude further than max_innovation_rad (plus innovation_ang_accel_rad_s2's) from
+    # the last one rotated on by its rates, is not flown. resync_samples rejected samples in
+    # a row that agree with each other, with none accepted between, are the vehicle's own
+    # estimator reset: adopted. With accepted ones between, two streams contradict each
+    # other under one system id (forgery): counted, warned once, the held one flown.
+    max_innovation_m: float = 1.0
+    innovation_accel_m_s2: float = 20.0
+    max_innovation_rad: float = 0.35
+    innovation_ang_accel_rad_s2: float = 100.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.max_clock_drift < 0.1:
+            raise ValueError(f"max_clock_drift must be in [0, 0.1), got {self.max_clock_drift}")
+        if self.timesync_max_rtt_s <= 0.0 or self.timesync_period_s < 0.0:
+            raise ValueError("timesync_max_rtt_s must be > 0 and timesync_period_s >= 0")
+        for name in ("max_innovation_m", "innovation_accel_m_s2", "max_innovation_rad",
+                     "innovation_ang_accel_rad_s2"):  # fmt: skip
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -142,6 +182,52 @@ class _Sample:
     vehicle_s: float
     received_s: float
     values: tuple[FloatArray, ...]
+    # the same values as plain floats: the gates run on every state message (~500/s), where
+    # numpy on 3- and 4-vectors costs several times more
+    flat: tuple[float, ...] = ()
+
+
+def _position_innovation(held: _Sample, new: _Sample, limits: StateLimits) -> float:
+    """How far (m) ``new``'s position lies outside the gate around ``held``'s prediction
+    (<= 0: inside). ``flat``: (x, y, z, vx, vy, vz)."""
+    px, py, pz, vx, vy, vz = held.flat
+    nx, ny, nz = new.flat[:3]
+    dt_s = new.vehicle_s - held.vehicle_s
+    ex, ey, ez = nx - px - vx * dt_s, ny - py - vy * dt_s, nz - pz - vz * dt_s
+    gate_m = limits.max_innovation_m + 0.5 * limits.innovation_accel_m_s2 * dt_s * dt_s
+    return math.sqrt(ex * ex + ey * ey + ez * ez) - gate_m
+
+
+def _attitude_innovation(held: _Sample, new: _Sample, limits: StateLimits) -> float:
+    """How far (rad) ``new``'s attitude lies outside the gate around ``held`` rotated on by
+    its rates (<= 0: inside), as frames.quat_integrate_body_rate, in floats. ``flat``:
+    (w, x, y, z, rate x, y, z)."""
+    w, x, y, z, rx, ry, rz = held.flat
+    dt_s = new.vehicle_s - held.vehicle_s
+    norm = math.sqrt(rx * rx + ry * ry + rz * rz)
+    half = 0.5 * norm * dt_s
+    if abs(half) > 1e-12:
+        c, k = math.cos(half), math.sin(half) / norm
+        bx, by, bz = rx * k, ry * k, rz * k
+        w, x, y, z = (
+            w * c - x * bx - y * by - z * bz,
+            w * bx + x * c + y * bz - z * by,
+            w * by - x * bz + y * c + z * bx,
+            w * bz + x * by - y * bx + z * c,
+        )
+    nw, nx, ny, nz = new.flat[:4]
+    dot = min(1.0, abs(w * nw + x * nx + y * ny + z * nz))
+    gate_rad = limits.max_innovation_rad + 0.5 * limits.innovation_ang_accel_rad_s2 * dt_s**2
+    return 2.0 * math.acos(dot) - gate_rad
+
+
+@dataclass
+class _Gate:
+    """One kind of state's innovation gate: the run of rejected samples that agree with
+    each other, and whether a sample measured after its first was accepted."""
+
+    run: list[_Sample] = field(default_factory=list)
+    accepted_since: bool = False
 
 
 @dataclass
@@ -190,13 +276,20 @@ class StateTracker:
     _candidates: dict[str, list[list[_Timeline]]] = field(default_factory=dict)
     _kind: tuple[int, int] | None = None  # the autopilot's (MAV_TYPE, MAV_AUTOPILOT)
     _mode: tuple[bool, int] | None = None  # (armed, custom_mode) of the heartbeat held
-    _mode_before: tuple[bool, int] | None = None  # what the last adopted change replaced
-    _mode_changed_s: float = -math.inf
-    _mode_heard_s: float = -math.inf  # the last heartbeat accepted
+    # the last heartbeats heard from the autopilot (held or not): (time, mode)
+    _heard: deque[tuple[float, tuple[bool, int]]] = field(
+        default_factory=lambda: deque(maxlen=_HEARD_KEPT)
+    )
     _flap_s: float = -math.inf  # the last flap: changes need confirming until calm again
     # changes claimed since the mode held was last claimed: mode -> first claimed (bounded)
     _claims: dict[tuple[bool, int], float] = field(default_factory=dict)
     _flap_logged_s: float = -math.inf
+    clock: AutopilotClock = field(init=False)  # the autopilot's stamps on the local clock
+    _gates: dict[str, _Gate] = field(default_factory=dict)  # "attitude", "position"
+    _conflict_logged: bool = False
+
+    def __post_init__(self) -> None:
+        self.clock = AutopilotClock(self.limits.max_clock_drift, self.limits.timesync_max_rtt_s)
 
     def handle(self, msg: Any, received_s: float | None = None) -> bool:
         """Consume one decoded message; True when it updated the state."""
@@ -252,34 +345,65 @@ class StateTracker:
             self.counters["heartbeat_ignored"] += 1
             return False
         mode = (bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED), int(msg.custom_mode))
+        self._heard.append((now, mode))
+        if self._forged_between() or self._flooded():
+            self._flapped(now)
+        limits = self.limits
         held, claims = self._mode, self._claims
         if held is None or mode == held:
             if claims:  # changes held back, contradicted: still flapping
                 self._flapped(now)
                 claims.clear()
-            self._mode, self._mode_heard_s = mode, now
+            self._mode = mode
             return True
-        limits = self.limits
-        calm = now - self._flap_s >= limits.heartbeat_calm_s
-        # an undoing restores what the vehicle said before the forgery: adopted
-        undone = (
-            calm
-            and mode == self._mode_before
-            and now - self._mode_changed_s <= limits.heartbeat_flap_window_s
-        )
-        if calm and (undone or now - self._mode_heard_s < limits.heartbeat_min_interval_s):
-            self._flapped(now)
-        if not undone and now - self._flap_s < limits.heartbeat_calm_s:
+        if now - self._flap_s < limits.heartbeat_calm_s:
             first_s = claims.setdefault(mode, now)
             if now - first_s < limits.heartbeat_confirm_s:
                 if len(claims) > _MAX_CLAIMS:
                     del claims[next(iter(claims))]
                 self.counters["heartbeat_changes_held"] += 1
                 return False
-        self._mode_before, self._mode, self._mode_changed_s = held, mode, now
-        self._mode_heard_s = now
+        self._mode = mode
         claims.clear()
         return True
+
+    def _flooded(self) -> bool:
+        """Whether four heartbeats came within a period less the jitter: one regular and
+        three mode changes, more than any autopilot makes (a flood of forgeries)."""
+        heard = self._heard
+        if len(heard) < 4:
+            return False
+        times = [heard[k][0] for k in range(-4, 0)]
+        if any(b <= a for a, b in itertools.pairwise(times)):
+            # a clock that did not move is no evidence: lockstep's vehicle time stands still
+            # until state streams (the simulator repeats its heartbeat meanwhile)
+            return False
+        limits = self.limits
+        return times[-1] - times[0] < limits.heartbeat_period_s - limits.heartbeat_jitter_s
+
+    def _forged_between(self) -> bool:
+        """Whether the heartbeats heard show a forgery: h0 says A after a quiet period,
+        those after it, all inside the period, say other modes, then h2 says A a period
+        after h0, and the newest came a period less the jitter or more after h2 (see
+        StateLimits)."""
+        heard = list(self._heard)
+        if len(heard) < 4:
+            return False
+        limits = self.limits
+        period, jitter = limits.heartbeat_period_s, limits.heartbeat_jitter_s
+        quiet = period - jitter
+        t3, _ = heard[-1]
+        t2, m2 = heard[-2]
+        if t3 - t2 < quiet or heard[-3][1] == m2:
+            return False
+        for k in range(len(heard) - 3, -1, -1):
+            t0, m0 = heard[k]
+            if m0 != m2:
+                continue
+            run_ok = heard[k + 1][0] - t0 > 0.0 and heard[-3][0] - t0 < quiet
+            quiet_before = k == 0 or t0 - heard[k - 1][0] >= quiet
+            return run_ok and quiet_before and abs(t2 - t0 - period) <= jitter
+        return False
 
     def _from_autopilot(self, msg: Any, now: float) -> bool:
         if self.component_id and msg.get_srcComponent() != self.component_id:
@@ -367,8 +491,17 @@ class StateTracker:
         )  # fmt: skip
         self._timelines = {stream: _Timeline(t_s, now)}
         self._candidates.clear()
-        self._attitude = self._position = None
+        # The state held is kept, re-stamped on the new timeline where it was measured by
+        # our clock: its age goes on, nothing is wiped (a wiped state failed safe 3 ms after
+        # a forged time jump: "state stale (inf s)"), and the new timeline's samples must
+        # pass the innovation gates against it.
+        for sample in (self._attitude, self._position):
+            if sample is not None:
+                measured = self.clock.to_local(sample.vehicle_s, now)
+                local = sample.received_s if measured is None else measured
+                sample.vehicle_s = t_s - (now - local)
         self.vehicle_time_s = t_s
+        self.clock.reset()  # stamps of the old timeline say nothing of the new one's offset
         return True
 
     def _quat_norm(self, q: Sequence[float]) -> float | None:
@@ -409,10 +542,17 @@ class StateTracker:
         qw, qx, qy, qz = (c / norm for c in q)
         if qw < 0.0:
             qw, qx, qy, qz = -qw, -qx, -qy, -qz
-        self._attitude = _Sample(
-            t_s, now, (np.array([qw, qx, qy, qz]), np.array([wx, wy, wz], dtype=np.float64))
+        sample = _Sample(
+            t_s,
+            now,
+            (np.array([qw, qx, qy, qz]), np.array([wx, wy, wz], dtype=np.float64)),
+            (qw, qx, qy, qz, wx, wy, wz),
         )
+        if not self._gated("attitude", self._attitude, sample, _attitude_innovation):
+            return False
+        self._attitude = sample
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
+        self.clock.observe(t_s, now)
         return True
 
     def _set_position(
@@ -437,21 +577,81 @@ class StateTracker:
             return False
         if self._position is not None and t_s < self._position.vehicle_s - _ORDER_TOLERANCE_S:
             return False  # valid, but older than what another stream already gave
-        self._position = _Sample(
-            t_s, now, (np.array(pos, dtype=np.float64), np.array(vel, dtype=np.float64))
+        sample = _Sample(
+            t_s,
+            now,
+            (np.array(pos, dtype=np.float64), np.array(vel, dtype=np.float64)),
+            (*pos, *vel),
         )
+        if not self._gated("position", self._position, sample, _position_innovation):
+            return False
+        self._position = sample
         self.vehicle_time_s = max(self.vehicle_time_s, t_s)
+        self.clock.observe(t_s, now)
         return True
 
+    def _gated(
+        self,
+        kind: str,
+        held: _Sample | None,
+        new: _Sample,
+        innovation: Callable[[_Sample, _Sample, StateLimits], float],
+    ) -> bool:
+        """Whether ``new`` may replace ``held``: inside the innovation gate around the held
+        sample's prediction, or the last of a run of rejected samples that agree with each
+        other with none accepted between (the vehicle's estimator reset). Rejections and
+        conflicts (a run with accepted samples between: two streams under one id) counted;
+        a conflict warned once."""
+        gate = self._gates.setdefault(kind, _Gate())
+        limits = self.limits
+        if held is None or innovation(held, new, limits) <= 0.0:
+            # (one measured before the run began is no second stream: PX4's ODOMETRY
+            # trails LOCAL_POSITION_NED, and may still say the estimate before its reset)
+            if gate.run and new.vehicle_s > gate.run[0].vehicle_s:
+                gate.accepted_since = True
+            return True
+        self.counters["rejected_innovation"] += 1
+        if gate.run and innovation(gate.run[-1], new, limits) <= 0.0:
+            gate.run.append(new)
+        else:
+            gate.run, gate.accepted_since = [new], False
+        if len(gate.run) < limits.resync_samples:
+            return False
+        two_streams = gate.accepted_since
+        gate.run, gate.accepted_since = [], False
+        if not two_streams:
+            self.counters["estimator_resets"] += 1
+            log.warning("%s jumped and stayed: the vehicle's estimator reset, adopted", kind)
+            return True
+        self.counters["state_conflicts"] += 1
+        if not self._conflict_logged:
+            self._conflict_logged = True
+            log.warning(
+                "two %s streams contradict each other under system id %d: flying the one "
+                "that agrees with the vehicle's motion; forged telemetry? MAVLink signing "
+                "(link.signing_key_file) stops it", kind, self.system_id,
+            )  # fmt: skip
+        return False
+
     def age_s(self, now_s: float, *, vehicle_clock: bool) -> float:
-        """Age of the older of the two samples: by vehicle time or by local receipt time."""
+        """Age of the older of the two samples since it was MEASURED: ``now_s`` is vehicle
+        time (lockstep), or local time, to which the sample's stamp is mapped (a sample
+        read late is old, whatever its receipt time)."""
         if self._attitude is None or self._position is None:
             return math.inf
-        if vehicle_clock:
-            oldest = min(self._attitude.vehicle_s, self._position.vehicle_s)
-        else:
-            oldest = min(self._attitude.received_s, self._position.received_s)
+        oldest = min(self._attitude.vehicle_s, self._position.vehicle_s)
+        if not vehicle_clock:
+            measured = self.clock.to_local(oldest, now_s)
+            if measured is None:  # (no mapping: cannot happen once a sample is held)
+                measured = min(self._attitude.received_s, self._position.received_s)
+            oldest = measured
         return max(0.0, now_s - oldest)
+
+    def vehicle_time_at(self, now_s: float, *, vehicle_clock: bool) -> float | None:
+        """The vehicle time the state should be predicted to at loop time ``now_s``: in
+        lockstep None (the newest sample's time, as the clock is), else ``now_s`` on the
+        autopilot's clock (None before any sample)."""
+        return None if vehicle_clock else self.clock.to_autopilot(now_s)
 
     def snapshot(self, at_vehicle_s: float | None = None) -> VehicleState | None:
         """The state predicted to vehicle time ``at_vehicle_s`` (default: newest sample time).
@@ -464,15 +664,20 @@ class StateTracker:
         q, rate = self._attitude.values
         pos, vel = self._position.values
         dt_pos = t - self._position.vehicle_s
-        # Constant-velocity prediction over the gap between position samples, never further
-        # than max_predict_s: beyond that the sample is stale and the service must hold.
-        dt_pred = min(max(dt_pos, 0.0), self.limits.max_predict_s)
+        dt_att = t - self._attitude.vehicle_s
+        # Constant-velocity prediction over the gap between position samples, and the
+        # attitude rotated on by the measured body rates over the gap between attitude
+        # samples (PX4 gives ~123 Hz to a 200 Hz loop), never further than max_predict_s:
+        # beyond that the sample is stale and the service must hold.
+        horizon = self.limits.max_predict_s
+        dt_pred = min(max(dt_pos, 0.0), horizon)
+        dt_att_pred = min(max(dt_att, 0.0), horizon)
         return VehicleState(
             time_s=t,
             pos_ned_m=pos + vel * dt_pred,
             vel_ned_m_s=vel.copy(),
-            q_ned_frd=q.copy(),
+            q_ned_frd=frames.quat_integrate_body_rate(q, rate, dt_att_pred),
             rate_frd_rad_s=rate.copy(),
             position_age_s=max(dt_pos, 0.0),
-            attitude_age_s=max(t - self._attitude.vehicle_s, 0.0),
+            attitude_age_s=max(dt_att, 0.0),
         )

@@ -48,6 +48,12 @@ _SERVICE_WARNINGS = {
     "heartbeats_other_autopilot": "heartbeats of another autopilot than link.autopilot",
     "realtime_priority_refused": "loops' real-time priority refused (normal scheduling)",
 }
+# the state tracker's (stats.json "state"): what it would not believe
+_STATE_WARNINGS = {
+    "heartbeat_flaps": "heartbeat flaps (forged heartbeats?)",
+    "state_conflicts": "contradicting state streams (forged telemetry?)",
+    "rejected_innovation": "state samples far from the prediction (not flown)",
+}
 _SITL_WARNINGS = {
     "lockstep_timeouts": "SITL lockstep timeouts",
     "offboard_failsafes": "SITL offboard-loss failsafes",
@@ -177,6 +183,8 @@ def flight_warnings(
     of WARNING/ERROR line a process logged (keyed by :attr:`LogKind.key`)."""
     counters = stats.get("counters", {})
     out = {name: int(counters.get(key, 0)) for key, name in _SERVICE_WARNINGS.items()}
+    state = stats.get("state", {})
+    out.update({name: int(state.get(key, 0)) for key, name in _STATE_WARNINGS.items()})
     out["stale-state failsafes"] = sum(
         1
         for e in stats.get("phase_events", [])

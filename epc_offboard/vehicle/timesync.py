@@ -1,0 +1,137 @@
+"""The autopilot's clock on the service's: when was a sample MEASURED, in local time.
+
+A real autopilot never waits for the companion: a service that reads late (a starved CPU,
+a stalled process, a slow link) receives old samples, and judging their age by when they
+were read flies them as fresh (a real PX4 read 2.4 s late climbed to 19.7 m). Each sample
+carries the autopilot's stamp (``time_boot_ms`` / ``time_usec``, seconds since its boot);
+this maps it to the local monotonic clock,
+
+    t_local = t_autopilot + theta        theta: the clock offset, local minus autopilot
+
+from two kinds of evidence (pure bookkeeping, the caller gives every time):
+
+* every sample is an upper bound, ``theta <= received - stamp`` (nothing arrives before it
+  is measured). The smallest over the flight tracks the fastest delivery; the bound may
+  rise only at ``max_drift`` (clock drift), so a delay that appears later, and lasts, is
+  seen as age, not learnt away. A single sample cannot lower it: the bound moves on the
+  larger of two successive samples, so one forged or corrupt stamp does not age every
+  genuine one.
+* MAVLink TIMESYNC (PX4 and ArduPilot answer a request, ``tc1 = 0``, with their time in
+  ``tc1``): a round trip sent at ``t1`` and answered at ``t4`` bounds theta to
+  ``[t1 - tc1, t4 - tc1]``; its midpoint is the estimate. Only round trips shorter than
+  ``max_rtt_s`` are trusted: a service that reads late also reads the answer late, and a
+  long round trip is rejected, so a late service never learns its lateness as offset.
+  A trusted round trip may move theta either way (the autopilot's clock stepped, a
+  simulator fell behind real time and re-anchored), and restarts the stream bound from it.
+
+The estimate is the smaller of the two (the stream bound is a bound: an estimate above it
+would call a sample measured after it arrived). A timeline resync (autopilot reboot: its
+stamps restart) must :meth:`reset` the mapping; until the next sample there is none.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class RoundTrip:
+    """One accepted TIMESYNC round trip, local times in s, ``tc1_s`` the autopilot's."""
+
+    sent_s: float
+    received_s: float
+    tc1_s: float
+
+    @property
+    def rtt_s(self) -> float:
+        return self.received_s - self.sent_s
+
+    @property
+    def offset_s(self) -> float:
+        return 0.5 * (self.sent_s + self.received_s) - self.tc1_s
+
+
+class AutopilotClock:
+    """Maps the autopilot's stamps to local monotonic time (see the module docstring).
+
+    ``max_drift``: how fast (s/s) the offset may grow without new evidence (clock drift:
+    crystals are within 1e-4; the default allows 1e-3). ``max_rtt_s``: the longest TIMESYNC
+    round trip trusted.
+    """
+
+    def __init__(self, max_drift: float = 1.0e-3, max_rtt_s: float = 0.05) -> None:
+        if not (0.0 <= max_drift < 0.1) or max_rtt_s <= 0.0:
+            raise ValueError(f"max_drift {max_drift} must be in [0, 0.1), max_rtt_s > 0")
+        self.max_drift = max_drift
+        self.max_rtt_s = max_rtt_s
+        self.counters = {"timesync_accepted": 0, "timesync_rejected_rtt": 0, "clock_resets": 0}
+        self.reset(count=False)
+
+    def reset(self, *, count: bool = True) -> None:
+        """Forget everything (the autopilot's timeline restarted)."""
+        self._bound_s = math.inf  # the stream's upper bound on theta, at _bound_at_s
+        self._bound_at_s = 0.0
+        self._last_delay_s = math.inf  # received - stamp of the previous sample
+        self._sync: RoundTrip | None = None
+        if count:
+            self.counters["clock_resets"] += 1
+
+    @property
+    def synced(self) -> bool:
+        return self._sync is not None
+
+    @property
+    def last_round_trip(self) -> RoundTrip | None:
+        return self._sync
+
+    def observe(self, stamp_s: float, received_s: float) -> None:
+        """A sample stamped ``stamp_s`` (autopilot) was received at ``received_s`` (local)."""
+        delay_s = received_s - stamp_s
+        # the larger of two successive samples: one outlier alone does not lower the bound
+        robust_s = max(delay_s, self._last_delay_s)
+        self._last_delay_s = delay_s
+        bound_s = self._bound_now(received_s)
+        if math.isfinite(robust_s):
+            bound_s = min(bound_s, robust_s)
+        elif math.isinf(bound_s):
+            bound_s = delay_s  # the first sample: the only evidence there is
+        self._bound_s, self._bound_at_s = bound_s, received_s
+
+    def timesync(self, sent_s: float, tc1_s: float, received_s: float) -> bool:
+        """A TIMESYNC answer: our request went out at ``sent_s``, the autopilot's time was
+        ``tc1_s``, the answer came at ``received_s``. True when trusted (and used)."""
+        trip = RoundTrip(sent_s, received_s, tc1_s)
+        if not (0.0 <= trip.rtt_s <= self.max_rtt_s) or not math.isfinite(tc1_s):
+            self.counters["timesync_rejected_rtt"] += 1
+            return False
+        self.counters["timesync_accepted"] += 1
+        self._sync = trip
+        # the stream bound restarts from the round trip's own upper bound: samples lower it
+        # again to the fastest delivery, and a stepped clock is not held at its old offset
+        self._bound_s, self._bound_at_s = received_s - tc1_s, received_s
+        self._last_delay_s = math.inf
+        return True
+
+    def _bound_now(self, now_s: float) -> float:
+        return self._bound_s + self.max_drift * max(0.0, now_s - self._bound_at_s)
+
+    def offset_s(self, now_s: float) -> float | None:
+        """theta at local time ``now_s``; None before any evidence."""
+        bound_s = self._bound_now(now_s)
+        sync = self._sync
+        if sync is None:
+            return None if math.isinf(bound_s) else bound_s
+        # the round trip's estimate (refreshed every request; not drifted: its error has no
+        # known sign), never above the stream bound
+        return min(sync.offset_s, bound_s)
+
+    def to_local(self, stamp_s: float, now_s: float) -> float | None:
+        """When (local time) a sample stamped ``stamp_s`` was measured; None if unknown."""
+        theta = self.offset_s(now_s)
+        return None if theta is None else stamp_s + theta
+
+    def to_autopilot(self, local_s: float) -> float | None:
+        """The autopilot's time at local time ``local_s``; None if unknown."""
+        theta = self.offset_s(local_s)
+        return None if theta is None else local_s - theta

@@ -1,0 +1,177 @@
+"""Old state is not flown as fresh (issue 20, 2), end to end in REAL TIME.
+
+A real PX4 never waits for the companion; on a starved CPU the service read PX4's messages
+2.4 s late, judged them by when it read them, flew them as fresh and climbed to 19.7 m.
+Here a UDP relay between the SITL (real time, not lockstep: lockstep would slow the
+simulation instead) and the service delays every datagram to the service by 1 s from
+mid-flight on. The SITL keeps sending; the service reads late. It must fail safe within
+max_state_age_s + 0.1 s of the delay starting, stay there while the delay lasts, and the
+vehicle must not climb.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import select
+import socket
+import threading
+import time
+
+import pytest
+
+from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD, StateLimits
+from tests.rig import Rig
+
+pytestmark = pytest.mark.timeout(240)
+
+DELAY_S = 1.0
+DELAYED_FOR_S = 5.0
+HOVER_ALT_M = 2.5
+
+
+class DelayRelay:
+    """Datagrams from the SITL to the service leave a delay after they came: from
+    ``start_delay(max_s, ramp_s)`` on, growing from 0 to ``max_s`` over ``ramp_s`` (0: at
+    once; a ramp slower than real time keeps them in order, a real FIFO queue); the
+    service's datagrams go to the SITL at once."""
+
+    def __init__(self) -> None:
+        self.from_sitl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.from_sitl.bind(("127.0.0.1", 0))
+        self.to_service = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.to_service.bind(("127.0.0.1", 0))
+        self.port = int(self.from_sitl.getsockname()[1])
+        self.service_port = self.sitl_port = 0  # set before start()
+        self._delay_from_s = math.inf
+        self._max_delay_s = 0.0
+        self._ramp_s = 0.0
+        self._queue: list[tuple[float, int, bytes]] = []
+        self._seq = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="delay-relay", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def start_delay(self, max_s: float, ramp_s: float = 0.0) -> float:
+        """Delay from now on; returns now (time.monotonic)."""
+        self._max_delay_s, self._ramp_s = max_s, ramp_s
+        self._delay_from_s = time.monotonic()
+        return self._delay_from_s
+
+    def delay_s(self, now_s: float) -> float:
+        since_s = now_s - self._delay_from_s
+        if since_s < 0.0:
+            return 0.0
+        if self._ramp_s <= 0.0:
+            return self._max_delay_s
+        return min(self._max_delay_s, self._max_delay_s * since_s / self._ramp_s)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.from_sitl.close()
+        self.to_service.close()
+
+    def _run(self) -> None:
+        socks = [self.from_sitl, self.to_service]
+        while not self._stop.is_set():
+            now = time.monotonic()
+            while self._queue and self._queue[0][0] <= now:
+                _, _, data = heapq.heappop(self._queue)
+                self.to_service.sendto(data, ("127.0.0.1", self.service_port))
+            timeout = 0.001 if self._queue else 0.05
+            readable, _, _ = select.select(socks, [], [], timeout)
+            for sock in readable:
+                data = sock.recv(65536)
+                if sock is self.from_sitl:
+                    self._seq += 1
+                    now = time.monotonic()
+                    due = now + self.delay_s(now)
+                    heapq.heappush(self._queue, (due, self._seq, data))
+                else:
+                    self.from_sitl.sendto(data, ("127.0.0.1", self.sitl_port))
+
+
+def last_phase(log: str) -> str:
+    lines = [line for line in log.splitlines() if " phase " in line and " -> " in line]
+    return lines[-1].split(" -> ")[1].split()[0] if lines else ""
+
+
+def wait_phase(rig: Rig, phase: str, settled_s: float, timeout_s: float) -> None:
+    """Until the service's log says it has been in ``phase`` for ``settled_s`` (a loaded
+    machine may fail safe on a real stall first: the flight re-enters by itself)."""
+    path = rig.tmp / "service.log"
+    t0 = time.monotonic()
+    since = None
+    while time.monotonic() - t0 < timeout_s:
+        in_phase = last_phase(path.read_text(errors="replace")) == phase
+        since = (since or time.monotonic()) if in_phase else None
+        if since is not None and time.monotonic() - since >= settled_s:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"service not in {phase} for {settled_s} s:\n{rig.log()}")
+
+
+@pytest.mark.parametrize("ramp_s", [0.0, 2.0], ids=["step", "ramp"])
+def test_state_read_late_fails_safe_and_the_vehicle_does_not_climb(tmp_path, ramp_s):
+    """step: every datagram 1 s late from one instant (a 1 s gap, then old state flowing);
+    ramp: the lateness grows to 1 s over 2 s, with no gap at all (the receipt times say
+    fresh all along). Either way the failsafe must come within 0.1 s of the state read
+    becoming older than max_state_age_s: on the step, max_state_age_s after it (nothing is
+    read for a second); on the ramp, a sample read at t was relayed at r with r + r/2 = t,
+    so it is t/3 old: max_state_age_s x 3 after the ramp began. On the ramp a TIMESYNC
+    round trip may still be trusted while the lateness is under state_limits.
+    timesync_max_rtt_s, and takes half of it for offset: the crossing comes that much x 3
+    later."""
+    overrides = {
+        "mission": {"duration_s": 120.0, "land_at_end": True},
+        "trajectory": {"shape": "hover"},
+    }
+    relay = DelayRelay()
+    rig = Rig(
+        tmp_path,
+        lockstep=False,
+        speedup=1.0,
+        service_overrides=overrides,
+        sitl_offboard_port=relay.port,
+    )
+    relay.service_port, relay.sitl_port = rig.offboard_port, rig.sitl_port
+    max_age_s = float(rig.config["offboard"]["max_state_age_s"])
+    relay.start()
+    try:
+        with rig:
+            rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=120)
+            wait_phase(rig, "offboard", settled_s=2.0, timeout_s=60.0)
+            delay_started_s = relay.start_delay(DELAY_S, ramp_s)
+            time.sleep(DELAYED_FOR_S)
+            delay_ended_s = time.monotonic()
+            code, _ = rig.stop_service()
+            log = rig.log()
+            truth = rig.groundtruth()
+            stats = rig.stats()
+    finally:
+        relay.close()
+    assert code == 0, log
+    events = [e for e in stats["phase_events"] if delay_started_s <= e["t_s"] <= delay_ended_s]
+    assert events, f"no phase change while the state came 1 s late:\n{log}"
+    first = events[0]
+    assert first["phase"] == "failsafe", events
+    absorbed_s = 0.5 * StateLimits().timesync_max_rtt_s  # (the rig leaves the default)
+    too_old_s = (max_age_s + (absorbed_s if ramp_s else 0.0)) * (1.0 + ramp_s / DELAY_S)
+    bound_s = too_old_s + 0.1
+    print(f"failsafe {first['t_s'] - delay_started_s:.3f} s after the delay began: {first}")
+    assert first["t_s"] - delay_started_s <= bound_s, events
+    # while every sample stays a second old, nothing is flown again
+    flying = {"streaming", "offboard_requested", "offboard", "preflight"}
+    assert not [e for e in events if e["phase"] in flying], events
+    # ground truth: from offboard on, the vehicle never climbed (loose: holds at load 6)
+    offboard = [k for k, m in enumerate(truth["main_mode"]) if m == PX4_MAIN_MODE_OFFBOARD]
+    alt_m = [-d for d in truth["pos_d_m"][offboard[0] :]]
+    assert max(alt_m) <= HOVER_ALT_M + 1.0, max(alt_m)
+    assert all(math.isfinite(a) for a in alt_m)
+    # the SITL answered TIMESYNC; the round trips through the delay were not trusted
+    clock = stats["state"]
+    assert clock["timesync_accepted"] >= 1, clock
+    assert clock["timesync_rejected_rtt"] >= 1, clock
