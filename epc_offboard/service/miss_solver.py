@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -54,6 +55,7 @@ from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.epc import ActiveSetMap, ExperienceController
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.control.qp import MpcProblem
+from epc_offboard.service.children import die_with_parent
 
 log = logging.getLogger(__name__)
 _T = TypeVar("_T")
@@ -67,7 +69,8 @@ Found = tuple[tuple[int, ...], str, ActiveSetMap | None]
 _MAX_WANTED = 8  # candidate maps asked of the worker per slice (it builds what its time allows)
 
 
-def _init_worker(problems: dict[str, tuple[MpcProblem, int, int]]) -> None:
+def _init_worker(problems: dict[str, tuple[MpcProblem, int, int]], parent_pid: int) -> None:
+    die_with_parent(parent_pid)  # no 168 MB orphan when the service is SIGKILLed
     _LEARNERS.clear()
     for name, (problem, pool, per_origin) in problems.items():
         # the worker only solves and screens: its own library may stay tiny, and its pool
@@ -160,7 +163,7 @@ class MissSolver:
             max_workers=1,
             mp_context=multiprocessing.get_context("spawn"),  # no fork of a threaded process
             initializer=_init_worker,
-            initargs=(problems,),
+            initargs=(problems, os.getpid()),
         )
         self._pool.submit(_ping).result(timeout=timeout_s)
 
