@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from epc_offboard.service.children import descendants
+from epc_offboard.common.children import descendants
 from tests.rig import Rig
 from tests.test_daemon import wait_log
 from tests.test_sharing import free_tcp_port

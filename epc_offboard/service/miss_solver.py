@@ -51,11 +51,11 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import TypeVar
 
+from epc_offboard.common.children import die_with_parent
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.epc import ActiveSetMap, ExperienceController
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.control.qp import MpcProblem
-from epc_offboard.service.children import die_with_parent
 
 log = logging.getLogger(__name__)
 _T = TypeVar("_T")

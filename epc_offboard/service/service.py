@@ -12,9 +12,11 @@ One asyncio TaskGroup with named tasks:
   both loops are ``loop.py``'s periodic loop around a tick of this module;
 * ``library-saver``  — new controllers and learned models to SQLite, off the event loop
   (``library.py``);
-* ``library-sharing`` — with ``[sharing] enabled``: offers controllers received from the
-  fleet to the candidate pools (the miss worker screens them; only a candidate optimal for
-  a real tick joins the library), publishes new ones, keeps the snapshot peers query
+* ``library-sharing`` — with ``[sharing] enabled`` or a live reference: the fleet's Zenoh
+  session runs in a helper process (``fleet/session.py``); this task takes at most
+  ``sharing.candidates_per_s`` decoded candidates a second from it into the candidate pools
+  (the miss worker screens them; only a candidate optimal for a real tick joins the
+  library), hands it new controllers and snapshots to publish, and restarts it if it dies
   (``fleet/sharing.py``);
 * ``systemd``        — WATCHDOG=1 only while the control loop ticks (``systemd.py``).
 
@@ -112,7 +114,7 @@ class Service:
         if cfg.sharing.enabled or live:
             self.sharing = FleetSharing(
                 cfg.sharing, controllers if cfg.sharing.enabled else [],
-                share_library=cfg.sharing.enabled, reference=live,
+                share_library=cfg.sharing.enabled, reference=live, log_cfg=cfg.log,
             )  # fmt: skip
         self.library = LibraryKeeper(
             cfg.store, self.cascade, self.counters,
@@ -251,7 +253,7 @@ class Service:
                     name="attitude-loop",
                 )
                 tg.create_task(self.library.run(), name="library-saver")
-                if self.sharing is not None and self.sharing.share_library:
+                if self.sharing is not None:
                     tg.create_task(self.sharing.run(), name="library-sharing")
                 watchdog = self.systemd.watchdog(lambda: self.outputs.stream_setpoints)
                 tg.create_task(watchdog, name="systemd")
