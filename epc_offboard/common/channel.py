@@ -34,11 +34,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from epc_offboard.common.errors import EpcError
+
 _FRAME_HEADER = struct.Struct("<I")
 PIPE_BUF = select.PIPE_BUF  # writes up to this size are atomic (POSIX: at least 512)
 
 
-class ChannelClosedError(EOFError):
+class ChannelClosedError(EpcError, EOFError):
     """The other end of the pipe is gone (its process died or closed it)."""
 
 

@@ -26,13 +26,14 @@ from pathlib import Path
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 
-def die_with_parent(parent_pid: int, sig: int = signal.SIGKILL) -> None:
+def die_with_parent(parent_pid: int, sig: int | None = signal.SIGKILL) -> None:
     """In a child: be sent ``sig`` when the parent dies, and exit now if it already has.
 
     ``parent_pid``: the pid the parent had when it started us (``os.getpid()`` there); a
     different ``os.getppid()`` here means we were re-parented already (the race between the
-    parent's death and the prctl call)."""
-    if sys.platform.startswith("linux"):
+    parent's death and the prctl call). ``sig`` None: no signal, for a child that watches a
+    pipe from the parent instead (EOF when it dies) and has work to finish first."""
+    if sig is not None and sys.platform.startswith("linux"):
         libc = ctypes.CDLL(None, use_errno=True)
         if libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:
             raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")

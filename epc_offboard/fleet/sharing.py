@@ -48,6 +48,7 @@ import numpy as np
 
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordReader
 from epc_offboard.common.logsetup import LogConfig
+from epc_offboard.common.procstats import process_report
 from epc_offboard.control.epc import MAX_SUCCESSORS, ExperienceController
 from epc_offboard.fleet.config import SharingConfig
 from epc_offboard.fleet.records import (
@@ -389,6 +390,18 @@ class FleetSharing:
         out["candidates"] = sum(len(c.candidates) for _, c in self._controllers)
         out["promoted"] = sum(c.stats.received_shared for _, c in self._controllers)
         return out
+
+    def process_stats(self) -> dict[str, object]:
+        """The helper process: CPU, its inbox and outbox, drops, failures and restarts."""
+        helper = self._helper
+        return process_report(
+            self.helper_pid(), inbox=self._slot("candidates_waiting"),
+            inbox_dropped=self._slot("dropped_queue_full"),
+            outbox_bytes=helper.outbox.pending_bytes if helper is not None else 0,
+            outbox_refused=helper.outbox.refused if helper is not None else 0,
+            candidates_taken=self.counters["candidates_taken"],
+            failures=self.counters["helper_failures"], restarts=self.counters["helper_restarts"],
+        )  # fmt: skip
 
     def helper_pid(self) -> int | None:
         """The helper process's pid (fault tests kill it)."""

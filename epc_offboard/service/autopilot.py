@@ -64,7 +64,9 @@ class Autopilot:
         tracker: StateTracker,
         counters: Counter[str],
         log_gate: LogGate,
+        tlog: TlogWriter | None = None,
     ) -> None:
+        """``tlog``: where the link's frames go (the log writer process's channel)."""
         self.cfg = cfg
         self.clock = clock
         self.tracker = tracker
@@ -86,7 +88,6 @@ class Autopilot:
         self._global: GlobalFix | None = None
         self._params_requested_at = -math.inf
         self._rates_requested_at = -math.inf
-        tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
         key = load_signing_key(cfg.link.signing_key_file) if cfg.link.signing_key_file else None
         self.link = MavlinkLink(
             cfg.link.url,

@@ -53,6 +53,7 @@ from typing import TypeVar
 
 from epc_offboard.common.children import die_with_parent
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.common.procstats import process_report
 from epc_offboard.control.epc import ActiveSetMap, ExperienceController
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.control.qp import MpcProblem
@@ -304,6 +305,14 @@ class MissSolver:
     @property
     def in_flight(self) -> int:
         return sum(lane.in_flight is not None for lane in self._lanes.values())
+
+    def process_stats(self) -> dict[str, object]:
+        """The worker process: CPU, what waits for it, its restarts."""
+        return process_report(
+            self.worker_pid(), restarts=self.counters["worker_restarts"],
+            in_flight=self.in_flight, waiting=sum(len(ln.waiting) for ln in self._lanes.values()),
+            dropped=self.counters["misses_dropped"],
+        )  # fmt: skip
 
     def worker_pid(self) -> int | None:
         """The worker process's pid (fault tests kill it)."""
