@@ -117,6 +117,7 @@ class Service:
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
         self.gc_monitor = realtime.GcMonitor()
         self._position_out: PositionOutput | None = None
+        self._processes_at_exit: dict[str, Any] | None = None
         self.sharing: FleetSharing | None = None
         live = cfg.reference.source == "zenoh"
         if cfg.sharing.enabled or live:
@@ -274,6 +275,7 @@ class Service:
 
     def _shutdown(self) -> None:
         self.systemd.notify("STOPPING=1")
+        self._processes_at_exit = self._process_stats()  # while the helpers still run
         dialect = self.autopilot.dialect
         if dialect is not None and self.outputs.phase in (Phase.OFFBOARD, Phase.OFFBOARD_REQUESTED):
             # leave the vehicle holding, not waiting for our setpoints to time out
@@ -307,12 +309,16 @@ class Service:
             "link": dict(self.link.counters),
             "state": dict(self.tracker.counters),
             "sharing": self.sharing.stats() if self.sharing is not None else {},
-            "processes": {  # who holds what, and what it costs (issue 21)
-                "control": process_report(os.getpid()),
-                "miss_worker": self.misses.process_stats(),
-                **({"fleet": self.sharing.process_stats()} if self.sharing is not None else {}),
-                **({"logs": self.logs.process_stats()} if self.logs is not None else {}),
-            },
+            "processes": self._processes_at_exit or self._process_stats(),
+        }
+
+    def _process_stats(self) -> dict[str, Any]:
+        """Who holds what, and what it costs (issue 21): CPU, queues, drops, restarts."""
+        return {
+            "control": process_report(os.getpid()),
+            "miss_worker": self.misses.process_stats(),
+            **({"fleet": self.sharing.process_stats()} if self.sharing is not None else {}),
+            **({"logs": self.logs.process_stats()} if self.logs is not None else {}),
         }
 
     def _write_stats(self) -> None:
