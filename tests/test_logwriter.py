@@ -106,9 +106,11 @@ def test_a_wedged_writer_costs_drops_not_time_and_a_dead_one_is_restarted(tmp_pa
             t = time.perf_counter()
             logs.flight_row(row)
             worst = max(worst, time.perf_counter() - t)
+        # they all returned with the reader stopped: a blocking write would hang here for
+        # good; the bound only allows for this process being preempted on a loaded machine
         assert counters["log_records_dropped"] > 0
-        assert worst < 0.05, f"a row took {worst * 1e3:.1f} ms"  # never waits on the writer
-        assert time.perf_counter() - t0 < 10.0
+        assert worst < 1.0, f"a row took {worst * 1e3:.1f} ms"
+        assert time.perf_counter() - t0 < 20.0
         stats = logs.process_stats()
         assert isinstance(stats["queued_bytes"], int)
         assert stats["queued_bytes"] > 0

@@ -690,3 +690,4 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
                 log.error("fleet helper: %s failed: %s", task[0], exc)
     finally:
         session.close()
+        os._exit(0)  # no interpreter teardown: the service's shutdown waits for this exit
