@@ -18,12 +18,18 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import fcntl
+import multiprocessing
+import multiprocessing.process
 import os
 import signal
 import sys
+from collections.abc import Callable
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+_F_SETPIPE_SZ = 1031  # <linux/fcntl.h>
 
 
 def die_with_parent(parent_pid: int, sig: int | None = signal.SIGKILL) -> None:
@@ -66,3 +72,49 @@ def descendants(pid: int) -> set[int]:
                 out.add(child)
                 todo.append(child)
     return out
+
+
+class Backoff:
+    """When to restart a helper that died: ``first_s`` after its first death, twice as long
+    after each next one, at most ``max_s``; a helper that has lived ``max_s`` starts over."""
+
+    def __init__(self, first_s: float = 1.0, max_s: float = 30.0) -> None:
+        self.first_s = first_s
+        self.max_s = max_s
+        self.wait_s = first_s
+        self.restart_at_s: float | None = None  # time.monotonic() of the next restart
+
+    def failed(self, now_s: float) -> float:
+        """A death at ``now_s``: schedules the restart; returns the wait."""
+        wait = self.wait_s
+        self.restart_at_s = now_s + wait
+        self.wait_s = min(2.0 * wait, self.max_s)
+        return wait
+
+    def due(self, now_s: float) -> bool:
+        """Whether the scheduled restart is due (then it is no longer scheduled)."""
+        if self.restart_at_s is None or now_s < self.restart_at_s:
+            return False
+        self.restart_at_s = None
+        return True
+
+    def lived(self, age_s: float) -> None:
+        if age_s > self.max_s:
+            self.wait_s = self.first_s
+
+
+def spawn_fed(
+    target: Callable[..., None], name: str, *args: object, pipe_bytes: int = 0
+) -> tuple[multiprocessing.process.BaseProcess, Connection]:
+    """Start ``target(read_end, parent_pid, *args)`` in a ``spawn``-ed daemon process named
+    ``name``, fed through a pipe; returns the process and the pipe's writing end (closing
+    it is the child's EOF). ``pipe_bytes``: enlarge the pipe (Linux ``F_SETPIPE_SZ``)."""
+    ctx = multiprocessing.get_context("spawn")  # no fork of a threaded process
+    read, write = ctx.Pipe(duplex=False)
+    if pipe_bytes:
+        with contextlib.suppress(OSError):  # Linux only; elsewhere the default size
+            fcntl.fcntl(write.fileno(), _F_SETPIPE_SZ, pipe_bytes)
+    proc = ctx.Process(target=target, args=(read, os.getpid(), *args), name=name, daemon=True)
+    proc.start()
+    read.close()  # the child's end: ours closed, its death is EOF for nobody but it
+    return proc, write

@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordReader
+from epc_offboard.common.children import Backoff
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.epc import MAX_SUCCESSORS, ExperienceController
@@ -139,8 +140,7 @@ class FleetSharing:
         self._slots_raw = self._ctx.RawArray("q", len(STAT_NAMES))
         self._slots = np.frombuffer(self._slots_raw, dtype=np.int64)
         self._helper: _Helper | None = None
-        self._restart_at_s: float | None = None
-        self._backoff_s = 1.0
+        self._restarts = Backoff(1.0, cfg.helper_restart_max_s)
         self._budget = float(self._per_turn())
         self._budget_at_s = time.monotonic()
         self._dirty = [True] * len(self._controllers)
@@ -247,8 +247,7 @@ class FleetSharing:
         helper checked (restarted when due). Returns the candidates offered."""
         helper = self._helper
         if helper is None:
-            if self._restart_at_s is not None and now_s >= self._restart_at_s:
-                self._restart_at_s = None
+            if self._restarts.due(now_s):
                 self.counters["helper_restarts"] += 1
                 log.warning("fleet helper: restarting it")
                 self._start_helper()
@@ -282,18 +281,15 @@ class FleetSharing:
         elif state == 1 and now_s - beat_s > self.cfg.helper_timeout_s:
             why = f"was silent for {now_s - beat_s:.1f} s"
         else:
-            if now_s - helper.started_s > self.cfg.helper_restart_max_s:
-                self._backoff_s = 1.0  # it has lived long enough: the next death starts over
+            self._restarts.lived(now_s - helper.started_s)
             return
         self.counters["helper_failures"] += 1
         log.warning(
             "fleet helper (process %s) %s: flying on without the fleet; restarting it in %.0f s",
-            helper.process.pid, why, self._backoff_s,
+            helper.process.pid, why, self._restarts.failed(now_s),
         )  # fmt: skip
         self._stop_helper(kill=True)
         self._reference = None
-        self._restart_at_s = now_s + self._backoff_s
-        self._backoff_s = min(2.0 * self._backoff_s, self.cfg.helper_restart_max_s)
 
     def _offer(self, records: Records) -> int:
         """Offer decoded candidates to their controllers' pools (no factorisation)."""
@@ -391,7 +387,7 @@ class FleetSharing:
         out["promoted"] = sum(c.stats.received_shared for _, c in self._controllers)
         return out
 
-    def process_stats(self) -> dict[str, object]:
+    def process_stats(self) -> dict[str, Any]:
         """The helper process: CPU, its inbox and outbox, drops, failures and restarts."""
         helper = self._helper
         return process_report(

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from epc_offboard.common.channel import PIPE_BUF, ChannelClosedError, DropWriter
-from epc_offboard.common.children import die_with_parent, lower_priority
+from epc_offboard.common.children import Backoff, die_with_parent, lower_priority, spawn_fed
 from epc_offboard.common.logsetup import LogConfig, setup_logging
 from epc_offboard.common.procstats import process_report
 from epc_offboard.service.flightlog import ROW, FlightLog
@@ -45,7 +45,6 @@ _FLIGHT, _TLOG = 1, 2
 _FRAME = struct.Struct("<dH")  # a tlog frame in a block: unix time (s), length
 _BLOCK = PIPE_BUF - _HEADER.size  # the most payload one atomic write carries
 _PIPE_BYTES = 1 << 20
-_F_SETPIPE_SZ = 1031  # <linux/fcntl.h>
 _NICE = 10
 _RESTART_S = (1.0, 30.0)  # the first and the longest wait before restarting a dead writer
 
@@ -57,7 +56,7 @@ class _Paths:
     log: LogConfig
 
 
-def _writer_main(paths: _Paths, fd_conn: Any, parent_pid: int, append: bool) -> None:
+def _writer_main(fd_conn: Any, parent_pid: int, paths: _Paths, append: bool) -> None:
     """The writer process: records from the pipe to the files until EOF."""
     # no parent-death signal: the pipe ends (EOF) when the service dies, however, and what
     # it held is still written; a SIGTERM meant for the service's group must not cut that
@@ -117,27 +116,18 @@ class LogWriter:
                  counters: Counter[str]) -> None:  # fmt: skip
         self._paths = _Paths(flight_log_path, tlog_path, log_cfg)
         self.counters = counters
-        self._ctx = multiprocessing.get_context("spawn")
         self._proc: multiprocessing.process.BaseProcess | None = None
         self._conn: Any = None
         self._out: DropWriter | None = None
         self._block = bytearray()
-        self._restart_at_s: float | None = None
-        self._wait_s = _RESTART_S[0]
+        self._restarts = Backoff(*_RESTART_S)
         self.tlog = _TlogChannel(self) if tlog_path else None
 
     def start(self, *, append: bool = False) -> None:
         """Start the writer (from the event loop's thread: its parent-death signal follows
         the thread that started it)."""
-        read, write = self._ctx.Pipe(duplex=False)
-        with contextlib.suppress(OSError):  # Linux; elsewhere the default size
-            fcntl.fcntl(write.fileno(), _F_SETPIPE_SZ, _PIPE_BYTES)
-        self._proc = self._ctx.Process(
-            target=_writer_main, args=(self._paths, read, os.getpid(), append),
-            name="epc-logs", daemon=True,
-        )  # fmt: skip
-        self._proc.start()
-        read.close()
+        self._proc, write = spawn_fed(_writer_main, "epc-logs", self._paths, append,
+                                      pipe_bytes=_PIPE_BYTES)  # fmt: skip
         self._conn = write
         self._out = DropWriter(write.fileno(), PIPE_BUF)
 
@@ -173,18 +163,16 @@ class LogWriter:
 
     def _writer_died(self) -> None:
         self.counters["log_writer_failures"] += 1
+        wait_s = self._restarts.failed(time.monotonic())
         log.warning("log writer (process %s) died: flying on, its records dropped; "
-                    "restarting it in %.0f s", self.pid(), self._wait_s)  # fmt: skip
+                    "restarting it in %.0f s", self.pid(), wait_s)  # fmt: skip
         self._close_pipe()
         if self._proc is not None:
             self._proc.join(timeout=0.0)
-        self._restart_at_s = time.monotonic() + self._wait_s
-        self._wait_s = min(2.0 * self._wait_s, _RESTART_S[1])
 
     def _maybe_restart(self) -> None:
-        if self._restart_at_s is None or time.monotonic() < self._restart_at_s:
+        if not self._restarts.due(time.monotonic()):
             return
-        self._restart_at_s = None
         self.counters["log_writer_restarts"] += 1
         self.start(append=True)
 
@@ -205,7 +193,7 @@ class LogWriter:
                 self._proc.join(timeout=1.0)
             self._proc = None
 
-    def process_stats(self) -> dict[str, object]:
+    def process_stats(self) -> dict[str, Any]:
         """The writer process: CPU, what waits in the pipe, drops, restarts."""
         queued = None
         if self._conn is not None:

@@ -49,7 +49,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from epc_offboard.common.children import die_with_parent
 from epc_offboard.common.frames import FloatArray
@@ -306,7 +306,7 @@ class MissSolver:
     def in_flight(self) -> int:
         return sum(lane.in_flight is not None for lane in self._lanes.values())
 
-    def process_stats(self) -> dict[str, object]:
+    def process_stats(self) -> dict[str, Any]:
         """The worker process: CPU, what waits for it, its restarts."""
         return process_report(
             self.worker_pid(), restarts=self.counters["worker_restarts"],

@@ -10,8 +10,8 @@ One asyncio TaskGroup with named tasks:
 * ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
   or the autopilot's own attitude loop fed quaternion + thrust (``setpoints.py``);
   both loops are ``loop.py``'s periodic loop around a tick of this module;
-* ``library-saver``  — new controllers and learned models to SQLite, off the event loop
-  (``library.py``);
+* ``library-saver``  — new controllers and learned models to SQLite, written by the store
+  process (``library.py``);
 * ``library-sharing`` — with ``[sharing] enabled`` or a live reference: the fleet's Zenoh
   session runs in a helper process (``fleet/session.py``); this task takes at most
   ``sharing.candidates_per_s`` decoded candidates a second from it into the candidate pools
@@ -128,6 +128,7 @@ class Service:
         self.library = LibraryKeeper(
             cfg.store, self.cascade, self.counters,
             published=lambda: self.sharing is not None and self.sharing.share_library,
+            log_cfg=cfg.log,
         )  # fmt: skip
 
     @property
@@ -319,6 +320,7 @@ class Service:
             "miss_worker": self.misses.process_stats(),
             **({"fleet": self.sharing.process_stats()} if self.sharing is not None else {}),
             **({"logs": self.logs.process_stats()} if self.logs is not None else {}),
+            **({"store": self.library.process_stats()} if self.cfg.store.path else {}),
         }
 
     def _write_stats(self) -> None:
