@@ -10,11 +10,13 @@ import os
 from typing import Any
 
 _TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+_PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
 
 
 def process_report(pid: int | None, **extra: Any) -> dict[str, Any]:
-    """``pid``'s CPU seconds (user + system) and its share of one CPU over its life so far
-    (a restarted helper is a new pid: its share counts from its start), with ``extra``."""
+    """``pid``'s CPU seconds (user + system), its share of one CPU over its life so far (a
+    restarted helper is a new pid: its share counts from its start) and its resident
+    memory, with ``extra``."""
     out: dict[str, Any] = {"pid": pid, **extra}
     if pid is None:
         return out
@@ -29,6 +31,7 @@ def process_report(pid: int | None, **extra: Any) -> dict[str, Any]:
     cpu_s = (int(fields[11]) + int(fields[12])) / _TICKS_PER_S  # utime, stime
     life_s = uptime_s - int(fields[19]) / _TICKS_PER_S  # starttime
     out["cpu_s"] = round(cpu_s, 2)
+    out["rss_mb"] = round(int(fields[21]) * _PAGE_BYTES / 2**20, 1)
     if life_s > 0.1:
         out["cpu_share"] = round(cpu_s / life_s, 3)
     return out
