@@ -14,6 +14,7 @@ import json
 import math
 import threading
 import time
+from typing import Any
 
 import pytest
 import zenoh
@@ -32,13 +33,19 @@ FLEET = "floodtest"
 FLOOD_S = 6.0
 
 
-def _flood(port: int, signature: str, n_con: int, stop: threading.Event, sent: list[int]):
+def flood(
+    port: int, fleet: str, signature: str, n_con: int, stop: threading.Event, sent: list[int],
+    rate_per_s: float | None = None,
+) -> None:
+    """Batches of 20 well-formed, useless controllers from 1,200 rotating ids, at
+    ``rate_per_s`` (None: as fast as the loop goes, with a 5 ms rest every 50)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     sets = [(i, j) for i in range(n_con) for j in range(n_con) if i < j]
     with zenoh.open(conf) as session:
+        t0 = time.monotonic()
         k = 0
         while not stop.is_set():
             vid = f"flood{k % 1200}"  # rotating ids
@@ -46,23 +53,30 @@ def _flood(port: int, signature: str, n_con: int, stop: threading.Event, sent: l
             payload = encode_controllers(
                 ControllerMessage(MessageKind.BATCH, signature, vid, chunk)
             )
-            session.put(f"epc/{FLEET}/{signature}/ctl/{vid}", payload)
+            session.put(f"epc/{fleet}/{signature}/ctl/{vid}", payload)
             sent[0] += 1
             k += 1
-            if k % 50 == 0:
+            if rate_per_s is not None:
+                time.sleep(max(0.0, t0 + k / rate_per_s - time.monotonic()))
+            elif k % 50 == 0:
                 time.sleep(0.005)
+
+
+def hover_overrides(port: int, fleet: str, mission_s: float) -> dict[str, Any]:
+    """A hover of ``mission_s`` in offboard, then a landing; sharing on ``port``."""
+    return {
+        "mission": {"duration_s": mission_s, "land_at_end": True},
+        "trajectory": {"shape": "hover"},
+        "sharing": {
+            "enabled": True, "fleet": fleet, "vehicle_id": "victim",
+            "listen": [f"tcp/127.0.0.1:{port}"], "scouting_multicast": False,
+        },
+    }  # fmt: skip
 
 
 def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path):
     port = free_tcp_port()
-    overrides = {
-        "mission": {"duration_s": FLOOD_S + 6.0, "land_at_end": True},
-        "trajectory": {"shape": "hover"},
-        "sharing": {
-            "enabled": True, "fleet": FLEET, "vehicle_id": "victim",
-            "listen": [f"tcp/127.0.0.1:{port}"], "scouting_multicast": False,
-        },
-    }  # fmt: skip
+    overrides = hover_overrides(port, FLEET, FLOOD_S + 6.0)
     with Rig(tmp_path, lockstep=False, speedup=1.0, service_overrides=overrides) as rig:
         cfg = load_service_config(rig.config_path)
         cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
@@ -71,7 +85,7 @@ def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path
         time.sleep(2.0)  # settle on the hover point
         stop, sent = threading.Event(), [0]
         flooder = threading.Thread(
-            target=_flood, args=(port, problem.signature(), problem.n_con, stop, sent)
+            target=flood, args=(port, FLEET, problem.signature(), problem.n_con, stop, sent)
         )
         t_flood = time.monotonic()
         flooder.start()

@@ -3,11 +3,10 @@ library), and the pool's backlog stays bounded against a flood."""
 
 from __future__ import annotations
 
-import asyncio
-
 import numpy as np
 
 from epc_offboard.control.epc import CandidatePool, ExperienceController
+from epc_offboard.fleet.session import snapshot_payload
 from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 from epc_offboard.fleet.wire import decode_controllers
 from epc_offboard.service.miss_solver import MissSolver
@@ -47,7 +46,7 @@ def fly(ctrl: ExperienceController, solver: MissSolver | None = None) -> int:
 
 
 def sharing(ctrl: ExperienceController, vehicle: str) -> FleetSharing:
-    # no session is opened: only the snapshot encoding and the import path are used
+    # no session is opened: only the import path is used
     return FleetSharing(SharingConfig(vehicle_id=vehicle, fleet="test"), [("position", ctrl)])
 
 
@@ -59,10 +58,9 @@ def test_a_late_joiner_flies_on_the_fleets_library(loop_factorisations):
     p = position_problem(8)
     a = ExperienceController(p, max_size=200)
     assert fly(a) >= 20  # A's own first flight: a library worth sharing
-    sa = sharing(a, "a")
-    (pa,) = sa._problems
-    sa._prepare_snapshot(pa, a.export_library(), a.export_transitions())
-    snapshot = decode_controllers(pa.snapshot, max_payload_bytes=262_144, n_con=p.n_con)
+    payload = snapshot_payload(p.signature(), "a", a.export_library(), a.export_transitions(),
+                               262_144)  # fmt: skip
+    snapshot = decode_controllers(payload, max_payload_bytes=262_144, n_con=p.n_con)
     assert len(snapshot.entries) == a.stats.size
     assert snapshot.transitions
 
@@ -76,8 +74,7 @@ def test_a_late_joiner_flies_on_the_fleets_library(loop_factorisations):
 
     b = ExperienceController(p, max_size=200, learn_on_miss=False)
     sb = sharing(b, "b")
-    (pb,) = sb._problems
-    asyncio.run(sb._import(pb, snapshot))
+    sb.offer_message("position", snapshot)
     assert b.stats.size == 0  # candidates, not library entries
     assert len(b.candidates) == b.candidates.max_per_origin  # A is not proven here yet
     assert len(b.candidates) + b.candidates.backlog == len(snapshot.entries)

@@ -66,7 +66,9 @@ class Autopilot:
         tracker: StateTracker,
         counters: Counter[str],
         log_gate: LogGate,
+        tlog: TlogWriter | None = None,
     ) -> None:
+        """``tlog``: where the link's frames go (the log writer process's channel)."""
         self.cfg = cfg
         self.clock = clock
         self.tracker = tracker
@@ -90,7 +92,6 @@ class Autopilot:
         self._withheld_logged: set[str] = set()  # streams whose absence was logged
         self._timesync_sent: dict[int, float] = {}  # ts1 (ns) -> local send time, bounded
         self._timesync_at = -math.inf
-        tlog = TlogWriter(cfg.log.tlog_path) if cfg.log.tlog_path else None
         key = load_signing_key(cfg.link.signing_key_file) if cfg.link.signing_key_file else None
         self.link = MavlinkLink(
             cfg.link.url,

@@ -16,7 +16,7 @@ from epc_offboard.control.attitude import AttitudeControlConfig
 from epc_offboard.control.perturbation import EstimatorConfig
 from epc_offboard.control.position import PositionControlConfig
 from epc_offboard.control.trajectories import TrajectoryConfig
-from epc_offboard.fleet.sharing import SharingConfig
+from epc_offboard.fleet.config import SharingConfig
 from epc_offboard.vehicle.offboard import OffboardConfig
 from epc_offboard.vehicle.state import StateLimits
 

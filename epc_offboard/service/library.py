@@ -1,26 +1,47 @@
 """The controller library on disk while the service runs: loaded as the prior at start,
-saved every ``store.save_period_s`` off the event loop, and once more at shutdown.
+saved every ``store.save_period_s`` by the store process, and once more at shutdown.
 
 The library is not thread-safe: the snapshot is taken on the loop's thread
-(:func:`~epc_offboard.store.experience.snapshot`) and only the SQLite write runs in a
-worker thread. A failing disk is logged and counted, never a reason to stop flying.
+(:func:`~epc_offboard.store.experience.snapshot`) and handed, pickled, to a process of its
+own (``epc-store``, nice +10) that writes it to SQLite; the loops never wait on the disk nor
+share their interpreter lock with the write. The hand-over never blocks: a store that falls
+behind refuses the snapshot (counted; the next one carries everything). A failing disk is
+logged and counted, never a reason to stop flying; a store process that dies is restarted.
+SQLite's transactions keep the kill-9 guarantee wherever the write runs: the store process
+sees EOF when the service dies, finishes (or never commits) the write in progress, and
+exits. At shutdown the last snapshot is saved and waited for (in this process if the store
+process cannot take it).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import multiprocessing
+import time
 from collections import Counter
 from collections.abc import Callable
-from typing import NoReturn
+from typing import Any, NoReturn
 
+import numpy as np
+
+from epc_offboard.common.channel import ChannelClosedError, FrameOutbox
+from epc_offboard.common.children import Backoff, spawn_fed
+from epc_offboard.common.logsetup import LogConfig
+from epc_offboard.common.procstats import process_report
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library import LibrarySnapshot
 from epc_offboard.service.config import StoreConfig
 from epc_offboard.store import experience
 from epc_offboard.store.library import LibraryStore
+from epc_offboard.store.process import ERRORS as _ERRORS
+from epc_offboard.store.process import SAVES as _SAVES
+from epc_offboard.store.process import store_main
 
 log = logging.getLogger("epc_offboard.service")
+
+_MAX_PENDING_BYTES = 64 << 20  # snapshots waiting for the store process, at most
+_CLOSE_TIMEOUT_S = 30.0
 
 
 class LibraryKeeper:
@@ -33,21 +54,40 @@ class LibraryKeeper:
         cascade: Cascade,
         counters: Counter[str],
         published: Callable[[], bool],
+        log_cfg: LogConfig | None = None,
     ) -> None:
         self.cfg = cfg
         self.cascade = cascade
         self.counters = counters
         self._published = published
-        self.store: LibraryStore | None = None
+        self._log_cfg = log_cfg or LogConfig()
+        self._ctx = multiprocessing.get_context("spawn")
+        self._slots_raw = self._ctx.RawArray("q", 2)
+        self._slots = np.frombuffer(self._slots_raw, dtype=np.int64)
+        self._proc: multiprocessing.process.BaseProcess | None = None
+        self._conn: Any = None
+        self._outbox: FrameOutbox | None = None
+        self._restarts = Backoff()
 
     def open(self) -> None:
-        """Open the library file (``store.path``; "" keeps none) and load it as the prior."""
+        """Load the library file (``store.path``; "" keeps none) as the prior, then start
+        the store process (from the event loop's thread)."""
         if not self.cfg.path:
             return
-        self.store = LibraryStore.open(self.cfg.path)
-        self.store.label_loops(experience.loop_names(self.cascade))  # for `db info`
-        loaded = experience.load(self.cascade, self.store)
+        store = LibraryStore.open(self.cfg.path)
+        try:
+            store.label_loops(experience.loop_names(self.cascade))  # for `db info`
+            loaded = experience.load(self.cascade, store)
+        finally:
+            store.close()
         log.info("library %s: loaded %s", self.cfg.path, loaded)
+        self._start()
+
+    def _start(self) -> None:
+        self._proc, write = spawn_fed(store_main, "epc-store", self.cfg.path, self._slots_raw,
+                                      self._log_cfg)  # fmt: skip
+        self._conn = write
+        self._outbox = FrameOutbox(write.fileno(), _MAX_PENDING_BYTES)
 
     async def run(self) -> NoReturn:
         """The ``library-saver`` task."""
@@ -57,32 +97,103 @@ class LibraryKeeper:
                 # nobody publishes them: the store saves the whole library anyway
                 for _name, ctrl in self.cascade.experience_controllers():
                     ctrl.pop_new_entries()
-            if self.store is None:
+            if not self.cfg.path:
                 continue
+            self.counters["store_errors"] = int(self._slots[_ERRORS])
+            if self._outbox is None and self._restarts.due(time.monotonic()):
+                self.counters["store_restarts"] += 1
+                self._start()
             try:
                 snap = experience.snapshot(self.cascade)
             except Exception as exc:  # never let saving take a loop down
-                self.counters["store_errors"] += 1
+                self.counters["store_snapshot_errors"] += 1
                 log.error("snapshotting the library failed: %s", exc)
                 continue
-            await asyncio.to_thread(self._write, snap)
+            self._hand_over(snap)
 
-    def _write(self, snap: LibrarySnapshot) -> None:
-        assert self.store is not None
+    def _hand_over(self, snap: LibrarySnapshot) -> bool:
+        outbox = self._outbox
+        if outbox is None:
+            self.counters["store_snapshots_dropped"] += 1
+            return False
         try:
-            self.store.save_snapshot(snap)
-        except Exception as exc:  # a full disk must not stop the flight
-            self.counters["store_errors"] += 1
-            log.error("saving the library failed: %s", exc)
+            outbox.flush()
+            if outbox.send(snap):
+                return True
+            self.counters["store_snapshots_dropped"] += 1  # it is behind: the next one
+        except ChannelClosedError:
+            wait_s = self._restarts.failed(time.monotonic())
+            self.counters["store_failures"] += 1
+            log.warning("library store process died: flying on, restarting it in %.0f s",
+                        wait_s)  # fmt: skip
+            self._close_pipe(wait_s=0.0)
+        return False
+
+    def _close_pipe(self, wait_s: float) -> bool:
+        """EOF to the store process and wait ``wait_s`` for it; whether it exited."""
+        self._outbox = None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return False
+        proc.join(timeout=wait_s)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(timeout=1.0)
+            return False
+        return proc.exitcode == 0
 
     def close(self) -> None:
-        """Save at once, on the loop's thread (shutdown), and close the file."""
-        if self.store is None:
+        """Save the library as it is now, waiting for the write (shutdown)."""
+        if not self.cfg.path:
             return
         try:
-            self._write(experience.snapshot(self.cascade))
+            snap = experience.snapshot(self.cascade)
         except Exception as exc:
             self.counters["store_errors"] += 1
             log.error("saving the library failed: %s", exc)
-        self.store.close()
-        self.store = None
+            self._close_pipe(wait_s=0.0)
+            return
+        saved = False
+        deadline = time.monotonic() + _CLOSE_TIMEOUT_S
+        if self._hand_over(snap):
+            try:
+                while self._outbox is not None and self._outbox.pending_bytes:
+                    if time.monotonic() > deadline:
+                        raise TimeoutError
+                    self._outbox.flush()
+                    time.sleep(0.005)
+                errors = int(self._slots[_ERRORS])
+                saved = self._close_pipe(wait_s=max(0.0, deadline - time.monotonic()))
+                saved = saved and int(self._slots[_ERRORS]) == errors
+            except (ChannelClosedError, TimeoutError):
+                self._close_pipe(wait_s=0.0)
+        else:
+            self._close_pipe(wait_s=0.0)
+        self.counters["store_errors"] = int(self._slots[_ERRORS])
+        if not saved:  # the store process could not: here, as before it existed
+            self._save_here(snap)
+
+    def _save_here(self, snap: LibrarySnapshot) -> None:
+        try:
+            store = LibraryStore.open(self.cfg.path)
+            try:
+                store.save_snapshot(snap)
+            finally:
+                store.close()
+        except Exception as exc:
+            self.counters["store_errors"] += 1
+            log.error("saving the library failed: %s", exc)
+
+    def process_stats(self) -> dict[str, Any]:
+        """The store process: CPU, what waits for it, saves, errors, restarts."""
+        outbox = self._outbox
+        return process_report(
+            self._proc.pid if self._proc is not None else None,
+            queued_bytes=outbox.pending_bytes if outbox is not None else 0,
+            saves=int(self._slots[_SAVES]), errors=int(self._slots[_ERRORS]),
+            dropped=self.counters["store_snapshots_dropped"],
+            failures=self.counters["store_failures"], restarts=self.counters["store_restarts"],
+        )  # fmt: skip

@@ -43,14 +43,17 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import Any, TypeVar
 
+from epc_offboard.common.children import die_with_parent
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.common.procstats import process_report
 from epc_offboard.control.epc import ActiveSetMap, ExperienceController
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.control.qp import MpcProblem
@@ -67,7 +70,8 @@ Found = tuple[tuple[int, ...], str, ActiveSetMap | None]
 _MAX_WANTED = 8  # candidate maps asked of the worker per slice (it builds what its time allows)
 
 
-def _init_worker(problems: dict[str, tuple[MpcProblem, int, int]]) -> None:
+def _init_worker(problems: dict[str, tuple[MpcProblem, int, int]], parent_pid: int) -> None:
+    die_with_parent(parent_pid)  # no 168 MB orphan when the service is SIGKILLed
     _LEARNERS.clear()
     for name, (problem, pool, per_origin) in problems.items():
         # the worker only solves and screens: its own library may stay tiny, and its pool
@@ -160,7 +164,7 @@ class MissSolver:
             max_workers=1,
             mp_context=multiprocessing.get_context("spawn"),  # no fork of a threaded process
             initializer=_init_worker,
-            initargs=(problems,),
+            initargs=(problems, os.getpid()),
         )
         self._pool.submit(_ping).result(timeout=timeout_s)
 
@@ -301,6 +305,14 @@ class MissSolver:
     @property
     def in_flight(self) -> int:
         return sum(lane.in_flight is not None for lane in self._lanes.values())
+
+    def process_stats(self) -> dict[str, Any]:
+        """The worker process: CPU, what waits for it, its restarts."""
+        return process_report(
+            self.worker_pid(), restarts=self.counters["worker_restarts"],
+            in_flight=self.in_flight, waiting=sum(len(ln.waiting) for ln in self._lanes.values()),
+            dropped=self.counters["misses_dropped"],
+        )  # fmt: skip
 
     def worker_pid(self) -> int | None:
         """The worker process's pid (fault tests kill it)."""

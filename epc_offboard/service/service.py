@@ -10,18 +10,21 @@ One asyncio TaskGroup with named tasks:
 * ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
   or the autopilot's own attitude loop fed quaternion + thrust (``setpoints.py``);
   both loops are ``loop.py``'s periodic loop around a tick of this module;
-* ``library-saver``  — new controllers and learned models to SQLite, off the event loop
-  (``library.py``);
-* ``library-sharing`` — with ``[sharing] enabled``: offers controllers received from the
-  fleet to the candidate pools (the miss worker screens them; only a candidate optimal for
-  a real tick joins the library), publishes new ones, keeps the snapshot peers query
+* ``library-saver``  — new controllers and learned models to SQLite, written by the store
+  process (``library.py``);
+* ``library-sharing`` — with ``[sharing] enabled`` or a live reference: the fleet's Zenoh
+  session runs in a helper process (``fleet/session.py``); this task takes at most
+  ``sharing.candidates_per_s`` decoded candidates a second from it into the candidate pools
+  (the miss worker screens them; only a candidate optimal for a real tick joins the
+  library), hands it new controllers and snapshots to publish, and restarts it if it dies
   (``fleet/sharing.py``);
 * ``systemd``        — WATCHDOG=1 only while the control loop ticks (``systemd.py``).
 
 MAVLink arrives through callbacks of the link's DatagramProtocol (no task, no blocking read);
 what is sent is encoded by ``vehicle/commands.py``. The numerics live in ``control/``; this
 package never does linear algebra. Each position tick is a row of the flight log
-(``flightlog.py``). Before the loops start, start-up objects are frozen out of the garbage
+(``flightlog.py``), packed here and formatted and written, with the tlog, by the log writer
+process (``logwriter.py``). Before the loops start, start-up objects are frozen out of the garbage
 collector and the loops' priority is raised if configured (``realtime.py``).
 
 The control loops never die: an exception in a tick is logged (rate-limited), counted, and
@@ -34,6 +37,7 @@ import argparse
 import asyncio
 import json
 import logging
+import os
 import signal
 import sys
 import time
@@ -45,6 +49,7 @@ from typing import Any
 from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
+from epc_offboard.common.procstats import process_report
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.position import PositionOutput
 from epc_offboard.control.reference import ReferenceHorizon
@@ -53,8 +58,9 @@ from epc_offboard.service import realtime
 from epc_offboard.service.autopilot import Autopilot
 from epc_offboard.service.clock import Clock, VehicleClock, WallClock
 from epc_offboard.service.config import ServiceConfig, load_service_config
-from epc_offboard.service.flightlog import FlightLog
+from epc_offboard.service.flightlog import pack_row
 from epc_offboard.service.library import LibraryKeeper
+from epc_offboard.service.logwriter import LogWriter
 from epc_offboard.service.loop import Loops, Stop, Tick
 from epc_offboard.service.miss_solver import MissSolver
 from epc_offboard.service.reference import ReferenceSelector
@@ -89,7 +95,12 @@ class Service:
         self.counters: Counter[str] = Counter()
         log_gate = LogGate()  # wire- and loop-driven log lines, rate-limited
         self.loops = Loops(self.clock, self.counters, log_gate)
-        self.autopilot = Autopilot(cfg, self.clock, self.tracker, self.counters, log_gate)
+        self.logs: LogWriter | None = None
+        if cfg.log.flight_log_path or cfg.log.tlog_path:
+            self.logs = LogWriter(cfg.log.flight_log_path, cfg.log.tlog_path, cfg.log,
+                                  self.counters)  # fmt: skip
+        self.autopilot = Autopilot(cfg, self.clock, self.tracker, self.counters, log_gate,
+                                   tlog=self.logs.tlog if self.logs else None)  # fmt: skip
         self.link = self.autopilot.link
         self.systemd = Systemd(cfg.loops.watchdog_period_s)
         self.supervisor = Supervisor(
@@ -108,17 +119,18 @@ class Service:
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
         self.gc_monitor = realtime.GcMonitor()
         self._position_out: PositionOutput | None = None
-        self.flight_log: FlightLog | None = None
+        self._processes_at_exit: dict[str, Any] | None = None
         self.sharing: FleetSharing | None = None
         live = cfg.reference.source == "zenoh"
         if cfg.sharing.enabled or live:
             self.sharing = FleetSharing(
                 cfg.sharing, controllers if cfg.sharing.enabled else [],
-                share_library=cfg.sharing.enabled, reference=live,
+                share_library=cfg.sharing.enabled, reference=live, log_cfg=cfg.log,
             )  # fmt: skip
         self.library = LibraryKeeper(
             cfg.store, self.cascade, self.counters,
             published=lambda: self.sharing is not None and self.sharing.share_library,
+            log_cfg=cfg.log,
         )  # fmt: skip
 
     @property
@@ -176,8 +188,8 @@ class Service:
         except Exception as exc:  # degrade, never die
             self.loops.error("position", exc)
             out = self.cascade.hover(state)
-        if self.flight_log is not None:
-            self.flight_log.write(t_s, self.outputs.phase.value, state, reference, out)
+        if self.logs is not None and self.cfg.log.flight_log_path:
+            self.logs.flight_row(pack_row(t_s, self.outputs.phase.value, state, reference, out))
         return out
 
     async def _attitude_step(self, tick: Tick) -> bool:
@@ -238,8 +250,8 @@ class Service:
         self.misses.start()
         log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
         self.library.open()
-        if self.cfg.log.flight_log_path:
-            self.flight_log = FlightLog(self.cfg.log.flight_log_path)
+        if self.logs is not None:
+            self.logs.start()
         self.sharing = await open_or_fly_alone(self.sharing, self.counters)
         await self.link.open()
         realtime.prepare(self.cfg.loops.realtime_priority, self.gc_monitor, self.counters)
@@ -262,7 +274,7 @@ class Service:
                     name="attitude-loop",
                 )
                 tg.create_task(self.library.run(), name="library-saver")
-                if self.sharing is not None and self.sharing.share_library:
+                if self.sharing is not None:
                     tg.create_task(self.sharing.run(), name="library-sharing")
                 watchdog = self.systemd.watchdog(lambda: self.outputs.stream_setpoints)
                 tg.create_task(watchdog, name="systemd")
@@ -275,6 +287,7 @@ class Service:
 
     def _shutdown(self) -> None:
         self.systemd.notify("STOPPING=1")
+        self._processes_at_exit = self._process_stats()  # while the helpers still run
         dialect = self.autopilot.dialect
         if dialect is not None and self.outputs.phase in (Phase.OFFBOARD, Phase.OFFBOARD_REQUESTED):
             # leave the vehicle holding, not waiting for our setpoints to time out
@@ -283,10 +296,10 @@ class Service:
         self.library.close()
         if self.sharing is not None:
             self.sharing.close()
-        if self.flight_log is not None:
-            self.flight_log.close()
         self._write_stats()
         self.link.close()
+        if self.logs is not None:  # after the link: its last frames are in the tlog
+            self.logs.close()
         self.gc_monitor.uninstall()
         log.info("stopped: %s", dict(self.counters))
 
@@ -310,6 +323,17 @@ class Service:
             "link": dict(self.link.counters),
             "state": {**self.tracker.counters, **self.tracker.clock.counters},
             "sharing": self.sharing.stats() if self.sharing is not None else {},
+            "processes": self._processes_at_exit or self._process_stats(),
+        }
+
+    def _process_stats(self) -> dict[str, Any]:
+        """Who holds what, and what it costs (issue 21): CPU, queues, drops, restarts."""
+        return {
+            "control": process_report(os.getpid()),
+            "miss_worker": self.misses.process_stats(),
+            **({"fleet": self.sharing.process_stats()} if self.sharing is not None else {}),
+            **({"logs": self.logs.process_stats()} if self.logs is not None else {}),
+            **({"store": self.library.process_stats()} if self.cfg.store.path else {}),
         }
 
     def _write_stats(self) -> None:

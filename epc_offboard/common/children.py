@@ -1,0 +1,120 @@
+"""The service's helper processes: started the same way, and dying with the service.
+
+Every helper (the miss worker, the fleet session, the log writer) is a ``spawn``-ed process:
+a fresh interpreter, no fork of a threaded process. Each calls :func:`die_with_parent` first
+thing, so that a SIGKILLed service (an OOM kill, ``systemctl kill -s KILL``, a crashed test)
+leaves no orphan behind: before this, the 168 MB miss worker and multiprocessing's resource
+tracker were re-parented to PID 1 and lived on. The resource tracker needs nothing of its
+own: it exits when the last process holding its pipe (the service and its spawned children)
+is gone.
+
+Linux's parent-death signal (``prctl(PR_SET_PDEATHSIG)``) is delivered when the *thread*
+that created the child exits, so helpers are started from the service's main thread (the
+event loop's), which lives as long as the process. Elsewhere, or if the parent died before
+the child could ask, the re-check of the parent's pid catches it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import fcntl
+import multiprocessing
+import multiprocessing.process
+import os
+import signal
+import sys
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from pathlib import Path
+
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+_F_SETPIPE_SZ = 1031  # <linux/fcntl.h>
+
+
+def die_with_parent(parent_pid: int, sig: int | None = signal.SIGKILL) -> None:
+    """In a child: be sent ``sig`` when the parent dies, and exit now if it already has.
+
+    ``parent_pid``: the pid the parent had when it started us (``os.getpid()`` there); a
+    different ``os.getppid()`` here means we were re-parented already (the race between the
+    parent's death and the prctl call). ``sig`` None: no signal, for a child that watches a
+    pipe from the parent instead (EOF when it dies) and has work to finish first."""
+    if sig is not None and sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent_pid:
+        os._exit(0)
+
+
+def lower_priority(niceness: int) -> None:
+    """In a child: run ``niceness`` below the parent (the control process keeps the CPU)."""
+    with contextlib.suppress(OSError):
+        os.nice(niceness)
+
+
+def descendants(pid: int) -> set[int]:
+    """Every live process below ``pid`` (children, grandchildren), from /proc (Linux)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:  # gone meanwhile
+            continue
+        # pid (comm) state ppid ...: comm may hold spaces and parentheses
+        fields = text[text.rindex(")") + 2 :].split()
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    out: set[int] = set()
+    todo = [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            if child not in out:
+                out.add(child)
+                todo.append(child)
+    return out
+
+
+class Backoff:
+    """When to restart a helper that died: ``first_s`` after its first death, twice as long
+    after each next one, at most ``max_s``; a helper that has lived ``max_s`` starts over."""
+
+    def __init__(self, first_s: float = 1.0, max_s: float = 30.0) -> None:
+        self.first_s = first_s
+        self.max_s = max_s
+        self.wait_s = first_s
+        self.restart_at_s: float | None = None  # time.monotonic() of the next restart
+
+    def failed(self, now_s: float) -> float:
+        """A death at ``now_s``: schedules the restart; returns the wait."""
+        wait = self.wait_s
+        self.restart_at_s = now_s + wait
+        self.wait_s = min(2.0 * wait, self.max_s)
+        return wait
+
+    def due(self, now_s: float) -> bool:
+        """Whether the scheduled restart is due (then it is no longer scheduled)."""
+        if self.restart_at_s is None or now_s < self.restart_at_s:
+            return False
+        self.restart_at_s = None
+        return True
+
+    def lived(self, age_s: float) -> None:
+        if age_s > self.max_s:
+            self.wait_s = self.first_s
+
+
+def spawn_fed(
+    target: Callable[..., None], name: str, *args: object, pipe_bytes: int = 0
+) -> tuple[multiprocessing.process.BaseProcess, Connection]:
+    """Start ``target(read_end, parent_pid, *args)`` in a ``spawn``-ed daemon process named
+    ``name``, fed through a pipe; returns the process and the pipe's writing end (closing
+    it is the child's EOF). ``pipe_bytes``: enlarge the pipe (Linux ``F_SETPIPE_SZ``)."""
+    ctx = multiprocessing.get_context("spawn")  # no fork of a threaded process
+    read, write = ctx.Pipe(duplex=False)
+    if pipe_bytes:
+        with contextlib.suppress(OSError):  # Linux only; elsewhere the default size
+            fcntl.fcntl(write.fileno(), _F_SETPIPE_SZ, pipe_bytes)
+    proc = ctx.Process(target=target, args=(read, os.getpid(), *args), name=name, daemon=True)
+    proc.start()
+    read.close()  # the child's end: ours closed, its death is EOF for nobody but it
+    return proc, write

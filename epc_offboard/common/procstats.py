@@ -1,0 +1,37 @@
+"""The service's processes as the stats see them: CPU from ``/proc/<pid>/stat``.
+
+Read at the stats' pace (the end of a flight, a SIGHUP), never per tick. Linux; elsewhere
+the CPU figures are absent and the rest (queues, drops, restarts) is still given.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+_PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
+
+
+def process_report(pid: int | None, **extra: Any) -> dict[str, Any]:
+    """``pid``'s CPU seconds (user + system), its share of one CPU over its life so far (a
+    restarted helper is a new pid: its share counts from its start) and its resident
+    memory, with ``extra``."""
+    out: dict[str, Any] = {"pid": pid, **extra}
+    if pid is None:
+        return out
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            text = fh.read()
+        with open("/proc/uptime") as fh:
+            uptime_s = float(fh.read().split()[0])
+    except OSError:  # gone, or no /proc
+        return out
+    fields = text[text.rindex(")") + 2 :].split()  # after "pid (comm) ": state is fields[0]
+    cpu_s = (int(fields[11]) + int(fields[12])) / _TICKS_PER_S  # utime, stime
+    life_s = uptime_s - int(fields[19]) / _TICKS_PER_S  # starttime
+    out["cpu_s"] = round(cpu_s, 2)
+    out["rss_mb"] = round(int(fields[21]) * _PAGE_BYTES / 2**20, 1)
+    if life_s > 0.1:
+        out["cpu_share"] = round(cpu_s / life_s, 3)
+    return out

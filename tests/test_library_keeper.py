@@ -1,0 +1,73 @@
+"""The library's writes in a store process of its own (issue 21): saved while flying and at
+shutdown, a dead store process restarted, and the flight never waiting on the disk."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import time
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from epc_offboard.service.config import StoreConfig, load_service_config
+from epc_offboard.service.library import LibraryKeeper
+from epc_offboard.store.library import LibraryStore
+from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
+from tests.mpc_cases import hover_refs
+
+pytestmark = pytest.mark.timeout(90)
+
+
+def stored(path) -> dict[str, dict[str, int]]:
+    store = LibraryStore.open_readonly(path)
+    try:
+        return store.summary()
+    finally:
+        store.close()
+
+
+def test_saved_by_the_store_process_which_is_restarted_when_it_dies(tmp_path):
+    from epc_offboard.control.cascade import Cascade
+
+    cfg = load_service_config(SITL_SERVICE_CONFIG)
+    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
+    path = tmp_path / "library.sqlite"
+    counters: Counter[str] = Counter()
+    keeper = LibraryKeeper(StoreConfig(str(path), save_period_s=0.05), cascade, counters,
+                           published=lambda: False)  # fmt: skip
+    keeper.open()
+    ctrl = dict(cascade.experience_controllers())["position"]
+    p = ctrl.problem
+
+    async def main() -> None:
+        task = asyncio.create_task(keeper.run())
+        try:
+            ctrl.step(np.zeros(p.nx), hover_refs(p, [5.0, 0.0, 0.0]))  # a solve: learned
+            deadline = time.monotonic() + 20
+            while keeper.process_stats().get("saves", 0) < 2:
+                assert time.monotonic() < deadline, keeper.process_stats()
+                await asyncio.sleep(0.05)
+            pid = keeper.process_stats()["pid"]
+            assert isinstance(pid, int)
+            assert pid != os.getpid()
+            os.kill(pid, signal.SIGKILL)
+            while counters["store_restarts"] < 1:
+                assert time.monotonic() < deadline + 20, dict(counters)
+                await asyncio.sleep(0.05)
+            assert counters["store_failures"] == 1
+            assert keeper.process_stats()["pid"] not in (None, pid)
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    asyncio.run(main())
+    n_position = ctrl.stats.size
+    keeper.close()
+    summary = stored(path)
+    assert summary[p.signature()]["controllers"] == n_position >= 1
+    assert summary[p.signature()]["models"] == 1  # the estimator, saved beside them
