@@ -19,7 +19,7 @@ from epc_offboard.tools.db import add_db_arguments
 
 # subcommand -> "module:function(args) -> exit code"
 _COMMANDS = {
-    "run": "epc_offboard.service.service:run_service_command",
+    "run": "epc_offboard.service.coldstart:run",  # the kernels chosen before they import
     "sim": "epc_offboard.tools.sim.command:run_sim_command",
     "bench": "epc_offboard.tools.bench:run_bench_command",
     "db": "epc_offboard.tools.db:run_db_command",

@@ -73,6 +73,9 @@ class ReferenceSelector:
         self.hold_at(anchor)
         log.info("trajectory %s started at %s", self.trajectory_cfg.shape,
                  anchor.round(3).tolist())  # fmt: skip
+        # from where the vehicle is, closing the gap (e.g. to the altitude) smoothly: a
+        # step in the reference at entry is a jolt however calm the controller
+        self.start_rejoin(state, now_s)
 
     def mission_complete(self, now_s: float, duration_s: float) -> bool:
         """Whether the trajectory has been flown ``duration_s`` (> 0) seconds."""
@@ -116,6 +119,12 @@ class ReferenceSelector:
         live = self._live_horizon(state, sharing, offboard=offboard)
         if live is not None:
             return live
+        if not offboard and self.trajectory is None:
+            # Before offboard is confirmed the autopilot may still be climbing out of its
+            # takeoff, or already flying ours (PX4 shows the mode up to 1 s late): hold
+            # where the vehicle is now, at rest, not where it was when streaming started
+            # (0.45 m below it after a takeoff overshoot: the vehicle dropped to it).
+            self.hold_at(state.pos_ned_m)
         return self.now(state, t_s, steps=self.position.horizon)
 
     def now(self, state: VehicleState, t_s: float, *, steps: int = 0) -> ReferenceHorizon:

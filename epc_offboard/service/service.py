@@ -42,6 +42,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common import jit
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
 from epc_offboard.control.cascade import Cascade
@@ -222,7 +223,12 @@ class Service:
         # numba compiles (or loads from its cache) each kernel on first use: 0.2-1 s that,
         # inside the first tick, stalled the loops into a stale-state failsafe. Done here,
         # before the link opens, before READY=1 and before any setpoint streams.
-        log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
+        if jit.enabled():
+            log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
+        else:  # a cold cache: coldstart.py compiles them in the background for the next start
+            log.warning("control kernels: numpy twins (no compiled kernels in the cache: "
+                        "compiling them in the background for the next start); warmed in "
+                        "%.2f s", self.cascade.warm_up())  # fmt: skip
         t0 = time.perf_counter()
         self.misses.start()
         log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
@@ -292,6 +298,9 @@ class Service:
                 "attitude": self.attitude_timing.report().as_dict(),
             },
             "counters": dict(self.counters),
+            # what the control loops run: compiled kernels, or their numpy twins (cold cache)
+            "kernels": "compiled" if jit.enabled() and "numba" in sys.modules else "numpy",
+            "numba_imported": "numba" in sys.modules,
             "gc": self.gc_monitor.stats(),
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
