@@ -61,6 +61,7 @@ class Flight:
     wind_m_s: float
     adaptation: str = "lwpr"
     freezes_s: tuple[float, ...] = ()
+    settle_s: float = SETTLE_S  # vehicle seconds from an entry to the next freeze
     entries: list[EntryFigures] = field(default_factory=list)
     freezes_done: list[tuple[float, float]] = field(default_factory=list)  # (t, duration)
     exit_code: int | None = None
@@ -221,7 +222,7 @@ def _script(gcs: _GroundStation, flight: Flight, stop: threading.Event) -> None:
         gcs.connect(time.monotonic() + 60.0)
         while not gcs.controlled and not stop.is_set():
             gcs.pump()
-        gcs.wait_vehicle(gcs.vehicle_s + SETTLE_S, stop)
+        gcs.wait_vehicle(gcs.vehicle_s + flight.settle_s, stop)
         for duration in flight.freezes_s:
             if stop.is_set():
                 return
@@ -246,7 +247,7 @@ def fly(
     (``checkout``: the service and SITL of that source tree instead of this one)."""
     out.mkdir(parents=True, exist_ok=True)
     scenario = out / "entry_scenario.toml"
-    duration = SETTLE_S + sum(f + REENTRY_S for f in flight.freezes_s) + 1.0
+    duration = flight.settle_s + sum(f + REENTRY_S for f in flight.freezes_s) + 1.0
     scenario.write_text(
         'description = "hover, entered in wind"\n'
         f"duration_s = {duration}\nsettle_s = 1.0\naltitude_m = 2.5\n"

@@ -237,6 +237,9 @@ class PositionLoop:
         self._last_tick_s = -math.inf
         self._ramp_acc: FloatArray | None = None
         self._ramp_end_s = math.inf
+        # how far a vehicle flying the ramp lags behind it: the jerk over twice the slowest
+        # inner-loop lag
+        self._ramp_lead_m_s2 = cfg.entry_jerk_m_s3 * 2.0 * max(cfg.tau_acc_s)
         # the tick's scratch arrays (not kept by anything the tick returns)
         self._z_stages = np.empty((cfg.horizon + 1, 3))  # estimator query: v of x_0..x_N
         self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
@@ -390,8 +393,18 @@ class PositionLoop:
         max_step = cfg.entry_jerk_m_s3 * self.loop_period_s
         if norm > max_step:
             step *= max_step / norm
-        self._ramp_acc = self._ramp_acc + step
-        return self._ramp_acc.copy()
+        ramp = self._ramp_acc + step
+        if not ours:
+            # Until offboard is confirmed the autopilot may still fly its own (PX4 takes
+            # setpoints only once it switches, and shows the switch up to 1 s late): the
+            # ramp stays within what a vehicle flying it would lag behind by, so it cannot
+            # run ahead unflown and reach the vehicle as a step (+3 m/s^2 after a freeze).
+            lead = ramp - achieved
+            lead_norm = float(np.linalg.norm(lead))
+            if lead_norm > self._ramp_lead_m_s2:
+                ramp = achieved + lead * (self._ramp_lead_m_s2 / lead_norm)
+        self._ramp_acc = ramp
+        return ramp.copy()
 
     def position_tick(
         self, state: VehicleState, reference: ReferenceHorizon, *, learn: bool = True

@@ -36,8 +36,9 @@ _CHILD_NICE = 10  # below the service's loops: it competes only for idle time
 
 
 def choose() -> str:
-    """The kernels ("compiled" or "numpy") for this process, setting ``EPC_OFFBOARD_JIT`` for it (and the
-    processes it spawns) when the cache is cold. Call before importing the kernels."""
+    """The kernels of this process: "compiled", "numpy", or "numpy-cold" (the cache is
+    cold: ``EPC_OFFBOARD_JIT=0`` is set for it and the processes it spawns). Call before
+    importing the kernels."""
     if jit.ENV in os.environ:
         return "compiled" if jit.enabled() and jit.numba_installed() else "numpy"
     if not jit.numba_installed() or jit.cache_warm():
