@@ -237,6 +237,12 @@ def _add_log(sub: _Subparsers) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if list(sys.argv[1:] if argv is None else argv)[:1] == ["run"]:
+        # compiled kernels or their numpy twins, chosen before anything imports them (the
+        # parser's scenario list does): service/coldstart.py
+        from epc_offboard.service import coldstart
+
+        coldstart.choose()
     parser = build_parser()
     args = parser.parse_args(argv)
     module_name, func_name = _COMMANDS[args.command].split(":")

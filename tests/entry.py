@@ -43,6 +43,7 @@ _RESTORE_INTERVAL_US = 10_000.0  # 100 Hz: what the service asks for
 WINDOW_S = 2.0  # judged over the first WINDOW_S of each entry
 SETTLE_S = 4.0  # vehicle seconds between an entry and the next freeze
 REENTRY_S = 8.0  # vehicle seconds after a freeze's end for the re-entry and its window
+_WALL_LIMIT_S = 120.0  # no ground-station wait lasts longer (a SITL that died)
 
 
 @dataclass(frozen=True)
@@ -160,6 +161,8 @@ class _GroundStation:
         self.conn: Any = None
         self.vehicle_s = 0.0
         self.controlled = False
+        self.airborne = False  # above 2 m: ArduCopter is GUIDED and armed before takeoff
+        self._guided = False
 
     def connect(self, deadline: float) -> None:
         while time.monotonic() < deadline:
@@ -183,12 +186,16 @@ class _GroundStation:
             kind = msg.get_type()
             if kind in ("ATTITUDE", "LOCAL_POSITION_NED", "ATTITUDE_QUATERNION"):
                 self.vehicle_s = max(self.vehicle_s, msg.time_boot_ms / 1000.0)
+            if kind == "LOCAL_POSITION_NED":
+                self.airborne = msg.z < -2.0
             if kind == "HEARTBEAT" and msg.get_srcSystem() == 1:
                 if self.autopilot == "px4":
                     self.controlled = px4_modes(msg.custom_mode)[0] == PX4_MAIN_MODE_OFFBOARD
                 else:
                     armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                    self.controlled = armed and msg.custom_mode == ARDUPILOT_GUIDED
+                    self._guided = armed and msg.custom_mode == ARDUPILOT_GUIDED
+            if self.autopilot != "px4":
+                self.controlled = self._guided and self.airborne
             msg = self.conn.recv_match(blocking=False)
 
     def _set_interval(self, interval_us: float) -> None:
@@ -199,14 +206,18 @@ class _GroundStation:
             )  # fmt: skip
 
     def wait_vehicle(self, until_s: float, stop: threading.Event) -> None:
-        while self.vehicle_s < until_s and not stop.is_set():
+        deadline = time.monotonic() + _WALL_LIMIT_S
+        while self.vehicle_s < until_s and not stop.is_set() and time.monotonic() < deadline:
             self.pump()
 
     def freeze(self, duration_s: float, stop: threading.Event) -> float:
         """Stop the position streams for ``duration_s`` of vehicle time (asking again and
         again: the service re-requests its rates); returns the vehicle time it began."""
         t0 = self.vehicle_s
-        while self.vehicle_s < t0 + duration_s and not stop.is_set():
+        deadline = time.monotonic() + _WALL_LIMIT_S
+        while (
+            self.vehicle_s < t0 + duration_s and not stop.is_set() and time.monotonic() < deadline
+        ):
             self._set_interval(-1.0)
             self.pump(0.02)
         self._set_interval(_RESTORE_INTERVAL_US)
@@ -220,7 +231,8 @@ class _GroundStation:
 def _script(gcs: _GroundStation, flight: Flight, stop: threading.Event) -> None:
     try:
         gcs.connect(time.monotonic() + 60.0)
-        while not gcs.controlled and not stop.is_set():
+        deadline = time.monotonic() + _WALL_LIMIT_S
+        while not gcs.controlled and not stop.is_set() and time.monotonic() < deadline:
             gcs.pump()
         gcs.wait_vehicle(gcs.vehicle_s + flight.settle_s, stop)
         for duration in flight.freezes_s:
@@ -229,8 +241,8 @@ def _script(gcs: _GroundStation, flight: Flight, stop: threading.Event) -> None:
             t0 = gcs.freeze(duration, stop)
             flight.freezes_done.append((t0, duration))
             gcs.wait_vehicle(gcs.vehicle_s + REENTRY_S, stop)
-        while not stop.is_set():
-            gcs.pump(0.2)
+        # nothing more to do: the sim lands and exits (a dead TCP link must not be read:
+        # pymavlink prints a line per read at its EOF)
     except Exception as exc:  # the judge reports a flight without its freezes
         print(f"ground station: {exc!r}", file=sys.stderr)
 

@@ -40,7 +40,9 @@ def test_realtime_start_with_an_empty_kernel_cache_never_fails_safe(tmp_path):
         code = rig.wait_exit(timeout_s=90)
         log = rig.log()
     assert code == 0, log
-    assert "compiled and warmed" in log
+    # a cold cache flies the numpy twins (tests/test_coldstart_e2e.py) and compiles them in
+    # the background for the next start
+    assert "numpy twins" in log
     transitions = phases(log)
     assert not any("failsafe" in line for line in transitions), "\n".join(transitions)
     stats = rig.stats()
@@ -50,7 +52,8 @@ def test_realtime_start_with_an_empty_kernel_cache_never_fails_safe(tmp_path):
     rates = stats["rates_hz"]
     assert rates["ATTITUDE_QUATERNION"] >= 0.9 * 200.0
     assert rates["LOCAL_POSITION_NED"] >= 0.9 * 100.0
-    assert any(cache.iterdir()), "numba wrote no cache where it was told to"
+    # (the background compile writes the cache where it was told to; it dies with the
+    # service, so a flight this short may end before it is done)
 
 
 def test_windy_flight_under_cpu_load_keeps_the_tilt_limit(tmp_path):

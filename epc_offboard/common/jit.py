@@ -68,8 +68,14 @@ def numba_installed() -> bool:
     return True
 
 
-def mark_cache_warm() -> None:
-    """Record that every kernel is in the cache (after a complete warm-up)."""
+def mark_cache_warm() -> bool:
+    """Record that every kernel is in the cache (after a complete warm-up); False when the
+    marker cannot be written (then every start flies the numpy twins: set NUMBA_CACHE_DIR
+    to a writable directory, as the systemd unit's StateDirectory does)."""
     marker = _marker()
-    marker.parent.mkdir(parents=True, exist_ok=True)
-    marker.write_text("compiled\n")
+    try:
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.write_text("compiled\n")
+    except OSError:
+        return False
+    return True

@@ -38,7 +38,17 @@ _CHILD_NICE = 10  # below the service's loops: it competes only for idle time
 def choose() -> str:
     """The kernels of this process: "compiled", "numpy", or "numpy-cold" (the cache is
     cold: ``EPC_OFFBOARD_JIT=0`` is set for it and the processes it spawns). Call before
-    importing the kernels."""
+    importing the kernels; later calls return the first answer."""
+    global _choice
+    if _choice is None:
+        _choice = _choose()
+    return _choice
+
+
+_choice: str | None = None
+
+
+def _choose() -> str:
     if jit.ENV in os.environ:
         return "compiled" if jit.enabled() and jit.numba_installed() else "numpy"
     if not jit.numba_installed() or jit.cache_warm():
@@ -103,7 +113,11 @@ def main(argv: list[str] | None = None) -> int:
         learn_on_miss=False,
     )  # fmt: skip
     cascade.warm_up()
-    jit.mark_cache_warm()
+    if not jit.mark_cache_warm():
+        print(f"epc-offboard: cannot mark the kernel cache warm in {jit.cache_dir()}: every "
+              "start will fly the numpy twins (set NUMBA_CACHE_DIR to a writable directory)",
+              file=sys.stderr)  # fmt: skip
+        return 1
     print(
         f"epc-offboard: kernels compiled into the cache in {time.perf_counter() - t0:.1f} s "
         "(background, for the next start)",

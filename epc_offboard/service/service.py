@@ -45,7 +45,7 @@ from typing import Any
 from epc_offboard.common import jit
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
-from epc_offboard.control.cascade import Cascade
+from epc_offboard.control.cascade import Cascade, compiled_signatures
 from epc_offboard.control.position import PositionOutput
 from epc_offboard.control.reference import ReferenceHorizon
 from epc_offboard.fleet.sharing import FleetSharing, open_or_fly_alone
@@ -107,6 +107,7 @@ class Service:
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
         self.gc_monitor = realtime.GcMonitor()
         self._position_out: PositionOutput | None = None
+        self._signatures_warm = 0  # compiled kernel signatures once warmed (0: numpy twins)
         self.flight_log: FlightLog | None = None
         self.sharing: FleetSharing | None = None
         live = cfg.reference.source == "zenoh"
@@ -229,6 +230,7 @@ class Service:
             log.warning("control kernels: numpy twins (no compiled kernels in the cache: "
                         "compiling them in the background for the next start); warmed in "
                         "%.2f s", self.cascade.warm_up())  # fmt: skip
+        self._signatures_warm = compiled_signatures()
         t0 = time.perf_counter()
         self.misses.start()
         log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
@@ -299,8 +301,11 @@ class Service:
             },
             "counters": dict(self.counters),
             # what the control loops run: compiled kernels, or their numpy twins (cold cache)
-            "kernels": "compiled" if jit.enabled() and "numba" in sys.modules else "numpy",
-            "numba_imported": "numba" in sys.modules,
+            "kernels": {
+                "mode": "compiled" if jit.enabled() and self._signatures_warm > 0 else "numpy",
+                "signatures_after_warm_up": self._signatures_warm,
+                "signatures": compiled_signatures(),  # more than after warm-up: a loop compile
+            },
             "gc": self.gc_monitor.stats(),
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
