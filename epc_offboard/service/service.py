@@ -224,6 +224,8 @@ class Service:
         # numba compiles (or loads from its cache) each kernel on first use: 0.2-1 s that,
         # inside the first tick, stalled the loops into a stale-state failsafe. Done here,
         # before the link opens, before READY=1 and before any setpoint streams.
+        t0 = time.perf_counter()
+        self.misses.start(wait=False)  # the worker's imports overlap the warm-up
         if jit.enabled():
             log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
         else:  # a cold cache: coldstart.py compiles them in the background for the next start
@@ -231,8 +233,7 @@ class Service:
                         "compiling them in the background for the next start); warmed in "
                         "%.2f s", self.cascade.warm_up())  # fmt: skip
         self._signatures_warm = compiled_signatures()
-        t0 = time.perf_counter()
-        self.misses.start()
+        self.misses.wait_ready()
         log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
         self.library.open()
         if self.cfg.log.flight_log_path:
