@@ -89,6 +89,7 @@ class Service:
         log_gate = LogGate()  # wire- and loop-driven log lines, rate-limited
         self.loops = Loops(self.clock, self.counters, log_gate)
         self.autopilot = Autopilot(cfg, self.clock, self.tracker, self.counters, log_gate)
+        self.autopilot.on_hover_thrust = self.cascade.position.set_hover_thrust
         self.link = self.autopilot.link
         self.systemd = Systemd(cfg.loops.watchdog_period_s)
         self.supervisor = Supervisor(
