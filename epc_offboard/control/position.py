@@ -145,6 +145,17 @@ class _Observation:
     thrust_m_s2: float  # f: the specific thrust flown, NaN while the autopilot flies its own
 
 
+def _trapezoid_mean(values: list[FloatArray] | list[float]) -> FloatArray:
+    """The mean over the intervals between consecutive samples, each interval the mean of
+    its two ends (samples about evenly spaced)."""
+    arr = np.asarray(values, dtype=np.float64)
+    if len(arr) < 2:
+        out: FloatArray = arr.mean(axis=0)
+        return out
+    mid: FloatArray = 0.5 * (arr[1:] + arr[:-1])
+    return mid.mean(axis=0)  # type: ignore[no-any-return]
+
+
 def _thrust_axis_ned(state: VehicleState) -> FloatArray:
     """The body z axis (FRD, pointing down through the vehicle) in NED at ``state``'s
     attitude: thrust acts along minus this."""
@@ -301,9 +312,11 @@ class PositionLoop:
         if oldest is None or newest.t_s - oldest.t_s < 0.5 * dt_s:
             return
         span = newest.t_s - oldest.t_s
-        window = [o for o in self._history if oldest.t_s <= o.t_s < newest.t_s]
+        window = [o for o in self._history if oldest.t_s <= o.t_s <= newest.t_s]
         acc_meas = (newest.vel_ned_m_s - oldest.vel_ned_m_s) / span
-        axis = np.mean([o.thrust_axis_ned for o in window], axis=0)
+        # the thrust acting between two samples: the mean of the two (trapezoid), not the
+        # first alone (a rising thrust's step would read as a disturbance)
+        axis = _trapezoid_mean([o.thrust_axis_ned for o in window])
         f = np.array([o.thrust_m_s2 for o in window])
         if np.isnan(f).any():
             if axis[2] < 0.5:  # beyond 60 deg of tilt the vertical balance says nothing
@@ -312,7 +325,7 @@ class PositionLoop:
             # with the assumed vertical disturbance
             f_mean = (GRAVITY_M_S2 + self._d_down_prior_m_s2 - acc_meas[2]) / axis[2]
         else:
-            f_mean = float(np.mean(f))
+            f_mean = float(_trapezoid_mean(list(f)))
         gravity = np.array([0.0, 0.0, GRAVITY_M_S2])
         d_meas = acc_meas - (gravity - f_mean * axis)
         # d_meas is the mean disturbance over the window: pair it with the mean velocity
@@ -373,9 +386,9 @@ class PositionLoop:
         self, acc: FloatArray, achieved: FloatArray, t_s: float, ours: bool
     ) -> FloatArray:
         """The command rate-limited after an entry: from the vehicle's acceleration at the
-        first tick after a gap (entry, re-entry after a failsafe), by at most
+        first tick after a gap (entry, re-entry after a failsafe), horizontally by at most
         ``entry_jerk_m_s3`` per second, until ``entry_ramp_s`` after the autopilot is
-        confirmed to fly ours. A convex step towards ``acc``: it stays inside the limits."""
+        confirmed to fly ours (the caller limits the tilt of what it returns)."""
         cfg = self.config
         if t_s - self._last_tick_s > 3.0 * self.loop_period_s:  # control (re)starts
             self._ramp_acc = limit_tilt(achieved.copy(), self.acc_limits)
@@ -388,11 +401,17 @@ class PositionLoop:
         if t_s >= self._ramp_end_s:
             self._ramp_acc = None
             return acc
+        # horizontally only: a horizontal change is a tilt, which the attitude loop flies
+        # with its lag (the jolt); the vertical is thrust alone, and braking a climb that is
+        # still under way at entry (ArduCopter's takeoff hands over climbing) needs it whole
         step = acc - self._ramp_acc
+        vertical = step[2]
+        step[2] = 0.0
         norm = float(np.linalg.norm(step))
         max_step = cfg.entry_jerk_m_s3 * self.loop_period_s
         if norm > max_step:
             step *= max_step / norm
+        step[2] = vertical
         ramp = self._ramp_acc + step
         if not ours:
             # Until offboard is confirmed the autopilot may still fly its own (PX4 takes
@@ -400,9 +419,10 @@ class PositionLoop:
             # ramp stays within what a vehicle flying it would lag behind by, so it cannot
             # run ahead unflown and reach the vehicle as a step (+3 m/s^2 after a freeze).
             lead = ramp - achieved
+            lead[2] = 0.0
             lead_norm = float(np.linalg.norm(lead))
             if lead_norm > self._ramp_lead_m_s2:
-                ramp = achieved + lead * (self._ramp_lead_m_s2 / lead_norm)
+                ramp[:2] = achieved[:2] + lead[:2] * (self._ramp_lead_m_s2 / lead_norm)
         self._ramp_acc = ramp
         return ramp.copy()
 
@@ -447,7 +467,7 @@ class PositionLoop:
         x0[6:9] = achieved
         decision: Decision = self.controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
-        acc = self._entry_ramp(acc, achieved, state.time_s, learn)
+        acc = limit_tilt(self._entry_ramp(acc, achieved, state.time_s, learn), self.acc_limits)
         out = self._attitude_target(acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0)
         self._last_thrust_norm = out.thrust_norm
         return out

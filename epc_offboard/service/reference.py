@@ -10,6 +10,7 @@ flies it and the flight log reads the reference now from it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import Counter
@@ -100,10 +101,17 @@ class ReferenceSelector:
         trajectory = self.trajectory
         if trajectory is None:
             return
-        self.rejoin = Rejoin.onto(
+        rejoin = Rejoin.onto(
             trajectory.sample(now_s), state.pos_ned_m, state.vel_ned_m_s, now_s,
             trajectory.config.rejoin_tau_s,
         )  # fmt: skip
+        # Vertically the gap closes from rest: a climb still under way (ArduCopter's takeoff
+        # hands over at 2.4 m climbing 1.5 m/s) is braked with thrust alone at once, not
+        # carried on by the reference (0.75 m above the entry); horizontally the gap keeps
+        # its rate, a tilt the vehicle already flies.
+        rate = rejoin.gap_rate_ned_m_s.copy()
+        rate[2] = 0.0
+        self.rejoin = dataclasses.replace(rejoin, gap_rate_ned_m_s=rate)
         gap = float(np.linalg.norm(self.rejoin.gap_ned_m))
         if gap > 0.05:
             self.counters["trajectory_rejoins"] += 1
