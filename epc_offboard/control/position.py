@@ -95,6 +95,10 @@ class PositionControlConfig:
     # entry_ramp_s after the autopilot is confirmed to fly ours; 6 m/s^3 is ~35 deg/s of tilt
     entry_ramp_s: float = 1.0
     entry_jerk_m_s3: float = 6.0
+    # and, horizontally, at most this far from the acceleration that holds against the
+    # estimated wind: a re-entry braking a drift after a hold that let it go (2.5 m/s^2 is
+    # 14 deg of tilt beyond the wind's)
+    entry_max_acc_m_s2: float = 2.5
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -117,6 +121,8 @@ class PositionControlConfig:
             raise ValueError(f"entry_ramp_s must be >= 0, got {self.entry_ramp_s}")
         if not (math.isfinite(self.entry_jerk_m_s3) and self.entry_jerk_m_s3 > 0.0):
             raise ValueError(f"entry_jerk_m_s3 must be > 0, got {self.entry_jerk_m_s3}")
+        if not (math.isfinite(self.entry_max_acc_m_s2) and self.entry_max_acc_m_s2 > 0.0):
+            raise ValueError(f"entry_max_acc_m_s2 must be > 0, got {self.entry_max_acc_m_s2}")
 
     @property
     def yaw_rad(self) -> float:
@@ -383,11 +389,12 @@ class PositionLoop:
         )
 
     def _entry_ramp(
-        self, acc: FloatArray, achieved: FloatArray, t_s: float, ours: bool
+        self, acc: FloatArray, achieved: FloatArray, t_s: float, ours: bool, d_hat: FloatArray
     ) -> FloatArray:
         """The command rate-limited after an entry: from the vehicle's acceleration at the
         first tick after a gap (entry, re-entry after a failsafe), horizontally by at most
-        ``entry_jerk_m_s3`` per second, until ``entry_ramp_s`` after the autopilot is
+        ``entry_jerk_m_s3`` per second and within ``entry_max_acc_m_s2`` of what holds
+        against the estimated wind ``d_hat``, until ``entry_ramp_s`` after the autopilot is
         confirmed to fly ours (the caller limits the tilt of what it returns)."""
         cfg = self.config
         if t_s - self._last_tick_s > 3.0 * self.loop_period_s:  # control (re)starts
@@ -404,6 +411,12 @@ class PositionLoop:
         # horizontally only: a horizontal change is a tilt, which the attitude loop flies
         # with its lag (the jolt); the vertical is thrust alone, and braking a climb that is
         # still under way at entry (ArduCopter's takeoff hands over climbing) needs it whole
+        acc = acc.copy()
+        hold = -d_hat[:2]  # what holds against the estimated wind
+        extra = acc[:2] - hold
+        extra_norm = float(np.linalg.norm(extra))
+        if extra_norm > cfg.entry_max_acc_m_s2:
+            acc[:2] = hold + extra * (cfg.entry_max_acc_m_s2 / extra_norm)
         step = acc - self._ramp_acc
         vertical = step[2]
         step[2] = 0.0
@@ -467,7 +480,8 @@ class PositionLoop:
         x0[6:9] = achieved
         decision: Decision = self.controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
-        acc = limit_tilt(self._entry_ramp(acc, achieved, state.time_s, learn), self.acc_limits)
+        acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
+        acc = limit_tilt(acc, self.acc_limits)
         out = self._attitude_target(acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0)
         self._last_thrust_norm = out.thrust_norm
         return out
