@@ -459,8 +459,10 @@ def test_control_starts_only_once_the_takeoff_climb_has_settled():
         )  # fmt: skip
 
     out = climbing(1.5, 2.3, -1.5)
-    assert out.phase == Phase.PREFLIGHT and not out.stream_setpoints
+    assert out.phase == Phase.PREFLIGHT
+    assert not out.stream_setpoints
     assert out.actions == ()
     assert "climb to settle" in out.reason
     out = climbing(2.0, 2.6, -0.2)
-    assert out.phase == Phase.STREAMING and out.stream_setpoints
+    assert out.phase == Phase.STREAMING
+    assert out.stream_setpoints
