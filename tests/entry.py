@@ -112,7 +112,8 @@ def entries(vehicle_dir: Path, autopilot: str, window_s: float = WINDOW_S) -> li
     """Every entry of one flight (see the module docstring) with its figures."""
     log = [r for r in _rows(vehicle_dir / "flight.csv") if isinstance(r["vehicle_t_s"], float)]
     truth = _rows(vehicle_dir / "groundtruth.csv")
-    obey = PX4_MAIN_MODE_OFFBOARD if autopilot == "px4" else ARDUPILOT_GUIDED
+    # (the ground truth writes both personalities' modes in PX4's terms: GUIDED is 6)
+    obey = PX4_MAIN_MODE_OFFBOARD
     # stretches of streamed setpoints: the flight log has a row per streamed position tick
     stretches: list[list[float]] = []
     for r in log:

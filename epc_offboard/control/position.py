@@ -95,10 +95,13 @@ class PositionControlConfig:
     # entry_ramp_s after the autopilot is confirmed to fly ours; 6 m/s^3 is ~35 deg/s of tilt
     entry_ramp_s: float = 1.0
     entry_jerk_m_s3: float = 6.0
-    # and, horizontally, at most this far from the acceleration that holds against the
-    # estimated wind: a re-entry braking a drift after a hold that let it go (2.5 m/s^2 is
+    # and at most this far from the acceleration that holds against the estimated
+    # disturbance: a re-entry braking a drift after a hold that let it go (2.5 m/s^2 is
     # 14 deg of tilt beyond the wind's)
     entry_max_acc_m_s2: float = 2.5
+    # vertically, within this: a calm entry holds its altitude (the QP may otherwise buy
+    # tilt authority with thrust and climb with it: 0.36 m on an ArduCopter re-entry)
+    entry_max_vertical_acc_m_s2: float = 0.6
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -123,6 +126,14 @@ class PositionControlConfig:
             raise ValueError(f"entry_jerk_m_s3 must be > 0, got {self.entry_jerk_m_s3}")
         if not (math.isfinite(self.entry_max_acc_m_s2) and self.entry_max_acc_m_s2 > 0.0):
             raise ValueError(f"entry_max_acc_m_s2 must be > 0, got {self.entry_max_acc_m_s2}")
+        if not (
+            math.isfinite(self.entry_max_vertical_acc_m_s2)
+            and self.entry_max_vertical_acc_m_s2 > 0.0
+        ):
+            raise ValueError(
+                "entry_max_vertical_acc_m_s2 must be > 0, got "
+                f"{self.entry_max_vertical_acc_m_s2}"
+            )
 
     @property
     def yaw_rad(self) -> float:
@@ -393,8 +404,8 @@ class PositionLoop:
     ) -> FloatArray:
         """The command rate-limited after an entry: from the vehicle's acceleration at the
         first tick after a gap (entry, re-entry after a failsafe), horizontally by at most
-        ``entry_jerk_m_s3`` per second and within ``entry_max_acc_m_s2`` of what holds
-        against the estimated wind ``d_hat``, until ``entry_ramp_s`` after the autopilot is
+        ``entry_jerk_m_s3`` per second, and within ``entry_max_acc_m_s2`` of what holds
+        against the estimated disturbance ``d_hat``, until ``entry_ramp_s`` after the autopilot is
         confirmed to fly ours (the caller limits the tilt of what it returns)."""
         cfg = self.config
         if t_s - self._last_tick_s > 3.0 * self.loop_period_s:  # control (re)starts
@@ -411,12 +422,17 @@ class PositionLoop:
         # horizontally only: a horizontal change is a tilt, which the attitude loop flies
         # with its lag (the jolt); the vertical is thrust alone, and braking a climb that is
         # still under way at entry (ArduCopter's takeoff hands over climbing) needs it whole
-        acc = acc.copy()
-        hold = -d_hat[:2]  # what holds against the estimated wind
-        extra = acc[:2] - hold
+        # Within entry_max_acc_m_s2 of what holds against the estimated disturbance, as a
+        # vector: the QP buys horizontal authority under the tilt polygon with thrust, so a
+        # command whose horizontal part is held back here must not keep the climb it came
+        # with (ArduCopter re-entering in 6 m/s wind climbed 0.5 m on it).
+        hold = -d_hat
+        extra = acc - hold
         extra_norm = float(np.linalg.norm(extra))
         if extra_norm > cfg.entry_max_acc_m_s2:
-            acc[:2] = hold + extra * (cfg.entry_max_acc_m_s2 / extra_norm)
+            acc = hold + extra * (cfg.entry_max_acc_m_s2 / extra_norm)
+        vmax = cfg.entry_max_vertical_acc_m_s2
+        acc[2] = min(max(acc[2], hold[2] - vmax), hold[2] + vmax)
         step = acc - self._ramp_acc
         vertical = step[2]
         step[2] = 0.0
