@@ -13,7 +13,8 @@ change) with the same judge.
 
 An entry is the moment the autopilot starts flying the service's setpoints: the first
 ground-truth sample, within a stretch of streamed setpoints (the flight log's rows), at
-which the SITL is in the mode that obeys them (PX4 Offboard, ArduCopter GUIDED).
+which the SITL is in the mode that obeys them (PX4 Offboard, ArduCopter GUIDED: the ground
+truth writes both in PX4's terms).
 """
 
 from __future__ import annotations
