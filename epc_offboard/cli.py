@@ -26,7 +26,7 @@ from epc_offboard.tools.db import add_db_arguments
 
 # subcommand -> "module:function(args) -> exit code"
 _COMMANDS = {
-    "run": "epc_offboard.service.service:run_service_command",
+    "run": "epc_offboard.service.coldstart:run",  # the kernels chosen before they import
     "sim": "epc_offboard.tools.sim.command:run_sim_command",
     "bench": "epc_offboard.tools.bench:run_bench_command",
     "db": "epc_offboard.tools.db:run_db_command",
@@ -266,6 +266,12 @@ def _add_figures(sub: _Subparsers) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if list(sys.argv[1:] if argv is None else argv)[:1] == ["run"]:
+        # compiled kernels or their numpy twins, chosen before anything imports them (the
+        # parser's scenario list does): service/coldstart.py
+        from epc_offboard.service import coldstart
+
+        coldstart.choose()
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else argv
     args, extra = parser.parse_known_args(join_negative_values(argv, ("--wind",)))

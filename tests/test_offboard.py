@@ -441,3 +441,28 @@ def test_never_a_second_takeoff_and_never_one_in_the_air(
             assert not out.stream_setpoints
     assert takeoffs <= 1
     assert ap.alt <= 2.5 + pushed_up_m + 1e-6  # only the pushes ever exceed the target
+
+
+def test_control_starts_only_once_the_takeoff_climb_has_settled():
+    """ArduCopter's takeoff handed over at the target less the tolerance still climbing
+    1.5 m/s: control starting then overshot 0.36-1.1 m. Streaming waits for the climb to
+    settle (airborne is still judged on altitude alone: no second takeoff either way)."""
+    sm = OffboardStateMachine(AUTO)
+    step(sm, 0.0, hb(0.0))
+    step(sm, 0.1, hb(0.1))
+    assert step(sm, 0.2, hb(0.2, armed=True)).actions == (Action.TAKEOFF,)
+
+    def climbing(t, alt, vel_down):
+        return sm.step(
+            Inputs(t, hb(t, armed=True, main=4, sub=3), 0.01, pos_down_m=-alt,
+                   relative_alt_m=alt, amsl_m=HOME_AMSL_M + alt, vel_down_m_s=vel_down)
+        )  # fmt: skip
+
+    out = climbing(1.5, 2.3, -1.5)
+    assert out.phase == Phase.PREFLIGHT
+    assert not out.stream_setpoints
+    assert out.actions == ()
+    assert "climb to settle" in out.reason
+    out = climbing(2.0, 2.6, -0.2)
+    assert out.phase == Phase.STREAMING
+    assert out.stream_setpoints

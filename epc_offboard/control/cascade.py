@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from epc_offboard.control import kernels, lwpr, rate_response, trajectories
+from epc_offboard.control import kernels, lwpr, lwpr_kernels, rate_response, trajectories
 from epc_offboard.control.attitude import AttitudeControlConfig, AttitudeLoop, AttitudeOutput
 from epc_offboard.control.decision import Controller
 from epc_offboard.control.epc import ExperienceController
@@ -38,6 +38,20 @@ def _stats(ctrl: Controller) -> dict[str, Any]:
             "candidates": int(s.candidates),
         }
     return {}
+
+
+def compiled_signatures() -> int:
+    """How many compiled signatures the kernels' numba dispatchers hold (0 on the numpy
+    twins). A count that grows after ``Cascade.warm_up`` is a compile on the control loop."""
+    count = 0
+    for module in (kernels, lwpr_kernels, trajectories):
+        for value in vars(module).values():
+            if hasattr(value, "py_func") and hasattr(value, "signatures"):
+                count += len(value.signatures)
+    for pair in (kernels._NUMBA, kernels._LISTS):
+        for fn in pair or ():
+            count += len(getattr(fn, "signatures", ()))
+    return count
 
 
 class Cascade:

@@ -23,6 +23,7 @@ from typing import Any, cast
 import numpy as np
 import numpy.typing as npt
 
+from epc_offboard.common import jit
 from epc_offboard.common.frames import FloatArray
 
 IntArray = npt.NDArray[np.int64]
@@ -97,6 +98,8 @@ _apply_jit: Any = None
 
 
 def _compile() -> tuple[ApplyMap, QueryMaps] | None:
+    if not jit.enabled():  # the numpy twins (a cold start, see common.jit)
+        return None
     try:
         import numba
     except ImportError:  # numba is a dependency; keep working without it, only slower

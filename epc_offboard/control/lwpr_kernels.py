@@ -22,6 +22,7 @@ from typing import Any, TypeVar, cast
 
 import numpy as np
 
+from epc_offboard.common import jit
 from epc_offboard.common.frames import FloatArray
 
 # A field takes part in an update only above this activation (reference library).
@@ -45,9 +46,12 @@ CFG_SIZE = 11
 STATUS_NOT_FINITE = 1  # an updated field's statistics overflowed: drop it (Python)
 STATUS_ADD_OR_PRUNE = 2  # some output needs a new field, or two fields overlap (Python)
 
-try:
-    import numba
-except ImportError:  # numba is a dependency; LWPR falls back to numpy without it
+if jit.enabled():
+    try:
+        import numba
+    except ImportError:  # numba is a dependency; LWPR falls back to numpy without it
+        numba = None  # type: ignore[assignment]
+else:  # the numpy twins (a cold start, see common.jit): not even numba's import
     numba = None  # type: ignore[assignment]
 
 HAVE_NUMBA = numba is not None

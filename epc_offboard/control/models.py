@@ -247,12 +247,17 @@ def accel_to_attitude(
     return AttitudeThrust(roll, pitch, yaw_rad, hover_thrust_norm * mag / GRAVITY_M_S2)
 
 
+def attitude_to_axis(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
+    """The body z axis (FRD: down through the vehicle) in NED, (3,): thrust acts along -z_b."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp_ = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([cy * cr * sp_ + sy * sr, sy * cr * sp_ - cy * sr, cr * cp])
+
+
 def attitude_to_accel(sp: AttitudeThrust, hover_thrust_norm: float) -> FloatArray:
     """Acceleration (NED, m/s²) produced by an attitude and normalised thrust."""
-    cr, sr = math.cos(sp.roll_rad), math.sin(sp.roll_rad)
-    cp, sp_ = math.cos(sp.pitch_rad), math.sin(sp.pitch_rad)
-    cy, sy = math.cos(sp.yaw_rad), math.sin(sp.yaw_rad)
-    z_b = np.array([cy * cr * sp_ + sy * sr, sy * cr * sp_ - cy * sr, cr * cp])
+    z_b = attitude_to_axis(sp.roll_rad, sp.pitch_rad, sp.yaw_rad)
     thrust_m_s2 = GRAVITY_M_S2 * sp.thrust_norm / hover_thrust_norm
     out: FloatArray = np.array([0.0, 0.0, GRAVITY_M_S2]) - thrust_m_s2 * z_b
     return out

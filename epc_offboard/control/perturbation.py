@@ -34,7 +34,6 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
-from filterpy.kalman import KalmanFilter
 
 from epc_offboard.control.lwpr import LWPR, LwprError, check_vector
 
@@ -489,6 +488,10 @@ class KalmanPerturbation:
         self.process_noise = process_noise
         self.measurement_noise = measurement_noise
         self.initial_variance = initial_variance
+        # imported here: filterpy pulls in scipy.stats, seconds of a cold start that the
+        # default (LWPR) estimator never needs
+        from filterpy.kalman import KalmanFilter
+
         m = len(self.outputs)
         self.kf = KalmanFilter(dim_x=m, dim_z=m)
         self.kf.F = np.eye(m)

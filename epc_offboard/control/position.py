@@ -44,6 +44,7 @@ from epc_offboard.control.models import (
     accel_to_attitude,
     acceleration_limits,
     attitude_to_accel,
+    attitude_to_axis,
     limit_tilt,
     position_model_lagged,
     velocity_disturbance_input,
@@ -89,6 +90,18 @@ class PositionControlConfig:
     query_budget_us: float = 3000.0
     pd_kp: Vec3 = (6.0, 6.0, 8.0)
     pd_kd: Vec3 = (4.5, 4.5, 5.0)
+    # entry (and every re-entry after a failsafe): the commanded acceleration starts from
+    # the one the vehicle flies and changes by at most entry_jerk_m_s3 (its norm) until
+    # entry_ramp_s after the autopilot is confirmed to fly ours; 6 m/s^3 is ~35 deg/s of tilt
+    entry_ramp_s: float = 1.0
+    entry_jerk_m_s3: float = 6.0
+    # and at most this far from the acceleration that holds against the estimated
+    # disturbance: a re-entry braking a drift after a hold that let it go (2.5 m/s^2 is
+    # 14 deg of tilt beyond the wind's)
+    entry_max_acc_m_s2: float = 2.5
+    # vertically, within this: a calm entry holds its altitude (the QP may otherwise buy
+    # tilt authority with thrust and climb with it: 0.36 m on an ArduCopter re-entry)
+    entry_max_vertical_acc_m_s2: float = 0.6
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -107,6 +120,20 @@ class PositionControlConfig:
             raise ValueError(f"library_size must be >= 1, got {self.library_size}")
         if not self.query_budget_us > 0.0:
             raise ValueError(f"query_budget_us must be > 0, got {self.query_budget_us}")
+        if not (math.isfinite(self.entry_ramp_s) and self.entry_ramp_s >= 0.0):
+            raise ValueError(f"entry_ramp_s must be >= 0, got {self.entry_ramp_s}")
+        if not (math.isfinite(self.entry_jerk_m_s3) and self.entry_jerk_m_s3 > 0.0):
+            raise ValueError(f"entry_jerk_m_s3 must be > 0, got {self.entry_jerk_m_s3}")
+        if not (math.isfinite(self.entry_max_acc_m_s2) and self.entry_max_acc_m_s2 > 0.0):
+            raise ValueError(f"entry_max_acc_m_s2 must be > 0, got {self.entry_max_acc_m_s2}")
+        if not (
+            math.isfinite(self.entry_max_vertical_acc_m_s2)
+            and self.entry_max_vertical_acc_m_s2 > 0.0
+        ):
+            raise ValueError(
+                "entry_max_vertical_acc_m_s2 must be > 0, got "
+                f"{self.entry_max_vertical_acc_m_s2}"
+            )
 
     @property
     def yaw_rad(self) -> float:
@@ -131,7 +158,26 @@ class PositionOutput:
 class _Observation:
     t_s: float  # when the velocity was measured (vehicle time of its position sample)
     vel_ned_m_s: FloatArray
-    acc_achieved_ned_m_s2: FloatArray
+    thrust_axis_ned: FloatArray  # body z (FRD) in NED: the specific thrust is -f * this
+    thrust_m_s2: float  # f: the specific thrust flown, NaN while the autopilot flies its own
+
+
+def _trapezoid_mean(values: list[FloatArray] | list[float]) -> FloatArray:
+    """The mean over the intervals between consecutive samples, each interval the mean of
+    its two ends (samples about evenly spaced)."""
+    arr = np.asarray(values, dtype=np.float64)
+    if len(arr) < 2:
+        out: FloatArray = arr.mean(axis=0)
+        return out
+    mid: FloatArray = 0.5 * (arr[1:] + arr[:-1])
+    return mid.mean(axis=0)  # type: ignore[no-any-return]
+
+
+def _thrust_axis_ned(state: VehicleState) -> FloatArray:
+    """The body z axis (FRD, pointing down through the vehicle) in NED at ``state``'s
+    attitude: thrust acts along minus this."""
+    roll, pitch, yaw = state.euler_rad
+    return attitude_to_axis(roll, pitch, yaw)
 
 
 def position_problem(cfg: PositionControlConfig, limits: AccelLimits) -> MpcProblem:
@@ -205,6 +251,23 @@ class PositionLoop:
         self._d_max = GRAVITY_M_S2 * cfg.max_thrust_norm / cfg.hover_thrust_norm
         self._history: deque[_Observation] = deque(maxlen=64)
         self._last_thrust_norm = math.nan
+        # The thrust the vehicle flies: the commands through the motors' first-order lag
+        # (the model's vertical tau_acc_s). Taking the command itself as flown read every
+        # thrust step as a vertical disturbance until the motors caught up (a step to
+        # 0.85 at hover 0.5 "measured" +6.9 m/s^2 downwards; the estimate then climbed).
+        self._thrust_gain = 1.0 - math.exp(-loop_period_s / cfg.tau_acc_s[2])
+        self._thrust_flown_norm = math.nan
+        # The vertical disturbance assumed while the autopilot flies its own thrust, which
+        # cannot be told from it (see observe); set from the autopilot's hover thrust.
+        self._d_down_prior_m_s2 = 0.0
+        # entry ramp (see _entry_ramp): the last acceleration sent while ramping, the
+        # vehicle time the ramp ends (inf until the autopilot is confirmed to fly ours)
+        self._last_tick_s = -math.inf
+        self._ramp_acc: FloatArray | None = None
+        self._ramp_end_s = math.inf
+        # how far a vehicle flying the ramp lags behind it: the jerk over twice the slowest
+        # inner-loop lag
+        self._ramp_lead_m_s2 = cfg.entry_jerk_m_s3 * 2.0 * max(cfg.tau_acc_s)
         # the tick's scratch arrays (not kept by anything the tick returns)
         self._z_stages = np.empty((cfg.horizon + 1, 3))  # estimator query: v of x_0..x_N
         self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
@@ -213,9 +276,28 @@ class PositionLoop:
         """At rest at ``pos_ned_m`` (3,) m, at the configured heading, over this horizon."""
         return ReferenceHorizon.hold(pos_ned_m, self.config.yaw_rad, self.config.horizon)
 
-    def observe(self, state: VehicleState, achieved: FloatArray) -> None:
-        """Feed the estimator the disturbance measured over the last prediction step;
-        ``achieved`` (3,): :meth:`achieved_acceleration` at this state.
+    def set_hover_thrust(self, autopilot_hover_norm: float) -> None:
+        """The autopilot's own hover thrust (e.g. ArduCopter's MOT_THST_HOVER): a vehicle
+        hovering at h instead of the configured h0 meets, with our thrust model, a vertical
+        disturbance of g (h / h0 - 1), learnt from the first tick rather than after entry."""
+        h0 = self.config.hover_thrust_norm
+        if math.isfinite(autopilot_hover_norm) and 0.0 < autopilot_hover_norm < 1.0:
+            self._d_down_prior_m_s2 = GRAVITY_M_S2 * (autopilot_hover_norm / h0 - 1.0)
+
+    def observe(self, state: VehicleState, *, ours: bool) -> None:
+        """Feed the estimator the disturbance measured over the last prediction step.
+
+        ``ours``: the vehicle flies our commands (offboard confirmed), so its specific
+        thrust is ours through the motors' lag. Otherwise the autopilot flies (hold or
+        takeoff before offboard, or offboard not yet confirmed: PX4's heartbeat shows a
+        mode change up to 1 s late) with a thrust we do not know; it is then the one that
+        explains the measured vertical acceleration with the assumed vertical disturbance,
+        and the horizontal disturbance follows from the measured tilt. That warms the
+        estimator on the wind before control starts, whoever flies.
+
+        Over a window of one prediction step: a = (v_new - v_old) / span is the measured
+        acceleration, and a = g e_z - f z_b + d with z_b the mean thrust axis, f the mean
+        specific thrust.
 
         Velocities are taken on their own sample times, once per new position sample: a
         velocity repeated while its stream lags (or stops, as when an estimator drops out)
@@ -229,9 +311,13 @@ class PositionLoop:
         t_vel = state.time_s - state.position_age_s
         if self._history and t_vel <= self._history[-1].t_s + 1e-9:
             return  # no new velocity sample since the last observation
-        if not math.isnan(self._last_thrust_norm):
-            # ``achieved``: the measured attitude with the last commanded thrust
-            self._history.append(_Observation(t_vel, state.vel_ned_m_s.copy(), achieved))
+        thrust = GRAVITY_M_S2 * self._thrust_flown_norm / self.config.hover_thrust_norm
+        self._history.append(
+            _Observation(
+                t_vel, state.vel_ned_m_s.copy(), _thrust_axis_ned(state),
+                thrust if ours else math.nan,
+            )
+        )  # fmt: skip
         if len(self._history) < 2:
             return
         newest = self._history[-1]
@@ -243,10 +329,22 @@ class PositionLoop:
         if oldest is None or newest.t_s - oldest.t_s < 0.5 * dt_s:
             return
         span = newest.t_s - oldest.t_s
-        window = [
-            o.acc_achieved_ned_m_s2 for o in self._history if oldest.t_s <= o.t_s < newest.t_s
-        ]
-        d_meas = (newest.vel_ned_m_s - oldest.vel_ned_m_s) / span - np.mean(window, axis=0)
+        window = [o for o in self._history if oldest.t_s <= o.t_s <= newest.t_s]
+        acc_meas = (newest.vel_ned_m_s - oldest.vel_ned_m_s) / span
+        # the thrust acting between two samples: the mean of the two (trapezoid), not the
+        # first alone (a rising thrust's step would read as a disturbance)
+        axis = _trapezoid_mean([o.thrust_axis_ned for o in window])
+        f = np.array([o.thrust_m_s2 for o in window])
+        if np.isnan(f).any():
+            if axis[2] < 0.5:  # beyond 60 deg of tilt the vertical balance says nothing
+                return
+            # the autopilot's thrust: the one that gives the measured vertical acceleration
+            # with the assumed vertical disturbance
+            f_mean = (GRAVITY_M_S2 + self._d_down_prior_m_s2 - acc_meas[2]) / axis[2]
+        else:
+            f_mean = float(_trapezoid_mean(list(f)))
+        gravity = np.array([0.0, 0.0, GRAVITY_M_S2])
+        d_meas = acc_meas - (gravity - f_mean * axis)
         # d_meas is the mean disturbance over the window: pair it with the mean velocity
         # over the same window (drag at the window's start would be a 1/2-window lag)
         z = np.mean([o.vel_ned_m_s for o in self._history if o.t_s >= oldest.t_s], axis=0)
@@ -269,16 +367,93 @@ class PositionLoop:
         out: FloatArray = (a[1:] - self.acc_alpha * a[:-1]) / self._one_minus_alpha
         return out
 
-    def achieved_acceleration(self, state: VehicleState) -> FloatArray:
+    def achieved_acceleration(self, state: VehicleState, *, ours: bool = True) -> FloatArray:
         """The acceleration (NED, gravity compensated) the measured attitude produces with the
-        last commanded thrust: the model's ``a`` state now."""
-        thrust = self._last_thrust_norm
-        if math.isnan(thrust):
-            thrust = self.config.hover_thrust_norm
+        thrust flown: the model's ``a`` state now. ``ours``: the vehicle flies our thrust
+        (through the motors' lag); else the autopilot's, taken as the one that holds
+        altitude against the assumed vertical disturbance."""
+        thrust = self._thrust_flown_norm
         roll, pitch, yaw = state.euler_rad
+        if not ours or math.isnan(thrust):
+            axis_down = attitude_to_axis(roll, pitch, yaw)[2]
+            thrust = self._balance_thrust_norm(axis_down)
         return attitude_to_accel(
             AttitudeThrust(roll, pitch, yaw, thrust), self.config.hover_thrust_norm
         )
+
+    def _balance_thrust_norm(self, axis_down: float) -> float:
+        """The thrust that holds altitude at a tilt whose thrust axis has ``axis_down`` as
+        its NED z component, against the assumed vertical disturbance."""
+        cfg = self.config
+        f = (GRAVITY_M_S2 + self._d_down_prior_m_s2) / max(axis_down, 0.5)
+        return min(max(cfg.hover_thrust_norm * f / GRAVITY_M_S2, cfg.min_thrust_norm),
+                   cfg.max_thrust_norm)  # fmt: skip
+
+    def _advance_thrust(self, ours: bool, achieved_thrust_norm: float) -> None:
+        """One loop period of the motors' lag towards the last command (ours), or the
+        autopilot's thrust taken as flown (not ours)."""
+        if not ours or math.isnan(self._thrust_flown_norm) or math.isnan(self._last_thrust_norm):
+            self._thrust_flown_norm = achieved_thrust_norm
+            return
+        self._thrust_flown_norm += self._thrust_gain * (
+            self._last_thrust_norm - self._thrust_flown_norm
+        )
+
+    def _entry_ramp(
+        self, acc: FloatArray, achieved: FloatArray, t_s: float, ours: bool, d_hat: FloatArray
+    ) -> FloatArray:
+        """The command rate-limited after an entry: from the vehicle's acceleration at the
+        first tick after a gap (entry, re-entry after a failsafe), horizontally by at most
+        ``entry_jerk_m_s3`` per second, and within ``entry_max_acc_m_s2`` of what holds
+        against the estimated disturbance ``d_hat``, until ``entry_ramp_s`` after the autopilot is
+        confirmed to fly ours (the caller limits the tilt of what it returns)."""
+        cfg = self.config
+        if t_s - self._last_tick_s > 3.0 * self.loop_period_s:  # control (re)starts
+            self._ramp_acc = limit_tilt(achieved.copy(), self.acc_limits)
+            self._ramp_end_s = math.inf
+        self._last_tick_s = t_s
+        if self._ramp_acc is None:
+            return acc
+        if ours and math.isinf(self._ramp_end_s):
+            self._ramp_end_s = t_s + cfg.entry_ramp_s
+        if t_s >= self._ramp_end_s:
+            self._ramp_acc = None
+            return acc
+        # horizontally only: a horizontal change is a tilt, which the attitude loop flies
+        # with its lag (the jolt); the vertical is thrust alone, and braking a climb that is
+        # still under way at entry (ArduCopter's takeoff hands over climbing) needs it whole
+        # Within entry_max_acc_m_s2 of what holds against the estimated disturbance, as a
+        # vector: the QP buys horizontal authority under the tilt polygon with thrust, so a
+        # command whose horizontal part is held back here must not keep the climb it came
+        # with (ArduCopter re-entering in 6 m/s wind climbed 0.5 m on it).
+        hold = -d_hat
+        extra = acc - hold
+        extra_norm = float(np.linalg.norm(extra))
+        if extra_norm > cfg.entry_max_acc_m_s2:
+            acc = hold + extra * (cfg.entry_max_acc_m_s2 / extra_norm)
+        vmax = cfg.entry_max_vertical_acc_m_s2
+        acc[2] = min(max(acc[2], hold[2] - vmax), hold[2] + vmax)
+        step = acc - self._ramp_acc
+        vertical = step[2]
+        step[2] = 0.0
+        norm = float(np.linalg.norm(step))
+        max_step = cfg.entry_jerk_m_s3 * self.loop_period_s
+        if norm > max_step:
+            step *= max_step / norm
+        step[2] = vertical
+        ramp = self._ramp_acc + step
+        if not ours:
+            # Until offboard is confirmed the autopilot may still fly its own (PX4 takes
+            # setpoints only once it switches, and shows the switch up to 1 s late): the
+            # ramp stays within what a vehicle flying it would lag behind by, so it cannot
+            # run ahead unflown and reach the vehicle as a step (+3 m/s^2 after a freeze).
+            lead = ramp - achieved
+            lead[2] = 0.0
+            lead_norm = float(np.linalg.norm(lead))
+            if lead_norm > self._ramp_lead_m_s2:
+                ramp[:2] = achieved[:2] + lead[:2] * (self._ramp_lead_m_s2 / lead_norm)
+        self._ramp_acc = ramp
+        return ramp.copy()
 
     def position_tick(
         self, state: VehicleState, reference: ReferenceHorizon, *, learn: bool = True
@@ -286,16 +461,17 @@ class PositionLoop:
         """One position-loop tick towards ``reference`` (its stages 1..N for x[1..N], its
         heading now for the attitude).
 
-        ``learn``: the vehicle is flying our commands, so the measured disturbance is real
-        (before offboard is confirmed, our thrust is not what flies and must not be learned).
+        ``learn``: the vehicle is confirmed to fly our commands (offboard). Before, the
+        estimator still learns, with the autopilot's thrust inferred (:meth:`observe`), so
+        it is warm when control starts; the command is rate-limited from the first tick of
+        an entry until ``entry_ramp_s`` after confirmation (:meth:`_entry_ramp`).
         """
         t0 = time.perf_counter()
         refs = reference.ahead
-        achieved = self.achieved_acceleration(state)
-        if learn:
-            self.observe(state, achieved)
-        else:
-            self._history.clear()
+        axis_down = _thrust_axis_ned(state)[2]
+        self._advance_thrust(learn, self._balance_thrust_norm(axis_down))
+        achieved = self.achieved_acceleration(state, ours=learn)
+        self.observe(state, ours=learn)
         d_max = self._d_max
         if isinstance(self.controller, PdController):
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
@@ -318,10 +494,10 @@ class PositionLoop:
         x0[0:3] = state.pos_ned_m
         x0[3:6] = state.vel_ned_m_s
         x0[6:9] = achieved
-        decision: Decision = self.controller.step(
-            x0, refs, u_p, perturbation=self._e_dist @ d_hat
-        )
+        decision: Decision = self.controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
+        acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
+        acc = limit_tilt(acc, self.acc_limits)
         out = self._attitude_target(acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0)
         self._last_thrust_norm = out.thrust_norm
         return out

@@ -31,6 +31,7 @@ from typing import Any, Literal, TypeVar, cast
 import numpy as np
 import numpy.typing as npt
 
+from epc_offboard.common import jit
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.reference import STAGE_WIDTH, ReferenceHorizon
 
@@ -316,6 +317,8 @@ class Trajectory:
 
 def _jit(fn: _F) -> _F:
     """numba's njit (cached on disk when it can be), or ``fn`` itself without numba."""
+    if not jit.enabled():  # the numpy twins (a cold start, see common.jit)
+        return fn
     try:
         import numba
     except ImportError:  # numba is a dependency; without it the same code runs as Python

@@ -12,6 +12,7 @@ import logging
 import math
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -74,6 +75,8 @@ class Autopilot:
         self.tracker = tracker
         self.counters = counters
         self._log_gate = log_gate
+        # told the autopilot's own hover thrust (the position loop's vertical prior)
+        self.on_hover_thrust: Callable[[float], None] = lambda hover_norm: None
         self.target = commands.Target(cfg.link.target_system, cfg.link.target_component)
         # the autopilot's dialect: forced by link.autopilot, else from its first heartbeat
         # (until then the state machine sees no heartbeat: nothing is commanded)
@@ -212,6 +215,8 @@ class Autopilot:
             log.info("autopilot parameter %s = %g", name, value)
         self.params[name] = value
         hover = self.cfg.position.hover_thrust_norm
+        if name == "MOT_THST_HOVER" and math.isfinite(value):
+            self.on_hover_thrust(value)
         if name == "MOT_THST_HOVER" and math.isfinite(value) and abs(value - hover) > 0.05:
             self.counters["hover_thrust_mismatch"] += 1
             log.warning(

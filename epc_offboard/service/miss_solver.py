@@ -149,10 +149,12 @@ class MissSolver:
         }
         self.counters: Counter[str] = Counter()
         self._pool: ProcessPoolExecutor | None = None
+        self._ready: Future[Any] | None = None
 
-    def start(self, timeout_s: float = 30.0) -> None:
+    def start(self, timeout_s: float = 30.0, *, wait: bool = True) -> None:
         """Start the worker and wait until it has imported and built its learners (before
-        READY: a worker that cannot start is an error now, not mid-flight)."""
+        READY: a worker that cannot start is an error now, not mid-flight). ``wait`` False:
+        return at once and :meth:`wait_ready` later (its start overlaps other work)."""
         problems = {
             name: (lane.ctrl.problem, lane.ctrl.candidates.max_size,
                    lane.ctrl.candidates.max_per_origin)
@@ -166,7 +168,15 @@ class MissSolver:
             initializer=_init_worker,
             initargs=(problems, os.getpid()),
         )
-        self._pool.submit(_ping).result(timeout=timeout_s)
+        self._ready = self._pool.submit(_ping)
+        if wait:
+            self.wait_ready(timeout_s)
+
+    def wait_ready(self, timeout_s: float = 30.0) -> None:
+        """Wait until a worker started with ``start(wait=False)`` is up."""
+        if self._ready is not None:
+            self._ready.result(timeout=timeout_s)
+            self._ready = None
 
     def close(self) -> None:
         if self._pool is not None:

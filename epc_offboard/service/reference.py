@@ -10,6 +10,7 @@ flies it and the flight log reads the reference now from it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import Counter
@@ -73,6 +74,9 @@ class ReferenceSelector:
         self.hold_at(anchor)
         log.info("trajectory %s started at %s", self.trajectory_cfg.shape,
                  anchor.round(3).tolist())  # fmt: skip
+        # from where the vehicle is, closing the gap (e.g. to the altitude) smoothly: a
+        # step in the reference at entry is a jolt however calm the controller
+        self.start_rejoin(state, now_s)
 
     def mission_complete(self, now_s: float, duration_s: float) -> bool:
         """Whether the trajectory has been flown ``duration_s`` (> 0) seconds."""
@@ -97,10 +101,17 @@ class ReferenceSelector:
         trajectory = self.trajectory
         if trajectory is None:
             return
-        self.rejoin = Rejoin.onto(
+        rejoin = Rejoin.onto(
             trajectory.sample(now_s), state.pos_ned_m, state.vel_ned_m_s, now_s,
             trajectory.config.rejoin_tau_s,
         )  # fmt: skip
+        # Vertically the gap closes from rest: a climb still under way (ArduCopter's takeoff
+        # hands over at 2.4 m climbing 1.5 m/s) is braked with thrust alone at once, not
+        # carried on by the reference (0.75 m above the entry); horizontally the gap keeps
+        # its rate, a tilt the vehicle already flies.
+        rate = rejoin.gap_rate_ned_m_s.copy()
+        rate[2] = 0.0
+        self.rejoin = dataclasses.replace(rejoin, gap_rate_ned_m_s=rate)
         gap = float(np.linalg.norm(self.rejoin.gap_ned_m))
         if gap > 0.05:
             self.counters["trajectory_rejoins"] += 1
@@ -116,6 +127,12 @@ class ReferenceSelector:
         live = self._live_horizon(state, sharing, offboard=offboard)
         if live is not None:
             return live
+        if not offboard and self.trajectory is None:
+            # Before offboard is confirmed the autopilot may still be climbing out of its
+            # takeoff, or already flying ours (PX4 shows the mode up to 1 s late): hold
+            # where the vehicle is now, at rest, not where it was when streaming started
+            # (0.45 m below it after a takeoff overshoot: the vehicle dropped to it).
+            self.hold_at(state.pos_ned_m)
         return self.now(state, t_s, steps=self.position.horizon)
 
     def now(self, state: VehicleState, t_s: float, *, steps: int = 0) -> ReferenceHorizon:

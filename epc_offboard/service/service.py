@@ -46,11 +46,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common import jit
 from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
 from epc_offboard.common.procstats import process_report
-from epc_offboard.control.cascade import Cascade
+from epc_offboard.control.cascade import Cascade, compiled_signatures
 from epc_offboard.control.position import PositionOutput
 from epc_offboard.control.reference import ReferenceHorizon
 from epc_offboard.fleet.sharing import FleetSharing, open_or_fly_alone
@@ -101,6 +102,7 @@ class Service:
                                   self.counters)  # fmt: skip
         self.autopilot = Autopilot(cfg, self.clock, self.tracker, self.counters, log_gate,
                                    tlog=self.logs.tlog if self.logs else None)  # fmt: skip
+        self.autopilot.on_hover_thrust = self.cascade.position.set_hover_thrust
         self.link = self.autopilot.link
         self.systemd = Systemd(cfg.loops.watchdog_period_s)
         self.supervisor = Supervisor(
@@ -120,6 +122,7 @@ class Service:
         self.gc_monitor = realtime.GcMonitor()
         self._position_out: PositionOutput | None = None
         self._processes_at_exit: dict[str, Any] | None = None
+        self._signatures_warm = 0  # compiled kernel signatures once warmed (0: numpy twins)
         self.sharing: FleetSharing | None = None
         live = cfg.reference.source == "zenoh"
         if cfg.sharing.enabled or live:
@@ -245,9 +248,16 @@ class Service:
         # numba compiles (or loads from its cache) each kernel on first use: 0.2-1 s that,
         # inside the first tick, stalled the loops into a stale-state failsafe. Done here,
         # before the link opens, before READY=1 and before any setpoint streams.
-        log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
         t0 = time.perf_counter()
-        self.misses.start()
+        self.misses.start(wait=False)  # the worker's imports overlap the warm-up
+        if jit.enabled():
+            log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
+        else:  # a cold cache: coldstart.py compiles them in the background for the next start
+            log.warning("control kernels: numpy twins (no compiled kernels in the cache: "
+                        "compiling them in the background for the next start); warmed in "
+                        "%.2f s", self.cascade.warm_up())  # fmt: skip
+        self._signatures_warm = compiled_signatures()
+        self.misses.wait_ready()
         log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
         self.library.open()
         if self.logs is not None:
@@ -318,6 +328,12 @@ class Service:
                 "attitude": self.attitude_timing.report().as_dict(),
             },
             "counters": dict(self.counters),
+            # what the control loops run: compiled kernels, or their numpy twins (cold cache)
+            "kernels": {
+                "mode": "compiled" if jit.enabled() and self._signatures_warm > 0 else "numpy",
+                "signatures_after_warm_up": self._signatures_warm,
+                "signatures": compiled_signatures(),  # more than after warm-up: a loop compile
+            },
             "gc": self.gc_monitor.stats(),
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),

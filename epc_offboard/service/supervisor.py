@@ -107,6 +107,7 @@ class Supervisor:
                 amsl_m=None if fix is None else fix.amsl_m,
                 landed_state=autopilot.landed_state,
                 mission_complete=mission_complete,
+                vel_down_m_s=None if state is None else float(state.vel_ned_m_s[2]),
             )
         )
         for action in out.actions:

@@ -96,11 +96,19 @@ class OffboardConfig:
     retry_period_s: float = 1.0  # between repeated arm / offboard / hold / land requests
     hold_confirm_s: float = 2.5  # after a failsafe, wait this long for the heartbeat to show hold
     landed_confirm_s: float = 2.0  # disarmed on the ground this long: the flight is over
+    # control starts (STREAMING) once the vertical speed is below this: ArduCopter handed
+    # over 0.3 m below the takeoff's target still climbing 1.5 m/s, and no controller stops
+    # that within 0.2 m (airborne itself is still judged on altitude alone)
+    settled_vertical_speed_m_s: float = 0.4
 
     def __post_init__(self) -> None:
         for name in ("heartbeat_timeout_s", "max_state_age_s", "retry_period_s"):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not self.settled_vertical_speed_m_s > 0.0:
+            raise ValueError(
+                f"settled_vertical_speed_m_s must be > 0, got {self.settled_vertical_speed_m_s}"
+            )
         if self.airborne_altitude_m <= 0.0:
             raise ValueError(f"airborne_altitude_m must be > 0, got {self.airborne_altitude_m}")
         if self.takeoff_reached_tolerance_m < 0.0 or self.landed_confirm_s < 0.0:
@@ -121,6 +129,7 @@ class Inputs:
     amsl_m: float | None = None  # altitude above mean sea level now (GLOBAL_POSITION_INT)
     landed_state: int | None = None  # MAV_LANDED_STATE from EXTENDED_SYS_STATE, if sent
     mission_complete: bool = False  # the service's trajectory has run its duration
+    vel_down_m_s: float | None = None  # NED down velocity of the newest state, if known
 
 
 @dataclass(frozen=True)
@@ -362,6 +371,10 @@ class OffboardStateMachine:
         )
         flying = hb.armed and alt is not None and alt >= reached
         if flying and (target is not None or not self._taking_off(hb)):
+            vz = inp.vel_down_m_s
+            if vz is not None and abs(vz) > cfg.settled_vertical_speed_m_s:
+                self._reason = f"airborne: waiting for the climb to settle ({-vz:.1f} m/s)"
+                return None
             self._enter(Phase.STREAMING, now, "airborne: streaming setpoints")
             return None
         if not hb.armed:

@@ -1,0 +1,81 @@
+"""Whether this process compiles its kernels (numba) or runs their numpy twins, and whether
+numba's on-disk cache already holds them.
+
+Every compiled kernel has a numpy twin (its test oracle), so a process can fly on the
+twins: ``EPC_OFFBOARD_JIT=0`` in its environment, read once when the kernel modules load
+(``control.kernels``, ``control.lwpr_kernels``, ``control.trajectories``), makes them
+behave exactly as without numba. A cold start (empty cache) compiles for 10-30 s on a
+companion computer; the service then flies on the twins and compiles into the cache in a
+background process (``service.coldstart``), which marks the cache warm when it is done.
+
+No I/O beyond reading and writing that one marker file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+from importlib import metadata
+from pathlib import Path
+
+ENV = "EPC_OFFBOARD_JIT"  # "0": the numpy twins; anything else or unset: numba
+
+# the sources whose kernels the marker vouches for: an edited kernel is a cold cache
+_KERNEL_SOURCES = ("control/kernels.py", "control/lwpr_kernels.py", "control/trajectories.py")
+
+
+def enabled() -> bool:
+    """Whether the kernel modules compile with numba (when it is installed)."""
+    return os.environ.get(ENV, "1") != "0"
+
+
+def cache_dir() -> Path | None:
+    """numba's cache directory when one is set (NUMBA_CACHE_DIR); None: beside the sources."""
+    value = os.environ.get("NUMBA_CACHE_DIR", "")
+    return Path(value) if value else None
+
+
+def _key() -> str:
+    package = Path(__file__).resolve().parent.parent
+    digest = hashlib.sha256()
+    for name in _KERNEL_SOURCES:
+        digest.update((package / name).read_bytes())
+    # (the installed version, without importing numba: a second of a cold start)
+    with contextlib.suppress(metadata.PackageNotFoundError):
+        digest.update(metadata.version("numba").encode())
+    return digest.hexdigest()[:16]
+
+
+def _marker() -> Path:
+    base = cache_dir() or Path(__file__).resolve().parent.parent / "control" / "__pycache__"
+    return base / f"epc-offboard-kernels-{_key()}.warm"
+
+
+def cache_warm() -> bool:
+    """Whether a complete compile of these kernels' sources was written to the cache."""
+    try:
+        return _marker().is_file()
+    except OSError:
+        return False
+
+
+def numba_installed() -> bool:
+    try:
+        metadata.version("numba")
+    except metadata.PackageNotFoundError:
+        return False
+    return True
+
+
+def mark_cache_warm() -> bool:
+    """Record that every kernel is in the cache (after a complete warm-up); False when the
+    marker cannot be written (then every start flies the numpy twins: set NUMBA_CACHE_DIR
+    to a writable directory, as the systemd unit's StateDirectory does)."""
+    marker = _marker()
+    try:
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.write_text("compiled\n")
+    except OSError:
+        return False
+    return True

@@ -1,0 +1,83 @@
+"""The position loop at an offboard entry, as pure numerics (the flights: test_entry_e2e.py).
+
+Before offboard is confirmed the autopilot flies its own thrust, which the service cannot
+see; the estimator still learns the wind then, with the thrust that explains the measured
+vertical acceleration. The first tick after a gap in control starts the command from what
+the vehicle flies and rate-limits it. The thrust flown follows the command through the
+motors' lag, so a thrust step is not learnt as a vertical disturbance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from epc_offboard.common import frames
+from epc_offboard.common.frames import GRAVITY_M_S2
+from epc_offboard.control.models import accel_to_attitude
+from epc_offboard.control.position import PositionLoop
+from tests.test_cascade import _DT_S, _cascade, _state
+
+WIND_NED_M_S2 = np.array([0.0, 3.0, 0.0])  # the drag of a 3 m/s wind blowing east
+
+
+def _holding(loop: PositionLoop, seconds: float, t0_s: float = 0.0) -> np.ndarray:
+    """The autopilot holds the vehicle at rest against the wind (tilted into it) while the
+    service streams unconfirmed setpoints; returns the last disturbance estimate."""
+    att = accel_to_attitude(-WIND_NED_M_S2, 0.0, loop.config.hover_thrust_norm)
+    q = frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad)
+    pos = np.array([0.0, 0.0, -2.5])
+    p_hat = np.zeros(3)
+    for k in range(round(seconds / _DT_S)):
+        state = _state(t0_s + k * _DT_S, pos, np.zeros(3), q)
+        p_hat = loop.position_tick(state, loop.hold(pos), learn=False).p_hat_ned_m_s2
+    return p_hat
+
+
+def test_the_wind_is_learnt_while_the_autopilot_holds_before_offboard():
+    """The old loop learnt nothing before offboard was confirmed (up to 1 s after PX4 flew
+    ours): the estimate started at zero at entry."""
+    p_hat = _holding(_cascade().position, 0.5)
+    assert np.allclose(p_hat, WIND_NED_M_S2, atol=0.3), p_hat
+
+
+def test_the_first_command_after_a_gap_starts_from_what_the_vehicle_flies():
+    """A (re-)entry 2 m from the reference: the command's horizontal part (the tilt) moves
+    from the hold's acceleration by at most entry_jerk_m_s3 per second."""
+    loop = _cascade().position
+    _holding(loop, 0.5)
+    hold_acc = -WIND_NED_M_S2
+    cfg = loop.config
+    att = accel_to_attitude(hold_acc, 0.0, cfg.hover_thrust_norm)
+    q = frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad)
+    pos = np.array([0.0, 0.0, -2.5])
+    far = loop.hold(pos + np.array([2.0, 0.0, 0.0]))
+    t0 = 5.0  # a failsafe's gap
+    previous = hold_acc
+    for k in range(20):
+        out = loop.position_tick(_state(t0 + k * _DT_S, pos, np.zeros(3), q), far, learn=True)
+        step = np.linalg.norm((out.acc_cmd_ned_m_s2 - previous)[:2])  # the tilt's part
+        assert step <= cfg.entry_jerk_m_s3 * _DT_S + 0.05, (k, out.acc_cmd_ned_m_s2, previous)
+        previous = out.acc_cmd_ned_m_s2
+
+
+def test_a_thrust_step_is_not_learnt_as_a_vertical_disturbance():
+    """The vehicle's thrust follows the command through the motors' lag (tau_acc_s[2]):
+    taking the command as flown read each step as a vertical disturbance (+6.6 m/s^2 on a
+    real PX4 at entry, then a climb)."""
+    loop = _cascade().position
+    hover = loop.config.hover_thrust_norm
+    tau = loop.config.tau_acc_s[2]
+    pos, vel = np.array([0.0, 0.0, -2.5]), np.zeros(3)
+    thrust = hover
+    q = frames.euler_to_quat(0.0, 0.0, 0.0)
+    worst = 0.0
+    for k in range(100):
+        reference = loop.hold(np.array([0.0, 0.0, -2.5 - (1.0 if k >= 10 else 0.0)]))
+        out = loop.position_tick(_state(k * _DT_S, pos, vel, q), reference, learn=True)
+        before = thrust
+        thrust += (1.0 - np.exp(-_DT_S / tau)) * (out.thrust_norm - thrust)  # the motors
+        acc_down = GRAVITY_M_S2 * (1.0 - 0.5 * (before + thrust) / hover)  # over the step
+        pos = pos + vel * _DT_S + 0.5 * np.array([0.0, 0.0, acc_down]) * _DT_S**2
+        vel = vel + np.array([0.0, 0.0, acc_down]) * _DT_S
+        worst = max(worst, abs(float(out.p_hat_ned_m_s2[2])))
+    assert worst < 0.3, worst
