@@ -136,7 +136,42 @@ def test_offboard_kept_after_failsafe_is_respected():
     out = step(sm, 1.3, hb(1.3, armed=True, main=6), alt=3.0)
     assert out.phase == Phase.FAILSAFE
     assert out.actions == (Action.REQUEST_HOLD,)  # retried after retry_period_s
-    out = step(sm, 3.0, hb(3.0, armed=True, main=6), alt=3.0)
+    out = step(sm, 3.0, hb(2.9, armed=True, main=6), alt=3.0)
+    assert out.phase == Phase.STREAMING  # streaming again, no hold asked for
+    assert out.stream_setpoints
+    assert out.actions == ()
+    out = step(sm, 3.1, hb(3.05, armed=True, main=6), alt=3.0)
+    assert out.phase == Phase.OFFBOARD
+
+
+@pytest.mark.parametrize("frozen", [False, True])
+def test_after_a_failsafe_offboard_is_confirmed_only_by_a_newer_heartbeat(frozen):
+    """The 1 Hz heartbeat that showed offboard when the state came back may predate the
+    autopilot's own setpoint-loss hold (COM_OF_LOSS_T): the service then flew and learnt
+    as if in control (learn=True) while PX4 held with its own thrust, up to a second,
+    and the disturbance estimate wound up (soak: ``offboard`` rows over PX4's HOLD).
+
+    ``frozen``: the autopilot's heartbeats stopped (frozen, link lost) and the first one
+    back still shows offboard; else the state went stale (stale_state) under the hold."""
+    sm = OffboardStateMachine(AUTO)
+    flying(sm)
+    if frozen:
+        assert step(sm, 5.0, hb(0.1, armed=True, main=6), alt=3.0).phase == Phase.FAILSAFE
+        t_back = 8.0  # frozen longer than hold_confirm_s
+    else:
+        step(sm, 0.2, hb(0.2, armed=True, main=6), age=1.0, alt=3.0)
+        assert sm.phase == Phase.FAILSAFE
+        t_back = 3.0
+    # fresh again; the newest heartbeat (received just before) still shows offboard
+    last_offboard = hb(t_back - 0.05, armed=True, main=6)
+    out = step(sm, t_back, last_offboard, alt=3.0)
+    assert out.phase != Phase.OFFBOARD, out
+    assert step(sm, t_back + 0.5, last_offboard, alt=3.0).phase != Phase.OFFBOARD
+    # the next heartbeat shows the autopilot's hold: never offboard on the old one
+    out = step(sm, t_back + 0.95, hb(t_back + 0.95, armed=True, main=4, sub=3), alt=3.0)
+    assert out.phase in (Phase.STREAMING, Phase.OFFBOARD_REQUESTED), out
+    # and a heartbeat received after streaming resumed confirms it
+    out = step(sm, t_back + 1.2, hb(t_back + 1.2, armed=True, main=6), alt=3.0)
     assert out.phase == Phase.OFFBOARD
 
 

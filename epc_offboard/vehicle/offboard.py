@@ -164,6 +164,11 @@ class OffboardStateMachine:
     takeoffs_sent: int = 0  # over the machine's life (diagnostics, tests)
     flights: int = 0  # flights that ended on the ground
     _phase_since_s: float = 0.0
+    # Leaving a failsafe, offboard is confirmed only by a heartbeat received after: the 1 Hz
+    # heartbeat that showed offboard may predate the autopilot's own setpoint-loss hold, and
+    # the loops would fly (and the estimator learn, taking the vehicle's thrust for ours)
+    # while the autopilot holds with its own: a disturbance wound up for up to a second.
+    _confirm_after_s: float = -math.inf
     _last_request_s: dict[Action, float] = field(default_factory=dict)
     _reason: str = "no heartbeat yet"
     _home_down_m: float | None = None
@@ -176,6 +181,10 @@ class OffboardStateMachine:
     def _offboard(self, hb: Heartbeat) -> bool:
         return self.dialect.mode(hb) == FlightMode.OFFBOARD
 
+    def _offboard_now(self, hb: Heartbeat) -> bool:
+        """Offboard, shown by a heartbeat received since the last failsafe ended."""
+        return self._offboard(hb) and hb.received_s > self._confirm_after_s
+
     def _taking_off(self, hb: Heartbeat) -> bool:
         return self.dialect.mode(hb) == FlightMode.TAKEOFF
 
@@ -184,6 +193,8 @@ class OffboardStateMachine:
 
     def _enter(self, phase: Phase, now_s: float, reason: str) -> None:
         if phase != self.phase:
+            if self.phase == Phase.FAILSAFE:
+                self._confirm_after_s = now_s
             self.phase = phase
             self._phase_since_s = now_s
             self.transitions += 1
@@ -295,7 +306,8 @@ class OffboardStateMachine:
             # Heartbeats come at 1 Hz: give our hold request time to show before deciding the
             # vehicle is (again, by a pilot's choice) in offboard.
             if now - self._phase_since_s >= cfg.hold_confirm_s:
-                self._enter(Phase.OFFBOARD, now, "offboard kept after failsafe")
+                # streaming again; OFFBOARD once a heartbeat received from now on shows it
+                self._enter(Phase.STREAMING, now, "offboard kept after failsafe")
             else:
                 self._reason = "state fresh again: waiting for hold to show"
         elif self.phase in (Phase.WAIT_HEARTBEAT, Phase.WAIT_STATE, Phase.FAILSAFE):
@@ -314,12 +326,12 @@ class OffboardStateMachine:
             if takeoff is not None:
                 return self._out(False, actions, alt, takeoff)
         if self.phase == Phase.STREAMING:
-            if self._offboard(hb):
+            if self._offboard_now(hb):
                 self._enter(Phase.OFFBOARD, now, "offboard confirmed")
             elif cfg.auto_offboard and now - self._phase_since_s >= cfg.min_stream_s:
                 self._enter(Phase.OFFBOARD_REQUESTED, now, "requesting offboard")
         if self.phase == Phase.OFFBOARD_REQUESTED:
-            if self._offboard(hb):
+            if self._offboard_now(hb):
                 self._enter(Phase.OFFBOARD, now, "offboard confirmed")
             elif not hb.armed:
                 self._enter(Phase.PREFLIGHT, now, "disarmed")
@@ -353,7 +365,7 @@ class OffboardStateMachine:
         before_arming = self.dialect.offboard_before_arming
         # (ArduCopter: GUIDED + armed on the ground is the takeoff ritual, not offboard flight;
         # once airborne it streams, and STREAMING sees GUIDED as offboard at once)
-        if self._offboard(hb) and hb.armed and not before_arming:
+        if self._offboard_now(hb) and hb.armed and not before_arming:
             self._enter(Phase.OFFBOARD, now, "already in offboard")
             return None
         if self._landing(hb):
