@@ -20,7 +20,9 @@ vehicle.
              back to Offboard after an auto-land if setpoints still stream)
     any --state stale / heartbeat lost--> FAILSAFE: stop streaming, command hold; when state
              is fresh again -> PREFLIGHT (which never takes off again once the vehicle has
-             left the ground)
+             left the ground), or STREAMING if the heartbeat still shows offboard after
+             hold_confirm_s; from then on offboard is confirmed only by a heartbeat
+             received after the failsafe ended (an older one may predate PX4's own hold)
 
 Safety invariants (property-tested in tests/test_offboard.py under random heartbeat delays,
 stale-state gaps and mode lags):
