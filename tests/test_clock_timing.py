@@ -108,12 +108,62 @@ async def _periodic(controlled: bool) -> tuple[list[tuple[float, float]], Counte
 
 def test_periodic_loop_skips_never_bursts_and_times_only_the_ticks_that_control():
     seen, counters, timed = asyncio.run(_periodic(controlled=True))
-    # due at 0.5 but run at 1.5: one late tick, the three due times it missed skipped, then on
-    # time again at 1.5; never a burst of four catching up
-    assert seen == [(0.0, 0.0), (0.25, 0.25), (1.5, 0.5), (1.5, 1.5)]
+    # due at 0.5 but run at 1.5: one late tick, the three due times it missed skipped; the
+    # one due at 1.5 is that late tick (a second tick at the same vehicle time would run
+    # after the first one's lockstep answer); never a burst of four catching up
+    assert seen == [(0.0, 0.0), (0.25, 0.25), (1.5, 0.5)]
     assert counters["position_ticks_skipped"] == 3
-    assert timed == 4
+    assert timed == 3
     seen, counters, timed = asyncio.run(_periodic(controlled=False))  # idle: not counted
-    assert len(seen) == 4
+    assert len(seen) == 3
     assert counters["position_ticks_skipped"] == 0
     assert timed == 0
+
+
+async def _lockstep_ticks(answer_races_datagrams: bool) -> list[tuple[float, float]]:
+    """A 200 Hz loop against a lockstep simulator whose every third 5 ms tick carries no
+    state, so needs no answer (PX4's 123 Hz attitude): the simulator runs that tick and the
+    next one as soon as it has the answer. ``answer_races_datagrams``: the tick goes on
+    after its answer long enough for the simulator's next datagrams to be read."""
+    clock = VehicleClock()
+    loops = Loops(clock, Counter(), LogGate())
+    answered = asyncio.Event()
+    answered_s = -1.0
+    seen: list[tuple[float, float]] = []
+
+    async def tick(t: Tick) -> bool:
+        nonlocal answered_s
+        seen.append((t.start_s, t.scheduled_s))
+        answered_s = max(answered_s, clock.now_s())
+        answered.set()
+        for _ in range(5 if answer_races_datagrams else 0):
+            await asyncio.sleep(0)
+        return True
+
+    task = asyncio.create_task(loops.periodic("attitude", LoopTiming(0.005), tick))
+    for k in range(1, 40):
+        t_s = round(k * 0.005, 6)
+        if k % 3 == 0:
+            await asyncio.sleep(0)  # no state: physics goes on without an answer
+            continue
+        clock.advance(t_s)
+        while answered_s < t_s - 1e-9:
+            answered.clear()
+            await answered.wait()
+    loops.stopping.set()
+    clock.advance(1.0)
+    with pytest.raises(Stop):
+        await task
+    return seen
+
+
+def test_lockstep_ticks_depend_on_the_vehicle_data_not_on_when_datagrams_are_read():
+    """Which tick runs when must not depend on whether the simulator's next datagrams were
+    read before the tick's task ended (two identical lockstep runs differed)."""
+    calm = asyncio.run(_lockstep_ticks(answer_races_datagrams=False))
+    raced = asyncio.run(_lockstep_ticks(answer_races_datagrams=True))
+    assert len(calm) > 20
+    assert raced == calm
+    # one tick per vehicle time the vehicle sent state at
+    starts = [start for start, _ in calm]
+    assert len(set(starts)) == len(starts)

@@ -22,6 +22,10 @@ from epc_offboard.service.timing import LoopTiming
 
 log = logging.getLogger("epc_offboard.service")
 
+# Loop times closer than this are the same vehicle time (the vehicle clock's resolution is
+# 1 ms; the loops' schedules add up float periods).
+_SAME_TIME_S = 1e-9
+
 
 class Stop(Exception):  # noqa: N818 - control flow, not an error
     """Raised inside the service's TaskGroup to end it cleanly."""
@@ -89,13 +93,22 @@ class Loops:
             controlled = await tick(Tick(start, t_next, period))
             if controlled:
                 timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
-            t_next = self._next_tick(t_next, period, name if controlled else None)
+            # In lockstep the next tick is planned from the vehicle time the tick ran at,
+            # not the clock now: the tick's answer has released the simulator, and whether
+            # its next datagrams were read by now is the scheduler's doing, not the vehicle's.
+            t_next = self._next_tick(
+                t_next, period, name if controlled else None,
+                ran_at_s=start if self.clock.vehicle_time else None,
+            )  # fmt: skip
 
-    def _next_tick(self, t_next: float, period: float, counted: str | None) -> float:
+    def _next_tick(
+        self, t_next: float, period: float, counted: str | None, ran_at_s: float | None = None
+    ) -> float:
         """The next tick time; when more than a tick behind, skip (never burst), counted
-        under ``{counted}_ticks_skipped`` unless None."""
+        under ``{counted}_ticks_skipped`` unless None. ``ran_at_s`` (lockstep): the vehicle
+        time the tick ran at, which the next tick must come after."""
         t_next += period
-        now = self.clock.now_s()
+        now = self.clock.now_s() if ran_at_s is None else ran_at_s
         if t_next - now > period:
             # the wait timed out: the clock did not move (lockstep, before an autopilot that
             # streams nothing until asked sends state): run on from the clock, never ahead
@@ -106,6 +119,12 @@ class Loops:
             if counted is not None:
                 self.counters[f"{counted}_ticks_skipped"] += skipped
             t_next += skipped * period
+        while ran_at_s is not None and t_next - ran_at_s < _SAME_TIME_S:
+            # The vehicle sent no state at the previous tick's time (PX4's 123 Hz attitude
+            # against a 200 Hz loop): the tick due then ran at this vehicle time, and so
+            # does this one. A second tick at the same vehicle time would run after the
+            # first one's answer released the simulator, racing its next datagrams.
+            t_next += period
         return t_next
 
     def error(self, loop: str, exc: Exception) -> None:

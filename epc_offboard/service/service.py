@@ -158,7 +158,11 @@ class Service:
                 refs.start_rejoin(state, now)
             if out.phase == Phase.OFFBOARD and refs.trajectory is None and state is not None:
                 refs.start_trajectory(state, out.altitude_m, self.clock.now_s())
-            await self.loops.wait(now + period)
+            # lockstep, once the vehicle clock runs: wait for the vehicle time however long
+            # a loaded machine takes; a step run on a wall-clock timeout would read the clock
+            # at whatever tick the simulator had reached (an answer may have released it)
+            # and shift every later step (a landing 20 ms later under load)
+            await self.loops.wait(now + period, until_reached=self.clock.vehicle_time and now > 0.0)
 
     def _state_at(self, now_s: float) -> VehicleState | None:
         """The state predicted to loop time ``now_s`` (the autopilot's clock mapped to ours
