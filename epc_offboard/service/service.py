@@ -76,6 +76,11 @@ from epc_offboard.vehicle.state import StateTracker, VehicleState
 log = logging.getLogger("epc_offboard.service")
 
 
+# an attitude sample older than this many attitude periods is not flown as body rates: a
+# 123 Hz stream (8.1 ms) read one tick late is 13 ms old; 20 ms is a stall
+_LATE_ATTITUDE_PERIODS = 4.0
+
+
 class Service:
     def __init__(self, cfg: ServiceConfig, config_path: str | None = None) -> None:
         self.cfg = cfg
@@ -214,8 +219,16 @@ class Service:
             # A late tick or an old attitude sample: body rates computed now would be
             # flown until the next tick, stale; send the attitude itself instead, which
             # the autopilot's own attitude loop keeps tracking whatever we do next.
+            # The attitude loop predicts over the sample's age, so an age within the
+            # stream's interval (PX4 grants ATTITUDE_QUATERNION 123 Hz, 8.1 ms) plus a tick
+            # or two is normal, not late; and a tick one period behind (lockstep runs it at
+            # the next vehicle time with state) is the newest possible: only half a period
+            # more, or an age over _LATE_ATTITUDE_PERIODS ticks, is late.
             period = tick.period_s
-            late = tick.start_s - tick.scheduled_s > period or state.attitude_age_s > 2 * period
+            late = (
+                tick.start_s - tick.scheduled_s > 1.5 * period
+                or state.attitude_age_s > _LATE_ATTITUDE_PERIODS * period
+            )
             offboard = self.outputs.phase == Phase.OFFBOARD
             self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard)
         elif self.clock.vehicle_time and state is not None:
