@@ -60,6 +60,10 @@ def config(vid: str, port: int, others: list[int], **kw) -> SharingConfig:
         # fast enough that a test's flood drains in a second or two (the budget itself is
         # tested on its own, below)
         "candidates_per_s": 5000.0,
+        # these tests are about what is shared, not priorities: a helper at nice +10 (the
+        # service's default, below the loops) gets a tenth of a core beside two CPU hogs at
+        # nice 0, and took over 30 s to start and publish
+        "helper_nice": 0,
     }
     base.update(kw)
     return SharingConfig(**base)
@@ -84,7 +88,9 @@ def used_as_hit(ctrl: ExperienceController, target) -> bool:
     return d.source == "hit" and ctrl.stats.qp_solves == solves
 
 
-async def until(cond: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
+async def until(cond: Callable[[], bool], what: str, timeout_s: float = 30.0) -> None:
+    # the fleet helper is a process of its own (spawned: imports zenoh and numpy); at load
+    # 6 on 2 cores its start alone took over 10 s. A bound on "eventually", free when quick
     deadline = time.monotonic() + timeout_s
     while not cond():
         if time.monotonic() > deadline:
@@ -144,7 +150,7 @@ def test_a_late_joiner_gets_the_snapshot():
         a, c = controller(), controller()
         sets = [learn(a, t) for t in TARGETS[:3]]
         async with peer(config("early", pa, [pc]), a) as sa:
-            await until(lambda: sa.stats().get("entries_published", 0) == 3, "a's batch")
+            await until(lambda: sa.stats().get("entries_published", 0) >= 3, "a's batch")
             # nobody heard the batch; the joiner can only learn these from the snapshot
             async with peer(config("late", pc, [pa]), c) as sc:
                 await until(lambda: all(s in c.candidates for s in sets), "the snapshot")
@@ -169,7 +175,7 @@ def test_a_peer_with_another_problem_signature_is_ignored():
             learn(d, TARGETS[0])
             aset = learn(a, TARGETS[1])
             await until(lambda: aset in b.candidates, "a -> b")
-            await until(lambda: sd.stats().get("entries_published", 0) == 1, "d publishing")
+            await until(lambda: sd.stats().get("entries_published", 0) >= 1, "d publishing")
             await asyncio.sleep(0.2)  # several publish periods: d's batch had every chance
             assert a.stats.size == 1
             assert (b.stats.size, b.stats.candidates) == (0, 1)
@@ -649,12 +655,18 @@ def test_a_wedged_or_killed_fleet_helper_is_restarted_and_sharing_resumes():
             for k, sig in enumerate((signal.SIGSTOP, signal.SIGKILL)):  # wedged, then dead
                 pid = sb.helper_pid()
                 assert pid is not None
+                failures = sb.stats().get("helper_failures", 0)
                 os.kill(pid, sig)
-                await until(counted(sb, "helper_failures", k + 1), "the failure seen", 15)
-                assert sb.helper_pid() is None  # flying on without the fleet meanwhile
-                await until(counted(sb, "helper_restarts", k + 1), "the restart", 15)
-                assert sb.helper_pid() not in (None, pid)
+                # seen and replaced: flying on without the fleet until the restart (which at
+                # load may already have come by the time the wait looks again)
+                def replaced(p: int = pid, f: int = failures) -> bool:
+                    return sb.stats().get("helper_failures", 0) > f and sb.helper_pid() != p
+
+                await until(replaced, "the failure seen", 30)
+                await until(lambda: sb.helper_pid() is not None, "the restart", 60)
+                assert sb.stats().get("helper_restarts", 0) >= k + 1
+                assert sb.helper_pid() != pid
             s2 = learn(a, TARGETS[1])
-            await until(lambda: s2 in b.candidates, "sharing after the restarts", timeout_s=20)
+            await until(lambda: s2 in b.candidates, "sharing after the restarts", timeout_s=60)
 
     asyncio.run(main())
