@@ -399,6 +399,11 @@ class FleetSharing:
             failures=self.counters["helper_failures"], restarts=self.counters["helper_restarts"],
         )  # fmt: skip
 
+    def helper_running(self) -> bool:
+        """Whether the helper has opened its Zenoh session (what it is handed from then on is
+        published; one handed to it before may not be: a known gap)."""
+        return self._helper is not None and self._slot("state") == 1
+
     def helper_pid(self) -> int | None:
         """The helper process's pid (fault tests kill it)."""
         return self._helper.process.pid if self._helper is not None else None
