@@ -10,6 +10,7 @@ ended in "warnings: none" and exit 0 (or never ended) before.
 from __future__ import annotations
 
 import json
+import os
 import socket
 import sqlite3
 import subprocess
@@ -66,26 +67,79 @@ def test_a_corrupt_library_moved_aside_fails_the_flight_and_its_error_is_reporte
     assert any("moved aside" in f for f in report["failures"])
 
 
-def test_a_fleet_whose_sharing_cannot_open_fails_and_says_so(tmp_path):
-    # vehicle 1's Zenoh listening port held by a real socket: its session cannot open
+def hold_port(port: int) -> socket.socket | None:
+    """A real listening socket on tcp 127.0.0.1:``port``; None if another process has it."""
     holder = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
     try:
-        holder.bind(("127.0.0.1", ZENOH_BASE_PORT + 1))
+        holder.bind(("127.0.0.1", port))
     except OSError:
         holder.close()
-        pytest.skip(f"port {ZENOH_BASE_PORT + 1} is in use by another process")
+        return None
     holder.listen()
+    return holder
+
+
+def test_a_fleet_port_taken_before_start_is_named_before_any_process_starts(tmp_path):
+    holder = hold_port(ZENOH_BASE_PORT + 1)  # vehicle 1's Zenoh listening port
+    if holder is None:
+        pytest.skip(f"port {ZENOH_BASE_PORT + 1} is in use by another process")
+    t0 = time.monotonic()
     try:
-        report, proc, _wall = sim(tmp_path / "out", "--vehicles", "2", "--duration", "4")
+        proc = subprocess.run(
+            [sys.executable, "-m", "epc_offboard", "sim", "--gcs-port", "0",
+             "--out", str(tmp_path / "out"), "--vehicles", "2", "--duration", "4"],
+            capture_output=True, text=True, timeout=120, check=False,
+        )  # fmt: skip
     finally:
         holder.close()
     assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "vehicle 1's fleet sharing" in proc.stderr
+    assert f"tcp 127.0.0.1:{ZENOH_BASE_PORT + 1}: already in use" in proc.stderr
+    assert "SITL" not in proc.stdout  # no vehicle was started
+    assert not (tmp_path / "out" / "report.json").exists()
+    assert time.monotonic() - t0 < 60.0  # said before any warm-up
+
+
+def test_a_fleet_whose_sharing_cannot_open_fails_and_says_so(tmp_path):
+    # The port is free when sim checks it and taken (by a real socket) before vehicle 1's fleet
+    # helper opens its session: another program won the race, and the session cannot open.
+    probe = hold_port(ZENOH_BASE_PORT + 1)
+    if probe is None:
+        pytest.skip(f"port {ZENOH_BASE_PORT + 1} is in use by another process")
+    probe.close()
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "epc_offboard", "sim", "--gcs-port", "0", "--out", str(out),
+         "--vehicles", "2", "--duration", "4"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )  # fmt: skip
+    holder = None
+    lines: list[str] = []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # vehicle 1's route is printed once its processes started,
+            lines.append(line)  # a second or more before its helper opens the session
+            if line.startswith("vehicle 1: SITL"):
+                holder = hold_port(ZENOH_BASE_PORT + 1)
+                break
+        assert holder is not None, "".join(lines)
+        stdout, stderr = proc.communicate(timeout=280)
+    finally:
+        if holder is not None:
+            holder.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    stdout = "".join(lines) + stdout
+    assert proc.returncode == 1, stdout + stderr
+    report = json.loads((out / "report.json").read_text())
     v1, v2 = report["vehicles"]
     assert v1["sharing"] == {"asked": True, "open": False}
     assert v2["sharing"] == {"asked": True, "open": True}
-    assert "vehicle 1: fleet sharing was asked for and is unavailable" in proc.stderr
-    assert "vehicle 2: fleet sharing" not in proc.stderr
+    assert "vehicle 1: fleet sharing was asked for and is unavailable" in stderr
+    assert "vehicle 2: fleet sharing" not in stderr
     kinds = [k for k in v1["warnings"] if "fleet sharing unavailable" in k]
     assert kinds, v1["warnings"]
     assert kinds[0].startswith("service ERROR")
