@@ -1,8 +1,12 @@
-"""CONTRACTS.md's import path for the EPC core, kept so scripts written against it keep working.
+"""A compatibility shim: the EPC core's import path that docs/CONTRACTS.md (Python API)
+promises, ``from epc_offboard.mpc import LinearModel, MpcProblem, ExperienceController``, kept so
+scripts written against it keep working.
 
-Not the MPC baseline (that is :class:`epc_offboard.control.baselines.MpcController`) and no
-code of its own: the core lives in ``epc_offboard/control/``, and new code imports it from the
-package root (``from epc_offboard import ExperienceController, MpcProblem, LinearModel``).
+Re-exports only, no code of its own, and nothing inside the package imports it
+(``tests/test_layers.py`` checks): the core lives in ``epc_offboard/control/``, and new code
+imports it from there or from the package root (``from epc_offboard import
+ExperienceController, MpcProblem, LinearModel``). Not the MPC baseline either: that is
+:class:`epc_offboard.control.baselines.MpcController`.
 """
 
 from __future__ import annotations

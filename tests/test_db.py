@@ -11,7 +11,7 @@ from epc_offboard.cli import build_parser, main
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.service.config import load_service_config
-from epc_offboard.store.library import LibraryStore
+from epc_offboard.store.database import LibraryStore
 
 SITL_CONFIG = "config/sitl.toml"
 # import and merge check every controller against the problems of a service config: the

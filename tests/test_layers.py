@@ -6,6 +6,8 @@ deferred import inside a function counts as well as one at the top).
 * the plant (``sitl``) never imports the controller;
 * the service never imports the tools (sim, compare, benchmarks, figures, db, exporters);
 * no import cycle among modules, even counting deferred imports inside functions;
+* the compatibility shims (``epc_offboard.mpc``, ``epc_offboard.lwpr``) are for scripts only:
+  no module of the product imports them;
 * every error the product raises is an ``EpcError`` and the builtin it is a kind of.
 """
 
@@ -176,6 +178,19 @@ def test_no_import_cycle_even_deferred():
     for m in graph:
         assert m not in _reachable(graph, m), f"{m} imports itself through a cycle"
     assert "epc_offboard.tools.sim.orchestrate" in _reachable(graph, "epc_offboard.tools.compare")
+
+
+SHIMS = ("epc_offboard.mpc", "epc_offboard.lwpr")
+
+
+def test_the_compatibility_shims_are_used_by_no_module_of_the_product():
+    """The shims keep docs/CONTRACTS.md's import paths for scripts; the product imports the
+    real modules, so a shim can change (or go) without the product noticing."""
+    for shim in SHIMS:
+        assert shim in MODULES
+        users = sorted(m for m, p in MODULES.items()
+                       if m not in SHIMS and shim in _imports(p, top_level_only=False))  # fmt: skip
+        assert not users, f"{users} import the compatibility shim {shim}: import the real module"
 
 
 def test_every_error_is_an_epc_error_and_a_builtin():

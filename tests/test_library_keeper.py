@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from epc_offboard.service.config import StoreConfig, load_service_config
-from epc_offboard.service.library import LibraryKeeper
-from epc_offboard.store.library import LibraryStore
+from epc_offboard.service.library_keeper import LibraryKeeper
+from epc_offboard.store.database import LibraryStore
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
 from tests.mpc_cases import hover_refs
 

@@ -15,7 +15,7 @@ import pytest
 from epc_offboard.cli import build_parser, main
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.service.timing import LoopTiming
-from epc_offboard.store.library import LibraryStore
+from epc_offboard.store.database import LibraryStore
 from epc_offboard.tools.sim.analysis import fleet_figures
 from epc_offboard.tools.sim.options import sim_options
 from epc_offboard.tools.sim.orchestrate import telemetry_routes

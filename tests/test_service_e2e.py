@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.store.library import LibraryStore
+from epc_offboard.store.database import LibraryStore
 from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 from epc_offboard.vehicle.state import (
     PX4_AUTO_SUB_LOITER,

@@ -546,7 +546,7 @@ def test_origin_is_kept_through_the_store_and_db_info(tmp_path, capsys):
     from epc_offboard.control.cascade import Cascade
     from epc_offboard.service.config import load_service_config
     from epc_offboard.store import experience
-    from epc_offboard.store.library import LibraryStore
+    from epc_offboard.store.database import LibraryStore
     from epc_offboard.vehicle.state import VehicleState
 
     cfg = load_service_config("config/sitl.toml")

@@ -176,7 +176,7 @@ def test_the_scenario_envelope_is_derived_from_it_and_the_service_limits() -> No
 
 SERVICE_LOG = "\n".join([
     "2026-11-26 00:16:34,633 INFO    epc_offboard.service: control kernels compiled",
-    "2026-11-26 00:16:35,001 ERROR   epc_offboard.store.library: library "
+    "2026-11-26 00:16:35,001 ERROR   epc_offboard.store.database: library "
     "/tmp/a/library-1.sqlite is unusable (file is not a database): moved aside to "
     "/tmp/a/library-1.sqlite.corrupt-20261126T001635, starting empty",
     *(f"2026-11-26 00:16:3{n},145 WARNING epc_offboard.vehicle.state: heartbeat mode/arming "
@@ -199,7 +199,7 @@ def test_every_logged_warning_and_error_is_counted_by_kind_with_its_first_line()
             "believed")  # fmt: skip
     assert kinds[flap].count == 2
     assert "(1 flaps so far)" in kinds[flap].first
-    aside = ("service ERROR epc_offboard.store.library: library <path> is unusable (file is not "
+    aside = ("service ERROR epc_offboard.store.database: library <path> is unusable (file is not "
              "a database): moved aside to <path>, starting empty")  # fmt: skip
     assert kinds[aside].count == 1
     assert "library-1.sqlite.corrupt-20261126T001635" in kinds[aside].first

@@ -14,7 +14,7 @@ import time
 import pytest
 
 from epc_offboard.control.library import LibraryEntry
-from epc_offboard.store.library import (
+from epc_offboard.store.database import (
     LibraryStore,
     StoreError,
     decode_active_set,
@@ -108,7 +108,7 @@ def test_kill_9_keeps_every_committed_controller(tmp_path):
         f"""
         import sys
         from epc_offboard.control.library import LibraryEntry
-        from epc_offboard.store.library import LibraryStore
+        from epc_offboard.store.database import LibraryStore
         store = LibraryStore.open({str(path)!r})
         i = 0
         while True:
@@ -150,7 +150,7 @@ def test_db_info_command(tmp_path, capsys):
 # of the first creation (every boundary between two statements is a moment a kill can land).
 _CREATOR = """
 import itertools, os, signal, sqlite3, sys
-from epc_offboard.store.library import LibraryStore
+from epc_offboard.store.database import LibraryStore
 kill_at = int(sys.argv[2])
 if kill_at:
     statements = itertools.count(1)

@@ -3,7 +3,7 @@
 A leaf module (the standard library and :mod:`epc_offboard.common.errors` only: no numpy, no
 SQLite) because four places hold library entries and none of them should pull in the others'
 dependencies: the EPC numerics (:mod:`epc_offboard.control.epc`), the SQLite store
-(:mod:`epc_offboard.store.library`), the fleet's codec (:mod:`epc_offboard.fleet.wire`, which
+(:mod:`epc_offboard.store.database`), the fleet's codec (:mod:`epc_offboard.fleet.wire`, which
 a planner or a test may import without numba, OSQP or scipy) and the offline transfer's JSON
 (:mod:`epc_offboard.tools.db`). They all build entries through :func:`parse_entry`, so an
 active set is judged by one set of rules wherever it comes from.

@@ -5,13 +5,13 @@ One asyncio TaskGroup with named tasks:
 * ``supervisor``     — the flight (``supervisor.py``: the offboard state machine, from arm to
   landing and the mission's end), talking to the autopilot (``autopilot.py``: messages in;
   rates, parameters and commands out);
-* ``position-loop``  — 100 Hz: state -> reference horizon (``reference.py``) ->
+* ``position-loop``  — 100 Hz: state -> reference horizon (``reference_selector.py``) ->
   ``Cascade.position_tick`` (``control/position.py``: estimator, EPC, attitude map);
 * ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
   or the autopilot's own attitude loop fed quaternion + thrust (``setpoints.py``);
   both loops are ``loop.py``'s periodic loop around a tick of this module;
 * ``library-saver``  — new controllers and learned models to SQLite, written by the store
-  process (``library.py``);
+  process (``library_keeper.py``);
 * ``library-sharing`` — with ``[sharing] enabled`` or a live reference: the fleet's Zenoh
   session runs in a helper process (``fleet/session.py``); this task takes at most
   ``sharing.candidates_per_s`` decoded candidates a second from it into the candidate pools
@@ -60,11 +60,11 @@ from epc_offboard.service.autopilot import Autopilot
 from epc_offboard.service.clock import Clock, VehicleClock, WallClock
 from epc_offboard.service.config import ServiceConfig, load_service_config
 from epc_offboard.service.flightlog import pack_row
-from epc_offboard.service.library import LibraryKeeper
+from epc_offboard.service.library_keeper import LibraryKeeper
 from epc_offboard.service.logwriter import LogWriter
 from epc_offboard.service.loop import Loops, Stop, Tick
 from epc_offboard.service.miss_solver import MissSolver
-from epc_offboard.service.reference import ReferenceSelector
+from epc_offboard.service.reference_selector import ReferenceSelector
 from epc_offboard.service.setpoints import SetpointSender
 from epc_offboard.service.supervisor import Supervisor
 from epc_offboard.service.systemd import Systemd

@@ -1,6 +1,6 @@
 """What of a vehicle's controllers is kept on disk, and how it comes back: the translation
 between a :class:`~epc_offboard.control.cascade.Cascade` and the
-:class:`~epc_offboard.store.library.LibraryStore`.
+:class:`~epc_offboard.store.database.LibraryStore`.
 
 Stored is experience, never gains: each EPC library (its active sets with importance, uses
 and origin, and the transitions between them) under its problem's signature, and the
@@ -15,7 +15,7 @@ from dataclasses import replace
 
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library import LibrarySnapshot, SignatureSnapshot, Transition
-from epc_offboard.store.library import LibraryStore
+from epc_offboard.store.database import LibraryStore
 
 log = logging.getLogger(__name__)
 

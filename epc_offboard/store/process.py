@@ -1,6 +1,6 @@
 """The library store's process (``epc-store``): snapshots from the service to SQLite.
 
-Started by :class:`epc_offboard.service.library.LibraryKeeper`; imports only the store and
+Started by :class:`epc_offboard.service.library_keeper.LibraryKeeper`; imports only the store and
 the shared plumbing (not the controller), so it starts in a fraction of a second.
 """
 
@@ -16,7 +16,7 @@ import numpy as np
 from epc_offboard.common.channel import read_frames
 from epc_offboard.common.children import die_with_parent, lower_priority
 from epc_offboard.common.logsetup import LogConfig, setup_logging
-from epc_offboard.store.library import LibraryStore
+from epc_offboard.store.database import LibraryStore
 
 log = logging.getLogger("epc_offboard.service")
 

@@ -46,11 +46,11 @@ from epc_offboard.control.library import (
     parse_active_set,
     parse_entry,
 )
-from epc_offboard.store.library import LibraryStore, StoreError
+from epc_offboard.store.database import LibraryStore, StoreError
 
 if TYPE_CHECKING:
     from epc_offboard.control.cascade import Cascade
-    from epc_offboard.mpc import MpcProblem
+    from epc_offboard.control.qp import MpcProblem
 
 _T = TypeVar("_T")
 

@@ -33,7 +33,7 @@ from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library import LibrarySnapshot
 from epc_offboard.service.config import StoreConfig
 from epc_offboard.store import experience
-from epc_offboard.store.library import LibraryStore
+from epc_offboard.store.database import LibraryStore
 from epc_offboard.store.process import ERRORS as _ERRORS
 from epc_offboard.store.process import SAVES as _SAVES
 from epc_offboard.store.process import store_main
