@@ -1,4 +1,4 @@
-"""The `epc-offboard` command line (CONTRACTS.md): run, sim, bench, db.
+"""The `epc-offboard` command line (docs/CONTRACTS.md): run, sim, bench, db.
 
 Exit codes: 0 success, 2 bad usage or invalid config, 1 runtime failure. Each subcommand's
 implementation lives in its own module and is imported only when used, so `epc-offboard --help`

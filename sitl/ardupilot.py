@@ -2,7 +2,7 @@
 
 Pure logic and numerics, like the PX4 personality it extends (``sitl.autopilot``): the same
 vehicle, cascade and rate loop, with ArduCopter's modes, commands, parameters and guided
-control (observed on ArduCopter 4.7 / 4.8-dev SITL, see ../shared/DESIGN.md):
+control (observed on ArduCopter 4.7 / 4.8-dev SITL, see docs/DESIGN.md):
 
 * HEARTBEAT autopilot 3, custom_mode a plain mode number (STABILIZE 0, GUIDED 4, LOITER 5,
   RTL 6, LAND 9, BRAKE 17, GUIDED_NOGPS 20). DO_SET_MODE(1, 6, 0) — PX4's Offboard — is RTL

@@ -112,7 +112,7 @@ class SurfaceParams:
 
 @dataclass(frozen=True)
 class EnvironmentParams:
-    """Wind (CONTRACTS convention) with first-order Gauss-Markov gusts, and a surface."""
+    """Wind (docs/CONTRACTS.md convention) with first-order Gauss-Markov gusts, and a surface."""
 
     wind_speed_m_s: float = 0.0
     wind_dir_deg: float = 0.0  # towards, counter-clockwise from east

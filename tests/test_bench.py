@@ -1,4 +1,4 @@
-"""A tiny benchmark run: the CONTRACTS report shape and exactness."""
+"""A tiny benchmark run: the docs/CONTRACTS.md report shape and exactness."""
 
 from __future__ import annotations
 

@@ -40,7 +40,7 @@ def lpos(t_ms, pos, vel, mav=MAV):
 
 
 def test_px4_mode_encoding_matches_px4():
-    # DESIGN.md: Hold = AUTO.LOITER = 0x03040000
+    # docs/DESIGN.md: Hold = AUTO.LOITER = 0x03040000
     assert px4_custom_mode(PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER) == 0x03040000
     assert px4_modes(0x03040000) == (4, 3)
     assert px4_modes(px4_custom_mode(6)) == (6, 0)

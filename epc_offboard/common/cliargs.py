@@ -17,7 +17,7 @@ MAX_PORT = 65535
 
 
 def parse_wind(text: str) -> tuple[float, float]:
-    """Parse ``SPEED_M_S,DIR_DEG`` (CONTRACTS.md) into (speed_m_s, dir_deg)."""
+    """Parse ``SPEED_M_S,DIR_DEG`` (docs/CONTRACTS.md) into (speed_m_s, dir_deg)."""
     parts = text.split(",")
     if len(parts) != 2:
         raise argparse.ArgumentTypeError(f"expects SPEED_M_S,DIR_DEG, got {text!r}")

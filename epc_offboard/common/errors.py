@@ -1,4 +1,4 @@
-"""Exit codes and the product's exception hierarchy (CONTRACTS.md).
+"""Exit codes and the product's exception hierarchy (docs/CONTRACTS.md).
 
 Every error epc-offboard raises is an :class:`EpcError`, and also the builtin it is a kind
 of, as python-control does (``ControlArgument(TypeError)``): ``except ValueError`` keeps

@@ -43,7 +43,7 @@ def ned_to_enu(vec_ned: npt.ArrayLike) -> FloatArray:
 
 
 def wind_vector_ned_m_s(speed_m_s: float, dir_deg: float) -> FloatArray:
-    """Wind velocity in NED from the CONTRACTS convention.
+    """Wind velocity in NED from the docs/CONTRACTS.md convention.
 
     ``dir_deg`` is the direction the wind blows *towards*, counter-clockwise from +x = east in
     the horizontal plane (the thesis's angles: -135 deg is towards south-west).

@@ -205,7 +205,7 @@ _warm = False
 def warm_up() -> None:
     """Compile (or load from the cache) the scan and the typed list's methods now: the first
     miss of a flight must not pay for it, nor the miss worker's first solve, which a lockstep
-    tick waits for (DESIGN.md, timing on a companion computer). Once per process."""
+    tick waits for (docs/DESIGN.md, timing on a companion computer). Once per process."""
     global _warm
     if _warm:
         return

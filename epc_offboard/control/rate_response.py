@@ -70,7 +70,7 @@ class RateResponse:
             raise ValueError(f"gain must be in [{MIN_GAIN}, {MAX_GAIN}], got {self.gain}")
 
 
-# What each autopilot was measured to do (DESIGN.md, Real autopilots): the defaults when the
+# What each autopilot was measured to do (docs/DESIGN.md, Real autopilots): the defaults when the
 # configuration does not say. ArduCopter's "the achieved rate matches the command best
 # 190-210 ms later at about 0.35 gain" is a cross-correlation figure, not this model's gain:
 # fitted with this model (RateIdentifier) on the bundled ArduCopter personality, whose input

@@ -43,6 +43,7 @@ from epc_offboard.common.channel import ChannelClosedError, read_frames, write_a
 from epc_offboard.common.children import die_with_parent, lower_priority
 from epc_offboard.common.logsetup import LogConfig, setup_logging
 from epc_offboard.control.library import LibraryEntry
+from epc_offboard.fleet import keys
 from epc_offboard.fleet.config import SharingConfig
 from epc_offboard.fleet.records import (
     STAT_INDEX,
@@ -290,8 +291,12 @@ class _LatestReference:
 class _Problem:
     index: int
     spec: ProblemSpec
-    prefix: str  # epc/<fleet>/<sig>
+    fleet: str
     snapshot: bytes = b""  # read by Zenoh's threads (one reference swap: atomic)
+
+    def key(self, template: str, vehicle: str) -> str:
+        """This problem's key of ``template`` (:mod:`.keys`) for ``vehicle`` (or keys.ANY)."""
+        return keys.problem_key(template, self.fleet, self.spec.signature, vehicle)
 
 
 class FleetSession:
@@ -316,7 +321,7 @@ class FleetSession:
         self.dtype = candidate_dtype
         self.max_successors = max_successors
         self.problems = [
-            _Problem(i, s, f"epc/{cfg.fleet}/{s.signature}") for i, s in enumerate(specs)
+            _Problem(i, s, cfg.fleet) for i, s in enumerate(specs)
         ]
         self.inbox = CandidateInbox(cfg.max_queued_entries, cfg.candidate_backlog_per_peer)
         self.reference = _LatestReference()
@@ -361,24 +366,24 @@ class FleetSession:
                 self.peers[p.index] = set()
                 self._declared += [
                     s.declare_subscriber(
-                        f"{p.prefix}/ctl/*",
+                        p.key(keys.CONTROLLERS, keys.ANY),
                         functools.partial(self._on_batch, p),
                         allowed_origin=zenoh.Locality.REMOTE,
                     ),
                     s.declare_queryable(
-                        f"{p.prefix}/lib/{vid}", functools.partial(self._on_query, p)
+                        p.key(keys.LIBRARY, vid), functools.partial(self._on_query, p)
                     ),
                     s.liveliness().declare_subscriber(
-                        f"{p.prefix}/alive/*",
+                        p.key(keys.ALIVE, keys.ANY),
                         functools.partial(self._on_alive, p),
                         history=True,
                     ),
-                    s.liveliness().declare_token(f"{p.prefix}/alive/{vid}"),
+                    s.liveliness().declare_token(p.key(keys.ALIVE, vid)),
                 ]
                 self._query_library(p, "*")
         if self.subscribe_reference:
             self._declared.append(
-                s.declare_subscriber(f"epc/{self.cfg.fleet}/{vid}/reference", self._on_reference)
+                s.declare_subscriber(keys.reference_key(self.cfg.fleet, vid), self._on_reference)
             )
         log.info(
             "fleet %s: vehicle %s sharing %s (listen %s, connect %s, multicast scouting %s; "
@@ -428,7 +433,7 @@ class FleetSession:
             )
             try:
                 self._session.put(
-                    f"{p.prefix}/ctl/{self.vehicle_id}",
+                    p.key(keys.CONTROLLERS, self.vehicle_id),
                     payload,
                     congestion_control=zenoh.CongestionControl.DROP,
                 )
@@ -466,7 +471,7 @@ class FleetSession:
         self.counters.add("queries_sent")
         try:
             self._session.get(
-                f"{p.prefix}/lib/{peer}",
+                p.key(keys.LIBRARY, peer),
                 functools.partial(self._on_reply, p),
                 timeout=self.cfg.query_timeout_s,
                 allowed_destination=zenoh.Locality.REMOTE,  # not our own queryable
@@ -557,7 +562,7 @@ class FleetSession:
     def _on_query(self, p: _Problem, query: zenoh.Query) -> None:
         self.counters.add("queries_answered")
         try:
-            query.reply(f"{p.prefix}/lib/{self.vehicle_id}", p.snapshot)
+            query.reply(p.key(keys.LIBRARY, self.vehicle_id), p.snapshot)
         except zenoh.ZError as exc:
             self.counters.add("query_reply_errors")
             self._log_limited("reply", "", "answering a library query failed: %s", exc)

@@ -1,7 +1,8 @@
 """Fleet sharing of EPC controller libraries, and live references, over Eclipse Zenoh: the
 control process's side.
 
-Keys (every one starts with ``epc/``; ``<sig>`` is ``MpcProblem.signature()``)::
+Keys (:mod:`epc_offboard.fleet.keys`; every one starts with ``epc/``; ``<sig>`` is
+``MpcProblem.signature()``)::
 
     epc/<fleet>/<sig>/ctl/<vehicle>     each batch of new controllers (wire.MessageKind.BATCH)
     epc/<fleet>/<sig>/lib/<vehicle>     queryable: the whole library (MessageKind.SNAPSHOT)
@@ -51,6 +52,7 @@ from epc_offboard.common.children import Backoff
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.epc import MAX_SUCCESSORS, ExperienceController
+from epc_offboard.fleet import keys
 from epc_offboard.fleet.config import SharingConfig
 from epc_offboard.fleet.records import (
     REFERENCE_DTYPE,
@@ -180,7 +182,7 @@ class FleetSharing:
 
     @staticmethod
     def reference_key(fleet: str, vehicle_id: str) -> str:
-        return f"epc/{fleet}/{vehicle_id}/reference"
+        return keys.reference_key(fleet, vehicle_id)
 
     def _start_helper(self) -> None:
         """Spawn the helper (from the event loop's thread: its parent-death signal follows

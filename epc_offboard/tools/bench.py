@@ -152,7 +152,7 @@ def _replay_osqp(
 
 
 def run_bench(horizon: int, steps: int) -> dict[str, Any]:
-    """Run the benchmark; return the CONTRACTS report plus extra fields: ``hit_rate_repeat``
+    """Run the benchmark; return the docs/CONTRACTS.md report plus extra fields: ``hit_rate_repeat``
     (hits after the first lap), EPC's solve counts, OSQP's settings, the problem size and
     which solver gave the exact reference."""
     if horizon < 2:

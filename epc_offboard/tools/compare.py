@@ -4,7 +4,7 @@ Each method (``controller:adaptation``; default: the scenario's ``[compare] meth
 the same scenario, wind and seed, one flight after another, from an empty controller library
 and a fresh estimator, so the comparison is reproducible. Written to ``--out``:
 
-* ``compare.json``: ``{"scenario", "methods", "reports": [CONTRACTS.md sim report, ...],
+* ``compare.json``: ``{"scenario", "methods", "reports": [docs/CONTRACTS.md sim report, ...],
   "targets": [verdict, ...], "all_pass"}`` with the scenario's ``[[targets]]`` evaluated
   (:mod:`epc_offboard.tools.targets`);
 * ``compare.png``: in the style of the thesis's figures 3.4-3.7: every method's path against

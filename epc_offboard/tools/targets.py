@@ -1,7 +1,7 @@
 """Acceptance targets of a scenario and their verdicts (pure: reports in, verdicts out).
 
 A scenario TOML declares which methods ``epc-offboard sim --compare`` flies side by side and
-what each must achieve, measured on ground truth after the settle time (CONTRACTS.md report)::
+what each must achieve, measured on ground truth after the settle time (docs/CONTRACTS.md report)::
 
     [compare]
     methods = ["epc:lwpr", "epc:none", "pd:none"]     # controller:adaptation

@@ -1,6 +1,6 @@
 """ArduCopter's dialect: the state machine's intents as ArduPilot commands. Pure.
 
-What ArduCopter does (4.7 / 4.8-dev SITL, default copter parameters; see ../shared/DESIGN.md):
+What ArduCopter does (4.7 / 4.8-dev SITL, default copter parameters; see docs/DESIGN.md):
 
 * heartbeat: autopilot 3, custom_mode a plain mode number: STABILIZE 0, GUIDED 4, LOITER 5,
   RTL 6, LAND 9, BRAKE 17, GUIDED_NOGPS 20. PX4's DO_SET_MODE(1, 6, 0) would select RTL;

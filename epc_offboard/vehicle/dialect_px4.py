@@ -1,6 +1,6 @@
 """PX4's dialect: the state machine's intents as PX4 commands. Pure: values in, values out.
 
-What PX4 does with each (observed on PX4 v1.16 / main SITL, see ../shared/DESIGN.md):
+What PX4 does with each (observed on PX4 v1.16 / main SITL, see docs/DESIGN.md):
 
 * arm: MAV_CMD_COMPONENT_ARM_DISARM(1); refused once right after boot, a retry succeeds;
 * takeoff: MAV_CMD_NAV_TAKEOFF, sent as COMMAND_INT in the global frame with the target

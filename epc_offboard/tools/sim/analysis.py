@@ -161,7 +161,7 @@ class VehicleResult:
     seconds since the vehicle entered offboard (negative: before)."""
 
     vehicle_id: int
-    report: dict[str, Any]  # the vehicle's entry of the CONTRACTS.md report
+    report: dict[str, Any]  # the vehicle's entry of the docs/CONTRACTS.md report
     t_s: FloatArray  # (T,)
     pos_ned_m: FloatArray  # (T, 3) ground truth at the log's ticks
     ref_ned_m: FloatArray  # (T, 3) the reference the service was tracking

@@ -1,7 +1,7 @@
 """`epc-offboard sim`: the command line's entry (the only part that sees argparse).
 
 One flight by default; ``--compare`` flies several methods (:mod:`epc_offboard.tools.compare`).
-Writes, to ``--out``: ``report.json`` (CONTRACTS.md shape) with the scenario's targets this
+Writes, to ``--out``: ``report.json`` (docs/CONTRACTS.md shape) with the scenario's targets this
 method can be judged on, ``flight.png``, and per vehicle the flight log, the .tlog, the ground
 truth and both processes' logs. Exit code 0, 1 when a flight or a declared target failed
 (:mod:`.report` says what fails a flight), 2 on bad usage.

@@ -33,7 +33,7 @@ class SimOptions:
     vehicles: int = 1
     lockstep: bool = True
     wind_speed_m_s: float = 0.0
-    wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (CONTRACTS.md)
+    wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (docs/CONTRACTS.md)
     seed: int = 0
     gcs_port: int | None = None  # None: the autopilot's usual ground-station port
     autopilot: str = "px4"

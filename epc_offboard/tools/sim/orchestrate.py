@@ -34,7 +34,7 @@ from epc_offboard.tools.sim.options import SimOptions
 from epc_offboard.tools.sim.report import make_report, write_json
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
 
-ZENOH_BASE_PORT = 7446  # vehicle k listens on tcp/127.0.0.1:(7446 + k) (CONTRACTS.md)
+ZENOH_BASE_PORT = 7446  # vehicle k listens on tcp/127.0.0.1:(7446 + k) (docs/CONTRACTS.md)
 STOPPED_OUTSIDE = "stopped by sim: it left its envelope"  # how a VehicleRun.stopped begins
 
 

@@ -1,4 +1,4 @@
-"""What `sim` hands a user: the CONTRACTS.md report (``report.json``), its table, the
+"""What `sim` hands a user: the docs/CONTRACTS.md report (``report.json``), its table, the
 warnings, target verdicts and failures, and the exit code they decide. The figures are
 :mod:`epc_offboard.tools.figures`.
 
@@ -34,7 +34,7 @@ TICK_NOTE = (
 
 
 def make_report(options: SimOptions, results: list[VehicleResult]) -> dict[str, Any]:
-    """The CONTRACTS.md `sim --json` report of one flight."""
+    """The docs/CONTRACTS.md `sim --json` report of one flight."""
     report: dict[str, Any] = {
         "scenario": options.scenario_name,
         "controller": options.controller,

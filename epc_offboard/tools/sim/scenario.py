@@ -32,7 +32,7 @@ class ScenarioConfig:
     lap_s: float = 0.0  # one lap of the trajectory, for first-lap library figures (0: whole)
     altitude_m: float = 2.5  # the trajectory's altitude above home
     wind_speed_m_s: float = 0.0
-    wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (CONTRACTS.md)
+    wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (docs/CONTRACTS.md)
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     service: dict[str, Any] = field(default_factory=dict)  # overrides of config/sitl.toml
     compare: CompareConfig = field(default_factory=CompareConfig)  # `sim --compare` methods
