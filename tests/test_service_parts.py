@@ -1,0 +1,335 @@
+"""The service's parts that decide, one at a time: which reference a position tick flies
+(``ReferenceSelector``: pure), what the attitude loop puts on the wire (``SetpointSender``: a
+real MAVLink link over UDP to a socket of this test, decoded by pymavlink) and what the
+supervisor does with the state machine's phases (``Supervisor``). Each test names the branch a
+swap would break."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import socket
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from epc_offboard.common import frames
+from epc_offboard.common.logsetup import LogGate
+from epc_offboard.control.cascade import Cascade
+from epc_offboard.control.position import PositionOutput
+from epc_offboard.control.trajectories import TrajectoryConfig
+from epc_offboard.service.autopilot import Autopilot
+from epc_offboard.service.clock import WallClock
+from epc_offboard.service.config import ServiceConfig, load_service_config
+from epc_offboard.service.reference_selector import ReferenceSelector
+from epc_offboard.service.setpoints import SetpointSender
+from epc_offboard.service.supervisor import Supervisor
+from epc_offboard.service.systemd import Systemd
+from epc_offboard.vehicle.commands import IGNORE_ATTITUDE, IGNORE_RATES
+from epc_offboard.vehicle.offboard import Outputs, Phase
+from epc_offboard.vehicle.state import StateTracker, VehicleState
+
+SITL_CONFIG = Path(__file__).resolve().parent.parent / "config" / "sitl.toml"
+CFG = load_service_config(SITL_CONFIG)
+
+
+def _state(pos=(0.0, 0.0, -2.5), vel=(0.0, 0.0, 0.0), t_s: float = 10.0) -> VehicleState:
+    return VehicleState(
+        time_s=t_s,
+        pos_ned_m=np.array(pos, dtype=float),
+        vel_ned_m_s=np.array(vel, dtype=float),
+        q_ned_frd=frames.euler_to_quat(0.0, 0.0, 0.0),
+        rate_frd_rad_s=np.zeros(3),
+        position_age_s=0.0,
+        attitude_age_s=0.0,
+    )
+
+
+# -- ReferenceSelector --------------------------------------------------------------------------
+
+
+def _selector(shape: str = "circle", altitude_m: float | None = None) -> ReferenceSelector:
+    traj = TrajectoryConfig(shape=shape, radius_m=2.0, period_s=10.0)  # type: ignore[arg-type]
+    return ReferenceSelector(CFG.position, traj, altitude_m, 0.5, Counter())
+
+
+def test_before_offboard_the_reference_holds_where_the_vehicle_is_now_not_where_it_was():
+    sel = _selector()
+    sel.horizon(_state(pos=(0.0, 0.0, -2.0)), 1.0, None, offboard=False)
+    ref = sel.horizon(_state(pos=(0.1, 0.2, -2.45)), 1.1, None, offboard=False)
+    # every stage holds the newest position, at rest (a stale hold dropped the vehicle)
+    np.testing.assert_allclose(ref.pos_ned_m, np.tile([0.1, 0.2, -2.45], (len(ref.pos_ned_m), 1)))
+    np.testing.assert_allclose(ref.vel_ned_m_s, 0.0)
+    assert len(ref.pos_ned_m) == CFG.position.horizon + 1
+
+
+def test_once_offboard_the_trajectory_is_flown_and_its_anchor_kept():
+    sel = _selector()
+    state = _state(pos=(1.0, -1.0, -2.5))
+    sel.start_trajectory(state, None, now_s=0.0)
+    late = sel.horizon(state, 30.0, None, offboard=True)  # well past the rejoin and the ramp
+    assert sel.rejoin is None  # done: the trajectory itself from here
+    # on the circle of radius 2 m about its centre, at the anchor's altitude; not the hold
+    assert late.pos_ned_m[0][2] == pytest.approx(-2.5)
+    assert not np.allclose(late.pos_ned_m[0], [1.0, -1.0, -2.5])
+    assert float(np.linalg.norm(late.vel_ned_m_s[0])) > 0.5
+    # a later hold (the position stream going stale before offboard) does not replace it
+    again = sel.horizon(_state(pos=(5.0, 5.0, -1.0)), 30.0, None, offboard=False)
+    np.testing.assert_allclose(again.pos_ned_m, late.pos_ned_m)
+
+
+def test_the_trajectory_starts_at_its_altitude_above_home_through_a_rejoin():
+    sel = _selector(shape="hover", altitude_m=2.5)
+    # 1.5 m above home (NED down -1.5 at home level 0): the anchor goes 1 m higher
+    state = _state(pos=(0.0, 0.0, -1.5))
+    sel.start_trajectory(state, altitude_m=1.5, now_s=0.0)
+    assert sel.trajectory is not None
+    np.testing.assert_allclose(sel.trajectory.anchor_ned_m, [0.0, 0.0, -2.5])
+    first = sel.horizon(state, 0.0, None, offboard=True)
+    # the reference starts where the vehicle is (no step), and closes the gap over time
+    assert first.pos_ned_m[0][2] == pytest.approx(-1.5, abs=1e-6)
+    assert first.pos_ned_m[-1][2] < -1.5
+    assert sel.counters["trajectory_rejoins"] == 1
+    settled = sel.horizon(state, 20.0, None, offboard=True)
+    assert settled.pos_ned_m[0][2] == pytest.approx(-2.5, abs=1e-3)
+
+
+def test_the_mission_is_complete_only_after_its_duration_on_the_trajectory():
+    sel = _selector()
+    assert not sel.mission_complete(100.0, 10.0)  # no trajectory yet
+    sel.start_trajectory(_state(), None, now_s=5.0)
+    assert not sel.mission_complete(14.9, 10.0)
+    assert sel.mission_complete(15.0, 10.0)
+    assert not sel.mission_complete(1e6, 0.0)  # 0: no end
+
+
+# -- SetpointSender -----------------------------------------------------------------------------
+
+
+class _Wire:
+    """A UDP socket the service's link sends to; what arrives, decoded."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.port = self.sock.getsockname()[1]
+        self.codec = mavlink.MAVLink(None)
+
+    async def messages(self, kind: str, count: int = 1) -> list[Any]:
+        out: list[Any] = []
+        for _ in range(200):
+            try:
+                data = self.sock.recv(65536)
+            except BlockingIOError:
+                await asyncio.sleep(0.01)
+                continue
+            out += [m for m in self.codec.parse_buffer(data) or [] if m.get_type() == kind]
+            if len(out) >= count:
+                return out
+        raise AssertionError(f"{kind}: {len(out)} of {count} arrived")
+
+
+def _target(state: VehicleState, cascade: Cascade, *, thrust: float = 0.55) -> PositionOutput:
+    out = cascade.hover(state)
+    return dataclasses.replace(out, thrust_norm=thrust)
+
+
+async def _sender(mode: str) -> tuple[SetpointSender, Autopilot, _Wire, Counter[str]]:
+    wire = _Wire()
+    cfg = dataclasses.replace(
+        CFG,
+        link=dataclasses.replace(CFG.link, url=f"udpout://127.0.0.1:{wire.port}", autopilot="px4"),
+        attitude=dataclasses.replace(CFG.attitude, mode=mode),  # type: ignore[arg-type]
+    )
+    counters: Counter[str] = Counter()
+    autopilot = Autopilot(cfg, WallClock(), StateTracker(system_id=1), counters, LogGate())
+    await autopilot.link.open()
+    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
+    errors: list[Exception] = []
+    sender = SetpointSender(cascade, autopilot, cfg.attitude.max_rate_rad_s, counters,
+                            lambda loop, exc: errors.append(exc))  # fmt: skip
+    return sender, autopilot, wire, counters
+
+
+def _rates_flown(msg: Any) -> bool:
+    """Whether a SET_ATTITUDE_TARGET carries body rates (else the attitude quaternion)."""
+    if msg.type_mask & IGNORE_RATES == IGNORE_RATES:
+        return False
+    assert msg.type_mask & IGNORE_ATTITUDE == IGNORE_ATTITUDE
+    return True
+
+
+Act = Callable[[SetpointSender, VehicleState], None]
+
+
+async def _send(mode: str, act: Act, kind: str = "SET_ATTITUDE_TARGET") -> tuple[Any, Counter[str]]:
+    """What one call of the sender (``act``) puts on the wire, and the counters after it."""
+    sender, autopilot, wire, counters = await _sender(mode)
+    try:
+        act(sender, _state(pos=(1.0, 2.0, -3.0)))
+        (msg,) = await wire.messages(kind)
+        return msg, counters
+    finally:
+        autopilot.link.close()
+        wire.sock.close()
+
+
+def _fly(target: Callable[[PositionOutput], PositionOutput] = lambda t: t, **kwargs: Any) -> Act:
+    """Send the attitude setpoint of a hover target (changed by ``target``) at tick 10 s."""
+    return lambda sender, state: sender.attitude(
+        state, target(_target(state, sender.cascade)), 10.0, **kwargs
+    )
+
+
+def test_an_on_time_tick_in_the_envelope_flies_body_rates():
+    msg, counters = asyncio.run(_send("epc", _fly()))
+    assert _rates_flown(msg)
+    assert msg.target_system == CFG.link.target_system
+    assert msg.thrust == pytest.approx(0.55, abs=1e-6)  # PX4: thrust as sent
+    assert not counters["attitude_late_fallbacks"]
+
+
+def test_a_late_tick_sends_the_attitude_not_stale_rates():
+    msg, counters = asyncio.run(_send("epc", _fly(late=True)))
+    assert not _rates_flown(msg)
+    np.testing.assert_allclose(msg.q, frames.euler_to_quat(0.0, 0.0, 0.0), atol=1e-6)
+    assert counters["attitude_late_fallbacks"] == 1
+
+
+def test_attitude_mode_autopilot_always_sends_the_attitude_and_counts_no_fallback():
+    msg, counters = asyncio.run(_send("autopilot", _fly()))
+    assert not _rates_flown(msg)
+    assert not counters["attitude_late_fallbacks"]
+    assert not counters["attitude_envelope_fallbacks"]
+
+
+def test_a_target_beyond_the_rate_envelope_is_left_to_the_autopilots_attitude_loop():
+    far_rad = np.radians(CFG.attitude.rates_max_error_deg + 20.0)
+    tilted = _fly(lambda t: dataclasses.replace(t, q_target=frames.euler_to_quat(far_rad, 0, 0)))
+    msg, counters = asyncio.run(_send("epc", tilted))
+    assert not _rates_flown(msg)
+    assert counters["attitude_envelope_fallbacks"] == 1
+
+
+def test_a_non_finite_target_never_reaches_the_wire():
+    msg, counters = asyncio.run(
+        _send("epc", _fly(lambda t: dataclasses.replace(t, thrust_norm=float("nan"))))
+    )
+    assert np.all(np.isfinite([*msg.q, msg.thrust, msg.body_roll_rate]))
+    assert not _rates_flown(msg)  # level at hover thrust
+    assert counters["non_finite_setpoints_replaced"] == 1
+
+
+def test_the_px4_baseline_sends_the_reference_now_to_the_position_controller():
+    """Position, velocity and acceleration of the reference's stage 0, each in its field: on
+    a circle flown at speed all three differ (velocity along it, acceleration to its centre)."""
+    sel = _selector()
+    sel.start_trajectory(_state(), None, now_s=0.0)
+    ref = sel.now(_state(), 20.0)
+
+    def send(sender: SetpointSender, state: VehicleState) -> None:
+        sender.position_target(state, ref)
+
+    msg, _ = asyncio.run(_send("epc", send, "SET_POSITION_TARGET_LOCAL_NED"))
+    assert float(np.linalg.norm(ref.vel_ned_m_s[0])) > 0.5
+    assert float(np.linalg.norm(ref.acc_ned_m_s2[0])) > 0.3
+    np.testing.assert_allclose([msg.x, msg.y, msg.z], ref.pos_ned_m[0], atol=1e-5)
+    np.testing.assert_allclose([msg.vx, msg.vy, msg.vz], ref.vel_ned_m_s[0], atol=1e-5)
+    np.testing.assert_allclose([msg.afx, msg.afy, msg.afz], ref.acc_ned_m_s2[0], atol=1e-5)
+    assert msg.coordinate_frame == mavlink.MAV_FRAME_LOCAL_NED
+
+
+# -- Supervisor ---------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def notify_socket(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[socket.socket]:
+    """systemd's notify socket, for real: what the supervisor tells systemd arrives here."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(tmp_path / "notify"))
+    sock.setblocking(False)
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "notify"))
+    yield sock
+    sock.close()
+
+
+def _told(sock: socket.socket) -> list[str]:
+    out = []
+    with contextlib.suppress(BlockingIOError):
+        while True:
+            out.append(sock.recv(4096).decode())
+    return out
+
+
+def _supervisor(cfg: ServiceConfig) -> tuple[Supervisor, asyncio.Event, list[int], Counter[str]]:
+    counters: Counter[str] = Counter()
+    tracker = StateTracker(system_id=1)
+    autopilot = Autopilot(cfg, WallClock(), tracker, counters, LogGate())
+    stopping = asyncio.Event()
+    writes: list[int] = []
+    sup = Supervisor(cfg, WallClock(), tracker, autopilot, Systemd(0.5), counters, stopping,
+                     lambda: writes.append(1))  # fmt: skip
+    return sup, stopping, writes, counters
+
+
+def _outputs(phase: Phase, reason: str = "because") -> Outputs:
+    return Outputs(phase, False, (), reason)
+
+
+def test_a_failsafe_is_counted_told_and_kept_and_other_phases_are_not_failsafes(
+    notify_socket: socket.socket,
+) -> None:
+    sup, _, _, counters = _supervisor(CFG)
+    sup._phase_changed(1.0, _outputs(Phase.OFFBOARD, "offboard confirmed"))
+    assert counters["failsafes"] == 0
+    sup._phase_changed(2.0, _outputs(Phase.FAILSAFE, "state stale"))
+    assert counters["failsafes"] == 1
+    assert [e["phase"] for e in sup.phase_events] == ["offboard", "failsafe"]
+    assert sup.phase_events[-1] == {"t_s": 2.0, "phase": "failsafe", "reason": "state stale"}
+    assert _told(notify_socket) == ["STATUS=offboard: offboard confirmed",
+                                    "STATUS=failsafe: state stale"]  # fmt: skip
+
+
+def test_at_the_missions_end_the_service_stops_unless_it_lingers_for_the_fleet():
+    sup, stopping, writes, _ = _supervisor(CFG)
+    sup._mission_over()
+    assert stopping.is_set()
+    assert not writes
+    lingering = dataclasses.replace(
+        CFG, mission=dataclasses.replace(CFG.mission, linger_after_landing=True)
+    )
+    sup, stopping, writes, _ = _supervisor(lingering)
+    sup._mission_over()
+    sup._mission_over()  # the next supervisor step: once only
+    assert not stopping.is_set()
+    assert writes == [1]  # the flight's figures written at once
+
+
+def test_a_link_gone_silent_is_a_lost_heartbeat_and_nothing_is_commanded(
+    notify_socket: socket.socket,
+) -> None:
+    """One heartbeat: the state machine waits for state. Then nothing more arrives for longer
+    than the heartbeat timeout: it has no heartbeat again (whatever the tracker last saw),
+    commands nothing, and systemd is not told READY (no state ever flowed)."""
+    sup, stopping, _, _ = _supervisor(CFG)
+    codec = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    frame = codec.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0,
+                                   (4 << 16) | (3 << 24), mavlink.MAV_STATE_STANDBY).pack(codec)
+    sup.autopilot.on_message(codec.decode(bytearray(frame)))
+    now = time.monotonic()
+    assert sup.step(now, mission_complete=False).outputs.phase == Phase.WAIT_STATE
+    sup.autopilot.last_rx_wall_s = now - 2.0 * CFG.offboard.heartbeat_timeout_s
+    step = sup.step(now + 0.05, mission_complete=False)
+    assert step.outputs.phase == Phase.WAIT_HEARTBEAT
+    assert not step.outputs.actions
+    assert sup.sm.takeoffs_sent == 0  # (stream rates were asked for: not a flight command)
+    assert "READY=1" not in _told(notify_socket)
+    assert not stopping.is_set()
