@@ -1,14 +1,16 @@
 """The service's parts that decide, one at a time: which reference a position tick flies
-(``ReferenceSelector``: pure), what the attitude loop puts on the wire (``SetpointSender``: a
-real MAVLink link over UDP to a socket of this test, decoded by pymavlink) and what the
-supervisor does with the state machine's phases (``Supervisor``). Each test names the branch a
-swap would break."""
+(``ReferenceSelector``: pure, and a planner's live reference over real Zenoh on loopback),
+what the attitude loop puts on the wire (``SetpointSender``: a real MAVLink link over UDP to a
+socket of this test, decoded by pymavlink) and what the supervisor does with the state
+machine's phases (``Supervisor``, with systemd's notify socket for real). Each test names the
+branch a swap would break."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import dataclasses
+import json
 import socket
 import time
 from collections import Counter
@@ -18,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import zenoh
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common import frames
@@ -25,6 +28,9 @@ from epc_offboard.common.logsetup import LogGate
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.position import PositionOutput
 from epc_offboard.control.trajectories import TrajectoryConfig
+from epc_offboard.fleet import keys
+from epc_offboard.fleet.sharing import FleetSharing
+from epc_offboard.fleet.wire import ReferenceMessage, encode_reference
 from epc_offboard.service.autopilot import Autopilot
 from epc_offboard.service.clock import WallClock
 from epc_offboard.service.config import ServiceConfig, load_service_config
@@ -35,6 +41,8 @@ from epc_offboard.service.systemd import Systemd
 from epc_offboard.vehicle.commands import IGNORE_ATTITUDE, IGNORE_RATES
 from epc_offboard.vehicle.offboard import Outputs, Phase
 from epc_offboard.vehicle.state import StateTracker, VehicleState
+from tests.test_sharing import FLEET, endpoint, free_tcp_port
+from tests.test_sharing import config as sharing_config
 
 SITL_CONFIG = Path(__file__).resolve().parent.parent / "config" / "sitl.toml"
 CFG = load_service_config(SITL_CONFIG)
@@ -108,6 +116,42 @@ def test_the_mission_is_complete_only_after_its_duration_on_the_trajectory():
     assert not sel.mission_complete(14.9, 10.0)
     assert sel.mission_complete(15.0, 10.0)
     assert not sel.mission_complete(1e6, 0.0)  # 0: no end
+
+
+def test_a_fresh_live_reference_is_flown_in_offboard_only_and_a_stale_one_hands_back():
+    """A planner's live reference, over real Zenoh on loopback to the fleet helper: it
+    overrides the trajectory under offboard (never before: the autopilot may still be
+    climbing out of its takeoff); once older than the timeout the trajectory is back, and the
+    hand-back is counted."""
+
+    async def main() -> None:
+        port, planner_port = free_tcp_port(), free_tcp_port()
+        planner = zenoh.Config()
+        planner.insert_json5("connect/endpoints", json.dumps([endpoint(port)]))
+        planner.insert_json5("listen/endpoints", json.dumps([endpoint(planner_port)]))
+        planner.insert_json5("scouting/multicast/enabled", "false")
+        sel, state = _selector(), _state()
+        sel.start_trajectory(state, None, now_s=0.0)
+        flown = sel.horizon(state, 30.0, None, offboard=True)
+        cfg = sharing_config("a", port, [], enabled=False)
+        async with FleetSharing(cfg, [], share_library=False, reference=True) as fleet:
+            msg = ReferenceMessage((1.0, 2.0, -3.0), None, 0.25)
+            with zenoh.open(planner) as session:
+                while fleet.live_reference(time.monotonic(), 0.5) is None:
+                    session.put(keys.reference_key(FLEET, "a"), encode_reference(msg))
+                    await asyncio.sleep(0.05)
+            before = sel.horizon(state, 30.0, fleet, offboard=False)
+            np.testing.assert_allclose(before.stages, flown.stages)
+            live = sel.horizon(state, 30.0, fleet, offboard=True)
+            np.testing.assert_allclose(live.pos_ned_m[0], [1.0, 2.0, -3.0], atol=1e-9)
+            assert live.yaw_rad[0] == pytest.approx(0.25)
+            assert sel.counters["live_reference_stale"] == 0
+            await asyncio.sleep(0.6)  # older than the selector's 0.5 s
+            back = sel.horizon(state, 30.0, fleet, offboard=True)
+            np.testing.assert_allclose(back.stages, flown.stages)
+            assert sel.counters["live_reference_stale"] == 1
+
+    asyncio.run(asyncio.wait_for(main(), 60.0))
 
 
 # -- SetpointSender -----------------------------------------------------------------------------
