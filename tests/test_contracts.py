@@ -409,15 +409,6 @@ def test_every_config_key_is_documented_and_every_documented_key_exists(
     both_ways(f"{heading.strip('# ')} keys", first_table(heading), config_keys(config))
 
 
-def test_a_removed_key_stays_removed() -> None:
-    """Keys that were dropped (issue notes): a file that still holds one is refused by name."""
-    keys_now = set(config_keys(ServiceConfig))
-    for gone in ("offboard.heartbeat_min_interval_s", "offboard.heartbeat_flap_window_s",
-                 "sharing.import_slice_s"):  # fmt: skip
-        assert gone not in keys_now
-        assert f"`{gone}`" not in DOC
-
-
 # -- citations ----------------------------------------------------------------------------------
 
 
