@@ -125,6 +125,9 @@ def window_figures(
     out: dict[str, Any] = {"phase": w.phase, "kind": w.kind, "t0_s": w.t0_s, "t1_s": w.t1_s,
                            "duration_s": w.t1_s - w.t0_s}  # fmt: skip
     out["position_ticks"] = int(rows.sum())
+    # a phase other than offboard here: the service left offboard (a failsafe), and the log
+    # has no rows while it streams nothing, so the "gap" below is that, not a stalled loop
+    out["phases"] = sorted({str(p) for p in flight["phase"][rows]})
     out["position_max_gap_ms"] = _gap_s(t_s, w.t0_s, w.t1_s) * 1e3
     compute = flight["compute_us"][rows]
     out["position_compute_us_median"] = float(np.median(compute)) if compute.size else None
@@ -281,7 +284,8 @@ def format_table(report: dict[str, Any]) -> str:
     lines.append(f"machine load (1/5/15 min): start {load['start']}, end {load['end']}; "
                  f"{report['cpus']} CPUs; {report['hogs']} CPU hogs; attitude mode "
                  f"{report['attitude_mode']}; loops SCHED_FIFO "
-                 f"{'applied' if report['fifo_applied'] else 'NOT applied'}")  # fmt: skip
+                 f"{'applied' if report['fifo_applied'] else 'NOT applied'}; SITL (the autopilot) "
+                 f"{'SCHED_FIFO' if report.get('sitl_fifo') else 'normal scheduling'}")  # fmt: skip
     lines.append(f"{'issue 21 target':62s} {'verdict':9s} measured")
     for v in judge(report):
         verdict = "n/a" if v.met is None else ("met" if v.met else "NOT MET")

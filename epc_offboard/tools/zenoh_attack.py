@@ -10,8 +10,8 @@ Kinds (``RATE`` a second, for ``DURATION`` seconds):
   most a message may hold) from one vehicle id;
 * ``rotate``: the same from 100 vehicle ids in turn (every id gets a fresh token bucket);
 * ``replay``: genuine controllers of the victim's problem, solved here as a fleet peer
-  would have (valid: each passes the KKT check), recorded once as 8 peers' batches, and the
-  same bytes sent again and again;
+  would have (valid: each passes the KKT check), recorded once as 8 peers' libraries (up to
+  400 controllers each), and the same bytes sent again and again;
 * ``flap``: liveliness tokens of rotating peer ids declared and undeclared (``RATE`` changes
   a second): every arrival asks the victim to query that peer's library, which nobody
   answers.
@@ -38,7 +38,7 @@ KINDS = ("flood", "rotate", "replay", "flap")
 ROTATING_IDS = 100
 FLOOD_ENTRIES = 400  # the position library's size: the most one message may carry
 REPLAY_PEERS = 8
-REPLAY_SOLVES = 300
+REPLAY_SOLVES = 1200
 FLAP_IDS = 1000
 FLAP_HELD = 16  # tokens alive at once: each change declares one and undeclares the oldest
 
@@ -99,7 +99,11 @@ def genuine_batches(fleet: str, problem: Any, seed: int = 0) -> Payloads:
     out = []
     for k in range(REPLAY_PEERS):
         vid = f"peer{k}"
-        msg = ControllerMessage(MessageKind.BATCH, sig, vid, tuple(entries[k::REPLAY_PEERS]))
+        # each peer's whole library, as it would answer a late joiner: as many as one
+        # message may carry, overlapping between peers (they fly the same problem)
+        first = k * len(entries) // REPLAY_PEERS
+        chunk = tuple((entries[first:] + entries[:first])[:FLOOD_ENTRIES])
+        msg = ControllerMessage(MessageKind.BATCH, sig, vid, chunk)
         out.append((_key(fleet, sig, vid), encode_controllers(msg)))
     return out
 
