@@ -53,7 +53,7 @@ from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.errors import EpcError
 from epc_offboard.tools import attack_analysis as analysis
 from epc_offboard.tools.sim.analysis import read_csv_columns
-from epc_offboard.tools.sim.orchestrate import service_env
+from epc_offboard.tools.sim.orchestrate import service_env, stop_process
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG, load_scenario
 
 WINDOW_S = 10.0
@@ -275,17 +275,10 @@ def wait_offboard(flight_csv: Path, settle_s: float, service: subprocess.Popen[b
     raise AttackBenchError(f"no {settle_s:g} s of offboard within {timeout_s:g} s")
 
 
-def _stop(proc: subprocess.Popen[Any] | None, timeout_s: float = 10.0) -> int | None:
-    if proc is None:
-        return None
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.returncode
+def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 10.0) -> int | None:
+    """sim's stop (SIGTERM, then SIGKILL); the exit code, None if never started."""
+    stop_process(proc, timeout_s)
+    return None if proc is None else proc.returncode
 
 
 def fly(run_dir: Path, hogs: int, mode: str) -> dict[str, Any]:
