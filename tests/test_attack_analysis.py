@@ -11,7 +11,8 @@ from epc_offboard.tools import attack_analysis as aa
 
 
 def _frame(mav: mavlink.MAVLink, msg: mavlink.MAVLink_message, t_s: float) -> bytes:
-    return struct.pack(">Q", int(t_s * 1e6)) + msg.pack(mav)
+    frame: bytes = msg.pack(mav)
+    return struct.pack(">Q", int(t_s * 1e6)) + frame
 
 
 def test_attitude_sends_are_read_from_a_tlog_by_header_with_their_mode():
