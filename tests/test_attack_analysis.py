@@ -53,3 +53,18 @@ def test_a_window_without_ticks_is_one_gap_and_a_failsafe_shows_in_its_phases():
     assert abs(out["altitude_loss_m"] - 0.02) < 1e-9
     assert abs(out["attitude_rate_hz"] - 200.0) < 1.0
     assert out["attitude_late_ticks"] == 0
+
+
+def test_the_body_rate_target_is_judged_against_lockstep_only_in_body_rate_mode():
+    windows = [{"phase": "figure8", "kind": k, "rmse_m": e, "duration_s": d}
+               for k, e, d in (("calm", 0.05, 4.0), ("flood", 0.07, 10.0))]  # fmt: skip
+    rmse = aa.figure8_rmse_m(windows)
+    assert abs(rmse - ((0.05**2 * 4 + 0.07**2 * 10) / 14) ** 0.5) < 1e-12
+    def verdict(mode: str, lockstep: float | None) -> bool | None:
+        report = {"windows": windows, "attitude_mode": mode, "lockstep_rmse_m": lockstep}
+        return aa.body_rate_verdict(report).met
+
+    assert verdict("rates", rmse / 1.19) is True
+    assert verdict("rates", rmse / 1.25) is False
+    assert verdict("quaternion", rmse) is None
+    assert verdict("rates", None) is None

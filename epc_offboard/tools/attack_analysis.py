@@ -200,6 +200,29 @@ def _text(value: float, fmt: str) -> str:
     return "no data" if math.isnan(value) else fmt.format(value)
 
 
+def figure8_rmse_m(windows: Sequence[dict[str, Any]]) -> float:
+    """The real-time figure-8's RMSE over all its windows (calm and attacks), by duration."""
+    ws = [w for w in windows if w["phase"] == "figure8" and w.get("rmse_m") is not None]
+    total_s = sum(w["duration_s"] for w in ws)
+    if not total_s:
+        return math.nan
+    return math.sqrt(sum(w["rmse_m"] ** 2 * w["duration_s"] for w in ws) / total_s)
+
+
+def body_rate_verdict(report: dict[str, Any]) -> Verdict:
+    """Body rates in real time beside the hogs against the same figure-8 in lockstep
+    (``report["lockstep_rmse_m"]``); judged in body-rate mode only."""
+    target = "body-rate figure-8 RMSE = lockstep's +-20 % (two hogs)"
+    rmse = figure8_rmse_m(report["windows"])
+    lockstep = report.get("lockstep_rmse_m")
+    if report["attitude_mode"] != "rates" or lockstep is None or math.isnan(rmse):
+        why = "body-rate mode and its lockstep flight only: --attitude-mode rates"
+        return Verdict(target, f"real time {_text(rmse, '{:.3f} m')}; not judged ({why})", None)
+    ratio = rmse / lockstep
+    return Verdict(target, f"real time {rmse:.4f} m, lockstep {lockstep:.4f} m: x{ratio:.2f}",
+                   abs(ratio - 1.0) <= 0.20)  # fmt: skip
+
+
 def judge(report: dict[str, Any]) -> list[Verdict]:
     """Issue 21's targets against the attack windows of ``report`` (see :func:`window_figures`)."""
     attacks = [w for w in report["windows"] if w["kind"] != "calm"]
@@ -248,12 +271,7 @@ def judge(report: dict[str, Any]) -> list[Verdict]:
                            f"{rss['start_mb']:.1f} -> {rss['end_mb']:.1f} MB, widest "
                            f"{100 * rss['max_deviation']:+.1f} %",
                            abs(rss["max_deviation"]) <= 0.05))  # fmt: skip
-    calm8 = [w for w in report["windows"] if w["phase"] == "figure8" and w["kind"] == "calm"]
-    rmse = _worst(calm8, "rmse_m")
-    out.append(Verdict("body-rate figure-8 RMSE = lockstep's +-20 % (two hogs)",
-                       f"calm figure-8 windows' worst RMSE {_text(rmse, '{:.3f} m')}; not "
-                       "judged here (needs the lockstep flight: sim --scenario figure8 "
-                       "--lockstep)", None))  # fmt: skip
+    out.append(body_rate_verdict(report))
     return out
 
 

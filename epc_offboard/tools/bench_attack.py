@@ -27,8 +27,10 @@ gap and its ticks' compute (the flight log's ``compute_us``), the attitude loop'
 ticks and mode (its SET_ATTITUDE_TARGET sends in the tlog), error to the reference and
 altitude loss (the SITL's ground truth), the time in offboard (the ground truth's mode), the
 control process's RSS and the helpers' CPU (sampled from /proc every 0.25 s), the load.
-Writes the JSON report and a figure (FILE.png), prints each window and each of issue 21's
-targets with a verdict computed from this run.
+With ``--attitude-mode rates`` the windy figure-8 is also flown in lockstep afterwards (its
+RMSE is what the real-time body-rate flight is judged against). Writes the JSON report and
+a figure (FILE.png), prints each window and each of issue 21's targets with a verdict
+computed from this run.
 """
 
 from __future__ import annotations
@@ -358,7 +360,8 @@ def fly(run_dir: Path, hogs: int, mode: str) -> dict[str, Any]:
 
 
 def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
-            unix_minus_monotonic_s: float) -> tuple[dict[str, Any], dict[str, Any]]:  # fmt: skip
+            unix_minus_monotonic_s: float, lockstep_rmse_m: float | None = None,
+            ) -> tuple[dict[str, Any], dict[str, Any]]:  # fmt: skip
     """(report, figure series) of a flown run."""
     flight = read_csv_columns(run_dir / "flight.csv")
     truth = read_csv_columns(run_dir / "groundtruth.csv")
@@ -402,12 +405,31 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "stats_sharing": stats.get("sharing", {}),
         "stats_link": stats.get("link", {}),
         "stats_counters": counters,
+        "lockstep_rmse_m": lockstep_rmse_m,
+        "figure8_rmse_m": analysis.figure8_rmse_m(windows),
     }  # fmt: skip
     err_t, err = analysis.error_series(flight, truth)
     series = {"pos_t_s": flight["t_s"][flight["phase"] == "offboard"], "att_t_s": att_t_s,
               "err_t_s": err_t, "err_m": err}  # fmt: skip
     report["verdicts"] = [vars(v) for v in analysis.judge(report)]
     return report, series
+
+
+def lockstep_rmse_m() -> float | None:
+    """The windy figure-8's RMSE flown in lockstep (``sim --scenario figure8 --lockstep``,
+    body rates, the same SITL and service): what the real-time body-rate flight is judged
+    against. None when that flight left no report."""
+    with tempfile.TemporaryDirectory(prefix="epc-attack-lockstep-") as tmp:
+        report = Path(tmp) / "report.json"
+        subprocess.run(
+            [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "figure8", "--lockstep",
+             "--gcs-port", "0", "--out", tmp, "--json", str(report)],
+            capture_output=True, text=True, check=False, env=dict(os.environ, **service_env()),
+        )  # fmt: skip
+        if not report.exists():
+            return None
+        rmse: float = json.loads(report.read_text())["vehicles"][0]["tracking"]["rmse_m"]
+        return rmse
 
 
 def run_attack_bench(json_path: str | None, hogs: int, mode: str) -> int:
@@ -421,7 +443,9 @@ def run_attack_bench(json_path: str | None, hogs: int, mode: str) -> int:
             (run_dir / stale).unlink(missing_ok=True)
         unix_minus_monotonic_s = time.time() - time.monotonic()
         record = fly(run_dir, hogs, mode)
-        report, series = analyse(run_dir, record, hogs, mode, unix_minus_monotonic_s)
+        lockstep = lockstep_rmse_m() if mode == "rates" else None
+        report, series = analyse(run_dir, record, hogs, mode, unix_minus_monotonic_s,
+                                 lockstep)  # fmt: skip
     print(analysis.format_table(report))
     if out:
         out.write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
