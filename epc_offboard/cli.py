@@ -228,7 +228,7 @@ def _add_bench(sub: _Subparsers) -> None:
         "a figure (FILE with .png) and the flight's files (FILE without suffix)",
     )
     bench.add_argument(
-        "--hogs", type=int, default=0, metavar="N",
+        "--hogs", type=bounded_int(0), default=0, metavar="N",
         help="with --attack: N CPU hogs beside the flight",
     )  # fmt: skip
     bench.add_argument(
