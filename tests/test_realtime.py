@@ -61,15 +61,23 @@ def test_fifo_for_the_loops_and_normal_scheduling_for_the_worker():
     names what is missing."""
     code = textwrap.dedent(
         """
-        import os, subprocess, sys
+        import os, subprocess, sys, threading
         from epc_offboard.service.realtime import PriorityError, apply_priority
+        gate = threading.Event()
+        helper = threading.Thread(target=gate.wait)  # as the miss worker's executor thread
+        helper.start()
         try:
             print(apply_priority(10))
         except PriorityError as exc:
             print("REFUSED", exc)
             raise SystemExit(0)
+        finally:
+            gate.set()
         policy = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK
         assert policy == os.SCHED_FIFO, policy
+        helper_policy = os.sched_getscheduler(helper.native_id) & ~os.SCHED_RESET_ON_FORK
+        assert helper_policy == os.SCHED_FIFO, helper_policy  # it takes the loops' lock
+        assert os.sched_getparam(helper.native_id).sched_priority == 9
         child = subprocess.run(
             [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
             capture_output=True, text=True, check=True)
@@ -81,7 +89,7 @@ def test_fifo_for_the_loops_and_normal_scheduling_for_the_worker():
     if out.stdout.startswith("REFUSED"):
         assert "CAP_SYS_NICE" in out.stdout or "not available" in out.stdout
     else:
-        assert "SCHED_FIFO priority 10" in out.stdout
+        assert "SCHED_FIFO priority 10, the process's 1 other thread(s) at 9" in out.stdout
         import os
 
         assert f"CHILD {os.SCHED_OTHER}" in out.stdout
