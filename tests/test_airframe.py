@@ -94,7 +94,10 @@ def test_a_service_config_that_sets_the_airframes_numbers_is_refused(
     with pytest.raises(ConfigError) as err:
         load_service_config(_service_config(tmp_path, table))
     key = next(f"{t}.{k}" for t, v in table.items() for k in v)
-    assert key in str(err.value) and where in str(err.value) and "service.toml" in str(err.value)
+    message = str(err.value)
+    assert key in message
+    assert where in message  # where it went
+    assert "service.toml" in message
 
 
 def test_an_unknown_key_in_the_vehicle_file_is_an_error_naming_it(tmp_path: Path) -> None:
@@ -107,7 +110,7 @@ def test_an_unknown_key_in_the_vehicle_file_is_an_error_naming_it(tmp_path: Path
 def test_a_vehicle_file_is_named_by_path_or_bundled_name() -> None:
     assert airframe_path("quad_x_1500g") == DEFAULT_VEHICLE_FILE
     assert load_airframe("quad_x_1500g") == load_airframe(str(DEFAULT_VEHICLE_FILE))
-    with pytest.raises(ConfigError, match="no_such_quad.*not found"):
+    with pytest.raises(ConfigError, match=r"no_such_quad.*not found"):
         load_airframe("no_such_quad")
 
 

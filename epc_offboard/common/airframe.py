@@ -8,8 +8,8 @@ these numbers from it, so the sim never copies one into the other's config.
 
 This module holds the shared pieces: the ``[envelope]`` table's schema (the SITL accepts
 the table, strictly, and flies its own autopilot's limits) and :class:`Airframe`, the values
-the service takes. Plain Python:
-the plant imports it (it may import ``epc_offboard.common`` only).
+the service takes. Plain Python: the plant imports it (it may import ``epc_offboard.common``
+only).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import math
 from dataclasses import dataclass
 
 Vec3 = tuple[float, float, float]
+
 
 @dataclass(frozen=True)
 class AirframeEnvelope:
@@ -37,18 +38,7 @@ class AirframeEnvelope:
     hover_thrust_norm: float | None = None
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.max_tilt_deg < 90.0:
-            raise ValueError(f"max_tilt_deg must be in (0, 90), got {self.max_tilt_deg}")
-        if not 0.0 < self.min_thrust_norm < self.max_thrust_norm <= 1.0:
-            raise ValueError("need 0 < min_thrust_norm < max_thrust_norm <= 1")
-        if any(not r > 0.0 for r in self.max_rate_frd_rad_s):
-            raise ValueError(f"max_rate_frd_rad_s must be > 0, got {self.max_rate_frd_rad_s}")
-        hover = self.hover_thrust_norm
-        if hover is not None and not self.min_thrust_norm < hover < self.max_thrust_norm:
-            raise ValueError(
-                f"hover_thrust_norm ({hover}) must lie between min_thrust_norm and "
-                "max_thrust_norm"
-            )
+        _check_limits(self, self.hover_thrust_norm)
 
 
 @dataclass(frozen=True)
@@ -72,9 +62,19 @@ class Airframe:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.mass_kg) and self.mass_kg > 0.0):
             raise ValueError(f"mass_kg must be > 0, got {self.mass_kg}")
-        if not 0.0 < self.max_tilt_deg < 90.0:
-            raise ValueError(f"max_tilt_deg must be in (0, 90), got {self.max_tilt_deg}")
-        if not 0.0 < self.min_thrust_norm < self.hover_thrust_norm < self.max_thrust_norm <= 1.0:
-            raise ValueError("need 0 < min_thrust_norm < hover_thrust_norm < max_thrust_norm <= 1")
-        if any(not r > 0.0 for r in self.max_rate_frd_rad_s):
-            raise ValueError(f"max_rate_frd_rad_s must be > 0, got {self.max_rate_frd_rad_s}")
+        _check_limits(self, self.hover_thrust_norm)
+
+
+def _check_limits(limits: AirframeEnvelope | Airframe, hover_thrust_norm: float | None) -> None:
+    """The envelope's range checks, shared by the file's table and the value flown."""
+    if not 0.0 < limits.max_tilt_deg < 90.0:
+        raise ValueError(f"max_tilt_deg must be in (0, 90), got {limits.max_tilt_deg}")
+    if not 0.0 < limits.min_thrust_norm < limits.max_thrust_norm <= 1.0:
+        raise ValueError("need 0 < min_thrust_norm < max_thrust_norm <= 1")
+    if any(not r > 0.0 for r in limits.max_rate_frd_rad_s):
+        raise ValueError(f"max_rate_frd_rad_s must be > 0, got {limits.max_rate_frd_rad_s}")
+    hover = hover_thrust_norm
+    if hover is not None and not limits.min_thrust_norm < hover < limits.max_thrust_norm:
+        raise ValueError(
+            f"hover_thrust_norm ({hover}) must lie between min_thrust_norm and max_thrust_norm"
+        )

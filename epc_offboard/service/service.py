@@ -289,6 +289,9 @@ class Service:
         loop.add_signal_handler(signal.SIGHUP, self._reload)
         log.info("epc-offboard running: %s, target system %d", self.cfg.link.url,
                  self.cfg.link.target_system)  # fmt: skip
+        frame = self.cascade.position.airframe
+        log.info("airframe %s: hover thrust %.3f, tilt limit %g deg", frame.source,
+                 frame.hover_thrust_norm, frame.max_tilt_deg)  # fmt: skip
         loops = self.loops
         try:
             async with asyncio.TaskGroup() as tg:
