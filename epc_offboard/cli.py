@@ -220,6 +220,22 @@ def _add_bench(sub: _Subparsers) -> None:
         "pymavlink's parser against the header-first path (ratios printed)",
     )
     bench.add_argument(
+        "--attack",
+        action="store_true",
+        help="instead: issue 21's attacks (Zenoh flood, rotating ids, replay, token flaps, "
+        "fuzzed MAVLink), 10 s each, on one real-time SITL flight (hover, then the windy "
+        "figure-8); prints each window and issue 21's targets with verdicts; with --json also "
+        "a figure (FILE with .png) and the flight's files (FILE without suffix)",
+    )
+    bench.add_argument(
+        "--hogs", type=bounded_int(0), default=0, metavar="N",
+        help="with --attack: N CPU hogs beside the flight",
+    )  # fmt: skip
+    bench.add_argument(
+        "--attitude-mode", choices=["quaternion", "rates"], default="quaternion",
+        help="with --attack: quaternion (config/default.toml's) or body rates (config/sitl.toml's)",
+    )  # fmt: skip
+    bench.add_argument(
         "--lwpr",
         action="store_true",
         help="instead: LWPR's cost per control tick, compiled against the numpy reference "

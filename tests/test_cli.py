@@ -68,3 +68,25 @@ def test_bench_lwpr_runs_the_lwpr_benchmark(monkeypatch):
     monkeypatch.setattr(bench_lwpr, "main", fake_main)
     assert main(["bench", "--lwpr", "--json", "x.json"]) == 0
     assert seen == [["--json", "x.json"]]
+
+
+def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
+    """`epc-offboard bench --attack` is issue 21's attack benchmark (a real-time flight, too
+    long for this test: its wiring only); a negative hog count is a usage error."""
+    from epc_offboard.cli import main
+    from epc_offboard.tools import bench_attack
+
+    seen: list[tuple[str | None, int, str]] = []
+
+    def fake_run(json_path: str | None, hogs: int, mode: str) -> int:
+        seen.append((json_path, hogs, mode))
+        return 0
+
+    monkeypatch.setattr(bench_attack, "run_attack_bench", fake_run)
+    assert main(["bench", "--attack", "--hogs", "2", "--attitude-mode", "rates",
+                 "--json", "a.json"]) == 0  # fmt: skip
+    assert main(["bench", "--attack"]) == 0
+    assert seen == [("a.json", 2, "rates"), (None, 0, "quaternion")]
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "--attack", "--hogs", "-1"])
+    assert exc.value.code == 2

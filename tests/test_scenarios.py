@@ -26,7 +26,8 @@ def compare(tmp: Path, scenario: str, duration_s: float, methods: str) -> dict[s
     out = tmp / scenario
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--scenario", scenario,
-         "--duration", str(duration_s), "--compare", methods, "--out", str(out)],
+         "--duration", str(duration_s), "--compare", methods, "--gcs-port", "0",
+         "--out", str(out)],
         capture_output=True, text=True, timeout=400, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -55,8 +56,9 @@ def circle(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
 @pytest.fixture(scope="module")
 def zigzag(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    # settle 4 s + three full-speed sweeps
-    return compare(tmp_path_factory.mktemp("zigzag"), "zigzag", 14.0, "epc:lwpr,pd:none")
+    # settle 4 s + three full-speed sweeps; EPC alone: the scenario's one target is EPC's, and
+    # a PD flight beside it (half a minute of the suite) could only show that PD has no bound
+    return compare(tmp_path_factory.mktemp("zigzag"), "zigzag", 14.0, "epc:lwpr")
 
 
 @pytest.fixture(scope="module")
@@ -89,14 +91,11 @@ def test_circle_meets_its_targets(circle: dict[str, Any]) -> None:
 
 def test_zigzag_epc_keeps_the_velocity_bound(zigzag: dict[str, Any]) -> None:
     assert_targets(zigzag, "zigzag")
-    m = by_method(zigzag)
-    epc, pd = m["epc:lwpr"], m["pd:none"]
+    epc = by_method(zigzag)["epc:lwpr"]
     assert epc["constraint_violations"] == 0
     assert epc["max_abs_vel_m_s"][1] <= 3.8
     # the reference really runs at the bound (3.75 m/s): the constraint is exercised
     assert epc["max_abs_vel_m_s"][1] > 3.6
-    # PD has no notion of the bound; the report shows whether it crosses it
-    assert pd["constraint_violations"] >= 0
     assert epc["library"]["qp_solves"] > 0  # constrained phases were solved, then reused
 
 

@@ -304,6 +304,14 @@ def run_bench_command(args: argparse.Namespace) -> int:
         from epc_offboard.tools import bench_lwpr
 
         return bench_lwpr.main(["--json", args.json] if args.json else [])
+    if getattr(args, "attack", False):
+        from epc_offboard.tools.bench_attack import AttackBenchError, run_attack_bench
+
+        try:
+            return run_attack_bench(args.json, int(args.hogs), str(args.attitude_mode))
+        except AttackBenchError as exc:
+            print(f"epc-offboard bench --attack: {exc}", file=sys.stderr)
+            return 1
     if getattr(args, "link", False):
         from epc_offboard.tools.bench_link import run_link_bench_command
 

@@ -1,0 +1,356 @@
+"""What ``bench --attack`` measured, window by window, and issue 21's targets judged on it.
+
+Pure: arrays and dicts in (the flight log, the ground truth, the service's sent attitude
+setpoints from its tlog, the process samples), figures out; the files are read by
+:mod:`epc_offboard.tools.bench_attack`. Times: ``t_s`` is the monotonic clock the service's
+loops and the bench share; the SITL's ground truth is on vehicle time, mapped with the offset
+the flight log gives (each row carries both).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from epc_offboard.common.frames import FloatArray
+
+PX4_OFFBOARD = 6  # PX4 main mode OFFBOARD (vehicle/state.py); the bench flies PX4's personality
+SET_ATTITUDE_TARGET = 82
+ATTITUDE_IGNORE = 128  # type_mask bit: the attitude is ignored, body rates are flown
+_TYPE_MASK_OFFSET = 38  # time_boot_ms, q[4], 3 rates, thrust (36 bytes), target sys, comp
+BoolArray = npt.NDArray[np.bool_]
+_LATE_PERIODS = 2.0  # an interval between attitude sends this many periods long: a late tick
+
+
+@dataclass(frozen=True)
+class Window:
+    """One stretch of the flight: an attack (``kind``) or a calm gap (``"calm"``), in
+    ``phase`` ("hover" or "figure8"), from ``t0_s`` to ``t1_s`` on the monotonic clock."""
+
+    phase: str
+    kind: str
+    t0_s: float
+    t1_s: float
+    attacker: dict[str, Any]  # the attacker's summary (empty for calm)
+
+    @property
+    def attack(self) -> bool:
+        return self.kind != "calm"
+
+
+def attitude_sends(tlog: bytes, system_id: int) -> tuple[FloatArray, BoolArray]:
+    """(unix time s, body rates?) of every SET_ATTITUDE_TARGET ``system_id`` sent, from a
+    tlog (each frame after a big-endian uint64 of unix microseconds). Scanned by header: a
+    pymavlink decode of every frame of a three-minute flight takes longer than the flight's
+    analysis."""
+    times: list[float] = []
+    rates: list[bool] = []
+    i, n = 0, len(tlog)
+    while i + 9 < n:
+        (t_us,) = struct.unpack_from(">Q", tlog, i)
+        magic = tlog[i + 8]
+        if magic == 0xFD and i + 18 <= n:
+            length = tlog[i + 9]
+            signed = tlog[i + 10] & 0x01
+            sysid = tlog[i + 13]
+            msgid = int.from_bytes(tlog[i + 15 : i + 18], "little")
+            size = 12 + length + (13 if signed else 0)
+            if sysid == system_id and msgid == SET_ATTITUDE_TARGET:
+                off = _TYPE_MASK_OFFSET
+                mask = tlog[i + 18 + off] if off < length else 0  # trailing zeros truncated
+                times.append(t_us * 1e-6)
+                rates.append(bool(mask & ATTITUDE_IGNORE))
+        elif magic == 0xFE and i + 10 <= n:
+            size = 8 + tlog[i + 9]
+        else:  # not a frame start: the log is torn here
+            break
+        i += 8 + size
+    return np.asarray(times), np.asarray(rates, dtype=bool)
+
+
+def _gap_s(times: FloatArray, t0_s: float, t1_s: float) -> float:
+    """The longest stretch of [t0, t1] without a tick (the edges count: a loop stopped
+    across the whole window has none)."""
+    inside = times[(times >= t0_s) & (times <= t1_s)]
+    edges = np.concatenate([[t0_s], inside, [t1_s]])
+    return float(np.max(np.diff(edges)))
+
+
+def _sample_at(samples: list[dict[str, Any]], t_s: float) -> dict[str, Any]:
+    """The process sample nearest ``t_s``."""
+    return min(samples, key=lambda s: abs(s["t_s"] - t_s))
+
+
+def _cpu_shares(a: dict[str, Any], b: dict[str, Any], names: dict[int, str]) -> dict[str, Any]:
+    dt = b["t_s"] - a["t_s"]
+    if dt <= 0:
+        return {}
+    helpers: dict[str, float] = {}
+    for pid, cpu_b in b["children_cpu_s"].items():
+        cpu_a = a["children_cpu_s"].get(pid, 0.0)
+        name = names.get(int(pid), f"pid {pid}")
+        helpers[name] = helpers.get(name, 0.0) + (cpu_b - cpu_a) / dt
+    return {
+        "control_cpu_share": round((b["control_cpu_s"] - a["control_cpu_s"]) / dt, 3),
+        "helpers_cpu_share": round(sum(helpers.values()), 3),
+        "helpers": {k: round(v, 3) for k, v in sorted(helpers.items())},
+    }
+
+
+def window_figures(
+    w: Window,
+    flight: dict[str, Any],
+    truth: dict[str, Any],
+    att_times_s: FloatArray,
+    att_rates: BoolArray,
+    samples: list[dict[str, Any]],
+    names: dict[int, str],
+    attitude_period_s: float,
+) -> dict[str, Any]:
+    """Everything the bench reports of one window (see the module docstring for the clocks).
+
+    ``flight``: the flight log's columns (t_s, vehicle_t_s, ref_pos_*_m, compute_us, phase);
+    ``truth``: the ground truth's (t_s on vehicle time, pos_*_m, main_mode);
+    ``att_times_s``: attitude sends on the monotonic clock; ``samples``: the process samples.
+    """
+    t_s, vt_s = flight["t_s"], flight["vehicle_t_s"]
+    offset_s = float(np.median(vt_s - t_s))
+    rows = (t_s >= w.t0_s) & (t_s <= w.t1_s)
+    out: dict[str, Any] = {"phase": w.phase, "kind": w.kind, "t0_s": w.t0_s, "t1_s": w.t1_s,
+                           "duration_s": w.t1_s - w.t0_s}  # fmt: skip
+    out["position_ticks"] = int(rows.sum())
+    # a phase other than offboard here: the service left offboard (a failsafe), and the log
+    # has no rows while it streams nothing, so the "gap" below is that, not a stalled loop
+    out["phases"] = sorted({str(p) for p in flight["phase"][rows]})
+    out["position_max_gap_ms"] = _gap_s(t_s, w.t0_s, w.t1_s) * 1e3
+    compute = flight["compute_us"][rows]
+    out["position_compute_us_median"] = float(np.median(compute)) if compute.size else None
+    out["position_compute_us_p99"] = float(np.percentile(compute, 99)) if compute.size else None
+    # attitude: what the service sent (its tlog), one SET_ATTITUDE_TARGET per tick
+    att = (att_times_s >= w.t0_s) & (att_times_s <= w.t1_s)
+    sends = att_times_s[att]
+    intervals = np.diff(np.concatenate([[w.t0_s], sends, [w.t1_s]]))
+    out["attitude_rate_hz"] = float(sends.size / (w.t1_s - w.t0_s))
+    out["attitude_max_gap_ms"] = float(intervals.max() * 1e3)
+    out["attitude_late_ticks"] = int(np.sum(np.diff(sends) > _LATE_PERIODS * attitude_period_s))
+    out["attitude_body_rate_fraction"] = float(att_rates[att].mean()) if sends.size else 0.0
+    # the vehicle's own view: ground truth against the reference the service flew
+    v0, v1 = w.t0_s + offset_s, w.t1_s + offset_s
+    span = (truth["t_s"] >= v0) & (truth["t_s"] <= v1)
+    tt = truth["t_s"][span]
+    if tt.size and rows.sum() > 1:
+        ref = np.stack([np.interp(tt, vt_s, flight[f"ref_pos_{a}_m"]) for a in "ned"], axis=1)
+        pos = np.stack([truth[f"pos_{a}_m"][span] for a in "ned"], axis=1)
+        err = np.linalg.norm(pos - ref, axis=1)
+        out["max_error_m"] = float(err.max())
+        out["rmse_m"] = float(np.sqrt(np.mean(err**2)))
+        out["altitude_loss_m"] = float(max(0.0, np.max(pos[:, 2] - ref[:, 2])))  # NED: down
+    else:
+        out["max_error_m"] = out["rmse_m"] = out["altitude_loss_m"] = None
+    modes = truth["main_mode"][span]
+    out["offboard_fraction"] = float(np.mean(modes == PX4_OFFBOARD)) if modes.size else 0.0
+    if samples:
+        a, b = _sample_at(samples, w.t0_s), _sample_at(samples, w.t1_s)
+        out["control_rss_mb"] = [a["control_rss_mb"], b["control_rss_mb"]]
+        out.update(_cpu_shares(a, b, names))
+        out["load_avg_1min"] = b["load_avg"][0]
+    out["attacker"] = w.attacker
+    return out
+
+
+def error_series(
+    flight: dict[str, Any], truth: dict[str, Any], every: int = 10
+) -> tuple[FloatArray, FloatArray]:
+    """(monotonic t s, error m) of every ``every``-th ground-truth sample under offboard
+    control (for the figure)."""
+    t_s, vt_s = flight["t_s"], flight["vehicle_t_s"]
+    offset_s = float(np.median(vt_s - t_s))
+    off = flight["phase"] == "offboard"
+    lo, hi = vt_s[off].min(), vt_s[off].max()
+    span = (truth["t_s"] >= lo) & (truth["t_s"] <= hi)
+    tt = truth["t_s"][span][::every]
+    ref = np.stack([np.interp(tt, vt_s, flight[f"ref_pos_{a}_m"]) for a in "ned"], axis=1)
+    pos = np.stack([truth[f"pos_{a}_m"][span][::every] for a in "ned"], axis=1)
+    return tt - offset_s, np.linalg.norm(pos - ref, axis=1)
+
+
+# -- issue 21's targets ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Verdict:
+    target: str
+    measured: str
+    met: bool | None  # None: not judged by this run (said why in ``measured``)
+
+
+def _worst(windows: Sequence[dict[str, Any]], key: str, fn: Any = max) -> float:
+    """The worst of ``key`` over ``windows`` (NaN when none has it: judged not met)."""
+    values = [w[key] for w in windows if w.get(key) is not None]
+    return float(fn(values)) if values else math.nan
+
+
+def _text(value: float, fmt: str) -> str:
+    return "no data" if math.isnan(value) else fmt.format(value)
+
+
+def figure8_rmse_m(windows: Sequence[dict[str, Any]]) -> float:
+    """The real-time figure-8's RMSE over all its windows (calm and attacks), by duration."""
+    ws = [w for w in windows if w["phase"] == "figure8" and w.get("rmse_m") is not None]
+    total_s = sum(w["duration_s"] for w in ws)
+    if not total_s:
+        return math.nan
+    return math.sqrt(sum(w["rmse_m"] ** 2 * w["duration_s"] for w in ws) / total_s)
+
+
+def body_rate_verdict(report: dict[str, Any]) -> Verdict:
+    """Body rates in real time beside the hogs against the same figure-8 in lockstep
+    (``report["lockstep_rmse_m"]``); judged in body-rate mode only."""
+    target = "body-rate figure-8 RMSE = lockstep's +-20 % (two hogs)"
+    rmse = figure8_rmse_m(report["windows"])
+    lockstep = report.get("lockstep_rmse_m")
+    if report["attitude_mode"] != "rates" or lockstep is None or math.isnan(rmse):
+        why = "body-rate mode and its lockstep flight only: --attitude-mode rates"
+        return Verdict(target, f"real time {_text(rmse, '{:.3f} m')}; not judged ({why})", None)
+    ratio = rmse / lockstep
+    return Verdict(target, f"real time {rmse:.4f} m, lockstep {lockstep:.4f} m: x{ratio:.2f}",
+                   abs(ratio - 1.0) <= 0.20)  # fmt: skip
+
+
+def judge(report: dict[str, Any]) -> list[Verdict]:
+    """Issue 21's targets against the attack windows of ``report`` (see :func:`window_figures`)."""
+    attacks = [w for w in report["windows"] if w["kind"] != "calm"]
+    hover = [w for w in attacks if w["phase"] == "hover"]
+    quaternion = report["attitude_mode"] == "quaternion"
+    fifo = report["fifo_applied"]
+    out = []
+    gap = _worst(attacks, "position_max_gap_ms")
+    out.append(Verdict("no position-loop gap over 20 ms", _text(gap, "{:.1f} ms"), gap <= 20.0))
+    strict = "... none over 12 ms (quaternion mode, FIFO)"
+    if quaternion and fifo:
+        out.append(Verdict(strict, _text(gap, "{:.1f} ms"), gap <= 12.0))
+    else:
+        why = "body-rate mode" if not quaternion else "FIFO not applied"
+        out.append(Verdict(strict, f"not judged ({why})", None))
+    rate = _worst(attacks, "attitude_rate_hz", min)
+    late = sum(w["attitude_late_ticks"] for w in attacks)
+    misses = report["stats_loops"].get("attitude", {}).get("deadline_misses")
+    text = (f"{_text(rate, '{:.1f} Hz')} (slowest window), {late} late ticks in the windows; "
+            f"{misses} deadline misses in the whole flight")  # fmt: skip
+    if quaternion:
+        out.append(Verdict("attitude loop >= 199 Hz, 0 deadline misses (quaternion mode)", text,
+                           rate >= 199.0 and late == 0))  # fmt: skip
+    else:
+        out.append(Verdict("attitude loop >= 199 Hz, 0 deadline misses (quaternion mode)",
+                           f"{text} (body-rate mode: not judged)", None))  # fmt: skip
+    err = _worst(hover, "max_error_m")
+    out.append(Verdict("hover error during every attack <= 0.10 m", _text(err, "{:.3f} m"),
+                       err <= 0.10))  # fmt: skip
+    loss = _worst(attacks, "altitude_loss_m")
+    out.append(Verdict("no loss of altitude over 0.1 m", _text(loss, "{:.3f} m"), loss <= 0.1))
+    held = _worst(attacks, "offboard_fraction", min)
+    out.append(Verdict("offboard held >= 99.9 % under invalid traffic",
+                       _text(100.0 * held, "{:.2f} %"), held >= 0.999))  # fmt: skip
+    fuzz_err = _worst([w for w in hover if w["kind"] == "fuzz"], "max_error_m")
+    out.append(Verdict("no excursion over 0.10 m from implausible MAVLink (hover, fuzz)",
+                       _text(fuzz_err, "{:.3f} m"), fuzz_err <= 0.10))  # fmt: skip
+    med, p99 = report["attack_compute_us"]["median"], report["attack_compute_us"]["p99"]
+    out.append(Verdict("position tick compute median <= 300 us (real time)",
+                       _text(med, "{:.0f} us"), med <= 300.0))  # fmt: skip
+    out.append(Verdict("position tick compute p99 <= 1 ms", _text(p99, "{:.0f} us"),
+                       p99 <= 1000.0))  # fmt: skip
+    rss = report["control_rss"]
+    if rss["samples"]:
+        out.append(Verdict("control process RSS flat (+-5 %) through the attacks",
+                           f"{rss['start_mb']:.1f} -> {rss['end_mb']:.1f} MB, widest "
+                           f"{100 * rss['max_deviation']:+.1f} %",
+                           abs(rss["max_deviation"]) <= 0.05))  # fmt: skip
+    out.append(body_rate_verdict(report))
+    return out
+
+
+def format_table(report: dict[str, Any]) -> str:
+    keys = [("position_max_gap_ms", "gap ms", "{:.1f}"),
+            ("attitude_rate_hz", "att Hz", "{:.1f}"),
+            ("attitude_late_ticks", "late", "{:d}"),
+            ("max_error_m", "err m", "{:.3f}"),
+            ("altitude_loss_m", "alt loss", "{:.3f}"),
+            ("offboard_fraction", "offb %", "{:.4f}"),
+            ("position_compute_us_median", "med us", "{:.0f}"),
+            ("position_compute_us_p99", "p99 us", "{:.0f}"),
+            ("helpers_cpu_share", "helpers", "{:.2f}"),
+            ("load_avg_1min", "load", "{:.1f}")]  # fmt: skip
+    head = f"{'phase':8s} {'window':7s}" + "".join(f" {k[1]:>9s}" for k in keys)
+    lines = [head]
+    for w in report["windows"]:
+        cells = []
+        for key, _, fmt in keys:
+            v = w.get(key)
+            if key == "offboard_fraction" and v is not None:
+                v = 100.0 * v
+                fmt = "{:.2f}"
+            cells.append(f" {fmt.format(v) if v is not None else '-':>9s}")
+        lines.append(f"{w['phase']:8s} {w['kind']:7s}" + "".join(cells))
+    lines.append("")
+    load = report["load_avg"]
+    lines.append(f"machine load (1/5/15 min): start {load['start']}, end {load['end']}; "
+                 f"{report['cpus']} CPUs; {report['hogs']} CPU hogs; attitude mode "
+                 f"{report['attitude_mode']}; loops SCHED_FIFO "
+                 f"{'applied' if report['fifo_applied'] else 'NOT applied'}; SITL (the autopilot) "
+                 f"{'SCHED_FIFO' if report.get('sitl_fifo') else 'normal scheduling'}")  # fmt: skip
+    lines.append(f"{'issue 21 target':62s} {'verdict':9s} measured")
+    for v in judge(report):
+        verdict = "n/a" if v.met is None else ("met" if v.met else "NOT MET")
+        lines.append(f"{v.target:62s} {verdict:9s} {v.measured}")
+    return "\n".join(lines)
+
+
+def write_figure(report: dict[str, Any], series: dict[str, FloatArray], path: Any) -> None:
+    """Position-loop gaps and tracking error against time, the attack windows shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t_zero = report["windows"][0]["t0_s"]
+    fig, (ax_gap, ax_att, ax_err) = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
+    ax_gap.plot(series["pos_t_s"][1:] - t_zero, np.diff(series["pos_t_s"]) * 1e3, lw=0.5,
+                color="tab:blue")  # fmt: skip
+    ax_gap.axhline(20.0, color="k", lw=0.6, ls="--")
+    ax_gap.set_ylabel("position tick\ninterval, ms")
+    ax_gap.set_yscale("log")
+    att = series["att_t_s"]
+    ax_att.plot(att[1:] - t_zero, np.diff(att) * 1e3, lw=0.4, color="tab:purple")
+    ax_att.set_ylabel("attitude send\ninterval, ms")
+    ax_att.set_yscale("log")
+    ax_err.plot(series["err_t_s"] - t_zero, series["err_m"], lw=0.6, color="tab:red")
+    ax_err.axhline(0.10, color="k", lw=0.6, ls="--")
+    ax_err.set_ylabel("error to the\nreference, m")
+    ax_err.set_xlabel("s since the first window")
+    colours = {"flood": "tab:orange", "rotate": "tab:green", "replay": "tab:cyan",
+               "flap": "tab:pink", "fuzz": "tab:gray"}  # fmt: skip
+    for w in report["windows"]:
+        if w["kind"] == "calm":
+            continue
+        for ax in (ax_gap, ax_att, ax_err):
+            ax.axvspan(w["t0_s"] - t_zero, w["t1_s"] - t_zero, color=colours[w["kind"]],
+                       alpha=0.25, lw=0)  # fmt: skip
+        ax_gap.text((w["t0_s"] + w["t1_s"]) / 2 - t_zero, ax_gap.get_ylim()[1], w["kind"],
+                    ha="center", va="top", fontsize=7)  # fmt: skip
+    split = [w["t0_s"] for w in report["windows"] if w["phase"] == "figure8"]
+    if split:
+        for ax in (ax_gap, ax_att, ax_err):
+            ax.axvline(split[0] - t_zero, color="k", lw=0.8)
+    load = report["load_avg"]
+    fig.suptitle(f"bench --attack: hover, then the windy figure-8 ({report['attitude_mode']} "
+                 f"mode, {report['hogs']} CPU hogs, load {load['start'][0]:.1f}-"
+                 f"{load['end'][0]:.1f})", fontsize=9)  # fmt: skip
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,455 @@
+"""`epc-offboard bench --attack`: issue 21's attacks on one real-time flight, and its targets.
+
+One flight on the bundled SITL (PX4 personality, SIH drag, real time, the figure-8
+scenario's 3 m/s wind) and the service as its own process, as deployed (nice -5, the loops
+SCHED_FIFO at ``realtime_priority`` 50 as config/default.toml asks, where permitted; the
+SITL SCHED_FIFO at 40: it stands in for an autopilot with a processor of its own). The vehicle
+hovers, then flies the windy figure-8 (the trajectory switched by SIGHUP, as a user reloads
+it). In each phase every attack runs for ``WINDOW_S`` in a window of its own, with
+``GAP_S`` of calm before it (measured too, as the baseline):
+
+* ``flood``: one Zenoh peer id sending 1,000 well-formed, useless 400-controller batches a
+  second;
+* ``rotate``: the same from 100 rotating ids;
+* ``replay``: genuine, valid controllers (solved as a peer would) recorded once as 8 peers'
+  batches and sent again and again, 1,000 a second;
+* ``flap``: liveliness tokens of rotating ids declared and undeclared, 1,000 changes a second;
+* ``fuzz``: 2,000 datagrams a second of fuzzed MAVLink to the service's port
+  (:mod:`epc_offboard.tools.fuzz_mavlink`).
+
+The Zenoh attackers are processes of their own (:mod:`epc_offboard.tools.zenoh_attack`), each
+with a real session connected to the service's listening endpoint on loopback (multicast
+scouting off). ``--hogs N`` runs N CPU hogs (``python3 -c 'while 1: pass'``) for the
+flight, killed by PID after it.
+
+Measured per window (:mod:`epc_offboard.tools.attack_analysis`): the position loop's longest
+gap and its ticks' compute (the flight log's ``compute_us``), the attitude loop's rate, late
+ticks and mode (its SET_ATTITUDE_TARGET sends in the tlog), error to the reference and
+altitude loss (the SITL's ground truth), the time in offboard (the ground truth's mode), the
+control process's RSS and the helpers' CPU (sampled from /proc every 0.25 s), the load.
+With ``--attitude-mode rates`` the windy figure-8 is also flown in lockstep afterwards (its
+RMSE is what the real-time body-rate flight is judged against). Writes the JSON report and
+a figure (FILE.png), prints each window and each of issue 21's targets with a verdict
+computed from this run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import tomllib
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from epc_offboard.common.configio import dump_toml, merge_dicts
+from epc_offboard.common.errors import EpcError
+from epc_offboard.tools import attack_analysis as analysis
+from epc_offboard.tools.sim.analysis import read_csv_columns
+from epc_offboard.tools.sim.orchestrate import service_env, stop_process
+from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG, load_scenario
+
+WINDOW_S = 10.0
+GAP_S = 5.0  # calm before each attack; its last CALM_S are the calm window
+CALM_S = 4.0
+SETTLE_S = 5.0  # offboard hover before the first window
+FIGURE8_SETTLE_S = 8.0  # the figure-8's ramp (3 s) and the scenario's settle time
+ZENOH_ATTACKS = ("flood", "rotate", "replay", "flap")
+ATTACKS = (*ZENOH_ATTACKS, "fuzz")
+ZENOH_RATE_PER_S = 1000.0
+FUZZ_RATE_HZ = 2000.0
+REALTIME_PRIORITY = 50  # config/default.toml's
+SITL_FIFO_PRIORITY = 40  # below the service's loops: an autopilot never waits for them
+DEPLOYED_NICE = -5  # config/epc-offboard.service's Nice=
+SERVICE_SYSTEM_ID = 245  # link.system_id's default: the sender of the attitude setpoints
+FLEET = "bench"
+MODES = {"quaternion": "autopilot", "rates": "auto"}  # --attitude-mode -> attitude.mode
+SAMPLE_S = 0.25
+
+
+class AttackBenchError(EpcError, RuntimeError):
+    pass
+
+
+def _free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _deployed_priority() -> None:
+    with contextlib.suppress(PermissionError):
+        os.nice(DEPLOYED_NICE)
+
+
+def _autopilot_priority() -> None:
+    """The SITL stands in for an autopilot on a processor of its own: SCHED_FIFO below the
+    service's loops where permitted (else the deployed nice). At normal priority beside two
+    hogs and a load of 20-30 its simulated clock fell up to 0.3 s behind the wall clock and
+    caught up in a sprint: the service rightly judged its samples stale and failed safe, in
+    calm windows as in attacks, which measured the simulator's starvation, not the service."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(SITL_FIFO_PRIORITY))
+    except (PermissionError, OSError):
+        _deployed_priority()
+
+
+def service_config(run_dir: Path, port: int, zenoh_port: int, mode: str) -> dict[str, Any]:
+    """config/sitl.toml + what the bench flies: real time, the deployed scheduling, a hover
+    to begin with (the figure-8 comes by SIGHUP), every log, fleet sharing listening on
+    ``zenoh_port``."""
+    with SITL_SERVICE_CONFIG.open("rb") as fh:
+        base = tomllib.load(fh)
+    from sitl.params import load_sim_config
+
+    scenario = load_scenario("figure8")
+    return merge_dicts(base, {
+        "link": {"url": f"udpin://127.0.0.1:{port}", "autopilot": "px4"},
+        "loops": {"clock": "wall", "realtime_priority": REALTIME_PRIORITY},
+        "attitude": {"mode": MODES[mode]},
+        "position": {"hover_thrust_norm": load_sim_config().vehicle.hover_thrust_norm},
+        "trajectory": {"shape": "hover"},
+        "trajectory_altitude_m": scenario.altitude_m,
+        "mission": {"duration_s": 100_000.0, "land_at_end": True},  # ended by the bench
+        "store": {"path": str(run_dir / "library.sqlite")},
+        "log": {"flight_log_path": str(run_dir / "flight.csv"),
+                "tlog_path": str(run_dir / "session.tlog"),
+                "stats_path": str(run_dir / "stats.json")},
+        "sharing": {"enabled": True, "fleet": FLEET, "vehicle_id": "victim",
+                    "listen": [f"tcp/127.0.0.1:{zenoh_port}"], "scouting_multicast": False},
+    })  # fmt: skip
+
+
+def figure8_config(cfg: dict[str, Any]) -> dict[str, Any]:
+    traj = {k: v for k, v in vars(load_scenario("figure8").trajectory).items()}
+    traj["waypoints_ned_m"] = [list(w) for w in traj["waypoints_ned_m"]]
+    return merge_dicts(cfg, {"trajectory": traj})
+
+
+# -- the processes' resources, from /proc ---------------------------------------------------
+
+
+def _stat(pid: int) -> tuple[float, float] | None:
+    """(CPU seconds, RSS MB) of ``pid``, None when it is gone."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = text[text.rindex(")") + 2 :].split()
+    tick = os.sysconf("SC_CLK_TCK")
+    rss_mb = int(fields[21]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    return (int(fields[11]) + int(fields[12])) / tick, rss_mb
+
+
+def _is_fifo(pid: int) -> bool:
+    with contextlib.suppress(OSError):
+        return os.sched_getscheduler(pid) == os.SCHED_FIFO
+    return False
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    with contextlib.suppress(OSError):
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            out += [int(c) for c in (task / "children").read_text().split()]
+    return out
+
+
+class Sampler(threading.Thread):
+    """Every SAMPLE_S: the control process's CPU and RSS, its children's CPU, the load."""
+
+    def __init__(self, pid: int) -> None:
+        super().__init__(name="sampler", daemon=True)
+        self.pid = pid
+        self.samples: list[dict[str, Any]] = []
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.wait(SAMPLE_S):
+            control = _stat(self.pid)
+            if control is None:
+                return
+            children = {}
+            for child in _children(self.pid):
+                st = _stat(child)
+                if st is not None:
+                    children[child] = st[0]
+            self.samples.append({
+                "t_s": time.monotonic(), "control_cpu_s": control[0],
+                "control_rss_mb": round(control[1], 2), "children_cpu_s": children,
+                "load_avg": os.getloadavg(),
+            })  # fmt: skip
+
+
+# -- the flight -------------------------------------------------------------------------------
+
+
+class Attackers:
+    """The Zenoh attackers, one process each, prepared and connected before the flight."""
+
+    def __init__(self, zenoh_port: int, config_path: Path, log_dir: Path) -> None:
+        self.procs: dict[str, subprocess.Popen[str]] = {}
+        for kind in ZENOH_ATTACKS:
+            self.procs[kind] = subprocess.Popen(
+                [sys.executable, "-m", "epc_offboard.tools.zenoh_attack", kind,
+                 "--connect", f"tcp/127.0.0.1:{zenoh_port}", "--fleet", FLEET,
+                 "--config", str(config_path), "--rate", str(ZENOH_RATE_PER_S),
+                 "--duration", str(WINDOW_S)],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                stderr=(log_dir / f"attacker-{kind}.log").open("w"), text=True,
+            )  # fmt: skip
+
+    def wait_ready(self) -> None:
+        for kind, proc in self.procs.items():
+            line = _readline(proc.stdout, 120.0)
+            if line.strip() != "ready":
+                raise AttackBenchError(f"the {kind} attacker did not start ({line!r})")
+
+    def attack(self, kind: str) -> dict[str, Any]:
+        proc = self.procs[kind]
+        assert proc.stdin is not None
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        line = _readline(proc.stdout, WINDOW_S + 30.0)
+        if not line:
+            raise AttackBenchError(f"the {kind} attacker ended early")
+        summary: dict[str, Any] = json.loads(line)
+        return summary
+
+    def close(self) -> None:
+        for proc in self.procs.values():
+            if proc.stdin is not None:
+                with contextlib.suppress(OSError):
+                    proc.stdin.close()
+        for proc in self.procs.values():
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def _readline(stream: IO[str] | None, timeout_s: float) -> str:
+    """A line from a child's stdout, "" on EOF or after ``timeout_s``."""
+    assert stream is not None
+    out: list[str] = []
+    reader = threading.Thread(target=lambda: out.append(stream.readline()), daemon=True)
+    reader.start()
+    reader.join(timeout_s)
+    return out[0] if out else ""
+
+
+def fuzz(port: int) -> dict[str, Any]:
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard.tools.fuzz_mavlink", "--port", str(port),
+         "--rate", str(FUZZ_RATE_HZ), "--duration", str(WINDOW_S)],
+        capture_output=True, text=True, timeout=WINDOW_S + 30, check=True,
+    )  # fmt: skip
+    summary: dict[str, Any] = json.loads(proc.stdout)
+    return summary
+
+
+def wait_offboard(flight_csv: Path, settle_s: float, service: subprocess.Popen[bytes],
+                  timeout_s: float = 180.0) -> None:  # fmt: skip
+    """Until the flight log shows ``settle_s`` of offboard ticks in a row."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if service.poll() is not None:
+            raise AttackBenchError(f"the service exited with {service.returncode}")
+        with contextlib.suppress(OSError, RuntimeError, KeyError):
+            cols = read_csv_columns(flight_csv)
+            phase, t_s = cols["phase"], cols["t_s"]
+            off = np.flatnonzero(phase != "offboard")
+            since = t_s[off[-1] + 1] if off.size and off[-1] + 1 < t_s.size else (
+                t_s[0] if not off.size else None)  # fmt: skip
+            if since is not None and time.monotonic() - since >= settle_s:
+                return
+        time.sleep(0.5)
+    raise AttackBenchError(f"no {settle_s:g} s of offboard within {timeout_s:g} s")
+
+
+def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 10.0) -> int | None:
+    """sim's stop (SIGTERM, then SIGKILL); the exit code, None if never started."""
+    stop_process(proc, timeout_s)
+    return None if proc is None else proc.returncode
+
+
+def fly(run_dir: Path, hogs: int, mode: str) -> dict[str, Any]:
+    """The flight and its windows; returns the raw record (windows, samples, ports)."""
+    port, sitl_port = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_DGRAM)
+    zenoh_port = _free_port(socket.SOCK_STREAM)
+    cfg = service_config(run_dir, port, zenoh_port, mode)
+    config_path = run_dir / "service.toml"
+    config_path.write_text(dump_toml(cfg))
+    scenario = load_scenario("figure8")
+    sitl_cmd = [sys.executable, "-m", "sitl.main", "--listen-port", str(sitl_port),
+                "--offboard-port", str(port), "--gcs-port", "0",
+                "--groundtruth", str(run_dir / "groundtruth.csv"), "--autopilot", "px4",
+                "--wind", f"{scenario.wind_speed_m_s},{scenario.wind_dir_deg}"]  # fmt: skip
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **service_env())
+    hog_procs: list[subprocess.Popen[bytes]] = []
+    service = sitl = None
+    attackers: Attackers | None = None
+    sampler: Sampler | None = None
+    windows: list[analysis.Window] = []
+    sitl_fifo = False
+    load_start = os.getloadavg()
+    try:
+        service = subprocess.Popen(
+            [sys.executable, "-m", "epc_offboard.cli", "run", "--config", str(config_path)],
+            stdout=(run_dir / "service.log").open("wb"), stderr=subprocess.STDOUT, env=env,
+            preexec_fn=_deployed_priority,
+        )  # fmt: skip
+        sitl = subprocess.Popen(
+            sitl_cmd, stdout=(run_dir / "sitl.log").open("wb"), stderr=subprocess.STDOUT,
+            preexec_fn=_autopilot_priority,
+        )  # fmt: skip
+        sitl_fifo = _is_fifo(sitl.pid)
+        attackers = Attackers(zenoh_port, config_path, run_dir)
+        hog_procs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"])
+                     for _ in range(hogs)]  # fmt: skip
+        sampler = Sampler(service.pid)
+        sampler.start()
+        attackers.wait_ready()
+        wait_offboard(run_dir / "flight.csv", SETTLE_S, service)
+        for phase in ("hover", "figure8"):
+            if phase == "figure8":
+                config_path.write_text(dump_toml(figure8_config(cfg)))
+                service.send_signal(signal.SIGHUP)
+                time.sleep(FIGURE8_SETTLE_S)
+            for kind in ATTACKS:
+                t_calm = time.monotonic()
+                time.sleep(GAP_S)
+                windows.append(analysis.Window(phase, "calm", t_calm + GAP_S - CALM_S,
+                                               time.monotonic(), {}))  # fmt: skip
+                if service.poll() is not None:
+                    raise AttackBenchError(f"the service exited with {service.returncode}")
+                t0 = time.monotonic()
+                summary = fuzz(port) if kind == "fuzz" else attackers.attack(kind)
+                start = float(summary.get("start_monotonic_s", t0))
+                end = start + float(summary["duration_s"])
+                windows.append(analysis.Window(phase, kind, start, end, summary))
+        time.sleep(2.0)
+        load_end = os.getloadavg()
+        code = _stop(service)  # holds the vehicle, writes its stats
+    finally:
+        for hog in hog_procs:  # by PID, first: the rest stops faster without them
+            hog.kill()
+            hog.wait()
+        if sampler is not None:
+            sampler.stop.set()
+        if attackers is not None:
+            attackers.close()
+        _stop(service)
+        _stop(sitl)
+    return {"windows": windows, "samples": sampler.samples if sampler else [],
+            "service_exit": code, "load_avg": {"start": load_start, "end": load_end},
+            "fifo_priority": REALTIME_PRIORITY, "sitl_fifo": sitl_fifo}  # fmt: skip
+
+
+# -- the report -------------------------------------------------------------------------------
+
+
+def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
+            unix_minus_monotonic_s: float, lockstep_rmse_m: float | None = None,
+            ) -> tuple[dict[str, Any], dict[str, Any]]:  # fmt: skip
+    """(report, figure series) of a flown run."""
+    flight = read_csv_columns(run_dir / "flight.csv")
+    truth = read_csv_columns(run_dir / "groundtruth.csv")
+    stats = json.loads((run_dir / "stats.json").read_text())
+    unix_s, rates = analysis.attitude_sends((run_dir / "session.tlog").read_bytes(),
+                                            SERVICE_SYSTEM_ID)  # fmt: skip
+    att_t_s = unix_s - unix_minus_monotonic_s
+    names = {int(p["pid"]): name for name, p in stats.get("processes", {}).items()
+             if isinstance(p, dict) and p.get("pid") and name != "control"}  # fmt: skip
+    period_s = 1.0 / 200.0
+    samples = record["samples"]
+    windows = [analysis.window_figures(w, flight, truth, att_t_s, rates, samples, names,
+                                       period_s) for w in record["windows"]]  # fmt: skip
+    attacks = [w for w in record["windows"] if w.attack]
+    in_attack = np.zeros(flight["t_s"].size, dtype=bool)
+    for w in attacks:
+        in_attack |= (flight["t_s"] >= w.t0_s) & (flight["t_s"] <= w.t1_s)
+    compute = flight["compute_us"][in_attack]
+    rss = [s["control_rss_mb"] for s in samples
+           if attacks and attacks[0].t0_s <= s["t_s"] <= attacks[-1].t1_s]  # fmt: skip
+    counters = stats.get("counters", {})
+    report = {
+        "attitude_mode": mode, "hogs": hogs, "cpus": os.cpu_count(),
+        "fifo_requested": record["fifo_priority"],
+        "sitl_fifo": record["sitl_fifo"],
+        "fifo_applied": counters.get("realtime_priority_refused", 0) == 0,
+        "window_s": WINDOW_S, "zenoh_rate_per_s": ZENOH_RATE_PER_S, "fuzz_rate_hz": FUZZ_RATE_HZ,
+        "load_avg": {k: [round(x, 2) for x in v] for k, v in record["load_avg"].items()},
+        "service_exit": record["service_exit"],
+        "windows": windows,
+        "attack_compute_us": {"median": float(np.median(compute)),
+                              "p99": float(np.percentile(compute, 99))},
+        "control_rss": {
+            "samples": len(rss), "start_mb": rss[0] if rss else None,
+            "end_mb": rss[-1] if rss else None,
+            "max_deviation": (max(rss, key=lambda r: abs(r - rss[0])) - rss[0]) / rss[0]
+            if rss else None,
+        },
+        "stats_loops": stats.get("loops", {}),
+        "stats_processes": stats.get("processes", {}),
+        "stats_sharing": stats.get("sharing", {}),
+        "stats_link": stats.get("link", {}),
+        "stats_counters": counters,
+        "lockstep_rmse_m": lockstep_rmse_m,
+        "figure8_rmse_m": analysis.figure8_rmse_m(windows),
+    }  # fmt: skip
+    err_t, err = analysis.error_series(flight, truth)
+    series = {"pos_t_s": flight["t_s"][flight["phase"] == "offboard"], "att_t_s": att_t_s,
+              "err_t_s": err_t, "err_m": err}  # fmt: skip
+    report["verdicts"] = [vars(v) for v in analysis.judge(report)]
+    return report, series
+
+
+def lockstep_rmse_m() -> float | None:
+    """The windy figure-8's RMSE flown in lockstep (``sim --scenario figure8 --lockstep``,
+    body rates, the same SITL and service): what the real-time body-rate flight is judged
+    against. None when that flight left no report."""
+    with tempfile.TemporaryDirectory(prefix="epc-attack-lockstep-") as tmp:
+        report = Path(tmp) / "report.json"
+        subprocess.run(
+            [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "figure8", "--lockstep",
+             "--gcs-port", "0", "--out", tmp, "--json", str(report)],
+            capture_output=True, text=True, check=False, env=dict(os.environ, **service_env()),
+        )  # fmt: skip
+        if not report.exists():
+            return None
+        rmse: float = json.loads(report.read_text())["vehicles"][0]["tracking"]["rmse_m"]
+        return rmse
+
+
+def run_attack_bench(json_path: str | None, hogs: int, mode: str) -> int:
+    if hogs < 0:
+        raise AttackBenchError("--hogs must be >= 0")
+    out = Path(json_path) if json_path else None
+    with tempfile.TemporaryDirectory(prefix="epc-attack-") as tmp:
+        run_dir = out.with_suffix("") if out else Path(tmp)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        for stale in ("flight.csv", "groundtruth.csv", "session.tlog", "stats.json"):
+            (run_dir / stale).unlink(missing_ok=True)
+        unix_minus_monotonic_s = time.time() - time.monotonic()
+        record = fly(run_dir, hogs, mode)
+        lockstep = lockstep_rmse_m() if mode == "rates" else None
+        report, series = analyse(run_dir, record, hogs, mode, unix_minus_monotonic_s,
+                                 lockstep)  # fmt: skip
+    print(analysis.format_table(report))
+    if out:
+        out.write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
+        fig = out.with_suffix(".png")
+        analysis.write_figure(report, series, fig)
+        print(f"report: {out}  figure: {fig}  flight files: {out.with_suffix('')}/")
+    return 0
