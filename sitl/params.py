@@ -1,7 +1,9 @@
 """Configuration of the bundled SITL: vehicle, environment, autopilot and link.
 
 One TOML file (``config/vehicles/*.toml``) holds the tables ``[vehicle]``, ``[environment]``,
-``[autopilot]``, ``[sitl]`` and ``[ardupilot]`` (the ArduCopter personality's parameters);
+``[autopilot]``, ``[sitl]`` and ``[ardupilot]`` (the ArduCopter personality's parameters),
+and ``[envelope]``, which the offboard service reads from the same file
+(:mod:`epc_offboard.common.airframe`);
 it is loaded strictly by :func:`epc_offboard.common.configio.load_config` so an unknown or misspelt
 key is an error naming the key and the file. Every key carries its unit. Range checks live
 in ``__post_init__``.
@@ -14,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common.airframe import AirframeEnvelope
 from epc_offboard.common.bundled import bundled_dir
 from epc_offboard.common.configio import load_config
 from epc_offboard.common.frames import GRAVITY_M_S2
@@ -375,6 +378,9 @@ class SimConfig:
     autopilot: AutopilotParams = field(default_factory=AutopilotParams)
     sitl: SitlParams = field(default_factory=SitlParams)
     ardupilot: ArduPilotParams = field(default_factory=ArduPilotParams)
+    # what the offboard service may command this airframe to do (the service reads it from
+    # this same file; the SITL's own autopilot keeps its limits in [autopilot])
+    envelope: AirframeEnvelope = field(default_factory=AirframeEnvelope)
 
     def __post_init__(self) -> None:
         dead_s, motor_s = self.autopilot.rate_dead_time_s, self.vehicle.motor_time_constant_s

@@ -80,14 +80,11 @@ class Rig:
         self.gcs_port = free_port()
         with SITL_SERVICE_CONFIG.open("rb") as fh:
             base = tomllib.load(fh)
-        from sitl.params import load_sim_config
-
         cfg = merge_dicts(
             base,
             {
                 "link": {"url": f"udpin://127.0.0.1:{self.offboard_port}"},
                 "loops": {"clock": "vehicle" if lockstep else "wall"},
-                "position": {"hover_thrust_norm": load_sim_config().vehicle.hover_thrust_norm},
                 "store": {"path": str(tmp / "library.sqlite")},
                 "log": {
                     "stats_path": str(tmp / "stats.json"),

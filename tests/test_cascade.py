@@ -52,7 +52,7 @@ def _fly(loop: PositionLoop, disturbance, seconds: float, stale_from_s: float | 
     """Hold 2.5 m up under ``disturbance`` (m/s^2, NED); from ``stale_from_s`` on, the
     position stream stops (the velocity repeats its last sample while attitude goes on) and
     the hold point moves 1 m up, so the commands are far from the equilibrium's."""
-    hover = loop.config.hover_thrust_norm
+    hover = loop.airframe.hover_thrust_norm
     pos, vel = np.array([0.0, 0.0, -2.5]), np.zeros(3)
     q = frames.euler_to_quat(0.0, 0.0, 0.0)
     reference = loop.hold(pos.copy())
@@ -163,7 +163,7 @@ def test_hover_is_an_equilibrium():
     import math
 
     loop = _cascade().position
-    hover = loop.config.hover_thrust_norm
+    hover = loop.airframe.hover_thrust_norm
     pos = np.array([1.0, -2.0, -2.5])
     reference = loop.hold(pos)
     q = frames.euler_to_quat(0.0, 0.0, loop.config.yaw_rad)

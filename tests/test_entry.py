@@ -23,7 +23,7 @@ WIND_NED_M_S2 = np.array([0.0, 3.0, 0.0])  # the drag of a 3 m/s wind blowing ea
 def _holding(loop: PositionLoop, seconds: float, t0_s: float = 0.0) -> np.ndarray:
     """The autopilot holds the vehicle at rest against the wind (tilted into it) while the
     service streams unconfirmed setpoints; returns the last disturbance estimate."""
-    att = accel_to_attitude(-WIND_NED_M_S2, 0.0, loop.config.hover_thrust_norm)
+    att = accel_to_attitude(-WIND_NED_M_S2, 0.0, loop.airframe.hover_thrust_norm)
     q = frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad)
     pos = np.array([0.0, 0.0, -2.5])
     p_hat = np.zeros(3)
@@ -47,7 +47,7 @@ def test_the_first_command_after_a_gap_starts_from_what_the_vehicle_flies():
     _holding(loop, 0.5)
     hold_acc = -WIND_NED_M_S2
     cfg = loop.config
-    att = accel_to_attitude(hold_acc, 0.0, cfg.hover_thrust_norm)
+    att = accel_to_attitude(hold_acc, 0.0, loop.airframe.hover_thrust_norm)
     q = frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad)
     pos = np.array([0.0, 0.0, -2.5])
     far = loop.hold(pos + np.array([2.0, 0.0, 0.0]))
@@ -65,7 +65,7 @@ def test_a_thrust_step_is_not_learnt_as_a_vertical_disturbance():
     taking the command as flown read each step as a vertical disturbance (+6.6 m/s^2 on a
     real PX4 at entry, then a climb)."""
     loop = _cascade().position
-    hover = loop.config.hover_thrust_norm
+    hover = loop.airframe.hover_thrust_norm
     tau = loop.config.tau_acc_s[2]
     pos, vel = np.array([0.0, 0.0, -2.5]), np.zeros(3)
     thrust = hover

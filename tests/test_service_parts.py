@@ -198,7 +198,7 @@ async def _sender(mode: str) -> tuple[SetpointSender, Autopilot, _Wire, Counter[
     await autopilot.link.open()
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
     errors: list[Exception] = []
-    sender = SetpointSender(cascade, autopilot, cfg.attitude.max_rate_rad_s, counters,
+    sender = SetpointSender(cascade, autopilot, cfg.vehicle.max_rate_frd_rad_s, counters,
                             lambda loop, exc: errors.append(exc))  # fmt: skip
     return sender, autopilot, wire, counters
 

@@ -22,15 +22,16 @@ def bundled_dir() -> Path:
     return data
 
 
-def bundled_config(name_or_path: str) -> Path:
-    """A config given as a path, or as the name of a bundled one (``sitl``, ``default``):
-    ``epc-offboard run --config sitl`` works from any folder after a wheel install. A file
-    that exists, or anything with a ``/`` or a ``.toml`` suffix, is returned as given, even
-    when missing, so the loader's "config file not found" names what the user typed."""
+def bundled_config(name_or_path: str, folder: str = "") -> Path:
+    """A config given as a path, or as the name of a bundled one (``sitl``, ``default``; in
+    ``folder``, e.g. ``vehicles``: ``quad_x_1500g``): ``epc-offboard run --config sitl`` works
+    from any folder after a wheel install. A file that exists, or anything with a ``/`` or a
+    ``.toml`` suffix, is returned as given, even when missing, so the loader's "config file
+    not found" names what the user typed."""
     given = Path(name_or_path)
     if given.is_file() or "/" in name_or_path or name_or_path.endswith(".toml"):
         return given
-    candidate = bundled_dir() / f"{name_or_path}.toml"
+    candidate = bundled_dir() / folder / f"{name_or_path}.toml"
     return candidate if candidate.is_file() else Path(name_or_path)
 
 

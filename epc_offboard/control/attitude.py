@@ -25,6 +25,7 @@ from typing import Any, Literal
 import numpy as np
 
 from epc_offboard.common import frames
+from epc_offboard.common.airframe import Airframe
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.epc import budgeted_controller
 from epc_offboard.control.models import attitude_model
@@ -81,10 +82,9 @@ class AttitudeControlConfig:
     q_angle: Vec3 = (60.0, 60.0, 20.0)
     q_rate: Vec3 = (0.3, 0.3, 0.3)
     r_rate: Vec3 = (0.02, 0.02, 0.05)
-    max_rate_rad_s: Vec3 = (4.0, 4.0, 2.0)
     fallback_gain_1_s: float = 6.0  # P on angle error when the attitude EPC cannot answer
     library_size: int = 200
-    query_budget_us: float = 200.0  # as position.query_budget_us
+    query_budget_us: float = 200.0  # as position.library.query_budget_us
     # The attitude EPC is linearised about hover (Euler angles, body rates). Beyond this tilt,
     # or this far from its attitude target, its body rates are not to be trusted (in a soak
     # under CPU load it chattered between +-max rate at 60 deg and flipped the vehicle): the
@@ -113,8 +113,6 @@ class AttitudeControlConfig:
                      "model_probation_s"):  # fmt: skip
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if any(v <= 0.0 for v in self.max_rate_rad_s):
-            raise ValueError(f"max_rate_rad_s must be > 0, got {self.max_rate_rad_s}")
         if not self.query_budget_us > 0.0:
             raise ValueError(f"query_budget_us must be > 0, got {self.query_budget_us}")
         for name in ("rates_max_tilt_deg", "rates_max_error_deg"):
@@ -149,11 +147,13 @@ class AttitudeOutput:
     source: str
 
 
-def attitude_problem(cfg: AttitudeControlConfig, response: RateResponse) -> MpcProblem:
+def attitude_problem(
+    cfg: AttitudeControlConfig, response: RateResponse, max_rate_frd_rad_s: Vec3
+) -> MpcProblem:
     """The attitude QP: Euler angles and body rates over ``cfg.horizon`` steps of
     ``cfg.prediction_dt_s`` with ``response``'s lag and gain (its dead time is predicted over before
-    the QP starts), body-rate commands bounded by ``cfg.max_rate_rad_s``."""
-    rmax = np.array(cfg.max_rate_rad_s, dtype=np.float64)
+    the QP starts), body-rate commands bounded by the airframe's ``max_rate_frd_rad_s``."""
+    rmax = np.array(max_rate_frd_rad_s, dtype=np.float64)
     return MpcProblem(
         attitude_model(cfg.prediction_dt_s(response), response.time_constant_s, response.gain),
         horizon=cfg.horizon,
@@ -170,7 +170,8 @@ class AttitudeLoop:
     identification of the rate response and the gate on body rates.
 
     ``period_s``: the loop's tick (the grid commands are held on); ``autopilot``: whose
-    measured rate response fills what the configuration leaves unset. Every tick calls
+    measured rate response fills what the configuration leaves unset; ``airframe``: the
+    body rates its rate loop can follow. Every tick calls
     exactly one of :meth:`attitude_tick`, :meth:`attitude_fallback` (body rates sent) or
     :meth:`attitude_delegated` (quaternion sent), with the tick's time ``now_s``.
     """
@@ -182,11 +183,13 @@ class AttitudeLoop:
         learn_on_miss: bool = True,
         period_s: float = 0.005,
         autopilot: str = "px4",
+        airframe: Airframe | None = None,
     ) -> None:
         self.config = config
+        self.airframe = airframe or Airframe()  # its body-rate limits
         self.period_s = period_s
         self.response = config.rate_response(autopilot)
-        self.problem = attitude_problem(config, self.response)
+        self.problem = attitude_problem(config, self.response, self.airframe.max_rate_frd_rad_s)
         self.controller = budgeted_controller(
             self.problem, config.library_size, config.query_budget_us, learn_on_miss
         )
@@ -301,7 +304,7 @@ class AttitudeLoop:
 
     def _p_law(self, state: VehicleState, target: PositionOutput) -> FloatArray:
         x0, refs = self._refs(state, target)
-        rmax = np.array(self.config.max_rate_rad_s)
+        rmax = np.array(self.airframe.max_rate_frd_rad_s)
         out: FloatArray = np.clip(
             self.config.fallback_gain_1_s * (refs[0, :3] - x0[:3]), -rmax, rmax
         )

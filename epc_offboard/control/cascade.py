@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from epc_offboard.common.airframe import Airframe
 from epc_offboard.control import kernels, lwpr, lwpr_kernels, rate_response, trajectories
 from epc_offboard.control.attitude import AttitudeControlConfig, AttitudeLoop, AttitudeOutput
 from epc_offboard.control.decision import Controller
@@ -60,7 +61,9 @@ class Cascade:
     ``loop_period_s``: the position loop's period (its estimator's filter step);
     ``learn_on_miss``: as :class:`~epc_offboard.control.position.PositionLoop`'s;
     ``attitude_period_s`` and ``autopilot``: as :class:`~epc_offboard.control.attitude.
-    AttitudeLoop`'s (its tick; whose rate response fills what the config leaves unset).
+    AttitudeLoop`'s (its tick; whose rate response fills what the config leaves unset);
+    ``airframe``: the vehicle's hover thrust and limits (its vehicle file; unset: the
+    defaults of :class:`~epc_offboard.common.airframe.Airframe`).
     """
 
     def __init__(
@@ -73,13 +76,15 @@ class Cascade:
         learn_on_miss: bool = True,
         attitude_period_s: float = 0.005,
         autopilot: str = "px4",
+        airframe: Airframe | None = None,
     ) -> None:
         self.position = PositionLoop(
-            position_cfg, estimator_cfg, loop_period_s, learn_on_miss=learn_on_miss
-        )
+            position_cfg, estimator_cfg, loop_period_s, learn_on_miss=learn_on_miss,
+            airframe=airframe,
+        )  # fmt: skip
         self.attitude = AttitudeLoop(
             attitude_cfg, learn_on_miss=learn_on_miss, period_s=attitude_period_s,
-            autopilot=autopilot,
+            autopilot=autopilot, airframe=airframe,
         )  # fmt: skip
         self._autopilot = autopilot
 
@@ -132,7 +137,7 @@ class Cascade:
         att = self.attitude
         scratch = Cascade(
             pos.config, att.config, pos.estimator_cfg, pos.loop_period_s,
-            attitude_period_s=att.period_s, autopilot=self._autopilot,
+            attitude_period_s=att.period_s, autopilot=self._autopilot, airframe=pos.airframe,
         )  # fmt: skip
         for k in range(3):
             state = VehicleState(

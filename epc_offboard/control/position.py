@@ -28,12 +28,13 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 
 from epc_offboard.common import frames
+from epc_offboard.common.airframe import Airframe
 from epc_offboard.common.frames import GRAVITY_M_S2, FloatArray
 from epc_offboard.control.baselines import MpcController, PdController
 from epc_offboard.control.decision import Controller, Decision
@@ -58,7 +59,44 @@ Vec3 = tuple[float, float, float]
 
 
 @dataclass(frozen=True)
+class PdGains:
+    """``[position.pd]``: the pd controller's gains, per NED axis."""
+
+    kp_1_s2: Vec3 = (6.0, 6.0, 8.0)  # acceleration per metre of position error
+    kd_1_s: Vec3 = (4.5, 4.5, 5.0)  # acceleration per m/s of velocity error
+
+    def __post_init__(self) -> None:
+        if any(k < 0.0 for k in (*self.kp_1_s2, *self.kd_1_s)):
+            raise ValueError("kp_1_s2 and kd_1_s must be >= 0")
+
+
+@dataclass(frozen=True)
+class LibraryBudget:
+    """``[position.library]``: the EPC library's size and the cost of one query."""
+
+    size: int = 400
+    # a library query's worst-case cost: bounds the candidates a miss checks (the most
+    # likely first: the last controller, its successors, then by importance). 3000 us of the
+    # worst-case model is ~190 position maps (a check usually exits within a few rows, at a
+    # fraction of that); 400 us (25 maps) left a saved library's controllers unchecked: a
+    # second zig-zag flight missed 122 ticks instead of 42, and a miss costs more than the
+    # checks it saves (the intermediate QP on the loop and a solve in the worker)
+    query_budget_us: float = 3000.0
+
+    def __post_init__(self) -> None:
+        if self.size < 1:
+            raise ValueError(f"size must be >= 1, got {self.size}")
+        if not self.query_budget_us > 0.0:
+            raise ValueError(f"query_budget_us must be > 0, got {self.query_budget_us}")
+
+
+@dataclass(frozen=True)
 class PositionControlConfig:
+    """``[position]``: the controller, its horizon, weights, model and entry; the pd gains
+    and the library budget in their own tables. The airframe's envelope (tilt and thrust
+    limits, hover thrust) is not here: it comes from the vehicle file
+    (:class:`~epc_offboard.common.airframe.Airframe`)."""
+
     # px4: a baseline, the autopilot's own position controller flies the reference
     # (SET_POSITION_TARGET_LOCAL_NED with position, velocity and acceleration)
     controller: Literal["epc", "pd", "mpc", "px4"] = "epc"
@@ -75,21 +113,9 @@ class PositionControlConfig:
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     geofence_min_ned_m: Vec3 | None = None  # optional position box
     geofence_max_ned_m: Vec3 | None = None
-    max_tilt_deg: float = 45.0  # PX4's MPC_TILTMAX_AIR default
-    hover_thrust_norm: float = 0.5  # PX4's MPC_THR_HOVER
-    min_thrust_norm: float = 0.08
-    max_thrust_norm: float = 0.95
     yaw_deg: float = 0.0  # heading held while tracking
-    library_size: int = 400
-    # a library query's worst-case cost: bounds the candidates a miss checks (the most
-    # likely first: the last controller, its successors, then by importance). 3000 us of the
-    # worst-case model is ~190 position maps (a check usually exits within a few rows, at a
-    # fraction of that); 400 us (25 maps) left a saved library's controllers unchecked: a
-    # second zig-zag flight missed 122 ticks instead of 42, and a miss costs more than the
-    # checks it saves (the intermediate QP on the loop and a solve in the worker)
-    query_budget_us: float = 3000.0
-    pd_kp: Vec3 = (6.0, 6.0, 8.0)
-    pd_kd: Vec3 = (4.5, 4.5, 5.0)
+    pd: PdGains = field(default_factory=PdGains)
+    library: LibraryBudget = field(default_factory=LibraryBudget)
     # entry (and every re-entry after a failsafe): the commanded acceleration starts from
     # the one the vehicle flies and changes by at most entry_jerk_m_s3 (its norm) until
     # entry_ramp_s after the autopilot is confirmed to fly ours; 6 m/s^3 is ~35 deg/s of tilt
@@ -114,12 +140,6 @@ class PositionControlConfig:
             raise ValueError(f"tau_acc_s must be > 0, got {self.tau_acc_s}")
         if any(q < 0.0 for q in (*self.q_pos, *self.q_vel, *self.q_acc)):
             raise ValueError("q_pos, q_vel and q_acc must be >= 0")
-        if not 0.0 < self.min_thrust_norm < self.hover_thrust_norm < self.max_thrust_norm <= 1.0:
-            raise ValueError("need 0 < min_thrust_norm < hover_thrust_norm < max_thrust_norm <= 1")
-        if self.library_size < 1:
-            raise ValueError(f"library_size must be >= 1, got {self.library_size}")
-        if not self.query_budget_us > 0.0:
-            raise ValueError(f"query_budget_us must be > 0, got {self.query_budget_us}")
         if not (math.isfinite(self.entry_ramp_s) and self.entry_ramp_s >= 0.0):
             raise ValueError(f"entry_ramp_s must be >= 0, got {self.entry_ramp_s}")
         if not (math.isfinite(self.entry_jerk_m_s3) and self.entry_jerk_m_s3 > 0.0):
@@ -207,6 +227,8 @@ class PositionLoop:
     ``loop_period_s``: the loop's period, the estimator's filter step. ``learn_on_miss``
     False: an EPC miss applies the intermediate controller and queues θ for a worker
     (``miss_solver.MissSolver``) instead of solving the full QP inside the tick.
+    ``airframe``: the vehicle's hover thrust and its tilt and thrust limits (from its vehicle
+    file; unset, the defaults of :class:`~epc_offboard.common.airframe.Airframe`).
     """
 
     def __init__(
@@ -216,26 +238,28 @@ class PositionLoop:
         loop_period_s: float = 0.01,
         *,
         learn_on_miss: bool = True,
+        airframe: Airframe | None = None,
     ) -> None:
         cfg = self.config = config
+        frame = self.airframe = airframe or Airframe()
         self.estimator_cfg = estimator
         self.loop_period_s = loop_period_s
         self.acc_limits = acceleration_limits(
-            math.radians(cfg.max_tilt_deg),
-            cfg.min_thrust_norm,
-            cfg.max_thrust_norm,
-            cfg.hover_thrust_norm,
+            math.radians(frame.max_tilt_deg),
+            frame.min_thrust_norm,
+            frame.max_thrust_norm,
+            frame.hover_thrust_norm,
         )
         self.problem = position_problem(cfg, self.acc_limits)
         self.controller: Controller
         if cfg.controller == "epc":
             self.controller = budgeted_controller(
-                self.problem, cfg.library_size, cfg.query_budget_us, learn_on_miss
+                self.problem, cfg.library.size, cfg.library.query_budget_us, learn_on_miss
             )
         elif cfg.controller == "mpc":
             self.controller = MpcController(self.problem)
         else:  # pd, and px4's (unused: the autopilot flies the reference)
-            self.controller = PdController(self.problem, kp=cfg.pd_kp, kd=cfg.pd_kd)
+            self.controller = PdController(self.problem, kp=cfg.pd.kp_1_s2, kd=cfg.pd.kd_1_s)
         filtered = PerturbationConfig(
             lwpr=replace(estimator.lwpr, dt_s=loop_period_s),
             kf=replace(estimator.kf, dt_s=loop_period_s),
@@ -248,7 +272,7 @@ class PositionLoop:
         self._e_dist = velocity_disturbance_input(self.problem.model)
         # the disturbance estimate is not a command: it is bounded only by what the vehicle
         # could ever compensate (clipping it to the command limits hid strong wind)
-        self._d_max = GRAVITY_M_S2 * cfg.max_thrust_norm / cfg.hover_thrust_norm
+        self._d_max = GRAVITY_M_S2 * frame.max_thrust_norm / frame.hover_thrust_norm
         self._history: deque[_Observation] = deque(maxlen=64)
         self._last_thrust_norm = math.nan
         # The thrust the vehicle flies: the commands through the motors' first-order lag
@@ -280,7 +304,7 @@ class PositionLoop:
         """The autopilot's own hover thrust (e.g. ArduCopter's MOT_THST_HOVER): a vehicle
         hovering at h instead of the configured h0 meets, with our thrust model, a vertical
         disturbance of g (h / h0 - 1), learnt from the first tick rather than after entry."""
-        h0 = self.config.hover_thrust_norm
+        h0 = self.airframe.hover_thrust_norm
         if math.isfinite(autopilot_hover_norm) and 0.0 < autopilot_hover_norm < 1.0:
             self._d_down_prior_m_s2 = GRAVITY_M_S2 * (autopilot_hover_norm / h0 - 1.0)
 
@@ -311,7 +335,7 @@ class PositionLoop:
         t_vel = state.time_s - state.position_age_s
         if self._history and t_vel <= self._history[-1].t_s + 1e-9:
             return  # no new velocity sample since the last observation
-        thrust = GRAVITY_M_S2 * self._thrust_flown_norm / self.config.hover_thrust_norm
+        thrust = GRAVITY_M_S2 * self._thrust_flown_norm / self.airframe.hover_thrust_norm
         self._history.append(
             _Observation(
                 t_vel, state.vel_ned_m_s.copy(), _thrust_axis_ned(state),
@@ -378,16 +402,16 @@ class PositionLoop:
             axis_down = attitude_to_axis(roll, pitch, yaw)[2]
             thrust = self._balance_thrust_norm(axis_down)
         return attitude_to_accel(
-            AttitudeThrust(roll, pitch, yaw, thrust), self.config.hover_thrust_norm
+            AttitudeThrust(roll, pitch, yaw, thrust), self.airframe.hover_thrust_norm
         )
 
     def _balance_thrust_norm(self, axis_down: float) -> float:
         """The thrust that holds altitude at a tilt whose thrust axis has ``axis_down`` as
         its NED z component, against the assumed vertical disturbance."""
-        cfg = self.config
+        frame = self.airframe
         f = (GRAVITY_M_S2 + self._d_down_prior_m_s2) / max(axis_down, 0.5)
-        return min(max(cfg.hover_thrust_norm * f / GRAVITY_M_S2, cfg.min_thrust_norm),
-                   cfg.max_thrust_norm)  # fmt: skip
+        return min(max(frame.hover_thrust_norm * f / GRAVITY_M_S2, frame.min_thrust_norm),
+                   frame.max_thrust_norm)  # fmt: skip
 
     def _advance_thrust(self, ours: bool, achieved_thrust_norm: float) -> None:
         """One loop period of the motors' lag towards the last command (ours), or the
@@ -505,9 +529,9 @@ class PositionLoop:
     def _attitude_target(
         self, acc: FloatArray, yaw_rad: float, d_hat: FloatArray, source: str, t0: float
     ) -> PositionOutput:
-        cfg = self.config
-        att = accel_to_attitude(acc, yaw_rad, cfg.hover_thrust_norm)
-        thrust = min(max(att.thrust_norm, cfg.min_thrust_norm), cfg.max_thrust_norm)
+        frame = self.airframe
+        att = accel_to_attitude(acc, yaw_rad, frame.hover_thrust_norm)
+        thrust = min(max(att.thrust_norm, frame.min_thrust_norm), frame.max_thrust_norm)
         return PositionOutput(
             q_target=frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad),
             euler_target_rad=(att.roll_rad, att.pitch_rad, att.yaw_rad),
@@ -520,13 +544,13 @@ class PositionLoop:
 
     def hover(self, state: VehicleState) -> PositionOutput:
         """The safe command when the position loop cannot answer: level, hover thrust."""
-        cfg = self.config
+        hover = self.airframe.hover_thrust_norm
         yaw = state.yaw_rad
-        self._last_thrust_norm = cfg.hover_thrust_norm
+        self._last_thrust_norm = hover
         return PositionOutput(
             q_target=frames.euler_to_quat(0.0, 0.0, yaw),
             euler_target_rad=(0.0, 0.0, yaw),
-            thrust_norm=cfg.hover_thrust_norm,
+            thrust_norm=hover,
             acc_cmd_ned_m_s2=np.zeros(3),
             p_hat_ned_m_s2=np.zeros(3),
             source="fallback",

@@ -15,7 +15,9 @@ class SharingConfig:
 
     The Zenoh session runs in a process of its own (``helper_nice`` below the control
     process); the control process takes at most ``candidates_per_s`` received controllers a
-    second from it, already decoded. Keys: ``epc/<fleet>/<signature>/{ctl,lib,alive}/<id>``.
+    second from it, already decoded (how many each library holds: ``[candidates]``,
+    :class:`~epc_offboard.control.candidate_pool.CandidatePoolConfig`).
+    Keys: ``epc/<fleet>/<signature>/{ctl,lib,alive}/<id>``.
     Only vehicles whose problems have identical signatures exchange controllers, and a
     received controller is applied only where the local KKT check passes. For TLS/mTLS and
     access control give a Zenoh JSON5 file in ``zenoh_config_file``; the keys below are set
@@ -39,10 +41,6 @@ class SharingConfig:
     publish_period_s: float = 0.2  # new controllers are batched and published this often
     max_queued_entries: int = 8192  # controllers waiting in the helper; beyond: dropped
     candidates_per_s: float = 200.0  # received controllers the control process takes, at most
-    candidate_pool_size: int = 64  # received controllers waiting to prove optimal here
-    candidates_per_peer: int = 16  # of those, at most this many from one vehicle (until proven)
-    candidate_backlog_size: int = 2048  # received controllers kept as tuples, maps unbuilt
-    candidate_backlog_per_peer: int = 512  # of those, at most this many from one vehicle
     candidate_slice_s: float = 0.005  # worker CPU time per slice of candidate factorisations
     query_timeout_s: float = 3.0  # a library snapshot query gives up after this
     helper_nice: int = 10  # the fleet process runs this much below the control process
@@ -66,17 +64,11 @@ class SharingConfig:
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("burst_messages", "queue_size", "max_queued_entries",
-                     "candidate_pool_size", "candidates_per_peer", "fleet_burst_messages"):
+                     "fleet_burst_messages"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 <= self.helper_nice <= 19:
             raise ValueError(f"helper_nice must be in 0..19, got {self.helper_nice}")
-        if (self.candidate_backlog_size < self.candidate_pool_size
-                or self.candidate_backlog_per_peer < self.candidates_per_peer):
-            raise ValueError(
-                "candidate_backlog_size / candidate_backlog_per_peer must be >= "
-                "candidate_pool_size / candidates_per_peer (the backlog holds the pool's too)"
-            )
         for ep in (*self.listen, *self.connect):
             if "/" not in ep:
                 raise ValueError(f"endpoint {ep!r} must look like PROTOCOL/ADDRESS:PORT")

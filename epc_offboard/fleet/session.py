@@ -42,6 +42,7 @@ import zenoh
 from epc_offboard.common.channel import ChannelClosedError, read_frames, write_all
 from epc_offboard.common.children import die_with_parent, lower_priority
 from epc_offboard.common.logsetup import LogConfig, setup_logging
+from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.fleet import keys
 from epc_offboard.fleet.config import SharingConfig
@@ -312,6 +313,7 @@ class FleetSession:
         *,
         share_library: bool,
         reference: bool,
+        inbox_per_peer: int = CandidatePoolConfig.backlog_per_peer,
     ) -> None:
         self.cfg = cfg
         self.vehicle_id = cfg.vehicle_id
@@ -323,7 +325,7 @@ class FleetSession:
         self.problems = [
             _Problem(i, s, cfg.fleet) for i, s in enumerate(specs)
         ]
-        self.inbox = CandidateInbox(cfg.max_queued_entries, cfg.candidate_backlog_per_peer)
+        self.inbox = CandidateInbox(cfg.max_queued_entries, inbox_per_peer)
         self.reference = _LatestReference()
         self.tasks: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=cfg.queue_size)
         self.peers: dict[int, set[str]] = {}
@@ -619,6 +621,7 @@ class HelperArgs:
     snapshots: tuple[Snapshot, ...]
     parent_pid: int
     log: LogConfig
+    inbox_per_peer: int  # received controllers held from one vehicle (a library's backlog)
 
 
 def _forward(
@@ -656,6 +659,7 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
     session = FleetSession(
         args.cfg, args.specs, counters, args.candidate_dtype, args.max_successors,
         share_library=args.share_library, reference=args.reference,
+        inbox_per_peer=args.inbox_per_peer,
     )  # fmt: skip
     try:
         session.open(args.snapshots)

@@ -51,6 +51,7 @@ from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordR
 from epc_offboard.common.children import Backoff
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
+from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.epc import MAX_SUCCESSORS, ExperienceController
 from epc_offboard.fleet import keys
 from epc_offboard.fleet.config import SharingConfig
@@ -101,8 +102,8 @@ class FleetSharing:
     """The fleet, seen from the control process: a Zenoh session in a helper process.
 
     ``controllers``: (name, controller) of every EPC problem to share (their candidate
-    pools take the sizes of ``cfg``: construct this before the miss worker starts, which
-    copies them); ``share_library`` False opens the session for the reference alone;
+    pools take the sizes of ``candidates``: construct this before the miss worker starts,
+    which copies them); ``share_library`` False opens the session for the reference alone;
     ``reference`` subscribes to this vehicle's live-reference key. Use as
     ``async with FleetSharing(...) as sharing`` and run :meth:`run` as a task; controllers
     are touched only from that task.
@@ -116,6 +117,7 @@ class FleetSharing:
         share_library: bool = True,
         reference: bool = False,
         log_cfg: LogConfig | None = None,
+        candidates: CandidatePoolConfig | None = None,
     ) -> None:
         if not cfg.vehicle_id:
             raise ValueError("sharing.vehicle_id must be set to open a fleet session")
@@ -126,9 +128,10 @@ class FleetSharing:
         self.log_cfg = log_cfg or LogConfig()  # the helper's log lines, on the same stderr
         self.counters: Counter[str] = Counter()
         self._controllers = list(controllers)
+        pool = self.candidates = candidates or CandidatePoolConfig()
         for _name, ctrl in self._controllers:
-            ctrl.limit_candidates(cfg.candidate_pool_size, cfg.candidates_per_peer,
-                                  cfg.candidate_backlog_size, cfg.candidate_backlog_per_peer)
+            ctrl.limit_candidates(pool.pool_size, pool.per_peer, pool.backlog_size,
+                                  pool.backlog_per_peer)  # fmt: skip
         self.specs = tuple(
             ProblemSpec(name, ctrl.problem.signature(), ctrl.problem.n_con, ctrl.problem.n_u,
                         ctrl.max_size)
@@ -195,7 +198,7 @@ class FleetSharing:
         )
         args = HelperArgs(self.cfg, self.specs, self.candidate_dtype, MAX_SUCCESSORS,
                           self.share_library, self.subscribe_reference, snapshots, os.getpid(),
-                          self.log_cfg)  # fmt: skip
+                          self.log_cfg, self.candidates.backlog_per_peer)  # fmt: skip
         self._slots[STAT_INDEX["state"]] = 0
         proc = self._ctx.Process(
             target=helper_main, args=(args, self._slots_raw, cand_w, ref_w, frames_r),

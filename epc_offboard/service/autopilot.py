@@ -214,14 +214,14 @@ class Autopilot:
         if self.params.get(name) != value:
             log.info("autopilot parameter %s = %g", name, value)
         self.params[name] = value
-        hover = self.cfg.position.hover_thrust_norm
+        hover = self.cfg.vehicle.hover_thrust_norm
         if name == "MOT_THST_HOVER" and math.isfinite(value):
             self.on_hover_thrust(value)
         if name == "MOT_THST_HOVER" and math.isfinite(value) and abs(value - hover) > 0.05:
             self.counters["hover_thrust_mismatch"] += 1
             log.warning(
-                "MOT_THST_HOVER is %.3f but position.hover_thrust_norm is %.3f: set it to "
-                "the autopilot's learned hover throttle", value, hover,
+                "MOT_THST_HOVER is %.3f but the airframe's hover thrust is %.3f: put the "
+                "autopilot's learned hover throttle in %s", value, hover, self.cfg.vehicle.source,
             )  # fmt: skip
 
     def wire_thrust(self, thrust_norm: float, state: VehicleState) -> float:

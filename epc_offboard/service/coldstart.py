@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     cascade = Cascade(
         cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz,
-        learn_on_miss=False,
+        learn_on_miss=False, airframe=cfg.vehicle,
     )  # fmt: skip
     cascade.warm_up()
     if not jit.mark_cache_warm():

@@ -94,7 +94,7 @@ class Service:
         self.cascade = Cascade(
             cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz,
             learn_on_miss=False, attitude_period_s=1.0 / cfg.loops.attitude_rate_hz,
-            autopilot=cfg.link.autopilot,
+            autopilot=cfg.link.autopilot, airframe=cfg.vehicle,
         )  # fmt: skip
         controllers = self.cascade.experience_controllers()
         self.misses = MissSolver(dict(controllers), slice_s=cfg.sharing.candidate_slice_s)
@@ -119,7 +119,7 @@ class Service:
             self.counters,
         )  # fmt: skip
         self.setpoints = SetpointSender(
-            self.cascade, self.autopilot, cfg.attitude.max_rate_rad_s, self.counters,
+            self.cascade, self.autopilot, cfg.vehicle.max_rate_frd_rad_s, self.counters,
             self.loops.error,
         )  # fmt: skip
         self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
@@ -134,6 +134,7 @@ class Service:
             self.sharing = FleetSharing(
                 cfg.sharing, controllers if cfg.sharing.enabled else [],
                 share_library=cfg.sharing.enabled, reference=live, log_cfg=cfg.log,
+                candidates=cfg.candidates,
             )  # fmt: skip
         self.library = LibraryKeeper(
             cfg.store, self.cascade, self.counters,
@@ -288,6 +289,9 @@ class Service:
         loop.add_signal_handler(signal.SIGHUP, self._reload)
         log.info("epc-offboard running: %s, target system %d", self.cfg.link.url,
                  self.cfg.link.target_system)  # fmt: skip
+        frame = self.cascade.position.airframe
+        log.info("airframe %s: hover thrust %.3f, tilt limit %g deg", frame.source,
+                 frame.hover_thrust_norm, frame.max_tilt_deg)  # fmt: skip
         loops = self.loops
         try:
             async with asyncio.TaskGroup() as tg:

@@ -55,7 +55,7 @@ from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.errors import EpcError
 from epc_offboard.tools import attack_analysis as analysis
 from epc_offboard.tools.sim.analysis import read_csv_columns
-from epc_offboard.tools.sim.orchestrate import service_env, stop_process
+from epc_offboard.tools.sim.orchestrate import service_env, stop_process, vehicle_file
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG, load_scenario
 
 WINDOW_S = 10.0
@@ -109,14 +109,11 @@ def service_config(run_dir: Path, port: int, zenoh_port: int, mode: str) -> dict
     ``zenoh_port``."""
     with SITL_SERVICE_CONFIG.open("rb") as fh:
         base = tomllib.load(fh)
-    from sitl.params import load_sim_config
-
     scenario = load_scenario("figure8")
     return merge_dicts(base, {
         "link": {"url": f"udpin://127.0.0.1:{port}", "autopilot": "px4"},
         "loops": {"clock": "wall", "realtime_priority": REALTIME_PRIORITY},
         "attitude": {"mode": MODES[mode]},
-        "position": {"hover_thrust_norm": load_sim_config().vehicle.hover_thrust_norm},
         "trajectory": {"shape": "hover"},
         "trajectory_altitude_m": scenario.altitude_m,
         "mission": {"duration_s": 100_000.0, "land_at_end": True},  # ended by the bench
@@ -294,6 +291,7 @@ def fly(run_dir: Path, hogs: int, mode: str) -> dict[str, Any]:
     sitl_cmd = [sys.executable, "-m", "sitl.main", "--listen-port", str(sitl_port),
                 "--offboard-port", str(port), "--gcs-port", "0",
                 "--groundtruth", str(run_dir / "groundtruth.csv"), "--autopilot", "px4",
+                "--config", str(vehicle_file(cfg)),
                 "--wind", f"{scenario.wind_speed_m_s},{scenario.wind_dir_deg}"]  # fmt: skip
     env = dict(os.environ, PYTHONUNBUFFERED="1", **service_env())
     hog_procs: list[subprocess.Popen[bytes]] = []

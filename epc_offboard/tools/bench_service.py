@@ -198,7 +198,8 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
     """Drive the service's ticks over the recording's offboard span; the report (JSON)."""
     cfg = load_service_config(rec.config_path)
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator,
-                      1.0 / cfg.loops.position_rate_hz, learn_on_miss=False)
+                      1.0 / cfg.loops.position_rate_hz, learn_on_miss=False,
+                      airframe=cfg.vehicle)
     cascade.warm_up()
     misses = MissSolver(dict(cascade.experience_controllers()),
                         slice_s=cfg.sharing.candidate_slice_s)
@@ -238,10 +239,10 @@ def replay(rec: Recording, *, worker: bool = True) -> dict[str, Any]:
     att_total: list[float] = []
     sources: dict[str, int] = {}
     attitude_sources: dict[str, int] = {}
-    rmax = cfg.attitude.max_rate_rad_s
+    rmax = cfg.vehicle.max_rate_frd_rad_s
     to = commands.Target(cfg.link.target_system, cfg.link.target_component)
     # (the service's NaN fallback is a level hover at the state's yaw; never taken here)
-    hover = commands.AttitudeSetpoint((1.0, 0.0, 0.0, 0.0), None, cfg.position.hover_thrust_norm)
+    hover = commands.AttitudeSetpoint((1.0, 0.0, 0.0, 0.0), None, cfg.vehicle.hover_thrust_norm)
     i_frame = 0
     # the frames before offboard set up the tracker's timelines (its warnings about the
     # recording's own take-off are not the replay's business)

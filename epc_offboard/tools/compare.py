@@ -260,7 +260,7 @@ def write_compare_figure(
     if np.isfinite(limit):
         line = ax_tilt.axhline(limit, color="darkred", ls="-.", lw=1.4)
         handles.append(line)
-        labels.append(f"tilt limit {limit:g}° (position.max_tilt_deg)")
+        labels.append(f"tilt limit {limit:g}° (envelope.max_tilt_deg)")
         ax_tilt.set_ylim(0.0, max(1.1 * limit, 1.1 * tilt_peak))
     ax_tilt.set(xlabel="time since offboard entry [s]", ylabel="tilt [deg]",
                 title="tilt against its limit (ground truth)")  # fmt: skip

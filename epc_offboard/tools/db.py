@@ -264,7 +264,8 @@ def _config_cascade(config_path: str | Path) -> Cascade:
         cfg = load_service_config(config_path)
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
-    return Cascade(cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz)
+    return Cascade(cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz,
+                   airframe=cfg.vehicle)  # fmt: skip
 
 
 def validate_against_problems(

@@ -472,7 +472,7 @@ def _draw_tilt(ax: Axes, results: list[VehicleResult]) -> None:
     show = bool(np.isfinite(bound)) and peak >= 0.3 * limit
     if show:
         ax.axhline(limit, color="darkred", ls="-.", lw=1.2,
-                   label=f"command limit {limit:g}° (position.max_tilt_deg)")  # fmt: skip
+                   label=f"command limit {limit:g}° (envelope.max_tilt_deg)")  # fmt: skip
         ax.axhline(bound, color="red", ls=":", lw=1.2, label=f"envelope {bound:g}°")
         ax.set_ylim(0.0, max(peak * 1.1, bound * 1.05))
     else:

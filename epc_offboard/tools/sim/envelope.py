@@ -13,7 +13,7 @@ scenario and the service's limits:
   wind and recovers, a vehicle blown away drifts on;
 * altitude above home at most the scenario's highest reference + ``max_error_m``, at any
   time (a repeated takeoff climbing away is caught before the service ever streams);
-* tilt at most the service's ``position.max_tilt_deg`` + ``tilt_margin_deg``: the commands
+* tilt at most the airframe's ``envelope.max_tilt_deg`` + ``tilt_margin_deg``: the commands
   never ask for more, so more is a vehicle out of control;
 * vehicle time from the SITL's start at most ``takeoff_budget_s`` + the scenario's duration
   + ``landing_budget_s``: a flight that cannot end (a vehicle blown away before it is ever
@@ -35,7 +35,7 @@ class EnvelopeConfig:
 
     max_error_m: float = 2.0  # distance from the reference
     max_drift_m: float = 10.0  # horizontal distance while the autopilot flies alone
-    tilt_margin_deg: float = 15.0  # beyond position.max_tilt_deg
+    tilt_margin_deg: float = 15.0  # beyond the airframe's envelope.max_tilt_deg
     takeoff_budget_s: float = 60.0  # vehicle time from the SITL's start to offboard
     landing_budget_s: float = 60.0  # vehicle time from the end of offboard to landed
 

@@ -27,6 +27,8 @@ from epc_offboard.common import jit
 from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.service.airframe import airframe_path, load_airframe
+from epc_offboard.service.config import AirframeConfig
 from epc_offboard.tools.figures import flight_title, write_figure
 from epc_offboard.tools.sim.analysis import VehicleResult, analyse, read_flight
 from epc_offboard.tools.sim.envelope import Envelope, breaches, envelope_for, tilt_deg_of
@@ -110,16 +112,12 @@ def service_config_for(
         base = tomllib.load(fh)
     traj = {k: v for k, v in vars(scenario.trajectory).items()}
     traj["waypoints_ned_m"] = [list(w) for w in scenario.trajectory.waypoints_ned_m]
-    from sitl.params import load_sim_config
-
-    # what PX4 users set as MPC_THR_HOVER, known exactly for the simulated airframe
-    hover = load_sim_config().vehicle.hover_thrust_norm
     flags: dict[str, Any] = {
         # the autopilot flown is known: the attitude loop models its body-rate response
         "link": {"url": f"udpin://127.0.0.1:{port}", "target_system": vehicle_id,
                  "autopilot": options.autopilot},
         "loops": {"clock": "vehicle" if options.lockstep else "wall"},
-        "position": {"controller": options.controller, "hover_thrust_norm": hover},
+        "position": {"controller": options.controller},
         "estimator": {"kind": options.adaptation},
         "trajectory": traj,
         "trajectory_altitude_m": scenario.altitude_m,
@@ -283,6 +281,12 @@ def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
     return f"offboard {done_s:.1f}/{duration_s:g} s", done_s
 
 
+def vehicle_file(service_cfg: dict[str, Any]) -> Path:
+    """The vehicle file a service config names (``[airframe] file``): its SITL flies the
+    same one, so the service's hover thrust and limits are the simulated airframe's."""
+    return airframe_path(str(service_cfg.get("airframe", {}).get("file", AirframeConfig.file)))
+
+
 def flight_envelope(options: SimOptions, service_cfg: dict[str, Any]) -> Envelope:
     """The envelope a flight of ``options`` is judged sane within (:mod:`.envelope`)."""
     scenario = options.scenario
@@ -291,7 +295,7 @@ def flight_envelope(options: SimOptions, service_cfg: dict[str, Any]) -> Envelop
         altitude_m=scenario.altitude_m,
         climb_m=scenario.climb_m,
         duration_s=scenario.duration_s,
-        max_tilt_deg=float(service_cfg.get("position", {}).get("max_tilt_deg", 45.0)),
+        max_tilt_deg=load_airframe(str(vehicle_file(service_cfg))).max_tilt_deg,
     )
 
 
@@ -367,7 +371,7 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
             sys.executable, "-m", "sitl.main", "--instance", str(k - 1),
             "--listen-port", str(listen_port), "--offboard-port", str(offboard_port),
             "--gcs-port", str(_gcs_port(options, k)), "--groundtruth", str(run.groundtruth),
-            "--seed", str(options.seed + k - 1),
+            "--seed", str(options.seed + k - 1), "--config", str(vehicle_file(cfg)),
             "--wind", f"{options.wind_speed_m_s},{options.wind_dir_deg}",
         ]  # fmt: skip
         if options.lockstep:
