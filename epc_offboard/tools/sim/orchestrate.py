@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.common import jit
-from epc_offboard.common.cliargs import check_port_free
+from epc_offboard.common.cliargs import WindProfile, check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.tools.figures import flight_title, write_figure
@@ -370,6 +370,10 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
             "--seed", str(options.seed + k - 1),
             "--wind", f"{options.wind_speed_m_s},{options.wind_dir_deg}",
         ]  # fmt: skip
+        if options.wind_profile != WindProfile():
+            sitl_cmd += ["--wind-profile", options.wind_profile.text]
+        if scenario.vehicle:
+            sitl_cmd += ["--config", str(scenario.vehicle_file)]
         if options.lockstep:
             sitl_cmd.append("--lockstep")
         sitl_cmd += ["--autopilot", options.autopilot]
