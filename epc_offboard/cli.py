@@ -14,9 +14,9 @@ from collections.abc import Callable, Sequence
 from typing import TypeAlias, cast
 
 from epc_offboard.common.cliargs import (
+    WIND_PROFILE_HELP,
     bounded_int,
     join_negative_values,
-    WIND_PROFILE_HELP,
     parse_wind,
     parse_wind_profile,
     port_number,

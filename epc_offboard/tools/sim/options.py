@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from epc_offboard.common.cliargs import MAX_PORT, WindProfile, parse_wind_profile
@@ -34,7 +34,7 @@ class SimOptions:
     lockstep: bool = True
     wind_speed_m_s: float = 0.0
     wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (CONTRACTS.md)
-    wind_profile: WindProfile = WindProfile()  # how it varies (steady by default)
+    wind_profile: WindProfile = field(default_factory=WindProfile)  # steady by default
     seed: int = 0
     gcs_port: int | None = None  # None: the autopilot's usual ground-station port
     autopilot: str = "px4"

@@ -187,7 +187,8 @@ def print_report(report: dict[str, Any], file: TextIO | None = None) -> None:
     note when it has one, and each vehicle's warnings."""
     out = file if file is not None else sys.stdout
     title = f"{report['scenario']}: {report['controller']} + {report['adaptation']}"
-    columns, rows = REPORT_COLUMNS, report_rows(report)
+    columns: tuple[str, ...] = REPORT_COLUMNS
+    rows = report_rows(report)
     if any("mean_error_m" in v["tracking"] for v in report["vehicles"]):
         columns, rows = with_mean_error(columns, rows, report["vehicles"], after=1)
     print_table(title, columns, rows, file=out)
