@@ -14,9 +14,11 @@ from collections.abc import Callable, Sequence
 from typing import TypeAlias, cast
 
 from epc_offboard.common.cliargs import (
+    WIND_PROFILE_HELP,
     bounded_int,
     join_negative_values,
     parse_wind,
+    parse_wind_profile,
     port_number,
     positive_number,
 )
@@ -129,6 +131,10 @@ def _add_sim(sub: _Subparsers) -> None:
         "--wind", type=parse_wind, default=None, metavar="SPEED_M_S,DIR_DEG",
         help="wind speed towards DIR degrees, counter-clockwise from east (default: the "
         "scenario's)",
+    )  # fmt: skip
+    sim.add_argument(
+        "--wind-profile", type=parse_wind_profile, default=None, metavar="SPEC",
+        help=WIND_PROFILE_HELP + " (default: the scenario's, steady)",
     )  # fmt: skip
     sim.add_argument(
         "--seed", type=bounded_int(0), default=0, help="noise and gust seed"

@@ -16,10 +16,12 @@ from typing import Any
 
 from epc_offboard.common.cliargs import (
     MAX_PORT,
+    WIND_PROFILE_HELP,
     bounded_int,
     check_port_free,
     join_negative_values,
     parse_wind,
+    parse_wind_profile,
     port_number,
     positive_number,
 )
@@ -56,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the autopilot personality (default: sitl.autopilot of the config, px4)",
     )
     arg("--wind", type=parse_wind, metavar="SPEED_M_S,DIR_DEG", help="towards, CCW from east")
+    arg("--wind-profile", type=parse_wind_profile, metavar="SPEC", help=WIND_PROFILE_HELP)
     arg("--seed", type=bounded_int(0), default=0, metavar="S", help="seeds gusts and noise")
     arg("--config", type=Path, default=DEFAULT_VEHICLE_FILE, metavar="FILE", help="vehicle TOML")
     arg("--groundtruth", type=Path, metavar="FILE", help="write the true state to this CSV")
@@ -90,8 +93,13 @@ def build_parser() -> argparse.ArgumentParser:
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     out: dict[str, Any] = {}
     sitl: dict[str, Any] = {}
+    environment: dict[str, Any] = {}
     if args.wind is not None:
-        out["environment"] = {"wind_speed_m_s": args.wind[0], "wind_dir_deg": args.wind[1]}
+        environment.update(wind_speed_m_s=args.wind[0], wind_dir_deg=args.wind[1])
+    if args.wind_profile is not None:
+        environment.update(args.wind_profile.environment())
+    if environment:
+        out["environment"] = environment
     if args.autopilot is not None:
         sitl["autopilot"] = args.autopilot
     if args.lockstep_period_ms is not None:

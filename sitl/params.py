@@ -60,6 +60,16 @@ class VehicleParams:
     drag_coeff_body_n_s_m: tuple[float, float, float]  # linear drag per body axis
     rotor_angles_deg: tuple[float, float, float, float] = (45.0, -135.0, -45.0, 135.0)
     rotor_yaw_moment_sign: tuple[float, float, float, float] = (1.0, 1.0, -1.0, -1.0)
+    # Airframe aerodynamics beyond the linear drag (rotorpy's multirotor model; all 0: off,
+    # the equations of motion are then exactly the linear-drag ones). Per body axis FRD, on
+    # the airspeed v_a = R^T (v - v_wind):
+    #   body (parasitic) drag, quadratic:  f = -|v_a| c_D (.) v_a              [N / (m/s)^2]
+    #   rotor drag (H force) in x, y and induced inflow in z, each rotor's proportional to
+    #   its speed:  f = -(sum_i w_i) k (.) v_a   [N / ((rad/s) (m/s)) = kg / rad]
+    # The z entry of the latter is the thrust's change with airspeed through the discs: a
+    # climb (or a disc tilted into the wind) lowers every rotor's thrust, a descent raises it.
+    drag_quadratic_body_n_s2_m2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotor_drag_kg_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         _positive(
@@ -72,12 +82,18 @@ class VehicleParams:
         )
         for i, v in enumerate(self.inertia_diag_kg_m2):
             _positive(**{f"inertia_diag_kg_m2[{i}]": v})
-        for i, v in enumerate(self.drag_coeff_body_n_s_m):
-            _non_negative(**{f"drag_coeff_body_n_s_m[{i}]": v})
+        for name in ("drag_coeff_body_n_s_m", "drag_quadratic_body_n_s2_m2", "rotor_drag_kg_rad"):
+            for i, v in enumerate(getattr(self, name)):
+                _non_negative(**{f"{name}[{i}]": v})
         if not 0.0 <= self.rotor_speed_min_rad_s < self.rotor_speed_max_rad_s:
             raise ValueError("need 0 <= rotor_speed_min_rad_s < rotor_speed_max_rad_s")
         if any(abs(s) != 1.0 for s in self.rotor_yaw_moment_sign):
             raise ValueError("rotor_yaw_moment_sign entries must be +1 or -1")
+
+    @property
+    def aerodynamic(self) -> bool:
+        """Quadratic body drag, rotor drag or inflow modelled (else only the linear drag)."""
+        return any(self.drag_quadratic_body_n_s2_m2) or any(self.rotor_drag_kg_rad)
 
     @property
     def max_total_thrust_n(self) -> float:
@@ -121,11 +137,26 @@ class EnvironmentParams:
     wind_dir_deg: float = 0.0  # towards, counter-clockwise from east
     gust_std_m_s: float = 0.0  # per axis, horizontal; vertical gets half
     gust_time_constant_s: float = 2.0
+    # A wind whose speed swings as a sinusoid along its direction (Neural-Fly's fan array:
+    # 8.5 + 2.4 sin t m/s): speed(t) = wind_speed_m_s + amplitude sin(rate t + phase), t the
+    # vehicle time since the SITL started. 0: steady.
+    wind_sine_amplitude_m_s: float = 0.0
+    wind_sine_rate_rad_s: float = 1.0
+    wind_sine_phase_rad: float = 0.0
     surface: SurfaceParams = field(default_factory=SurfaceParams)
 
     def __post_init__(self) -> None:
-        _non_negative(wind_speed_m_s=self.wind_speed_m_s, gust_std_m_s=self.gust_std_m_s)
-        _positive(gust_time_constant_s=self.gust_time_constant_s)
+        _non_negative(
+            wind_speed_m_s=self.wind_speed_m_s,
+            gust_std_m_s=self.gust_std_m_s,
+            wind_sine_amplitude_m_s=self.wind_sine_amplitude_m_s,
+        )
+        _positive(
+            gust_time_constant_s=self.gust_time_constant_s,
+            wind_sine_rate_rad_s=self.wind_sine_rate_rad_s,
+        )
+        if not math.isfinite(self.wind_sine_phase_rad):
+            raise ValueError(f"wind_sine_phase_rad must be finite, got {self.wind_sine_phase_rad}")
 
 
 @dataclass(frozen=True)
@@ -284,12 +315,18 @@ class ArduPilotParams:
 
 @dataclass(frozen=True)
 class NoiseParams:
-    """Standard deviations of the seeded Gaussian noise on the published state estimate."""
+    """Standard deviations of the seeded Gaussian noise on the published state estimate.
+
+    ``correlation_time_s`` 0: white, a new draw for every estimate published. > 0: an
+    estimator's error, which is smooth: each channel a first-order Gauss-Markov process of
+    that time constant (stationary standard deviation as given), advanced once per tick.
+    """
 
     position_std_m: float = 0.005
     velocity_std_m_s: float = 0.01
     attitude_std_rad: float = 0.002
     rate_std_rad_s: float = 0.005
+    correlation_time_s: float = 0.0
 
     def __post_init__(self) -> None:
         _non_negative(
@@ -297,6 +334,7 @@ class NoiseParams:
             velocity_std_m_s=self.velocity_std_m_s,
             attitude_std_rad=self.attitude_std_rad,
             rate_std_rad_s=self.rate_std_rad_s,
+            correlation_time_s=self.correlation_time_s,
         )
 
 
@@ -340,6 +378,9 @@ class SitlParams:
     home_amsl_m: float = 488.0
     groundtruth_flush_s: float = 1.0  # wall clock
     allowed_source_sysids: tuple[int, ...] = ()  # empty: any
+    # The published state is the vehicle's this long ago (the estimator's and the link's
+    # latency), stamped when it is sent: a whole number of lockstep periods; 0: the current
+    telemetry_delay_s: float = 0.0
     telemetry: TelemetryRates = field(default_factory=TelemetryRates)
     noise: NoiseParams = field(default_factory=NoiseParams)
 
@@ -359,6 +400,13 @@ class SitlParams:
             raise ValueError(f"home ({self.home_lat_deg}, {self.home_lon_deg}) is not on Earth")
         if self.lockstep_max_timeouts < 1:
             raise ValueError("lockstep_max_timeouts must be >= 1")
+        _non_negative(telemetry_delay_s=self.telemetry_delay_s)
+        delay_ticks = self.telemetry_delay_s / self.lockstep_period_s
+        if abs(delay_ticks - round(delay_ticks)) > 1e-9 or self.telemetry_delay_s > 0.5:
+            raise ValueError(
+                "telemetry_delay_s must be a whole number of lockstep periods, <= 0.5 s "
+                f"(got {self.telemetry_delay_s} s at a period of {self.lockstep_period_s} s)"
+            )
         substeps = self.lockstep_period_s * self.physics_rate_hz
         if abs(substeps - round(substeps)) > 1e-9 or round(substeps) < 1:
             raise ValueError(
@@ -369,6 +417,10 @@ class SitlParams:
     @property
     def physics_steps_per_tick(self) -> int:
         return round(self.lockstep_period_s * self.physics_rate_hz)
+
+    @property
+    def telemetry_delay_ticks(self) -> int:
+        return round(self.telemetry_delay_s / self.lockstep_period_s)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,9 @@ The thesis writes its world frame z-up and thrust along +z_B. Internally everyth
               = [sum -y_i F_i, sum x_i F_i, sum s_i M_i]
   rotor:  d w_i/dt = (w_cmd_i - w_i) / tau_motor,  w_cmd clamped to [0, w_max]
   drag:   f_drag = -D R(q)^T (v - v_wind)       (relative airspeed, body axes, linear)
+  aero (VehicleParams.aerodynamic; off by default), on v_a = R(q)^T (v - v_wind):
+          f_aero = -|v_a| C_D (.) v_a - (sum_i w_i) K (.) v_a
+          quadratic body drag C_D, rotor drag K_x, K_y and the rotors' inflow K_z (rotorpy)
   kinematics: dq/dt = 1/2 q (x) [0, w]
 
 For the thesis's plus layout (rotor 2 left, 4 right at distance L) the roll row is L (F_2 - F_4),
@@ -80,6 +83,12 @@ class QuadrotorModel:
             params.k_f_n_s2, *params.drag_coeff_body_n_s_m, params.mass_kg,
             *params.inertia_diag_kg_m2, params.motor_time_constant_s,
         )  # fmt: skip
+        # None without them: the linear-drag equations, untouched to the last bit
+        self._aero_params = (
+            (*params.drag_quadratic_body_n_s2_m2, *params.rotor_drag_kg_rad)
+            if params.aerodynamic
+            else None
+        )
 
     def derivative(
         self,
@@ -120,9 +129,18 @@ class QuadrotorModel:
         f1, f2, f3, f4 = kf * o1 * o1, kf * o2 * o2, kf * o3 * o3, kf * o4 * o4
         # f_body = -D R^T (v - v_wind) + [0, 0, -sum F]
         an, ae, ad = vn - wind[0], ve - wind[1], vd - wind[2]
-        bx = -dx_ * (r00 * an + r10 * ae + r20 * ad)
-        by = -dy_ * (r01 * an + r11 * ae + r21 * ad)
-        bz = -dz_ * (r02 * an + r12 * ae + r22 * ad) - (f1 + f2 + f3 + f4)
+        ux, uy, uz = r00 * an + r10 * ae + r20 * ad, r01 * an + r11 * ae + r21 * ad, (
+            r02 * an + r12 * ae + r22 * ad)  # fmt: skip
+        bx = -dx_ * ux
+        by = -dy_ * uy
+        bz = -dz_ * uz - (f1 + f2 + f3 + f4)
+        if self._aero_params is not None:
+            cx, cy, cz, kx, ky, kz = self._aero_params
+            speed = math.sqrt(ux * ux + uy * uy + uz * uz)
+            rotors = o1 + o2 + o3 + o4
+            bx -= (cx * speed + kx * rotors) * ux
+            by -= (cy * speed + ky * rotors) * uy
+            bz -= (cz * speed + kz * rotors) * uz
         # (3.9) in NED: dv/dt = g e_d + (R f_body + f_ext) / m
         acc_n = (r00 * bx + r01 * by + r02 * bz + ext[0]) / m
         acc_e = (r10 * bx + r11 * by + r12 * bz + ext[1]) / m
@@ -231,16 +249,30 @@ class Environment:
             self.params.wind_speed_m_s, self.params.wind_dir_deg
         )
         self.gust_ned_m_s = np.zeros(3)
+        # the sinusoid's swing along the wind's direction, and the time it is evaluated at
+        self._sine_ned_m_s = wind_vector_ned_m_s(
+            self.params.wind_sine_amplitude_m_s, self.params.wind_dir_deg
+        )
+        self._sine_on = self.params.wind_sine_amplitude_m_s > 0.0
+        self._steps = 0
+        self._time_s = 0.0
         s = self.params.surface
         self._surface_point = np.asarray(s.point_ned_m, dtype=np.float64)
         self._surface_normal = np.asarray(s.normal_ned, dtype=np.float64)
 
     @property
     def wind_ned_m_s(self) -> FloatArray:
+        if self._sine_on:
+            p = self.params
+            swing = math.sin(p.wind_sine_rate_rad_s * self._time_s + p.wind_sine_phase_rad)
+            return self.mean_wind_ned_m_s + swing * self._sine_ned_m_s + self.gust_ned_m_s
         return self.mean_wind_ned_m_s + self.gust_ned_m_s
 
     def advance(self, dt_s: float) -> None:
-        """Exact discretisation of the first-order Gauss-Markov gust process."""
+        """Time for the sinusoid (steps x dt, no summed rounding); exact discretisation of
+        the first-order Gauss-Markov gust process."""
+        self._steps += 1
+        self._time_s = self._steps * dt_s
         std = self.params.gust_std_m_s
         if std == 0.0:
             return

@@ -9,6 +9,8 @@ reproducible from ``seed`` and the sequence of commands applied at given ticks.
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +49,14 @@ class Simulation:
         self._steps = config.sitl.physics_steps_per_tick
         self.autopilot.update_outer(self.state, 0.0, config.sitl.lockstep_period_s)
         self.last_command = self.autopilot.update_inner(self.state, self._dt_s)
+        # the states of the last ticks, oldest first: the published one is the oldest
+        self._history: deque[FloatArray] = deque(
+            [self.state], maxlen=config.sitl.telemetry_delay_ticks + 1
+        )
+        # the estimator's error, correlated (NoiseParams.correlation_time_s > 0): its state
+        # (12,) [pos, vel, attitude, rate] and the tick it was last advanced to
+        self._error: FloatArray | None = None
+        self._error_tick = -1
 
     @property
     def time_s(self) -> float:
@@ -82,13 +92,23 @@ class Simulation:
         # what the last substep commanded, from the state it started at
         self.last_command = ap.command(speeds, np.array(x_before[QUAT]))
         self.state = np.array(x)
+        self._history.append(self.state)
         self.tick += 1
 
     def estimate(self) -> StateEstimate:
-        """The true state plus seeded Gaussian noise (config ``sitl.noise``)."""
+        """The true state ``sitl.telemetry_delay_s`` ago plus seeded Gaussian noise
+        (config ``sitl.noise``: white, or an estimator's correlated error)."""
         n = self.config.sitl.noise
+        x = self._history[0]
+        if n.correlation_time_s > 0.0:
+            e = self._correlated_error()
+            return StateEstimate(
+                pos_ned_m=x[POS] + e[0:3],
+                vel_ned_m_s=x[VEL] + e[3:6],
+                q_wxyz=quat_normalize(quat_multiply(x[QUAT], euler_to_quat(*e[6:9]))),
+                rate_frd_rad_s=x[RATE] + e[9:12],
+            )
         rng = self._noise_rng
-        x = self.state
         dq = euler_to_quat(*(n.attitude_std_rad * rng.standard_normal(3)))
         return StateEstimate(
             pos_ned_m=x[POS] + n.position_std_m * rng.standard_normal(3),
@@ -96,3 +116,22 @@ class Simulation:
             q_wxyz=quat_normalize(quat_multiply(x[QUAT], dq)),
             rate_frd_rad_s=x[RATE] + n.rate_std_rad_s * rng.standard_normal(3),
         )
+
+    def _correlated_error(self) -> FloatArray:
+        """The estimator's error (12,) at the current tick: first-order Gauss-Markov per
+        channel, exactly discretised over the ticks since it was last advanced (so the same
+        tick gives the same error however often it is asked for), stationary from the start."""
+        n = self.config.sitl.noise
+        std = np.repeat(
+            [n.position_std_m, n.velocity_std_m_s, n.attitude_std_rad, n.rate_std_rad_s], 3
+        )
+        if self._error is None:
+            self._error = std * self._noise_rng.standard_normal(12)
+        elif self.tick != self._error_tick:
+            dt_s = (self.tick - self._error_tick) * self.config.sitl.lockstep_period_s
+            a = math.exp(-dt_s / n.correlation_time_s)
+            self._error = a * self._error + std * math.sqrt(1.0 - a * a) * (
+                self._noise_rng.standard_normal(12)
+            )
+        self._error_tick = self.tick
+        return self._error

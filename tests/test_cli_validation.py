@@ -56,6 +56,9 @@ def usage(command, argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple
         (["--wind", "-3,45"], "--wind", "-3,45"),
         (["--wind", "3,nan"], "--wind", "3,nan"),
         (["--wind", "3"], "--wind", "3"),
+        (["--wind-profile", "sine:2.4"], "--wind-profile", "sine:2.4"),
+        (["--wind-profile", "sine:2.4,0"], "--wind-profile", "sine:2.4,0"),
+        (["--wind-profile", "breeze"], "--wind-profile", "breeze"),
         (["--vehicles", "0"], "--vehicles", "0"),
         (["--seed", "-1"], "--seed", "-1"),
         (["--stagger"], "--stagger", "--vehicles"),
@@ -97,6 +100,8 @@ def test_valid_combinations_pass(monkeypatch: pytest.MonkeyPatch) -> None:
     assert options("--controller", "pd").controller == "pd"
     assert (options().controller, options().adaptation) == ("epc", "lwpr")
     assert options("--wind", "0,-90").wind == (0.0, -90.0)
+    assert options("--wind-profile", "sine:2.4,1").wind_profile.text == "sine:2.4,1"
+    assert options().wind_profile.text == "steady"
     assert options("--gcs-port", "0").gcs_port == 0
 
 
@@ -112,6 +117,7 @@ def test_negative_values_are_joined_only_after_the_flags_that_take_them() -> Non
         (["--instance", "300"], "--instance", "300"),
         (["--instance", "-1"], "--instance", "-1"),
         (["--wind", "-3,45"], "--wind", "-3,45"),
+        (["--wind-profile", "gusts:-1,2"], "--wind-profile", "gusts:-1,2"),
         (["--speedup", "nan"], "--speedup", "nan"),
         (["--speedup", "0"], "--speedup", "0"),
         (["--listen-port", "70000"], "--listen-port", "70000"),

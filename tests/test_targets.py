@@ -37,7 +37,7 @@ def test_target_needs_exactly_one_bound_and_known_methods():
         parse_method("epc")
 
 
-@pytest.mark.parametrize("name", ["circle", "zigzag", "figure8"])
+@pytest.mark.parametrize("name", ["circle", "zigzag", "figure8", "neuralfly"])
 def test_thesis_scenarios_declare_methods_and_targets(name):
     sc = load_scenario(name)
     assert sc.targets
@@ -50,3 +50,40 @@ def test_bad_target_in_a_scenario_names_the_file(tmp_path):
     path.write_text('[[targets]]\nmethod = "epc:lwpr"\nmetric = "rmse_m"\n')
     with pytest.raises(ConfigError, match=r"bad\.toml"):
         load_scenario(str(path))
+
+
+def windy(mean_err: float, speed_m_s: float, profile: str | None = None) -> dict:
+    wind: dict = {"speed_m_s": speed_m_s, "dir_deg": -90.0}
+    if profile is not None:
+        wind["profile"] = profile
+    rep = report(mean_err)
+    rep["vehicles"][0]["tracking"]["mean_error_m"] = mean_err
+    return {**rep, "wind": wind}
+
+
+def test_neuralfly_targets_judge_each_wind_row_by_its_own_bound():
+    """Half of Neural-Fly's mean error, per wind row: a run is judged by its row's bound
+    only (8.5 steady and 8.5 + 2.4 sin t are two rows), and the gain over no adaptation at
+    8.5 m/s only there."""
+    targets = load_scenario("neuralfly").targets
+    cases = {  # wind row -> (the bound it is judged by, its profile)
+        0.0: (0.015, None), 4.2: (0.021, None), 8.5: (0.028, None), 12.1: (0.044, None),
+    }  # fmt: skip
+    for speed, (bound, profile) in cases.items():
+        for err, verdict in ((bound * 0.99, "PASS"), (bound * 1.01, "FAIL")):
+            rows = evaluate(targets, {"epc:lwpr": windy(err, speed, profile)})
+            errors = [r for r in rows if r["metric"] == "mean_error_m" and r["vs"] is None]
+            assert [(r["bound"], r["verdict"]) for r in errors] == [(bound, verdict)]
+    rows = evaluate(targets, {"epc:lwpr": windy(0.038, 8.5, "sine:2.4,1"),
+                              "epc:none": windy(0.2, 8.5, "sine:2.4,1")})  # fmt: skip
+    absolute = [(r["bound"], r["verdict"]) for r in rows
+                if r["vs"] is None and r["metric"] == "mean_error_m"]  # fmt: skip
+    assert absolute == [(0.039, "PASS")]
+    gain = evaluate(targets, {"epc:lwpr": windy(0.03, 8.5), "epc:none": windy(0.1, 8.5)})
+    ratio = [r for r in gain if r["vs"] == "epc:none"]
+    assert [(r["bound"], r["verdict"]) for r in ratio] == [(pytest.approx(0.04), "PASS")]
+
+
+def test_a_target_wind_profile_must_parse():
+    with pytest.raises(ValueError, match="wind_profile"):
+        TargetConfig("epc:lwpr", "rmse_m", max=1.0, wind_speed_m_s=8.5, wind_profile="sine")

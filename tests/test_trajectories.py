@@ -15,6 +15,9 @@ SHAPES = {
     "line": TrajectoryConfig(shape="line", dx_m=3.0, dy_m=1.0, speed_m_s=1.5),
     "circle": TrajectoryConfig(shape="circle", radius_m=2.0, period_s=8.0),
     "figure8": TrajectoryConfig(shape="figure8", size_m=3.0, period_s=12.0),
+    "figure8_vertical": TrajectoryConfig(
+        shape="figure8_vertical", size_m=1.25, size_z_m=0.75, period_s=2 * math.pi
+    ),
     "zigzag": TrajectoryConfig(
         shape="zigzag", amplitude_m=3.0, peak_speed_m_s=3.75, forward_speed_m_s=0.5
     ),
@@ -112,7 +115,7 @@ def test_config_rejects_bad_values():
         TrajectoryConfig(shape="waypoints")
 
 
-@pytest.mark.parametrize("shape", ["circle", "figure8", "zigzag"])
+@pytest.mark.parametrize("shape", ["circle", "figure8", "figure8_vertical", "zigzag"])
 def test_the_tick_horizon_equals_sample_to_the_last_bit(shape):
     traj = Trajectory(TrajectoryConfig(shape=shape, ramp_s=3.0, period_s=12.0, radius_m=1.5),
                       np.array([1.0, 2.0, -2.5]), start_s=6.0)
@@ -182,3 +185,21 @@ def test_rejoin_starts_at_the_vehicle_and_closes_the_gap_smoothly():
     assert np.all(np.abs(rj.rows([25.0 + 1e-9])[0]) < 1e-4)
     assert rj.done(25.5)
     assert not rj.done(24.0)
+
+
+def test_vertical_figure8_is_neural_flys():
+    """north = 1.25 sin t, up = 0.75 sin 2t after the ramp (which lags progress by ramp/2),
+    east fixed; about 1.95 m/s at its fastest."""
+    cfg = SHAPES["figure8_vertical"]
+    tr = Trajectory(cfg, ANCHOR)
+    lag_s = cfg.ramp_s / 2
+    speeds = []
+    for t in np.linspace(cfg.ramp_s, cfg.ramp_s + 2 * math.pi, 400):
+        r = tr.sample(t)
+        s = t - lag_s
+        np.testing.assert_allclose(
+            r.pos_ned_m - ANCHOR, [1.25 * math.sin(s), 0.0, -0.75 * math.sin(2 * s)], atol=1e-12
+        )
+        speeds.append(float(np.linalg.norm(r.vel_ned_m_s)))
+    assert max(speeds) == pytest.approx(math.hypot(1.25, 1.5), abs=1e-3)
+    assert max(speeds) == pytest.approx(1.95, abs=0.01)

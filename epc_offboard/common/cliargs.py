@@ -10,6 +10,7 @@ import errno
 import math
 import socket
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 from epc_offboard.common.errors import EpcError
 
@@ -34,6 +35,88 @@ def parse_wind(text: str) -> tuple[float, float]:
             f"{-speed:g},{(direction + 180.0) % 360.0:g} is that wind)"
         )
     return speed, direction
+
+
+@dataclass(frozen=True)
+class WindProfile:
+    """How the wind varies about ``--wind`` (its speed and direction): a sinusoid on the
+    speed, ``amplitude sin(rate t + phase)`` (Neural-Fly's 8.5 + 2.4 sin t: amplitude 2.4,
+    rate 1), and Gauss-Markov gusts (standard deviation per horizontal axis, time constant).
+    The default is steady wind."""
+
+    sine_amplitude_m_s: float = 0.0
+    sine_rate_rad_s: float = 1.0
+    sine_phase_rad: float = 0.0
+    gust_std_m_s: float = 0.0
+    gust_time_constant_s: float = 2.0
+
+    @property
+    def text(self) -> str:
+        """The canonical ``--wind-profile`` spelling (``parse_wind_profile`` reads it back)."""
+        parts = []
+        if self.sine_amplitude_m_s > 0.0:
+            phase = f",{self.sine_phase_rad:g}" if self.sine_phase_rad else ""
+            parts.append(f"sine:{self.sine_amplitude_m_s:g},{self.sine_rate_rad_s:g}{phase}")
+        if self.gust_std_m_s > 0.0:
+            parts.append(f"gusts:{self.gust_std_m_s:g},{self.gust_time_constant_s:g}")
+        return "+".join(parts) or "steady"
+
+    def environment(self) -> dict[str, float]:
+        """The SITL's ``[environment]`` keys this profile sets."""
+        return {
+            "wind_sine_amplitude_m_s": self.sine_amplitude_m_s,
+            "wind_sine_rate_rad_s": self.sine_rate_rad_s,
+            "wind_sine_phase_rad": self.sine_phase_rad,
+            "gust_std_m_s": self.gust_std_m_s,
+            "gust_time_constant_s": self.gust_time_constant_s,
+        }
+
+
+WIND_PROFILE_HELP = (
+    "how the wind varies about --wind: 'sine:AMP_M_S,RATE_RAD_S[,PHASE_RAD]' (the speed "
+    "swings by AMP sin(RATE t + PHASE) along the wind's direction), 'gusts:STD_M_S,TAU_S' "
+    "(Gauss-Markov gusts), both joined by '+', or 'steady'; e.g. --wind 8.5,-90 "
+    "--wind-profile sine:2.4,1 is Neural-Fly's 8.5 + 2.4 sin t m/s"
+)
+
+
+def parse_wind_profile(text: str) -> WindProfile:
+    """Parse ``--wind-profile`` (see WIND_PROFILE_HELP) into a WindProfile."""
+    values: dict[str, float] = {}
+    terms = [t.strip() for t in text.strip().split("+")]
+    if terms == ["steady"]:
+        return WindProfile()
+    wants = {"sine": (2, 3), "gusts": (2, 2)}
+    for term in terms:
+        kind, sep, args = term.partition(":")
+        if not sep or kind not in wants:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: each term is sine:AMP_M_S,RATE_RAD_S[,PHASE_RAD] or "
+                f"gusts:STD_M_S,TAU_S (or the whole is 'steady'), got {term!r}"
+            )
+        if f"{kind}_seen" in values:
+            raise argparse.ArgumentTypeError(f"{text!r}: {kind} is given twice")
+        values[f"{kind}_seen"] = 1.0
+        try:
+            nums = [float(a) for a in args.split(",")]
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"{text!r}: {term!r} wants numbers") from exc
+        low, high = wants[kind]
+        if not low <= len(nums) <= high or not all(math.isfinite(v) for v in nums):
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: {kind} takes {low}{'' if low == high else f'-{high}'} finite "
+                f"numbers, got {term!r}"
+            )
+        if nums[0] < 0.0 or nums[1] <= 0.0:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: {kind}'s first number must be >= 0 and its second > 0"
+            )
+        if kind == "sine":
+            values.update(sine_amplitude_m_s=nums[0], sine_rate_rad_s=nums[1])
+            values["sine_phase_rad"] = nums[2] if len(nums) == 3 else 0.0
+        else:
+            values.update(gust_std_m_s=nums[0], gust_time_constant_s=nums[1])
+    return WindProfile(**{k: v for k, v in values.items() if not k.endswith("_seen")})
 
 
 def port_number(text: str) -> int:

@@ -12,6 +12,9 @@ Shapes (horizontal plane; altitude is the anchor's):
 * ``line``     — to ``anchor + (dx_m, dy_m, dz_m)`` and back, at ``speed_m_s``;
 * ``circle``   — radius ``radius_m``, period ``period_s``, centre ``radius_m`` north of the anchor;
 * ``figure8``  — lemniscate of Gerono: x = A sin(wt), y = A/2 sin(2wt) (A = ``size_m``);
+* ``figure8_vertical`` — the same figure stood up in the north-down plane, Neural-Fly's
+  (O'Connell et al., Science Robotics 2022): north = A sin(wt), up = B sin(2wt)
+  (A = ``size_m``, B = ``size_z_m``; theirs: 1.25 sin t, 0.75 sin 2t);
 * ``zigzag``   — y sweeps ±``amplitude_m`` with a jerk-limited speed profile peaking at
   ``peak_speed_m_s`` (the thesis's experiment: up to 3.75 m/s), optionally advancing north at
   ``forward_speed_m_s``;
@@ -37,7 +40,7 @@ from epc_offboard.control.reference import STAGE_WIDTH, ReferenceHorizon
 
 _F = TypeVar("_F", bound=Callable[..., Any])
 
-Shape = Literal["hover", "line", "circle", "figure8", "zigzag", "waypoints"]
+Shape = Literal["hover", "line", "circle", "figure8", "figure8_vertical", "zigzag", "waypoints"]
 
 
 @dataclass(frozen=True)
@@ -47,6 +50,7 @@ class TrajectoryConfig:
     radius_m: float = 2.0  # circle
     period_s: float = 10.0  # circle, figure8
     size_m: float = 3.0  # figure8 half-width
+    size_z_m: float = 0.75  # figure8_vertical half-height
     amplitude_m: float = 3.0  # zigzag
     peak_speed_m_s: float = 3.75  # zigzag
     accel_m_s2: float = 6.0  # zigzag and waypoint speed profiles
@@ -61,7 +65,7 @@ class TrajectoryConfig:
     rejoin_tau_s: float = 1.0
 
     def __post_init__(self) -> None:
-        positive = ("ramp_s", "radius_m", "period_s", "size_m", "amplitude_m",
+        positive = ("ramp_s", "radius_m", "period_s", "size_m", "size_z_m", "amplitude_m",
                     "peak_speed_m_s", "accel_m_s2", "speed_m_s", "rejoin_tau_s")  # fmt: skip
         for name in positive:
             if getattr(self, name) <= 0.0:
@@ -235,6 +239,18 @@ def make_path(cfg: TrajectoryConfig) -> PathFn:
             )
 
         return figure8
+    if cfg.shape == "figure8_vertical":
+        a, b, w = cfg.size_m, cfg.size_z_m, 2 * math.pi / cfg.period_s
+
+        def figure8_vertical(s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+            # north, and down = -up
+            return (
+                np.array([a * math.sin(w * s), 0.0, -(b * math.sin(2 * w * s))]),
+                np.array([a * w * math.cos(w * s), 0.0, -(2 * b * w * math.cos(2 * w * s))]),
+                np.array([-a * w * w * math.sin(w * s), 0.0, 4 * b * w * w * math.sin(2 * w * s)]),
+            )
+
+        return figure8_vertical
     if cfg.shape == "zigzag":
         amp = cfg.amplitude_m
         sweep = _trapezoid(2 * amp, cfg.peak_speed_m_s, cfg.accel_m_s2)
@@ -292,8 +308,8 @@ class Trajectory:
         if cfg.shape in _SHAPE_CODE:
             a, period = (cfg.radius_m, cfg.period_s) if cfg.shape == "circle" else (
                 cfg.size_m, cfg.period_s)
-            _closed_path_rows(_SHAPE_CODE[cfg.shape], a, 2 * math.pi / period, cfg.ramp_s,
-                              t0_s, dt_s, self.start_s, self.anchor_ned_m, out)
+            _closed_path_rows(_SHAPE_CODE[cfg.shape], a, cfg.size_z_m, 2 * math.pi / period,
+                              cfg.ramp_s, t0_s, dt_s, self.start_s, self.anchor_ned_m, out)
             return out
         for k in range(steps + 1):
             r = self.sample(t0_s + k * dt_s)
@@ -329,22 +345,23 @@ def _jit(fn: _F) -> _F:
         return cast(_F, numba.njit(fn, cache=False, nogil=True))
 
 
-_SHAPE_CODE = {"circle": 0, "figure8": 1}
+_SHAPE_CODE = {"circle": 0, "figure8": 1, "figure8_vertical": 2}
 
 
 def warm_up() -> None:
     """Compile (or load from the cache) the horizon kernel now, not in the first tick."""
-    _closed_path_rows(1, 1.0, 1.0, 1.0, 0.0, 0.1, 0.0, np.zeros(3), np.empty((2, 9)))
+    _closed_path_rows(1, 1.0, 1.0, 1.0, 1.0, 0.0, 0.1, 0.0, np.zeros(3), np.empty((2, 9)))
 
 
 @_jit
 def _closed_path_rows(
-    shape: int, a: float, w: float, ramp_s: float, t0_s: float, dt_s: float, start_s: float,
-    anchor: FloatArray, out: FloatArray,
+    shape: int, a: float, b: float, w: float, ramp_s: float, t0_s: float, dt_s: float,
+    start_s: float, anchor: FloatArray, out: FloatArray,
 ) -> None:
-    """Rows of ``out`` (m, 9) at t0_s + k dt_s for the circle (shape 0, radius a) or the
-    figure-8 (1, size a), angular rate w: :func:`_warp` and :func:`make_path`'s circle /
-    figure8 written out with the same operations in the same order (bit-identical)."""
+    """Rows of ``out`` (m, 9) at t0_s + k dt_s for the circle (shape 0, radius a), the
+    figure-8 (1, size a) or the vertical figure-8 (2, sizes a, b), angular rate w:
+    :func:`_warp` and :func:`make_path`'s shapes written out with the same operations in the
+    same order (bit-identical)."""
     for k in range(out.shape[0]):
         t = (t0_s + k * dt_s) - start_s
         # _warp
@@ -357,11 +374,17 @@ def _closed_path_rows(
             s = t / 2 - math.sin(wr * t) / (2 * wr)
             ds = (1 - math.cos(wr * t)) / 2
             dds = wr * math.sin(wr * t) / 2
+        p2, dp2, ddp2 = 0.0, 0.0, 0.0
         if shape == 0:
             c, si = math.cos(w * s), math.sin(w * s)
             p0, p1 = a - a * c, a * si
             dp0, dp1 = a * w * si, a * w * c
             ddp0, ddp1 = a * w * w * c, -a * w * w * si
+        elif shape == 2:
+            p0, p1, p2 = a * math.sin(w * s), 0.0, -(b * math.sin(2 * w * s))
+            dp0, dp1, dp2 = a * w * math.cos(w * s), 0.0, -(2 * b * w * math.cos(2 * w * s))
+            ddp0, ddp1 = -a * w * w * math.sin(w * s), 0.0
+            ddp2 = 4 * b * w * w * math.sin(2 * w * s)
         else:
             p0, p1 = a * math.sin(w * s), a / 2 * math.sin(2 * w * s)
             dp0, dp1 = a * w * math.cos(w * s), a * w * math.cos(2 * w * s)
@@ -369,13 +392,13 @@ def _closed_path_rows(
             ddp1 = -2 * a * w * w * math.sin(2 * w * s)
         out[k, 0] = anchor[0] + p0
         out[k, 1] = anchor[1] + p1
-        out[k, 2] = anchor[2] + 0.0
+        out[k, 2] = anchor[2] + p2
         out[k, 3] = dp0 * ds
         out[k, 4] = dp1 * ds
-        out[k, 5] = 0.0 * ds
+        out[k, 5] = dp2 * ds
         out[k, 6] = ddp0 * ds * ds + dp0 * dds
         out[k, 7] = ddp1 * ds * ds + dp1 * dds
-        out[k, 8] = 0.0 * ds * ds + 0.0 * dds
+        out[k, 8] = ddp2 * ds * ds + dp2 * dds
 
 
 def live_reference_horizon(

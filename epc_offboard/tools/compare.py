@@ -46,6 +46,7 @@ from epc_offboard.tools.sim.report import (
     flight_failures,
     print_warnings,
     target_failures,
+    with_mean_error,
     write_json,
 )
 from epc_offboard.tools.sim.scenario import ScenarioConfig
@@ -146,7 +147,11 @@ def print_compare(summary: dict[str, Any], file: TextIO | None = None) -> None:
                 deadline_misses(v.get("loops", {})),
             ])  # fmt: skip
     title = f"{summary['scenario']}: methods side by side (ground truth)"
-    print_table(title, COMPARE_COLUMNS, rows, left=1, file=file, min_width=142)
+    columns: tuple[str, ...] = COMPARE_COLUMNS
+    vehicles = [v for rep in summary["reports"] for v in rep["vehicles"]]
+    if any("mean_error_m" in v["tracking"] for v in vehicles):
+        columns, rows = with_mean_error(columns, rows, vehicles, after=0)
+    print_table(title, columns, rows, left=1, file=file, min_width=142)
     if summary.get("note"):
         print(f"note: {summary['note']}", file=file)
     print(TICK_NOTE, file=file)

@@ -71,7 +71,7 @@ def format_metric(metric: str, value: float | None) -> str:
     """A target metric in the unit people read it in: errors in cm, speeds in m/s."""
     if value is None:
         return "-"
-    if metric in ("rmse_m", "max_error_m"):
+    if metric in ("rmse_m", "max_error_m", "mean_error_m"):
         return f"{value * 100.0:.2f} cm"
     if metric == "max_speed_m_s":
         return f"{value:.2f} m/s"

@@ -18,16 +18,29 @@ what each must achieve, measured on ground truth after the settle time (docs/CON
     vs = "pd:none"                                    # relative: value <= ratio * value(vs)
     ratio = 1.0
 
-A target whose methods were not flown in a run is "n/a", never a pass.
+A target whose methods were not flown in a run is "n/a", never a pass. A target that names a
+wind (``wind_speed_m_s``, and ``wind_profile``: steady unless given) judges only runs flown in
+that wind; in any other it is left out::
+
+    [[targets]]
+    method = "epc:lwpr"
+    metric = "mean_error_m"
+    max = 0.028
+    wind_speed_m_s = 8.5
+    wind_profile = "sine:2.4,1"                       # sim --wind-profile's syntax
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-Metric = Literal["rmse_m", "max_error_m", "max_speed_m_s", "constraint_violations"]
+from epc_offboard.common.cliargs import parse_wind_profile
+
+Metric = Literal["rmse_m", "max_error_m", "mean_error_m", "max_speed_m_s", "constraint_violations"]
+TRACKING_METRICS = ("rmse_m", "max_error_m", "mean_error_m")  # under a vehicle's "tracking"
 Verdict = Literal["PASS", "FAIL", "n/a"]
 
 CONTROLLERS = ("epc", "pd", "mpc", "px4")
@@ -59,9 +72,15 @@ class TargetConfig:
     vs: str | None = None  # or relative to another method's value
     ratio: float = 1.0
     description: str = ""
+    wind_speed_m_s: float | None = None  # judged only in this wind (None: in any)
+    wind_profile: str = "steady"  # with wind_speed_m_s: and only with this profile
 
     def __post_init__(self) -> None:
         parse_method(self.method)
+        try:
+            parse_wind_profile(self.wind_profile)
+        except argparse.ArgumentTypeError as exc:
+            raise ValueError(f"wind_profile: {exc}") from exc
         if (self.max is None) == (self.vs is None):
             raise ValueError("a target needs exactly one of `max` (absolute) or `vs` (relative)")
         if self.vs is not None:
@@ -70,6 +89,15 @@ class TargetConfig:
             raise ValueError(f"ratio must be > 0, got {self.ratio}")
         if self.max is not None and not self.max >= 0.0:
             raise ValueError(f"max must be >= 0, got {self.max}")
+
+    def applies(self, report: dict[str, Any]) -> bool:
+        """Whether a run (a sim report: its "wind") is one this target judges."""
+        if self.wind_speed_m_s is None:
+            return True
+        wind = report.get("wind", {})
+        profile = parse_wind_profile(self.wind_profile).text
+        return math.isclose(float(wind.get("speed_m_s", 0.0)), self.wind_speed_m_s,
+                            abs_tol=1e-9) and wind.get("profile", "steady") == profile  # fmt: skip
 
     @property
     def methods(self) -> tuple[str, ...]:
@@ -101,8 +129,8 @@ def metric_value(report: dict[str, Any], metric: Metric) -> float:
     """The metric over a sim report's vehicles: the worst vehicle (largest value)."""
     values = []
     for v in report["vehicles"]:
-        if metric in ("rmse_m", "max_error_m"):
-            values.append(float(v["tracking"][metric]))
+        if metric in TRACKING_METRICS:
+            values.append(float(v["tracking"].get(metric, math.nan)))
         else:
             values.append(float(v[metric]))
     return max(values)
@@ -111,9 +139,12 @@ def metric_value(report: dict[str, Any], metric: Metric) -> float:
 def evaluate(
     targets: tuple[TargetConfig, ...], reports: dict[str, dict[str, Any]]
 ) -> list[dict[str, Any]]:
-    """Verdict per target; ``reports`` maps ``controller:adaptation`` to a sim report."""
+    """Verdict per target; ``reports`` maps ``controller:adaptation`` to a sim report (of
+    one run: one wind). Targets for another wind are left out."""
     out: list[dict[str, Any]] = []
     for t in targets:
+        if reports and not t.applies(next(iter(reports.values()))):
+            continue
         row: dict[str, Any] = {
             "target": t.label(),
             "method": t.method,

@@ -355,6 +355,8 @@ def analyse(
         # offboard, since the SITL started)
         "phase_events": [{**e, "t_s": round(float(e["t_s"]) - start, 3)} for e in events],
     }
+    if "mean_error_m" in scenario.metrics:  # Neural-Fly's figure: mean |p - p_d|
+        report["tracking"]["mean_error_m"] = float(np.mean(err[use])) if np.any(use) else math.nan
     if envelope is not None:
         found, worst = _envelope_check(record, envelope, start)
         report["envelope"] = {"bounds": envelope.as_dict(), "worst": worst, "left": found}

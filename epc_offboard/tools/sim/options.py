@@ -10,10 +10,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from epc_offboard.common.cliargs import MAX_PORT
+from epc_offboard.common.cliargs import MAX_PORT, WindProfile, parse_wind_profile
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.errors import UsageError
 from epc_offboard.tools.sim.scenario import ScenarioConfig, load_scenario
@@ -34,6 +34,7 @@ class SimOptions:
     lockstep: bool = True
     wind_speed_m_s: float = 0.0
     wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (docs/CONTRACTS.md)
+    wind_profile: WindProfile = field(default_factory=WindProfile)  # steady by default
     seed: int = 0
     gcs_port: int | None = None  # None: the autopilot's usual ground-station port
     autopilot: str = "px4"
@@ -76,6 +77,7 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
     _check_combinations(args)
     scenario = _scenario(args.scenario, args.duration)
     wind = args.wind or (scenario.wind_speed_m_s, scenario.wind_dir_deg)
+    profile = args.wind_profile or parse_wind_profile(scenario.wind_profile)
     compare = None if args.compare is None else _compare_methods(args.compare, scenario)
     _check_outputs(Path(args.out), Path(args.json) if args.json else None)
     return SimOptions(
@@ -87,6 +89,7 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
         lockstep=args.lockstep,
         wind_speed_m_s=wind[0],
         wind_dir_deg=wind[1],
+        wind_profile=profile,
         seed=args.seed,
         gcs_port=args.gcs_port,
         autopilot=args.autopilot,

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.common import jit
-from epc_offboard.common.cliargs import check_port_free
+from epc_offboard.common.cliargs import WindProfile, check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.service.airframe import airframe_path, load_airframe
@@ -129,6 +129,8 @@ def service_config_for(
             "stats_path": str(run_dir / "stats.json"),
         },
     }
+    if scenario.vehicle:  # one airframe file for both: the SITL flies what the service names
+        flags["airframe"] = {"file": scenario.vehicle}
     flags["sharing"] = _sharing_flags(options, vehicle_id)
     if options.stagger:
         flags["mission"]["linger_after_landing"] = True
@@ -374,6 +376,8 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
             "--seed", str(options.seed + k - 1), "--config", str(vehicle_file(cfg)),
             "--wind", f"{options.wind_speed_m_s},{options.wind_dir_deg}",
         ]  # fmt: skip
+        if options.wind_profile != WindProfile():
+            sitl_cmd += ["--wind-profile", options.wind_profile.text]
         if options.lockstep:
             sitl_cmd.append("--lockstep")
         sitl_cmd += ["--autopilot", options.autopilot]

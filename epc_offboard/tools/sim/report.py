@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
+from epc_offboard.common.cliargs import WindProfile
 from epc_offboard.common.errors import EXIT_OK, EXIT_RUNTIME
 from epc_offboard.tools.sim.analysis import VehicleResult
 from epc_offboard.tools.sim.options import SimOptions
@@ -46,6 +47,8 @@ def make_report(options: SimOptions, results: list[VehicleResult]) -> dict[str, 
         "lockstep": bool(options.lockstep),
         "vehicles": [r.report for r in results],
     }
+    if options.wind_profile != WindProfile():
+        report["wind"]["profile"] = options.wind_profile.text
     # why the flights failed (the targets' verdicts are added by the caller that judges them)
     report["failures"] = flight_failures(report)
     return report
@@ -140,6 +143,18 @@ def report_rows(report: dict[str, Any]) -> list[list[str]]:
     return rows
 
 
+def with_mean_error(
+    columns: tuple[str, ...], rows: list[list[str]], vehicles: list[dict[str, Any]], after: int
+) -> tuple[tuple[str, ...], list[list[str]]]:
+    """``columns`` and ``rows`` (one per vehicle) with "mean cm" (mean |p - p_d|, the
+    scenario's extra metric) inserted after column ``after``."""
+    cells = [cm(v["tracking"].get("mean_error_m")) for v in vehicles]
+    return (
+        (*columns[: after + 1], "mean cm", *columns[after + 1 :]),
+        [[*r[: after + 1], c, *r[after + 1 :]] for r, c in zip(rows, cells, strict=True)],
+    )
+
+
 def _fleet_cells(fleet: dict[str, Any] | None, epc: bool) -> list[str]:
     """"fleet rcvd" and "fleet used" ("-" without EPC, or from a report without them)."""
     if not epc or not fleet:
@@ -172,7 +187,11 @@ def print_report(report: dict[str, Any], file: TextIO | None = None) -> None:
     note when it has one, and each vehicle's warnings."""
     out = file if file is not None else sys.stdout
     title = f"{report['scenario']}: {report['controller']} + {report['adaptation']}"
-    print_table(title, REPORT_COLUMNS, report_rows(report), file=out)
+    columns: tuple[str, ...] = REPORT_COLUMNS
+    rows = report_rows(report)
+    if any("mean_error_m" in v["tracking"] for v in report["vehicles"]):
+        columns, rows = with_mean_error(columns, rows, report["vehicles"], after=1)
+    print_table(title, columns, rows, file=out)
     if report.get("note"):
         print(f"note: {report['note']}", file=out)
     print(TICK_NOTE, file=out)

@@ -7,12 +7,14 @@ settle time the metrics skip, the first lap, the acceptance targets) and which m
 
 from __future__ import annotations
 
+import argparse
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from epc_offboard.common.bundled import bundled_dir
+from epc_offboard.common.cliargs import parse_wind_profile
 from epc_offboard.common.configio import ConfigError, from_dict
 from epc_offboard.control.trajectories import TrajectoryConfig
 from epc_offboard.tools.sim.envelope import EnvelopeConfig
@@ -20,6 +22,8 @@ from epc_offboard.tools.targets import CompareConfig, TargetConfig
 
 CONFIG_DIR = bundled_dir()  # the checkout's config/, shipped in the wheel
 SCENARIO_DIR = CONFIG_DIR / "scenarios"
+VEHICLE_DIR = CONFIG_DIR / "vehicles"
+EXTRA_METRICS = ("mean_error_m",)  # what a scenario may add to its report's tracking
 SITL_SERVICE_CONFIG = CONFIG_DIR / "sitl.toml"
 
 
@@ -33,6 +37,11 @@ class ScenarioConfig:
     altitude_m: float = 2.5  # the trajectory's altitude above home
     wind_speed_m_s: float = 0.0
     wind_dir_deg: float = 0.0  # towards, counter-clockwise from east (docs/CONTRACTS.md)
+    wind_profile: str = "steady"  # how the wind varies (sim --wind-profile's syntax)
+    # the SITL's airframe: a file of config/vehicles/ by name ("": the default vehicle)
+    vehicle: str = ""
+    # figures reported beyond rmse_m and max_error_m ("mean_error_m": mean |p - p_d|)
+    metrics: tuple[str, ...] = ()
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     service: dict[str, Any] = field(default_factory=dict)  # overrides of config/sitl.toml
     compare: CompareConfig = field(default_factory=CompareConfig)  # `sim --compare` methods
@@ -43,7 +52,8 @@ class ScenarioConfig:
     def climb_m(self) -> float:
         """How far the trajectory's reference climbs above ``altitude_m`` at most."""
         traj = self.trajectory
-        return max([0.0, -traj.dz_m, *(-w[2] for w in traj.waypoints_ned_m)])
+        vertical = traj.size_z_m if traj.shape == "figure8_vertical" else 0.0
+        return max([0.0, -traj.dz_m, vertical, *(-w[2] for w in traj.waypoints_ned_m)])
 
     def __post_init__(self) -> None:
         if self.duration_s <= 0.0:
@@ -52,6 +62,21 @@ class ScenarioConfig:
             raise ValueError("settle_s must be in [0, duration_s)")
         if self.lap_s < 0.0:
             raise ValueError(f"lap_s must be >= 0, got {self.lap_s}")
+        for metric in self.metrics:
+            if metric not in EXTRA_METRICS:
+                raise ValueError(f"metrics: unknown {metric!r} (known: {', '.join(EXTRA_METRICS)})")
+        if self.vehicle and not self.vehicle_file.exists():
+            known = ", ".join(sorted(p.stem for p in VEHICLE_DIR.glob("*.toml")))
+            raise ValueError(f"vehicle: no {self.vehicle!r} in {VEHICLE_DIR} (known: {known})")
+        try:
+            parse_wind_profile(self.wind_profile)
+        except argparse.ArgumentTypeError as exc:
+            raise ValueError(f"wind_profile: {exc}") from exc
+
+    @property
+    def vehicle_file(self) -> Path:
+        """The SITL's vehicle file (the scenario's ``vehicle``, else the default)."""
+        return VEHICLE_DIR / f"{self.vehicle or 'quad_x_1500g'}.toml"
 
 
 def load_scenario(name: str) -> ScenarioConfig:
