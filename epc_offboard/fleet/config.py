@@ -37,6 +37,7 @@ class SharingConfig:
     fleet_burst_messages: int = 200
     queue_size: int = 256  # peer events and frames waiting in the helper; beyond: dropped
     publish_period_s: float = 0.2  # new controllers are batched and published this often
+    publish_backlog_entries: int = 4096  # new controllers waiting for a helper with a session
     max_queued_entries: int = 8192  # controllers waiting in the helper; beyond: dropped
     candidates_per_s: float = 200.0  # received controllers the control process takes, at most
     candidate_pool_size: int = 64  # received controllers waiting to prove optimal here
@@ -66,7 +67,8 @@ class SharingConfig:
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("burst_messages", "queue_size", "max_queued_entries",
-                     "candidate_pool_size", "candidates_per_peer", "fleet_burst_messages"):
+                     "candidate_pool_size", "candidates_per_peer", "fleet_burst_messages",
+                     "publish_backlog_entries"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 <= self.helper_nice <= 19:

@@ -411,6 +411,7 @@ class FleetSession:
         kind = task[0]
         if kind == "publish":
             self.publish(task[1], task[2])
+            self.counters.set("publish_seq_done", task[3])  # the control process may forget it
         elif kind == "snapshot":
             self.prepare_snapshot(task[1], task[2], task[3])
         elif kind == "peer":
@@ -658,6 +659,8 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
         counters.set("state", -1)
         log.error("fleet session could not open: %s", exc)
         return
+    # beat before saying open: a state of 1 with no beat yet reads as a helper long silent
+    counters.set("heartbeat_ns", time.monotonic_ns())
     counters.set("state", 1)
     stop = threading.Event()
     def counter(name: str) -> Callable[[], None]:
