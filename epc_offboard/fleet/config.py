@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from epc_offboard.fleet.wire import NAME_RE
 
@@ -30,6 +31,9 @@ class SharingConfig:
     connect: tuple[str, ...] = ()  # e.g. "tcp/192.168.1.12:7447", "tls/router.local:7447"
     scouting_multicast: bool = False  # discover peers by UDP multicast (off: explicit only)
     zenoh_config_file: str = ""  # a Zenoh JSON5 config, loaded first
+    # Zenoh config keys set on top of the file (path -> value), e.g. this vehicle's
+    # "transport/link/tls/connect_certificate" or "transport/auth/usrpwd/user"
+    zenoh_overrides: dict[str, Any] = field(default_factory=dict)
     max_payload_bytes: int = 262_144  # larger payloads are dropped before decoding
     max_messages_per_s: float = 20.0  # per peer, token bucket refill
     burst_messages: int = 40  # per peer, token bucket depth
@@ -79,6 +83,16 @@ class SharingConfig:
                 "candidate_backlog_size / candidate_backlog_per_peer must be >= "
                 "candidate_pool_size / candidates_per_peer (the backlog holds the pool's too)"
             )
+        if self.mode == "client" and self.listen:
+            raise ValueError("a Zenoh client does not listen: leave listen empty (mode client)")
+        import zenoh  # here, not at the top: the config loads without opening anything
+
+        probe = zenoh.Config()
+        for path, value in self.zenoh_overrides.items():
+            try:  # an unknown Zenoh key is an error now, not when the session opens
+                probe.insert_json5(path, json.dumps(value))
+            except Exception as exc:  # zenoh's own error type, or a value json cannot write
+                raise ValueError(f"zenoh_overrides.{path}: {exc}") from exc
         for ep in (*self.listen, *self.connect):
             if "/" not in ep:
                 raise ValueError(f"endpoint {ep!r} must look like PROTOCOL/ADDRESS:PORT")

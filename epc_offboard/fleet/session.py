@@ -341,6 +341,8 @@ class FleetSession:
             if cfg.zenoh_config_file
             else (zenoh.Config())
         )
+        for path, value in cfg.zenoh_overrides.items():
+            conf.insert_json5(path, json.dumps(value))
         conf.insert_json5("mode", json.dumps(cfg.mode))
         if cfg.listen:
             conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
@@ -655,7 +657,8 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
     )  # fmt: skip
     try:
         session.open(args.snapshots)
-    except Exception as exc:
+    except Exception as exc:  # refused by the router (TLS, credentials), no route, bad config
+        counters.add("session_open_failures")
         counters.set("state", -1)
         log.error("fleet session could not open: %s", exc)
         return
