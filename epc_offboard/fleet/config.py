@@ -18,9 +18,11 @@ class SharingConfig:
     process); the control process takes at most ``candidates_per_s`` received controllers a
     second from it, already decoded. Keys: ``epc/<fleet>/<signature>/{ctl,lib,alive}/<id>``.
     Only vehicles whose problems have identical signatures exchange controllers, and a
-    received controller is applied only where the local KKT check passes. For TLS/mTLS and
-    access control give a Zenoh JSON5 file in ``zenoh_config_file``; the keys below are set
-    on top of it.
+    received controller is applied only where the local KKT check passes. For TLS/mTLS,
+    user-password and access control give a Zenoh JSON5 file in ``zenoh_config_file``
+    (config/zenoh/client-*.json5); ``zenoh_overrides`` and then the keys below are set on top
+    of it. ``mode = "client"``: ``connect`` the fleet's routers (``epc-offboard fleet
+    router`` or zenohd), no ``listen``.
     """
 
     enabled: bool = False
