@@ -72,9 +72,10 @@ class Pki:
 class Router:
     """`epc-offboard fleet router` in a process of its own; its JSON stats lines, read."""
 
-    def __init__(self, proc: subprocess.Popen[str], endpoint: str) -> None:
+    def __init__(self, proc: subprocess.Popen[str], endpoint: str, port: int) -> None:
         self.proc = proc
         self.endpoint = endpoint
+        self.port = port
         self.lines: list[dict[str, Any]] = []
         self._thread = threading.Thread(target=self._read, daemon=True)
         self._thread.start()
@@ -94,25 +95,28 @@ class Router:
 
 
 @contextlib.contextmanager
-def router(tmp_path: Path, config: str, cfg: dict[str, Any], tls: bool) -> Iterator[Router]:
-    port = free_tcp_port()
+def router(
+    tmp_path: Path, config: str, cfg: dict[str, Any], tls: bool, port: int = 0
+) -> Iterator[Router]:
+    port = port or free_tcp_port()
     endpoint = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
     args = [sys.executable, "-m", "epc_offboard", "fleet", "router", "--listen", endpoint,
             "--config", str(ZENOH_DIR / config), "--stats-every", "0.3"]  # fmt: skip
     for path, value in cfg.items():
         args += ["--cfg", f"{path}:{json.dumps(value)}"]
-    with (tmp_path / f"router-{port}.log").open("w") as log:
+    log_path = tmp_path / f"router-{port}-{time.monotonic_ns()}.log"
+    with log_path.open("w") as log:
         proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=log, text=True, cwd=REPO)
-    r = Router(proc, endpoint)
+    r = Router(proc, endpoint, port)
     try:
         deadline = time.monotonic() + 60
         while not any(s["event"] == "started" for s in r.lines):
-            assert proc.poll() is None, (tmp_path / f"router-{port}.log").read_text()
+            assert proc.poll() is None, log_path.read_text()
             assert time.monotonic() < deadline, "the router did not start"
             time.sleep(0.05)
         yield r
     finally:
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signal.SIGTERM)  # (a test may have stopped it already)
         try:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
@@ -280,3 +284,28 @@ def test_zenoh_overrides_unknown_keys_are_config_errors():
     with pytest.raises(ValueError, match="client does not listen"):
         SharingConfig(mode="client", listen=("tcp/127.0.0.1:7447",))
 
+
+
+def test_vehicles_rejoin_a_restarted_router_and_catch_up(tmp_path):
+    """A router that restarts (same endpoint) is rejoined by its clients; what a vehicle
+    learned while it was down reaches the others (the library query on a peer's return)."""
+
+    async def main() -> None:
+        a, b = controller(), controller()
+        with router(tmp_path, "router.json5", {}, tls=False) as r:
+            async with (
+                vehicle(vehicle_config("v1", r, "client.json5"), a),
+                vehicle(vehicle_config("v2", r, "client.json5"), b),
+            ):
+                s1 = learn_new(a, TARGETS[0])
+                await until(lambda: s1 in b.candidates, "v1 -> v2")
+                r.proc.send_signal(signal.SIGTERM)
+                r.proc.wait(timeout=10)
+                s2 = learn_new(a, TARGETS[1])  # published into a fleet with no router
+                await asyncio.sleep(0.5)
+                with router(tmp_path, "router.json5", {}, tls=False, port=r.port) as r2:
+                    await until(lambda: s2 in b.candidates, "v1 -> v2 after the restart", 60)
+                    await until(lambda: r2.stats().get("sessions", {}).get("client", 0) == 2,
+                                "both clients in the restarted router's stats")  # fmt: skip
+
+    asyncio.run(main())
