@@ -222,6 +222,14 @@ def _add_bench(sub: _Subparsers) -> None:
         "pymavlink's parser against the header-first path (ratios printed)",
     )
     bench.add_argument(
+        "--fleet",
+        action="store_true",
+        help="instead: N light vehicles (the real sharing stack, no physics) through one "
+        "`fleet router`: discovery, propagation p50/p99, CPU shares",
+    )
+    bench.add_argument("--vehicles", type=int, default=5, metavar="N",
+                       help="with --fleet: how many vehicles")  # fmt: skip
+    bench.add_argument(
         "--lwpr",
         action="store_true",
         help="instead: LWPR's cost per control tick, compiled against the numpy reference "
