@@ -309,3 +309,19 @@ def test_vehicles_rejoin_a_restarted_router_and_catch_up(tmp_path):
                                 "both clients in the restarted router's stats")  # fmt: skip
 
     asyncio.run(main())
+
+
+@pytest.mark.slow
+def test_the_fleet_bench_runs_three_vehicles_through_a_router(tmp_path):
+    """`bench --fleet`'s shape and its bookkeeping: every pair's controller arrives, every
+    vehicle discovers the others (figures are the bench's, not asserted here)."""
+    from epc_offboard.cli import main
+
+    out = tmp_path / "fleet.json"
+    assert main(["bench", "--fleet", "--vehicles", "3", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["sessions_failed"] == 0
+    assert report["discovered"] == 3
+    assert report["propagation_s"]["received"] == report["propagation_s"]["pairs"] == 6
+    assert 0 < report["propagation_s"]["p50"] <= report["propagation_s"]["max"]
+    assert report["router"]["event"] == "stopped"
