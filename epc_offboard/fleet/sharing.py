@@ -75,6 +75,7 @@ _TURN_S = 0.05  # the library-sharing task's period: candidates, references, the
 _MAX_OUTBOX_BYTES = 4 << 20  # frames to the helper waiting in this process, at most
 _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is restarted
 _REFERENCES_PER_READ = 4  # the newest of these is kept
+_FRAME_ENTRIES = 512  # controllers in one publish frame: far below the outbox's bound
 
 
 @dataclass(frozen=True)
@@ -117,7 +118,7 @@ class PublishBacklog:
             index = self._waiting[0][0]
             items: list[tuple[int, LibraryEntry]] = []
             for item in self._waiting:
-                if item[0] != index:
+                if item[0] != index or len(items) >= _FRAME_ENTRIES:
                     break
                 items.append(item)
             seq = self._seq + 1
