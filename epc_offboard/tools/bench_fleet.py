@@ -111,8 +111,11 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, queue: Any) -> dict[str, Any]:
         queue.put({"opened": a.k})
         task = asyncio.create_task(sharing.run())
         learned = False
+        cpu_at_go: tuple[float, float, float] | None = None  # (t, control cpu_s, helper cpu_s)
         while go_s.value == 0.0 or time.monotonic() < go_s.value + a.n * _SLOT_S + _TAIL_S:
             now = time.monotonic()
+            if cpu_at_go is None and go_s.value and now >= go_s.value:
+                cpu_at_go = (now, _cpu_s(None), _cpu_s(sharing.helper_pid()))
             if "all_peers_s" not in out and sharing.stats().get("peers", 0) >= a.n - 1:
                 out["all_peers_s"] = now
             if not learned and go_s.value and now >= go_s.value + a.k * _SLOT_S:
@@ -126,8 +129,19 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, queue: Any) -> dict[str, Any]:
         out["stats"] = sharing.stats()
         out["helper"] = sharing.process_stats()
         out["control"] = process_report(os.getpid())
+        if cpu_at_go is not None:  # the CPU share while the fleet shares, not over start-up
+            window = time.monotonic() - cpu_at_go[0]
+            out["control_share"] = (_cpu_s(None) - cpu_at_go[1]) / window
+            out["helper_share"] = (_cpu_s(sharing.helper_pid()) - cpu_at_go[2]) / window
         task.cancel()
     return out
+
+
+def _cpu_s(pid: int | None) -> float:
+    """CPU seconds of ``pid`` (None: this process)."""
+    from epc_offboard.common.procstats import process_report
+
+    return float(process_report(pid if pid is not None else os.getpid()).get("cpu_s", 0.0))
 
 
 def _free_port() -> int:
@@ -167,9 +181,12 @@ def run_fleet_bench(n: int, start_timeout_s: float = 600.0) -> dict[str, Any]:
         for _ in procs[wave : wave + _WAVE]:
             results.get(timeout=start_timeout_s)
     go_s.value = time.monotonic() + _SETTLE_S
+    router_cpu_at_go = (go_s.value, _cpu_s(router.pid))
     reports = [results.get(timeout=_SETTLE_S + n * _SLOT_S + _TAIL_S + 120.0) for _ in procs]
     for p in procs:
         p.join(timeout=10)
+    router_share = (_cpu_s(router.pid) - router_cpu_at_go[1]) / (time.monotonic()
+                                                                    - router_cpu_at_go[0])
     router.send_signal(signal.SIGTERM)
     router_stats: dict[str, Any] = {}
     for line in router.stdout:
@@ -193,11 +210,12 @@ def run_fleet_bench(n: int, start_timeout_s: float = 600.0) -> dict[str, Any]:
         "discovery_s": {"max": _pct(disc, 100), "p50": _pct(disc, 50)},
         "propagation_s": {"pairs": pairs, "received": len(lat), "p50": _pct(lat, 50),
                           "p99": _pct(lat, 99), "max": _pct(lat, 100)},
+        # of one core, from slot 0 to the end (process_report's CPU ticks: 10 ms resolution)
         "cpu_share": {
-            "router": router_stats.get("cpu_share"),
-            "control_p50": _pct([r["control"].get("cpu_share", 0.0) for r in reports], 50),
-            "helper_p50": _pct([r["helper"].get("cpu_share", 0.0) for r in reports], 50),
-            "helper_max": _pct([r["helper"].get("cpu_share", 0.0) for r in reports], 100),
+            "router": round(router_share, 4),
+            "control_p50": _pct([r.get("control_share", 0.0) for r in reports], 50),
+            "helper_p50": _pct([r.get("helper_share", 0.0) for r in reports], 50),
+            "helper_max": _pct([r.get("helper_share", 0.0) for r in reports], 100),
         },
         "router": router_stats,
         "load_1min": os.getloadavg()[0],
