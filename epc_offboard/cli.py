@@ -227,8 +227,8 @@ def _add_bench(sub: _Subparsers) -> None:
         help="instead: N light vehicles (the real sharing stack, no physics) through one "
         "`fleet router`: discovery, propagation p50/p99, CPU shares",
     )
-    bench.add_argument("--vehicles", type=int, default=5, metavar="N",
-                       help="with --fleet: how many vehicles")  # fmt: skip
+    bench.add_argument("--vehicles", type=_sizes, default=[5], metavar="N[,N...]",
+                       help="with --fleet: vehicles, e.g. 5,10,25,50 (one run each)")  # fmt: skip
     bench.add_argument(
         "--lwpr",
         action="store_true",
@@ -273,6 +273,17 @@ def _add_figures(sub: _Subparsers) -> None:
                          help="the README to rewrite")  # fmt: skip
     figures.add_argument("--work", default="out/readme", metavar="DIR",
                          help="where the flights write their full output")  # fmt: skip
+
+
+def _sizes(text: str) -> list[int]:
+    """``5`` or ``5,10,25,50``: fleet sizes of at least 2."""
+    try:
+        sizes = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N or N,N,...: {text!r}") from None
+    if not sizes or min(sizes) < 2:
+        raise argparse.ArgumentTypeError(f"fleet sizes must be >= 2: {text!r}")
+    return sizes
 
 
 def _add_fleet(sub: _Subparsers) -> None:

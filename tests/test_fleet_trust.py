@@ -325,3 +325,4 @@ def test_the_fleet_bench_runs_three_vehicles_through_a_router(tmp_path):
     assert report["propagation_s"]["received"] == report["propagation_s"]["pairs"] == 6
     assert 0 < report["propagation_s"]["p50"] <= report["propagation_s"]["max"]
     assert report["router"]["event"] == "stopped"
+    assert (tmp_path / "fleet.png").stat().st_size > 0  # the figure beside it

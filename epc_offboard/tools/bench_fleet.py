@@ -222,11 +222,46 @@ def run_fleet_bench(n: int, start_timeout_s: float = 600.0) -> dict[str, Any]:
     }
 
 
-def run_fleet_bench_command(n: int, json_path: str | None) -> int:
-    report = run_fleet_bench(n)
-    print(json.dumps({k: v for k, v in report.items() if k != "router"}, indent=2))
+def write_figure(runs: list[dict[str, Any]], path: str) -> None:
+    """Propagation (p50, p99) and CPU shares against N."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = [r["vehicles"] for r in runs]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.2))
+    for q in ("p50", "p99"):
+        ax1.plot(n, [1e3 * (r["propagation_s"][q] or 0.0) for r in runs], "o-", label=q)
+    ax1.set_xlabel("vehicles through one router")
+    ax1.set_ylabel("solve -> receiver's control process, ms")
+    ax1.legend(fontsize=8)
+    for key, label in (("helper_p50", "fleet helper (p50 of vehicles)"),
+                       ("control_p50", "control process (p50)"), ("router", "router")):
+        ax2.plot(n, [100 * (r["cpu_share"][key] or 0.0) for r in runs], "o-", label=label)
+    ax2.set_xlabel("vehicles through one router")
+    ax2.set_ylabel("% of one core while sharing")
+    ax2.legend(fontsize=8)
+    loads = ", ".join(f"{r['load_1min']:.0f}" for r in runs)
+    fig.suptitle(f"bench --fleet (machine load {loads})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_fleet_bench_command(sizes: list[int], json_path: str | None) -> int:
+    """One run per N in ``sizes``; with ``json_path`` the report (one run: its dict; several:
+    ``{"runs": [...]}``) and a figure beside it (FILE with .png)."""
+    runs = []
+    for n in sizes:
+        report = run_fleet_bench(n)
+        print(json.dumps({k: v for k, v in report.items() if k != "router"}, indent=2))
+        runs.append(report)
     if json_path:
         with open(json_path, "w", encoding="utf-8") as fh:
-            json.dump(report, fh, indent=2)
+            json.dump(runs[0] if len(runs) == 1 else {"runs": runs}, fh, indent=2)
             fh.write("\n")
+        figure = os.path.splitext(json_path)[0] + ".png"
+        write_figure(runs, figure)
+        print(f"report: {json_path}  figure: {figure}")
     return 0
