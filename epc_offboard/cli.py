@@ -34,6 +34,7 @@ _COMMANDS = {
     "db": "epc_offboard.tools.db:run_db_command",
     "log": "epc_offboard.tools.logexport:run_log_command",
     "figures": "epc_offboard.tools.readme:run_figures_command",
+    "fleet": "epc_offboard.fleet.router:run_router_command",
 }
 
 
@@ -80,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_db_arguments(db)
     _add_log(sub)
     _add_figures(sub)
+    _add_fleet(sub)
     return parser
 
 
@@ -242,6 +244,14 @@ def _add_bench(sub: _Subparsers) -> None:
         help="with --attack: quaternion (config/default.toml's) or body rates (config/sitl.toml's)",
     )  # fmt: skip
     bench.add_argument(
+        "--fleet",
+        action="store_true",
+        help="instead: N light vehicles (the real sharing stack, no physics) through one "
+        "`fleet router`: discovery, propagation p50/p99, CPU shares",
+    )
+    bench.add_argument("--vehicles", type=_sizes, default=[5], metavar="N[,N...]",
+                       help="with --fleet: vehicles, e.g. 5,10,25,50 (one run each)")  # fmt: skip
+    bench.add_argument(
         "--lwpr",
         action="store_true",
         help="instead: LWPR's cost per control tick, compiled against the numpy reference "
@@ -285,6 +295,44 @@ def _add_figures(sub: _Subparsers) -> None:
                          help="the README to rewrite")  # fmt: skip
     figures.add_argument("--work", default="out/readme", metavar="DIR",
                          help="where the flights write their full output")  # fmt: skip
+
+
+def _sizes(text: str) -> list[int]:
+    """``5`` or ``5,10,25,50``: fleet sizes of at least 2."""
+    try:
+        sizes = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N or N,N,...: {text!r}") from None
+    if not sizes or min(sizes) < 2:
+        raise argparse.ArgumentTypeError(f"fleet sizes must be >= 2: {text!r}")
+    return sizes
+
+
+def _add_fleet(sub: _Subparsers) -> None:
+    fleet = sub.add_parser(
+        "fleet",
+        help="fleet infrastructure: a Zenoh router the vehicles connect to as clients",
+        formatter_class=_HelpFormatter,
+    )
+    what = fleet.add_subparsers(dest="fleet_command", required=True, metavar="WHAT")
+    router = what.add_parser(
+        "router",
+        help="run a Zenoh router (any Zenoh client can use it); stats as JSON lines",
+        description="A Zenoh session in router mode (TLS, mTLS, user-password and access "
+        "control from its JSON5 config). Prints one JSON line of stats (sessions, refusals, "
+        "CPU) every --stats-every seconds and answers them on epc/router/<zid>/stats.",
+        formatter_class=_HelpFormatter,
+    )
+    router.add_argument("--listen", action="append", metavar="ENDPOINT",
+                        help="e.g. tcp/0.0.0.0:7447 or tls/0.0.0.0:7447 (repeatable)")  # fmt: skip
+    router.add_argument("--config", metavar="FILE", help="a Zenoh JSON5 config, loaded first")
+    router.add_argument("--cfg", action="append", metavar="PATH:VALUE",
+                        help="set one Zenoh config key (JSON5 value), as zenohd's --cfg, e.g. "
+                        "'transport/auth/usrpwd/dictionary_file:\"/etc/zenoh/pw\"'")  # fmt: skip
+    router.add_argument("--stats-every", type=positive_number, default=10.0, metavar="S",
+                        help="seconds between stats lines")  # fmt: skip
+    router.add_argument("--multicast-scouting", action="store_true",
+                        help="answer and send UDP multicast scouting (off: explicit endpoints)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

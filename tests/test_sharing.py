@@ -25,6 +25,7 @@ from epc_offboard.fleet.wire import (
     ControllerMessage,
     MessageKind,
     ReferenceMessage,
+    decode_controllers,
     encode_controllers,
     encode_reference,
 )
@@ -172,9 +173,6 @@ def test_a_peer_with_another_problem_signature_is_ignored():
             peer(config("b", pb, [pa, pd]), b),
             peer(config("d", pd, [pa, pb]), d) as sd,
         ):
-            # d's helper must have its session before d learns: a controller handed to a
-            # helper still starting is not published (a known gap of the fleet helper)
-            await until(sd.helper_running, "d's fleet helper")
             learn(d, TARGETS[0])
             aset = learn(a, TARGETS[1])
             await until(lambda: aset in b.candidates, "a -> b")
@@ -673,3 +671,101 @@ def test_a_wedged_or_killed_fleet_helper_is_restarted_and_sharing_resumes():
             await until(lambda: s2 in b.candidates, "sharing after the restarts", timeout_s=60)
 
     asyncio.run(main())
+
+
+def learn_new(ctrl: ExperienceController, target) -> tuple[int, ...]:
+    """Like :func:`learn`, returning the one active set the tick added."""
+    before = {e.active_set for e in ctrl.export_library()}
+    learn(ctrl, target)
+    (new,) = {e.active_set for e in ctrl.export_library()} - before
+    return new
+
+
+@pytest.mark.timeout(240)  # three helpers' starts, two restart waits: on a loaded machine
+def test_controllers_handed_while_no_helper_has_its_session_are_published_once_one_has():
+    """Issue 21's gap: a controller learned while the helper is starting, dead, or wedged
+    with it unread in its pipe, reaches the fleet once a helper has its session."""
+    import os
+    import signal
+
+    async def main() -> None:
+        pa, praw = free_tcp_port(), free_tcp_port()
+        a = controller()
+        sig = a.problem.signature()
+        heard: set[tuple[int, ...]] = set()
+
+        def on_batch(sample: zenoh.Sample) -> None:
+            msg = decode_controllers(sample.payload.to_bytes(), max_payload_bytes=1 << 20,
+                                     expect_signature=sig)  # fmt: skip
+            heard.update(e.active_set for e in msg.entries)
+
+        raw_cfg = zenoh.Config()
+        raw_cfg.insert_json5("listen/endpoints", json.dumps([endpoint(praw)]))
+        raw_cfg.insert_json5("scouting/multicast/enabled", "false")
+        # a connects to the listener: every helper of a's dials it as its session opens
+        cfg = config("a", pa, [praw], helper_timeout_s=2.0, helper_restart_max_s=4.0)
+        with zenoh.open(raw_cfg) as raw:
+            raw.declare_subscriber(f"epc/{FLEET}/{sig}/ctl/a", on_batch)
+            sharing = FleetSharing(cfg, [("position", a)])
+            opening = asyncio.create_task(sharing.open())
+            try:
+                # 1. handed before the first session opens
+                await asyncio.sleep(0)
+                assert not sharing.helper_running()
+                s1 = learn_new(a, TARGETS[0])
+                assert sharing.publish_new() == 1
+                await opening
+                task = asyncio.create_task(sharing.run(), name="library-sharing")
+                await until(lambda: s1 in heard, "the controller learned while starting")
+                # 2. learned while the helper is dead, before the next one has a session
+                pid = sharing.helper_pid()
+                assert pid is not None
+                os.kill(pid, signal.SIGKILL)
+                await until(lambda: not sharing.helper_running(), "the death seen")
+                s2 = learn_new(a, TARGETS[1])
+                await until(lambda: s2 in heard, "the controller learned while dead", 60)
+                # 3. handed to a wedged helper (in its pipe, unread) that is then replaced
+                await until(sharing.helper_running, "the restarted helper")
+                pid = sharing.helper_pid()
+                assert pid is not None
+                os.kill(pid, signal.SIGSTOP)
+                s3 = learn_new(a, TARGETS[2])
+                await until(lambda: sharing.helper_pid() != pid, "the wedged helper replaced")
+                await until(lambda: s3 in heard, "the controller handed to the wedged one", 60)
+                stats = sharing.stats()
+                assert stats["publish_dropped"] == 0
+                assert stats["publish_requeued"] >= 1  # s3, taken back from the wedged one
+                assert stats["helper_restarts"] >= 2
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+            finally:
+                sharing.close()
+
+    asyncio.run(main())
+
+
+def test_the_publish_backlog_is_bounded_drops_the_oldest_and_requeues_in_order():
+    from epc_offboard.fleet.sharing import PublishBacklog
+
+    log = PublishBacklog(max_entries=3)
+    e = [LibraryEntry((k,)) for k in range(6)]
+    log.add(0, e[:2])
+    log.add(1, e[2:4])  # 4 > 3: e[0] dropped
+    assert (len(log), log.dropped) == (3, 1)
+    sent: list[tuple] = []
+
+    def take(frame: tuple) -> bool:
+        sent.append(frame)
+        return True
+
+    assert log.hand_off(take) == 3
+    assert [(f[1], f[2], f[3]) for f in sent] == [(0, [e[1]], 1), (1, e[2:4], 2)]
+    log.done(1)  # the helper handled frame 1, then died
+    assert log.requeue() == 2
+    log.add(0, e[4:6])  # 4 > 3: the oldest (e[2]) goes
+    assert log.dropped == 2
+    sent.clear()
+    assert log.hand_off(lambda f: False) == 0  # refused (a full pipe): kept
+    log.hand_off(take)
+    assert [(f[1], f[2], f[3]) for f in sent] == [(1, [e[3]], 3), (0, e[4:6], 4)]

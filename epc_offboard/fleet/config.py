@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from epc_offboard.fleet.wire import NAME_RE
 
@@ -19,9 +20,11 @@ class SharingConfig:
     :class:`~epc_offboard.control.candidate_pool.CandidatePoolConfig`).
     Keys: ``epc/<fleet>/<signature>/{ctl,lib,alive}/<id>``.
     Only vehicles whose problems have identical signatures exchange controllers, and a
-    received controller is applied only where the local KKT check passes. For TLS/mTLS and
-    access control give a Zenoh JSON5 file in ``zenoh_config_file``; the keys below are set
-    on top of it.
+    received controller is applied only where the local KKT check passes. For TLS/mTLS,
+    user-password and access control give a Zenoh JSON5 file in ``zenoh_config_file``
+    (config/zenoh/client-*.json5); ``zenoh_overrides`` and then the keys below are set on top
+    of it. ``mode = "client"``: ``connect`` the fleet's routers (``epc-offboard fleet
+    router`` or zenohd), no ``listen``.
     """
 
     enabled: bool = False
@@ -32,6 +35,9 @@ class SharingConfig:
     connect: tuple[str, ...] = ()  # e.g. "tcp/192.168.1.12:7447", "tls/router.local:7447"
     scouting_multicast: bool = False  # discover peers by UDP multicast (off: explicit only)
     zenoh_config_file: str = ""  # a Zenoh JSON5 config, loaded first
+    # Zenoh config keys set on top of the file (path -> value), e.g. this vehicle's
+    # "transport/link/tls/connect_certificate" or "transport/auth/usrpwd/user"
+    zenoh_overrides: dict[str, Any] = field(default_factory=dict)
     max_payload_bytes: int = 262_144  # larger payloads are dropped before decoding
     max_messages_per_s: float = 20.0  # per peer, token bucket refill
     burst_messages: int = 40  # per peer, token bucket depth
@@ -39,6 +45,7 @@ class SharingConfig:
     fleet_burst_messages: int = 200
     queue_size: int = 256  # peer events and frames waiting in the helper; beyond: dropped
     publish_period_s: float = 0.2  # new controllers are batched and published this often
+    publish_backlog_entries: int = 4096  # new controllers waiting for a helper with a session
     max_queued_entries: int = 8192  # controllers waiting in the helper; beyond: dropped
     candidates_per_s: float = 200.0  # received controllers the control process takes, at most
     candidate_slice_s: float = 0.005  # worker CPU time per slice of candidate factorisations
@@ -64,11 +71,21 @@ class SharingConfig:
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("burst_messages", "queue_size", "max_queued_entries",
-                     "fleet_burst_messages"):
+                     "fleet_burst_messages", "publish_backlog_entries"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 <= self.helper_nice <= 19:
             raise ValueError(f"helper_nice must be in 0..19, got {self.helper_nice}")
+        if self.mode == "client" and self.listen:
+            raise ValueError("a Zenoh client does not listen: leave listen empty (mode client)")
+        import zenoh  # here, not at the top: the config loads without opening anything
+
+        probe = zenoh.Config()
+        for path, value in self.zenoh_overrides.items():
+            try:  # an unknown Zenoh key is an error now, not when the session opens
+                probe.insert_json5(path, json.dumps(value))
+            except Exception as exc:  # zenoh's own error type, or a value json cannot write
+                raise ValueError(f"zenoh_overrides.{path}: {exc}") from exc
         for ep in (*self.listen, *self.connect):
             if "/" not in ep:
                 raise ValueError(f"endpoint {ep!r} must look like PROTOCOL/ADDRESS:PORT")

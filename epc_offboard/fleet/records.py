@@ -159,5 +159,7 @@ STAT_NAMES = (
     "references_received", "reference_rejected", "references_superseded",
     "references_forwarded",
     "tasks_dropped",
+    "publish_seq_done",  # the last publish frame the helper handled (the control's number)
+    "session_open_failures",  # sessions that did not open (a router's refusal among them)
 )  # fmt: skip
 STAT_INDEX = {name: i for i, name in enumerate(STAT_NAMES)}

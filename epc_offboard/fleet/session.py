@@ -348,6 +348,8 @@ class FleetSession:
             if cfg.zenoh_config_file
             else (zenoh.Config())
         )
+        for path, value in cfg.zenoh_overrides.items():
+            conf.insert_json5(path, json.dumps(value))
         conf.insert_json5("mode", json.dumps(cfg.mode))
         if cfg.listen:
             conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
@@ -418,6 +420,7 @@ class FleetSession:
         kind = task[0]
         if kind == "publish":
             self.publish(task[1], task[2])
+            self.counters.set("publish_seq_done", task[3])  # the control process may forget it
         elif kind == "snapshot":
             self.prepare_snapshot(task[1], task[2], task[3])
         elif kind == "peer":
@@ -663,10 +666,13 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
     )  # fmt: skip
     try:
         session.open(args.snapshots)
-    except Exception as exc:
+    except Exception as exc:  # refused by the router (TLS, credentials), no route, bad config
+        counters.add("session_open_failures")
         counters.set("state", -1)
         log.error("fleet session could not open: %s", exc)
         return
+    # beat before saying open: a state of 1 with no beat yet reads as a helper long silent
+    counters.set("heartbeat_ns", time.monotonic_ns())
     counters.set("state", 1)
     stop = threading.Event()
     def counter(name: str) -> Callable[[], None]:

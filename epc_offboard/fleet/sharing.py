@@ -40,8 +40,8 @@ import math
 import multiprocessing
 import os
 import time
-from collections import Counter
-from collections.abc import Sequence
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +53,7 @@ from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.epc import MAX_SUCCESSORS, ExperienceController
+from epc_offboard.control.library import LibraryEntry
 from epc_offboard.fleet import keys
 from epc_offboard.fleet.config import SharingConfig
 from epc_offboard.fleet.records import (
@@ -77,12 +78,79 @@ _TURN_S = 0.05  # the library-sharing task's period: candidates, references, the
 _MAX_OUTBOX_BYTES = 4 << 20  # frames to the helper waiting in this process, at most
 _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is restarted
 _REFERENCES_PER_READ = 4  # the newest of these is kept
+_FRAME_ENTRIES = 512  # controllers in one publish frame: far below the outbox's bound
 
 
 @dataclass(frozen=True)
 class LiveReference:
     message: ReferenceMessage
     received_s: float  # time.monotonic() at arrival (in the helper: the same clock)
+
+
+class PublishBacklog:
+    """This vehicle's new controllers on their way to the fleet, kept until a helper with an
+    open session has published them.
+
+    Entries wait here (at most ``max_entries``; beyond, the oldest are dropped and counted)
+    while no helper has its session: one starting, one being restarted, none at all. They
+    are handed to a running helper as numbered ``publish`` frames and kept until it reports
+    (``publish_seq_done``) that it has handled that number; a helper that dies first leaves
+    them to be handed again to the next one, in order. Without this, what was learned while
+    a helper was down, or sat unread in a dead helper's pipe, never reached the fleet.
+    """
+
+    def __init__(self, max_entries: int) -> None:
+        self.max_entries = max_entries
+        self._waiting: deque[tuple[int, LibraryEntry]] = deque()  # (problem index, entry)
+        self._handed: deque[tuple[int, list[tuple[int, LibraryEntry]]]] = deque()  # by seq
+        self._seq = 0  # the last frame number given; never reused, across helpers
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self._waiting) + sum(len(items) for _, items in self._handed)
+
+    def add(self, index: int, entries: Sequence[LibraryEntry]) -> None:
+        self._waiting.extend((index, e) for e in entries)
+        self._trim()
+
+    def hand_off(self, send: Callable[[tuple[Any, ...]], bool]) -> int:
+        """Send what waits as ``("publish", index, entries, seq)`` frames, one per run of a
+        problem; stops at the first frame ``send`` refuses. Returns the entries handed."""
+        handed = 0
+        while self._waiting:
+            index = self._waiting[0][0]
+            items: list[tuple[int, LibraryEntry]] = []
+            for item in self._waiting:
+                if item[0] != index or len(items) >= _FRAME_ENTRIES:
+                    break
+                items.append(item)
+            seq = self._seq + 1
+            if not send(("publish", index, [e for _, e in items], seq)):
+                break
+            self._seq = seq
+            for _ in items:
+                self._waiting.popleft()
+            self._handed.append((seq, items))
+            handed += len(items)
+        return handed
+
+    def done(self, seq: int) -> None:
+        """The helper has handled every frame numbered up to ``seq``."""
+        while self._handed and self._handed[0][0] <= seq:
+            self._handed.popleft()
+
+    def requeue(self) -> int:
+        """The helper died: what it had not handled waits again, first. Returns how many."""
+        back = [item for _, items in self._handed for item in items]
+        self._handed.clear()
+        self._waiting.extendleft(reversed(back))
+        self._trim()
+        return len(back)
+
+    def _trim(self) -> None:
+        while len(self._waiting) > self.max_entries:
+            self._waiting.popleft()
+            self.dropped += 1
 
 
 @dataclass
@@ -150,6 +218,7 @@ class FleetSharing:
         self._budget_at_s = time.monotonic()
         self._dirty = [True] * len(self._controllers)
         self._reference: LiveReference | None = None
+        self._backlog = PublishBacklog(cfg.publish_backlog_entries)
 
     def _per_turn(self) -> int:
         return max(1, math.ceil(self.cfg.candidates_per_s * _TURN_S))
@@ -200,6 +269,7 @@ class FleetSharing:
                           self.share_library, self.subscribe_reference, snapshots, os.getpid(),
                           self.log_cfg, self.candidates.backlog_per_peer)  # fmt: skip
         self._slots[STAT_INDEX["state"]] = 0
+        self._slots[STAT_INDEX["heartbeat_ns"]] = 0  # the dead one's beat is not this one's
         proc = self._ctx.Process(
             target=helper_main, args=(args, self._slots_raw, cand_w, ref_w, frames_r),
             name="epc-fleet", daemon=True,
@@ -271,6 +341,7 @@ class FleetSharing:
                 self._budget -= len(records)
                 offered = self._offer(records)
             helper.outbox.flush()
+            self._hand_off()
         except ChannelClosedError:
             helper.failed = True
         self._watch(helper, now_s)
@@ -293,8 +364,10 @@ class FleetSharing:
             "fleet helper (process %s) %s: flying on without the fleet; restarting it in %.0f s",
             helper.process.pid, why, self._restarts.failed(now_s),
         )  # fmt: skip
+        self._backlog.done(self._slot("publish_seq_done"))  # what it did before it failed
         self._stop_helper(kill=True)
         self._reference = None
+        self.counters["publish_requeued"] += self._backlog.requeue()
 
     def _offer(self, records: Records) -> int:
         """Offer decoded candidates to their controllers' pools (no factorisation)."""
@@ -332,19 +405,26 @@ class FleetSharing:
             self._reference = LiveReference(msg, received_s)
 
     def publish_new(self) -> int:
-        """Hand every controller learned since the last call to the helper to publish;
-        returns how many."""
-        sent = 0
+        """Queue every controller learned since the last call for publication, and hand what
+        waits to the helper if its session is open; returns how many were queued."""
+        queued = 0
         for i, (_name, ctrl) in enumerate(self._controllers):
             new = ctrl.pop_new_entries()
             if not new or not self.share_library:
                 continue
             self._dirty[i] = True
-            if self._send(("publish", i, new)):
-                sent += len(new)
-            else:
-                self.counters["publish_dropped"] += len(new)
-        return sent
+            self._backlog.add(i, new)
+            queued += len(new)
+        self._hand_off()
+        return queued
+
+    def _hand_off(self) -> None:
+        """Publication goes only to a helper whose session is open: one still starting may
+        never open it, and one that dies takes its pipe's contents with it."""
+        if not self.helper_running():
+            return
+        self._backlog.done(self._slot("publish_seq_done"))
+        self._backlog.hand_off(self._send)
 
     def _refresh_snapshots(self) -> None:
         for i, (_name, ctrl) in enumerate(self._controllers):
@@ -388,6 +468,8 @@ class FleetSharing:
         if helper is not None:
             out["outbox_bytes"] = helper.outbox.pending_bytes
             out["outbox_refused"] = helper.outbox.refused
+        out["publish_waiting"] = len(self._backlog)
+        out["publish_dropped"] = self._backlog.dropped
         out["candidates"] = sum(len(c.candidates) for _, c in self._controllers)
         out["promoted"] = sum(c.stats.received_shared for _, c in self._controllers)
         return out
@@ -405,9 +487,10 @@ class FleetSharing:
         )  # fmt: skip
 
     def helper_running(self) -> bool:
-        """Whether the helper has opened its Zenoh session (what it is handed from then on is
-        published; one handed to it before may not be: a known gap)."""
-        return self._helper is not None and self._slot("state") == 1
+        """Whether a helper has its Zenoh session open (until then, new controllers wait in
+        the publish backlog)."""
+        helper = self._helper
+        return helper is not None and not helper.failed and self._slot("state") == 1
 
     def helper_pid(self) -> int | None:
         """The helper process's pid (fault tests kill it)."""

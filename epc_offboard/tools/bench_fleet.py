@@ -1,0 +1,267 @@
+"""``epc-offboard bench --fleet --vehicles N``: N vehicles through one router (issue 25, a
+first cut).
+
+Each vehicle is a light process of its own running the real sharing stack (FleetSharing and
+its fleet helper process, Zenoh client mode) around an ExperienceController on a small
+double-integrator problem: no physics, no MAVLink, so the network path is what is measured.
+The router is ``epc-offboard fleet router`` (a process). Every vehicle learns one controller
+(a solve towards its own target) in its own time slot; each receiver stamps a controller's
+arrival as its control process takes it from the helper (CLOCK_MONOTONIC is one clock for
+every process on the machine), so propagation = arrival - the publisher's solve, which
+includes ``publish_period_s`` (the batching) and the control process's turn.
+
+Reported: discovery (from the last session opened until every vehicle has seen every
+other's liveliness token), propagation p50/p99/max over
+every (publisher, receiver) pair, and the CPU share of the router, of each vehicle's control
+process and of its helper. Not yet: bytes per vehicle per second, the late joiner at N = 25
+with flying vehicles, the figure.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import multiprocessing
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+_SLOT_S = 0.5  # one vehicle learns in each slot: publications do not overlap
+_SETTLE_S = 3.0  # from the last session open to slot 0: discovery has its time
+_TAIL_S = 5.0  # after the last slot: the last arrivals
+_WAVE = 5  # vehicles started together
+_FLEET = "bench"
+
+
+def _problem() -> Any:
+    from epc_offboard.mpc import LinearModel, MpcProblem
+
+    dt = 0.1  # a double integrator per axis: x = (p, v), u = a; bounds make active sets
+    A = np.eye(6)
+    A[:3, 3:] = dt * np.eye(3)
+    B = np.vstack([0.5 * dt * dt * np.eye(3), dt * np.eye(3)])
+    inf = math.inf
+    return MpcProblem(LinearModel(A, B), horizon=8, Q=[10, 10, 10, 1, 1, 1], R=[0.2] * 3,
+                      x_min=[-inf] * 3 + [-2.0] * 3, x_max=[inf] * 3 + [2.0] * 3,
+                      u_min=[-3.0] * 3, u_max=[3.0] * 3)  # fmt: skip
+
+
+def _target(k: int, n: int) -> np.ndarray:
+    """Vehicle k's target: far (bounds active), in a direction of its own."""
+    az = 2 * math.pi * k / n
+    el = math.pi * ((k % 3) - 1) / 4
+    return 10.0 * np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el),
+                            math.sin(el)])  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _VehicleArgs:
+    k: int
+    n: int
+    endpoint: str
+    launch_s: float  # time.monotonic() of the bench's start
+
+
+def _vehicle_main(args: _VehicleArgs, go_s: Any, out: Any) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    out.put(asyncio.run(_vehicle(args, go_s, out)))
+
+
+async def _vehicle(a: _VehicleArgs, go_s: Any, queue: Any) -> dict[str, Any]:
+    """``go_s``: a shared double, 0 until every vehicle has its session, then the time slot
+    0 starts; this vehicle learns in slot ``k`` and stops after the last slot."""
+    from epc_offboard.common.procstats import process_report
+    from epc_offboard.control.epc import ExperienceController
+    from epc_offboard.fleet.records import candidate_of
+    from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
+
+    arrivals: dict[str, float] = {}  # origin -> first arrival (one controller each)
+
+    class _Stamped(FleetSharing):
+        def _offer(self, records: Any) -> int:
+            now = time.monotonic()
+            for row in records:
+                _entry, origin, _succ = candidate_of(row)
+                arrivals.setdefault(origin.removeprefix("shared:"), now)
+            return super()._offer(records)
+
+    problem = _problem()
+    ctrl = ExperienceController(problem, max_size=64)
+    cfg = SharingConfig(enabled=True, fleet=_FLEET, vehicle_id=f"b{a.k}", mode="client",
+                        connect=(a.endpoint,), publish_period_s=0.05, candidates_per_s=5000.0,
+                        query_timeout_s=5.0, helper_nice=0)  # fmt: skip
+    out: dict[str, Any] = {"k": a.k}
+    sharing = _Stamped(cfg, [("position", ctrl)])
+    try:
+        await sharing.open()
+    except RuntimeError as exc:  # counted in the report; the bench goes on without it
+        queue.put({"opened": a.k, "failed": str(exc)})
+        return {**out, "failed": str(exc)}
+    with contextlib.closing(sharing):
+        out["opened_s"] = time.monotonic()
+        queue.put({"opened": a.k})
+        task = asyncio.create_task(sharing.run())
+        learned = False
+        cpu_at_go: tuple[float, float, float] | None = None  # (t, control cpu_s, helper cpu_s)
+        while go_s.value == 0.0 or time.monotonic() < go_s.value + a.n * _SLOT_S + _TAIL_S:
+            now = time.monotonic()
+            if cpu_at_go is None and go_s.value and now >= go_s.value:
+                cpu_at_go = (now, _cpu_s(None), _cpu_s(sharing.helper_pid()))
+            if "all_peers_s" not in out and sharing.stats().get("peers", 0) >= a.n - 1:
+                out["all_peers_s"] = now
+            if not learned and go_s.value and now >= go_s.value + a.k * _SLOT_S:
+                refs = np.zeros((problem.horizon, problem.nx))
+                refs[:, :3] = _target(a.k, a.n)
+                ctrl.step(np.zeros(problem.nx), refs)
+                out["learned_s"] = time.monotonic()
+                learned = True
+            await asyncio.sleep(0.02)  # arrivals are stamped in _offer, not here
+        out["arrivals"] = arrivals
+        out["stats"] = sharing.stats()
+        out["helper"] = sharing.process_stats()
+        out["control"] = process_report(os.getpid())
+        if cpu_at_go is not None:  # the CPU share while the fleet shares, not over start-up
+            window = time.monotonic() - cpu_at_go[0]
+            out["control_share"] = (_cpu_s(None) - cpu_at_go[1]) / window
+            out["helper_share"] = (_cpu_s(sharing.helper_pid()) - cpu_at_go[2]) / window
+        task.cancel()
+    return out
+
+
+def _cpu_s(pid: int | None) -> float:
+    """CPU seconds of ``pid`` (None: this process)."""
+    from epc_offboard.common.procstats import process_report
+
+    return float(process_report(pid if pid is not None else os.getpid()).get("cpu_s", 0.0))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _pct(values: list[float], q: float) -> float | None:
+    return round(float(np.percentile(values, q)), 4) if values else None
+
+
+def run_fleet_bench(n: int, start_timeout_s: float = 600.0) -> dict[str, Any]:
+    """N vehicles through one router; returns the report (see the module docstring)."""
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = subprocess.Popen(
+        [sys.executable, "-m", "epc_offboard", "fleet", "router", "--listen", endpoint,
+         "--stats-every", "1"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    )  # fmt: skip
+    assert router.stdout is not None
+    json.loads(router.stdout.readline())  # the "started" line: it listens
+    ctx = multiprocessing.get_context("spawn")
+    results = ctx.Queue()
+    go_s = ctx.Value("d", 0.0)
+    launch = time.monotonic()
+    procs = [
+        ctx.Process(target=_vehicle_main, name=f"bench-b{k}",
+                    args=(_VehicleArgs(k, n, endpoint, launch), go_s, results))
+        for k in range(n)
+    ]  # fmt: skip
+    # started in waves, each when the one before has its sessions: 2N processes importing
+    # numpy and zenoh at once on a loaded machine miss the helper's start timeout
+    for wave in range(0, n, _WAVE):
+        for p in procs[wave : wave + _WAVE]:
+            p.start()
+        for _ in procs[wave : wave + _WAVE]:
+            results.get(timeout=start_timeout_s)
+    go_s.value = time.monotonic() + _SETTLE_S
+    router_cpu_at_go = (go_s.value, _cpu_s(router.pid))
+    reports = [results.get(timeout=_SETTLE_S + n * _SLOT_S + _TAIL_S + 120.0) for _ in procs]
+    for p in procs:
+        p.join(timeout=10)
+    router_share = (_cpu_s(router.pid) - router_cpu_at_go[1]) / (time.monotonic()
+                                                                    - router_cpu_at_go[0])
+    router.send_signal(signal.SIGTERM)
+    router_stats: dict[str, Any] = {}
+    for line in router.stdout:
+        router_stats = json.loads(line)
+    router.wait(timeout=10)
+    failed = [r for r in reports if "failed" in r]
+    reports = [r for r in reports if "failed" not in r]
+    learned = {f"b{r['k']}": r["learned_s"] for r in reports if "learned_s" in r}
+    lat = [t - learned[o] for r in reports for o, t in r["arrivals"].items() if o in learned]
+    pairs = len(reports) * (len(reports) - 1)
+    # discovery: from the last session opened to the last vehicle that sees every other
+    # (process start-up, which load stretches, is not the network's)
+    seen = [r["all_peers_s"] for r in reports if "all_peers_s" in r]
+    opened = max((r["opened_s"] for r in reports), default=launch)
+    disc = [max(0.0, t - opened) for t in seen]
+    return {
+        "vehicles": n,
+        "sessions_failed": len(failed),
+        "discovered": len(disc),  # vehicles that saw every other
+        "startup_s": round(opened - launch, 2),  # the last session open, from the launch
+        "discovery_s": {"max": _pct(disc, 100), "p50": _pct(disc, 50)},
+        "propagation_s": {"pairs": pairs, "received": len(lat), "p50": _pct(lat, 50),
+                          "p99": _pct(lat, 99), "max": _pct(lat, 100)},
+        # of one core, from slot 0 to the end (process_report's CPU ticks: 10 ms resolution)
+        "cpu_share": {
+            "router": round(router_share, 4),
+            "control_p50": _pct([r.get("control_share", 0.0) for r in reports], 50),
+            "helper_p50": _pct([r.get("helper_share", 0.0) for r in reports], 50),
+            "helper_max": _pct([r.get("helper_share", 0.0) for r in reports], 100),
+        },
+        "router": router_stats,
+        "load_1min": os.getloadavg()[0],
+    }
+
+
+def write_figure(runs: list[dict[str, Any]], path: str) -> None:
+    """Propagation (p50, p99) and CPU shares against N."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = [r["vehicles"] for r in runs]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.2))
+    for q in ("p50", "p99"):
+        ax1.plot(n, [1e3 * (r["propagation_s"][q] or 0.0) for r in runs], "o-", label=q)
+    ax1.set_xlabel("vehicles through one router")
+    ax1.set_ylabel("solve -> receiver's control process, ms")
+    ax1.legend(fontsize=8)
+    for key, label in (("helper_p50", "fleet helper (p50 of vehicles)"),
+                       ("control_p50", "control process (p50)"), ("router", "router")):
+        ax2.plot(n, [100 * (r["cpu_share"][key] or 0.0) for r in runs], "o-", label=label)
+    ax2.set_xlabel("vehicles through one router")
+    ax2.set_ylabel("% of one core while sharing")
+    ax2.legend(fontsize=8)
+    loads = ", ".join(f"{r['load_1min']:.0f}" for r in runs)
+    fig.suptitle(f"bench --fleet (machine load {loads})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_fleet_bench_command(sizes: list[int], json_path: str | None) -> int:
+    """One run per N in ``sizes``; with ``json_path`` the report (one run: its dict; several:
+    ``{"runs": [...]}``) and a figure beside it (FILE with .png)."""
+    runs = []
+    for n in sizes:
+        report = run_fleet_bench(n)
+        print(json.dumps({k: v for k, v in report.items() if k != "router"}, indent=2))
+        runs.append(report)
+    if json_path:
+        with open(json_path, "w", encoding="utf-8") as fh:
+            json.dump(runs[0] if len(runs) == 1 else {"runs": runs}, fh, indent=2)
+            fh.write("\n")
+        figure = os.path.splitext(json_path)[0] + ".png"
+        write_figure(runs, figure)
+        print(f"report: {json_path}  figure: {figure}")
+    return 0
