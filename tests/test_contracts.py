@@ -142,9 +142,20 @@ def _subparsers() -> dict[str, argparse.ArgumentParser]:
     return dict(sub.choices)
 
 
+def _nested(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """A command's own subcommands (``fleet router``), by name."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return {name: p for a in subs for name, p in a.choices.items()}
+
+
 PARSERS = {
     "### `epc-sitl`": build_sitl_parser(),
     **{f"### `epc-offboard {name}`": p for name, p in _subparsers().items()},
+    **{
+        f"### `epc-offboard {name} {inner}`": q
+        for name, p in _subparsers().items()
+        for inner, q in _nested(p).items()
+    },
 }
 
 
@@ -225,10 +236,12 @@ def check_fields(what: str, documented_list: list[str], *produced: Any) -> None:
     both_ways(what, documented, real)
 
 
-def recorded_sim_report() -> dict[str, Any]:
+def recorded_sim_report(*flags: str) -> dict[str, Any]:
     """report.json of the recorded hover, as `sim` writes it: analysed with an envelope it
-    leaves and a target it is judged on, so that every optional list has members."""
-    args = build_parser().parse_args(["sim", "--scenario", "hover", "--duration", "4"])
+    leaves and a target it is judged on, so that every optional list has members; ``flags``
+    of `sim` (a scenario with extra metrics, a wind profile) add the fields they add."""
+    argv = ["sim", *flags] if flags else ["sim", "--scenario", "hover", "--duration", "4"]
+    args = build_parser().parse_args(argv)
     options = sim_options(args)
     record = read_flight(
         1,
@@ -258,7 +271,10 @@ def test_the_sim_report_fields_are_the_documented_ones() -> None:
     report = recorded_sim_report()
     assert report["vehicles"][0]["envelope"]["left"], "the recorded flight should leave it"
     assert report["targets"], "the target should be judged"
-    check_fields("sim report.json", first_table("## `sim` report"), report)
+    # the fields only some flights have: a varying wind, a scenario's extra metric
+    varying = recorded_sim_report("--scenario", "neuralfly", "--wind-profile", "sine:2.4,1")
+    assert "mean_error_m" in varying["vehicles"][0]["tracking"]
+    check_fields("sim report.json", first_table("## `sim` report"), report, varying)
 
 
 def test_the_printed_tables_columns_are_the_documented_ones_in_order() -> None:
