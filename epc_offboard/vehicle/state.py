@@ -29,6 +29,7 @@ import numpy as np
 
 from epc_offboard.common import frames
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.types import VehicleState
 from epc_offboard.vehicle.timesync import AutopilotClock
 
 log = logging.getLogger(__name__)
@@ -153,28 +154,6 @@ class Heartbeat:
     @property
     def offboard(self) -> bool:
         return self.main_mode == PX4_MAIN_MODE_OFFBOARD
-
-
-@dataclass(frozen=True)
-class VehicleState:
-    """The newest valid state, predicted to ``time_s``. Arrays are NED/FRD, SI units."""
-
-    time_s: float  # vehicle time this state is for
-    pos_ned_m: FloatArray
-    vel_ned_m_s: FloatArray
-    q_ned_frd: FloatArray  # [w, x, y, z], body FRD -> world NED
-    rate_frd_rad_s: FloatArray
-    position_age_s: float  # vehicle time since the position sample this is predicted from
-    attitude_age_s: float
-
-    @property
-    def euler_rad(self) -> tuple[float, float, float]:
-        """(roll, pitch, yaw) Z-Y-X."""
-        return frames.quat_to_euler(self.q_ned_frd)
-
-    @property
-    def yaw_rad(self) -> float:
-        return self.euler_rad[2]
 
 
 @dataclass

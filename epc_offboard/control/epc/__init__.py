@@ -18,16 +18,51 @@ algorithm as the thesis explains it:
 
 from __future__ import annotations
 
-from epc_offboard.control.epc.candidates import MAX_SUCCESSORS, CandidatePool
-from epc_offboard.control.epc.controller import EpcStats, ExperienceController, budgeted_controller
-from epc_offboard.control.epc.learner import IntermediateQp, Learner
-from epc_offboard.control.epc.library import Library
-from epc_offboard.control.epc.maps import (
-    CHECK_NS_PER_MAC,
-    ActiveSetMap,
-    DependentActiveSetError,
-    MapBuilder,
-)
+from typing import TYPE_CHECKING, Any
+
+# The public names, imported on first use (PEP 562): the miss worker imports the learner and
+# the map builder (``epc_offboard.control.epc.learner``, ``.maps``), which must not load the
+# controller with this package.
+_PUBLIC = {
+    "CHECK_NS_PER_MAC": "maps",
+    "MAX_SUCCESSORS": "candidates",
+    "ActiveSetMap": "maps",
+    "CandidatePool": "candidates",
+    "DependentActiveSetError": "maps",
+    "EpcStats": "controller",
+    "ExperienceController": "controller",
+    "IntermediateQp": "learner",
+    "Learner": "learner",
+    "Library": "library",
+    "MapBuilder": "maps",
+    "budgeted_controller": "controller",
+}
+
+if TYPE_CHECKING:
+    from epc_offboard.control.epc.candidates import MAX_SUCCESSORS, CandidatePool
+    from epc_offboard.control.epc.controller import (
+        EpcStats,
+        ExperienceController,
+        budgeted_controller,
+    )
+    from epc_offboard.control.epc.learner import IntermediateQp, Learner
+    from epc_offboard.control.epc.library import Library
+    from epc_offboard.control.epc.maps import (
+        CHECK_NS_PER_MAC,
+        ActiveSetMap,
+        DependentActiveSetError,
+        MapBuilder,
+    )
+
+
+def __getattr__(name: str) -> Any:
+    module = _PUBLIC.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
+
 
 __all__ = [
     "CHECK_NS_PER_MAC",
