@@ -2,8 +2,8 @@
 
 On a library miss the tick applies the intermediate controller at once (thesis 3.1.3) and
 the controller queues the parameter vector θ (``ExperienceController(learn_on_miss=False)``,
-:attr:`~epc_offboard.control.epc.ExperienceController.pending`). :class:`MissSolver` takes those θ,
-solves the full QP, recovers and verifies its active set in ONE worker process (a standard
+its ``pending``). :class:`MissSolver` takes those θ, solves the full QP, recovers and
+verifies its active set in ONE worker process (a standard
 ``ProcessPoolExecutor``; each problem is sent once, at start, then only θ travels), and hands
 the active set back with its KKT map, built there (0.3-1.3 ms of factorisation and products
 for the position problem that the loop's tick no longer pays). The loop adds it only after
@@ -18,8 +18,8 @@ body-rate mode, flipped the vehicle.
 * ``wait=True`` (lockstep simulation) blocks until the solve in flight has returned, so the
   result enters the library at the same tick every run: deterministic.
 
-Fleet candidates (:class:`~epc_offboard.control.epc.CandidatePool`) are screened here too, so a
-flood of received controllers costs the loops nothing but bookkeeping: the loop's
+Fleet candidates (:class:`~epc_offboard.control.epc.candidates.CandidatePool`) are screened
+here too, so a flood of received controllers costs the loops nothing but bookkeeping: the loop's
 controller keeps the bounded pool of active sets, the worker a copy with their maps, built
 in slices bounded by time (``slice_s``) between solves. A miss is first checked against
 the built candidates; one that passes is handed back with its origin instead of a solve,
@@ -35,6 +35,10 @@ joiner fly on the fleet's library instead of missing once per region; memory sta
 by the pool's size in maps, the rest of a snapshot waiting as tuples. In lockstep (``wait``)
 the wanted maps (at most a few per slice) are a count, not a time, and the slice is waited
 for, so maps arrive at the same tick every run.
+
+The worker builds no controller: per problem it holds the full QP's
+:class:`~epc_offboard.control.epc.learner.Learner`, the
+:class:`~epc_offboard.control.epc.maps.MapBuilder` and its copy of the candidate pool.
 
 No asyncio here: :meth:`pump` is called from the position loop's tick.
 """
