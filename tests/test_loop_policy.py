@@ -141,34 +141,27 @@ def test_late_ticks():
     assert late_tick(0.0, LATE_ATTITUDE_PERIODS * period * 1.1, period)  # an old sample
 
 
-def test_the_px4_baseline_sends_the_reference_now_and_computes_nothing():
+def test_the_px4_baseline_computes_nothing_and_sends_the_reference_now():
     cascade = _cascade("px4")
     assert cascade.flies_reference
     assert cascade.position.controller is None
     stages = np.zeros((1, 9))
     stages[0] = [1, 2, -3, 0.5, 0, 0, 0, 0, 0.25]
     reference = ReferenceHorizon.at_heading(stages, 1.5)
-    state = _state()
-    out = cascade.position_tick(state, reference)
+    out = cascade.position_tick(_state(), reference)
     assert out.source == "fallback"  # the level hover: only the flight log shows it
-    sp = cascade.setpoint(state, out, 1.0, late=False, mode="epc",
-                          reference_now=lambda: reference)
-    assert isinstance(sp, PositionTarget)
+    sp = PositionTarget.now(reference)  # what goes to the autopilot's position controller
     np.testing.assert_array_equal(sp.pos_ned_m, [1, 2, -3])
     np.testing.assert_array_equal(sp.vel_ned_m_s, [0.5, 0, 0])
     np.testing.assert_array_equal(sp.acc_ned_m_s2, [0, 0, 0.25])
     assert sp.yaw_rad == 1.5
 
 
-def test_the_other_strategies_fly_the_attitude_and_never_ask_for_the_reference_now():
+def test_the_other_strategies_fly_the_attitude():
     for controller in ("epc", "pd", "mpc"):
         cascade = _cascade(controller)
         assert not cascade.flies_reference
-
-        def never() -> ReferenceHorizon:
-            raise AssertionError("the reference now is the px4 baseline's only")
-
-        sp = cascade.setpoint(_state(5.0), _level(cascade), 1.0, late=False, mode="epc",
-                              reference_now=never)
-        assert isinstance(sp, AttitudeCommand)
-        assert sp.rates_frd_rad_s is not None
+        assert cascade.position.controller is not None
+        cmd = cascade.attitude_command(_state(5.0), _level(cascade), 1.0, late=False,
+                                       mode="epc")
+        assert cmd.rates_frd_rad_s is not None

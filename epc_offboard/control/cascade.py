@@ -5,7 +5,7 @@
 Pure numerics (no asyncio, no MAVLink): the service hands in a
 :class:`~epc_offboard.control.types.VehicleState` and a
 :class:`~epc_offboard.control.types.ReferenceHorizon` and gets back the
-:data:`~epc_offboard.control.types.Setpoint` to encode and send. What is stored of the
+commands to encode and send. What is stored of the
 controllers is translated by :mod:`epc_offboard.store.experience`.
 
 The policy of an attitude tick (:func:`attitude_command`): body rates from the attitude EPC
@@ -36,9 +36,7 @@ from epc_offboard.control.position import PositionControlConfig, PositionLoop
 from epc_offboard.control.types import (
     AttitudeCommand,
     PositionOutput,
-    PositionTarget,
     ReferenceHorizon,
-    Setpoint,
     VehicleState,
 )
 
@@ -187,8 +185,9 @@ class Cascade:
     @property
     def flies_reference(self) -> bool:
         """The px4 baseline: the autopilot's own position controller flies the reference
-        now (a :class:`PositionTarget` each attitude tick); the position loop computes
-        nothing and the service hands it the reference now, not a horizon."""
+        now (a :class:`PositionTarget` of its stage 0, each attitude tick); the position
+        loop computes nothing, and the reference it is handed is the reference now, not a
+        horizon."""
         return self.position.controller is None
 
     def rates_trusted(self, state: VehicleState, target: PositionOutput) -> bool:
@@ -209,7 +208,7 @@ class Cascade:
     ) -> AttitudeCommand:
         return self.attitude.attitude_fallback(state, target, now_s)
 
-    def setpoint(
+    def attitude_command(
         self,
         state: VehicleState,
         target: PositionOutput,
@@ -218,13 +217,9 @@ class Cascade:
         late: bool,
         mode: AttitudeMode,
         acting: bool = True,
-        reference_now: Callable[[], ReferenceHorizon],
         on_error: Callable[[Exception], None] | None = None,
-    ) -> Setpoint:
-        """What one attitude tick sends: with the px4 baseline the reference now
-        (``reference_now()``, asked only then), else :func:`attitude_command`."""
-        if self.flies_reference:
-            return PositionTarget.now(reference_now())
+    ) -> AttitudeCommand:
+        """:func:`attitude_command` on this cascade's attitude loop."""
         return attitude_command(self.attitude, state, target, now_s, late=late, mode=mode,
                                 acting=acting, on_error=on_error)
 

@@ -166,7 +166,3 @@ class PositionTarget:
         """Stage 0 of ``reference``."""
         return cls(reference.pos_ned_m[0], reference.vel_ned_m_s[0], reference.acc_ned_m_s2[0],
                    float(reference.yaw_rad[0]))
-
-
-# what the cascade hands the service to encode and send each attitude tick
-Setpoint = AttitudeCommand | PositionTarget

@@ -7,9 +7,10 @@ One asyncio TaskGroup with named tasks:
   rates, parameters and commands out);
 * ``position-loop``  — 100 Hz: state -> reference horizon (``reference.py``) ->
   ``Cascade.position_tick`` (``control/position.py``: estimator, EPC, attitude map);
-* ``attitude-loop``  — 200 Hz: ``Cascade.setpoint`` (the loop policy, ``control/cascade.py``)
-  -> SET_ATTITUDE_TARGET (rates + thrust, or quaternion + thrust for the autopilot's own
-  attitude loop), or the px4 baseline's position target (``setpoints.py``);
+* ``attitude-loop``  — 200 Hz: ``Cascade.attitude_command`` (the loop policy,
+  ``control/cascade.py``) -> SET_ATTITUDE_TARGET (rates + thrust, or quaternion + thrust
+  for the autopilot's own attitude loop), or the px4 baseline's position target
+  (``setpoints.py``);
   both loops are ``loop.py``'s periodic loop around a tick of this module;
 * ``library-saver``  — new controllers and learned models to SQLite, written by the store
   process (``library.py``);
@@ -74,7 +75,6 @@ from epc_offboard.vehicle.offboard import Action, Outputs, Phase
 from epc_offboard.vehicle.state import StateTracker
 
 log = logging.getLogger("epc_offboard.service")
-
 
 
 class Service:
@@ -207,14 +207,13 @@ class Service:
             await asyncio.sleep(0)
         # (ArduPilot without GUID_OPTIONS bit 3 would read our thrust as a climb rate)
         streaming = self.outputs.stream_setpoints and not self.autopilot.offboard_refusal()
-        if streaming and state is not None:
+        if streaming and state is not None and self.cascade.flies_reference:
+            self.setpoints.position_target(state, self.references.now(state, tick.start_s))
+        elif streaming and state is not None:
             target = self._position_out or self.cascade.hover(state)
             late = late_tick(tick.start_s - tick.scheduled_s, state.attitude_age_s, tick.period_s)
             offboard = self.outputs.phase == Phase.OFFBOARD
-            self.setpoints.tick(
-                state, target, tick.start_s, late=late, acting=offboard,
-                reference_now=lambda: self.references.now(state, tick.start_s),
-            )  # fmt: skip
+            self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard)
         elif self.clock.vehicle_time and state is not None:
             # lockstep: the simulator advances only on an answer for each tick; when no
             # setpoint streams (before takeoff, landing) the answer is a SYSTEM_TIME

@@ -1,8 +1,8 @@
-"""What the attitude loop sends, each tick: the cascade's setpoint, encoded and sent —
-SET_ATTITUDE_TARGET for an :class:`~epc_offboard.control.types.AttitudeCommand` (body rates
-+ thrust, or the attitude itself for the autopilot's own attitude loop), or, with the px4
-baseline, SET_POSITION_TARGET_LOCAL_NED for a :class:`~epc_offboard.control.types.
-PositionTarget`.
+"""What the attitude loop sends, each tick, encoded and sent: SET_ATTITUDE_TARGET for the
+cascade's :class:`~epc_offboard.control.types.AttitudeCommand` (body rates + thrust, or the
+attitude itself for the autopilot's own attitude loop), or, with the px4 baseline,
+SET_POSITION_TARGET_LOCAL_NED for the reference now (a :class:`~epc_offboard.control.types.
+PositionTarget`).
 
 Which command flies is the cascade's policy (:func:`epc_offboard.control.cascade.
 attitude_command`); here each kind of fallback is counted, the rate-model gate's changes
@@ -18,11 +18,9 @@ from collections.abc import Callable
 
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.types import (
-    AttitudeCommand,
     PositionOutput,
     PositionTarget,
     ReferenceHorizon,
-    Setpoint,
     VehicleState,
 )
 from epc_offboard.service.autopilot import Autopilot
@@ -53,36 +51,11 @@ class SetpointSender:
         self.counters = counters
         self._loop_error = loop_error
 
-    def tick(
-        self,
-        state: VehicleState,
-        target: PositionOutput,
-        now_s: float,
-        *,
-        late: bool,
-        acting: bool,
-        reference_now: Callable[[], ReferenceHorizon],
-    ) -> None:
-        """One attitude tick at loop time ``now_s``: the cascade's setpoint flying ``target``
-        from ``state`` (``late``: the tick or its attitude sample is late; ``acting``: the
-        autopilot flies our setpoints), encoded and sent."""
-        setpoint = self.cascade.setpoint(
-            state, target, now_s, late=late, mode=self.autopilot.attitude_mode, acting=acting,
-            reference_now=reference_now, on_error=lambda exc: self._loop_error("attitude", exc),
-        )  # fmt: skip
-        self.send(state, setpoint)
-
-    def send(self, state: VehicleState, setpoint: Setpoint) -> None:
-        """Encode and send ``setpoint``, answering ``state``."""
-        if isinstance(setpoint, PositionTarget):
-            self.position_target(state, setpoint)
-        else:
-            self.attitude(state, setpoint)
-
-    def position_target(self, state: VehicleState, target: PositionTarget) -> None:
+    def position_target(self, state: VehicleState, reference: ReferenceHorizon) -> None:
         """The px4 baseline: the reference's position, velocity and acceleration now (stage
         0), to the autopilot's own position controller (as MAVSDK's offboard plugin sends
         them); a non-finite one is not sent, and counted."""
+        target = PositionTarget.now(reference)
         msg = commands.position_target(
             self.autopilot.target, state.time_s, target.pos_ned_m, target.vel_ned_m_s,
             target.acc_ned_m_s2, target.yaw_rad,
@@ -92,8 +65,23 @@ class SetpointSender:
             return
         self.autopilot.link.send(msg)
 
-    def attitude(self, state: VehicleState, cmd: AttitudeCommand) -> None:
-        """SET_ATTITUDE_TARGET for ``cmd`` (its fallbacks counted)."""
+    def attitude(
+        self,
+        state: VehicleState,
+        target: PositionOutput,
+        now_s: float,
+        *,
+        late: bool = False,
+        acting: bool = True,
+    ) -> None:
+        """Fly ``target`` from ``state`` at tick ``now_s`` (the loops' clock): the cascade's
+        attitude command (``late``: the tick or its attitude sample is late; ``acting``: the
+        autopilot flies our setpoints, so the rates measured answer them), its fallbacks
+        counted, encoded as SET_ATTITUDE_TARGET and sent."""
+        cmd = self.cascade.attitude_command(
+            state, target, now_s, late=late, mode=self.autopilot.attitude_mode, acting=acting,
+            on_error=lambda exc: self._loop_error("attitude", exc),
+        )  # fmt: skip
         counter = _FALLBACK_COUNTERS.get(cmd.source)
         if counter is not None:
             self.counters[counter] += 1
