@@ -2,7 +2,7 @@
 (:mod:`epc_offboard.vehicle.dialect_ardupilot`) and the bundled SITL's ArduCopter
 personality (``sitl/ardupilot.py``, which may import only ``epc_offboard.common``).
 
-HEARTBEAT.custom_mode is a plain mode number (ArduCopter 4.7 / 4.8-dev, see DESIGN.md);
+HEARTBEAT.custom_mode is a plain mode number (as ArduCopter 4.7 / 4.8-dev SITL sends it);
 PX4's DO_SET_MODE(1, 6, 0) would select RTL.
 """
 
