@@ -37,6 +37,15 @@ from dataclasses import replace
 
 import numpy as np
 
+from epc_offboard.common.arducopter import (  # the mode numbers the dialect reads too
+    BRAKE,
+    GUID_OPTIONS_THRUST_AS_THROTTLE,
+    GUIDED_MODES,
+    LAND,
+    LOITER,
+    RTL,
+    STABILIZE,
+)
 from epc_offboard.common.frames import (
     GRAVITY_M_S2,
     FloatArray,
@@ -60,16 +69,7 @@ from sitl.autopilot import (
 from sitl.params import ArduPilotParams, AutopilotParams, VehicleParams
 from sitl.physics import POS, QUAT, VEL, on_ground
 
-STABILIZE = 0
-GUIDED = 4
-LOITER = 5
-RTL = 6
-LAND = 9
-BRAKE = 17
-GUIDED_NOGPS = 20
-GUIDED_MODES = frozenset({GUIDED, GUIDED_NOGPS})
 _RATES = IGNORE_ROLL_RATE | IGNORE_PITCH_RATE | IGNORE_YAW_RATE
-GUID_OPTIONS_THRUST_AS_THROTTLE = 8
 _IMAX_M_S2 = 10.0  # PSC_VELXY_IMAX (1000 cm/s^2): the velocity integral's share, bounded
 
 

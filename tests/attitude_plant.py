@@ -19,8 +19,7 @@ import numpy as np
 
 from epc_offboard.common import frames
 from epc_offboard.control.attitude import AttitudeLoop
-from epc_offboard.control.position import PositionOutput
-from epc_offboard.vehicle.state import VehicleState
+from epc_offboard.control.types import PositionOutput, VehicleState
 
 PHYSICS_DT_S = 0.001
 TICK_S = 0.005

@@ -35,7 +35,7 @@ from typing import Any
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD, px4_modes
+from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD, px4_modes
 from tests.rig import free_port
 
 ARDUPILOT_GUIDED = 4

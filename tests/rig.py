@@ -23,7 +23,7 @@ from pymavlink import mavutil
 
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
-from epc_offboard.vehicle.state import px4_modes
+from epc_offboard.vehicle.dialect_px4 import px4_modes
 
 # What a CI test may assert about real-time figures: safety bounds that hold on a busy 2-core
 # machine, not the figures themselves (those are `epc-offboard bench` and `sim --realtime`

@@ -44,7 +44,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common.frames import tilt_deg
-from epc_offboard.vehicle.state import (
+from epc_offboard.vehicle.dialect_px4 import (
     PX4_AUTO_SUB_LAND,
     PX4_MAIN_MODE_AUTO,
     PX4_MAIN_MODE_OFFBOARD,

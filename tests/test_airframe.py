@@ -65,7 +65,7 @@ def test_the_service_flies_the_envelope_of_the_vehicle_file_it_names(tmp_path: P
 
 
 def _level_state() -> Any:
-    from epc_offboard.vehicle.state import VehicleState
+    from epc_offboard.control.types import VehicleState
 
     return VehicleState(time_s=0.0, pos_ned_m=np.zeros(3), vel_ned_m_s=np.zeros(3),
                         q_ned_frd=np.array([1.0, 0.0, 0.0, 0.0]), rate_frd_rad_s=np.zeros(3),

@@ -90,3 +90,13 @@ def test_every_controller_honours_the_step_contract(make):
     assert d.compute_us > 0.0
     with pytest.raises(AttributeError):
         d.u = np.zeros(3)  # type: ignore[misc]
+
+
+def test_the_step_signature_is_written_once():
+    """Every controller of the loops takes its ``step`` from the one ``Controller`` (which
+    stacks θ) and writes only its ``decide``: the signature cannot drift between them."""
+    for cls in (ExperienceController, PdController, MpcController):
+        assert Controller in cls.__mro__
+        assert "step" not in vars(cls), f"{cls.__name__} writes its own step"
+        assert cls.step is Controller.step
+        assert "decide" in vars(cls)

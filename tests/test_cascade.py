@@ -17,10 +17,10 @@ from epc_offboard.common import frames
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.models import AttitudeThrust, attitude_to_accel
 from epc_offboard.control.perturbation import EstimatorKind
-from epc_offboard.control.position import PositionLoop, PositionOutput
+from epc_offboard.control.position import PositionLoop
 from epc_offboard.control.trajectories import Trajectory, TrajectoryConfig
+from epc_offboard.control.types import PositionOutput, VehicleState
 from epc_offboard.service.config import load_service_config
-from epc_offboard.vehicle.state import VehicleState
 
 _CONFIG = Path(__file__).resolve().parent.parent / "config" / "sitl.toml"
 _DT_S = 0.01  # the position loop's period

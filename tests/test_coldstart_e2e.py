@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD
+from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import MIN_RATE_FRACTION, Rig
 
 pytestmark = pytest.mark.timeout(240)

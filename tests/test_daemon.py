@@ -16,7 +16,7 @@ import time
 import pytest
 
 from epc_offboard.common.configio import dump_toml, merge_dicts
-from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD, px4_modes
+from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD, px4_modes
 from tests.rig import Rig
 
 pytestmark = pytest.mark.timeout(180)

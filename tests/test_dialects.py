@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from epc_offboard.common import arducopter
 from epc_offboard.vehicle import dialect_ardupilot as apm
 from epc_offboard.vehicle import dialect_px4 as px4
 from epc_offboard.vehicle.autopilots import choose
@@ -18,6 +19,7 @@ from epc_offboard.vehicle.dialect import (
     Action,
     EncodeError,
     FlightMode,
+    Heartbeat,
     Position,
     TakeoffTarget,
 )
@@ -28,14 +30,13 @@ from epc_offboard.vehicle.offboard import (
     OffboardStateMachine,
     Phase,
 )
-from epc_offboard.vehicle.state import Heartbeat
 from tests.test_offboard import AUTO, HOME_AMSL_M, fault_schedules
 
 TARGET = TakeoffTarget(2.5, HOME_AMSL_M + 2.5)
 WHERE = Position(473977420, 85455940, 90.0)
 
 
-def ap_hb(t: float, *, armed: bool = False, mode: int = apm.STABILIZE) -> Heartbeat:
+def ap_hb(t: float, *, armed: bool = False, mode: int = arducopter.STABILIZE) -> Heartbeat:
     return Heartbeat(1, armed, 0, 0, t, custom_mode=mode, autopilot=3)
 
 
@@ -95,7 +96,7 @@ def test_ardupilot_every_intent():
         cmd = apm.ARDUPILOT.encode(action)
         assert cmd.command == MAV_CMD_DO_SET_MODE
         assert cmd.params == (1.0, float(number)) + (0.0,) * 5
-        assert cmd.params[1] != apm.RTL
+        assert cmd.params[1] != arducopter.RTL
     for bad in (None, TakeoffTarget(math.nan, 0.0), TakeoffTarget(math.inf, 0.0),
                 TakeoffTarget(0.0, 488.0), TakeoffTarget(-1.0, 487.0)):  # fmt: skip
         with pytest.raises(EncodeError):
@@ -106,12 +107,12 @@ def test_ardupilot_modes():
     def mode(number: int) -> FlightMode:
         return apm.ARDUPILOT.mode(ap_hb(0.0, armed=True, mode=number))
 
-    assert mode(apm.GUIDED) == FlightMode.OFFBOARD
-    assert mode(apm.GUIDED_NOGPS) == FlightMode.OFFBOARD
-    assert mode(apm.LOITER) == FlightMode.HOLD
-    assert mode(apm.BRAKE) == FlightMode.HOLD
-    assert mode(apm.LAND) == FlightMode.LAND
-    for other in (apm.STABILIZE, apm.RTL, 3, 16):  # AUTO, POSHOLD: not ours
+    assert mode(arducopter.GUIDED) == FlightMode.OFFBOARD
+    assert mode(arducopter.GUIDED_NOGPS) == FlightMode.OFFBOARD
+    assert mode(arducopter.LOITER) == FlightMode.HOLD
+    assert mode(arducopter.BRAKE) == FlightMode.HOLD
+    assert mode(arducopter.LAND) == FlightMode.LAND
+    for other in (arducopter.STABILIZE, arducopter.RTL, 3, 16):  # AUTO, POSHOLD: not ours
         assert mode(other) == FlightMode.OTHER
     # a PX4 main mode of 6 in the PX4 bits means nothing to ArduPilot
     assert apm.ARDUPILOT.mode(Heartbeat(1, True, 6, 0, 0.0, custom_mode=6 << 16)) == (
@@ -164,29 +165,29 @@ def test_ardupilot_ritual_guided_before_arming_then_one_takeoff():
     assert out.actions == (Action.REQUEST_OFFBOARD,)  # GUIDED first, not ARM
     assert "GUIDED" in out.reason
     assert _step(sm, 0.5, ap_hb(0.0)).actions == ()  # no spam within the retry period
-    out = _step(sm, 1.0, ap_hb(1.0, mode=apm.GUIDED))
+    out = _step(sm, 1.0, ap_hb(1.0, mode=arducopter.GUIDED))
     assert out.actions == (Action.ARM,)
     assert out.phase == Phase.PREFLIGHT  # GUIDED on the ground is not offboard flight
-    out = _step(sm, 1.2, ap_hb(1.2, armed=True, mode=apm.GUIDED))
+    out = _step(sm, 1.2, ap_hb(1.2, armed=True, mode=arducopter.GUIDED))
     assert out.actions == (Action.TAKEOFF,)
     assert out.takeoff is not None
     assert out.takeoff.above_home_m == pytest.approx(2.5)
     assert not out.stream_setpoints  # setpoints would override the takeoff in GUIDED
-    out = _step(sm, 2.0, ap_hb(2.0, armed=True, mode=apm.GUIDED), alt=1.2)
+    out = _step(sm, 2.0, ap_hb(2.0, armed=True, mode=arducopter.GUIDED), alt=1.2)
     assert (out.phase, out.actions, out.stream_setpoints) == (Phase.PREFLIGHT, (), False)
-    out = _step(sm, 3.0, ap_hb(3.0, armed=True, mode=apm.GUIDED), alt=2.3)
+    out = _step(sm, 3.0, ap_hb(3.0, armed=True, mode=arducopter.GUIDED), alt=2.3)
     assert out.phase == Phase.OFFBOARD  # reached: GUIDED is ours at once
     assert out.stream_setpoints
     # GUIDED left (the pilot, or a failsafe to LAND / RTL): never fought
-    out = _step(sm, 4.0, ap_hb(4.0, armed=True, mode=apm.RTL), alt=2.5)
+    out = _step(sm, 4.0, ap_hb(4.0, armed=True, mode=arducopter.RTL), alt=2.5)
     assert out.phase == Phase.PILOT
     assert out.actions == ()
     # stale state in GUIDED: hold is LOITER
-    _step(sm, 5.0, ap_hb(5.0, armed=True, mode=apm.GUIDED), alt=2.5)
-    out = _step(sm, 5.1, ap_hb(5.0, armed=True, mode=apm.GUIDED), alt=2.5, age=1.0)
+    _step(sm, 5.0, ap_hb(5.0, armed=True, mode=arducopter.GUIDED), alt=2.5)
+    out = _step(sm, 5.1, ap_hb(5.0, armed=True, mode=arducopter.GUIDED), alt=2.5, age=1.0)
     assert out.phase == Phase.FAILSAFE
     assert out.actions == (Action.REQUEST_HOLD,)
-    assert apm.ARDUPILOT.encode(out.actions[0]).params[1] == apm.LOITER
+    assert apm.ARDUPILOT.encode(out.actions[0]).params[1] == arducopter.LOITER
     assert sm.takeoffs_sent == 1
 
 
@@ -196,19 +197,19 @@ def test_ardupilot_no_takeoff_outside_guided():
     out = _step(sm, 0.0, ap_hb(0.0, armed=True))
     assert out.actions == (Action.REQUEST_OFFBOARD,)
     assert sm.takeoffs_sent == 0
-    out = _step(sm, 1.0, ap_hb(1.0, armed=True, mode=apm.GUIDED))
+    out = _step(sm, 1.0, ap_hb(1.0, armed=True, mode=arducopter.GUIDED))
     assert out.actions == (Action.TAKEOFF,)
 
 
 def test_ardupilot_mission_end_lands_in_land_mode():
     sm = OffboardStateMachine(AUTO, dialect=apm.ARDUPILOT)
-    _step(sm, 0.0, ap_hb(0.0, armed=True, mode=apm.GUIDED), alt=2.5)
+    _step(sm, 0.0, ap_hb(0.0, armed=True, mode=arducopter.GUIDED), alt=2.5)
     assert sm.phase == Phase.OFFBOARD
-    out = _step(sm, 1.0, ap_hb(1.0, armed=True, mode=apm.GUIDED), alt=2.5, mission=True)
+    out = _step(sm, 1.0, ap_hb(1.0, armed=True, mode=arducopter.GUIDED), alt=2.5, mission=True)
     assert out.phase == Phase.LANDING
     assert out.actions == (Action.LAND,)
-    assert apm.ARDUPILOT.encode(Action.LAND).params[1] == apm.LAND
-    out = _step(sm, 2.0, ap_hb(2.0, armed=True, mode=apm.LAND), alt=1.0)
+    assert apm.ARDUPILOT.encode(Action.LAND).params[1] == arducopter.LAND
+    out = _step(sm, 2.0, ap_hb(2.0, armed=True, mode=arducopter.LAND), alt=1.0)
     assert out.actions == ()
     assert not out.stream_setpoints
 
@@ -221,7 +222,7 @@ class _ArduCopterLike:
         self.t = 0.0
         self.armed = False
         self.alt = 0.0
-        self.mode = apm.STABILIZE
+        self.mode = arducopter.STABILIZE
         self.target: float | None = None
         self.hb_lag_s = hb_lag_s
         self.hb: Heartbeat | None = None
@@ -229,22 +230,22 @@ class _ArduCopterLike:
 
     def apply(self, cmd_id: int, params: tuple[float, ...]) -> None:
         assert all(math.isfinite(p) for p in params), f"NaN to ArduPilot: {params}"
-        if cmd_id == 400 and self.mode == apm.GUIDED and self.alt < 0.05:
+        if cmd_id == 400 and self.mode == arducopter.GUIDED and self.alt < 0.05:
             self.armed = True
-        elif cmd_id == 22 and self.armed and self.mode == apm.GUIDED and self.alt < 0.5:
+        elif cmd_id == 22 and self.armed and self.mode == arducopter.GUIDED and self.alt < 0.5:
             self.target = params[6]
         elif cmd_id == MAV_CMD_DO_SET_MODE:
             self.mode = round(params[1])
-            if self.mode != apm.GUIDED:
+            if self.mode != arducopter.GUIDED:
                 self.target = None
 
     def advance(self, dt: float, push_m_s: float) -> None:
         self.t += dt
-        if self.armed and self.target is not None and self.mode == apm.GUIDED:
+        if self.armed and self.target is not None and self.mode == arducopter.GUIDED:
             self.alt = min(self.target, self.alt + 1.5 * dt)
             if self.alt >= self.target - 0.05:
                 self.target = None
-        elif self.armed and self.mode == apm.LAND:
+        elif self.armed and self.mode == arducopter.LAND:
             self.alt = max(0.0, self.alt - 0.7 * dt)
         elif self.armed and self.alt > 0.0:
             self.alt = max(0.0, self.alt + push_m_s * dt)
@@ -278,8 +279,8 @@ def test_ardupilot_never_a_nan_never_a_second_takeoff(
         active = {kind for start, length, kind in faults if start <= t < start + length}
         push = 1.0 if "push_up" in active else -1.0 if "push_down" in active else 0.0
         pushed_up_m += dt * max(push, 0.0)
-        if "pilot" in active and ap.mode == apm.GUIDED:
-            ap.mode = apm.LOITER  # the pilot takes over (a switch on the RC)
+        if "pilot" in active and ap.mode == arducopter.GUIDED:
+            ap.mode = arducopter.LOITER  # the pilot takes over (a switch on the RC)
         ap.advance(dt, push)
         left_ground |= ap.alt >= 0.3
         heartbeat = None if "hb_loss" in active else ap.hb
@@ -305,14 +306,16 @@ def test_ardupilot_never_a_nan_never_a_second_takeoff(
                 takeoffs += 1
                 assert not left_ground
                 assert ap.alt < AUTO.airborne_altitude_m
-                assert ap.mode == apm.GUIDED or ap.hb is None or ap.hb.custom_mode == apm.GUIDED
+                guided = arducopter.GUIDED
+                assert ap.mode == guided or ap.hb is None or ap.hb.custom_mode == guided
             try:
                 cmd = apm.ARDUPILOT.encode(action, out.takeoff, None)
             except EncodeError:
                 continue
             # the property: whatever the state machine asks, ArduPilot gets finite params
             assert all(math.isfinite(p) for p in cmd.params), cmd
-            assert not (cmd.command == MAV_CMD_DO_SET_MODE and round(cmd.params[1]) == apm.RTL)
+            rtl = arducopter.RTL
+            assert not (cmd.command == MAV_CMD_DO_SET_MODE and round(cmd.params[1]) == rtl)
             ap.apply(cmd.command, cmd.params)
             sent += 1
         if out.phase in (Phase.LANDING, Phase.DONE, Phase.FAILSAFE):

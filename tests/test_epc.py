@@ -10,7 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import epc_offboard.control.epc as epc_module
+import epc_offboard.control.epc.library as library_module
+import epc_offboard.control.epc.maps as maps_module
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.kernels import apply_map_numpy
 from epc_offboard.control.library import LibraryEntry
@@ -76,7 +77,7 @@ def test_library_hit_equals_a_fresh_exact_solve(x0, tgt, p_hat, shift):
 @pytest.mark.parametrize("kernel", ["default", "numpy"])
 def test_hits_are_exact_on_constrained_closed_loop(kernel, monkeypatch):
     if kernel == "numpy":
-        monkeypatch.setattr(epc_module, "apply_map", apply_map_numpy)
+        monkeypatch.setattr(maps_module, "apply_map", apply_map_numpy)
     p = position_problem(10)
     ctrl = ExperienceController(p)
     x = np.zeros(6)
@@ -547,7 +548,7 @@ def test_candidate_maps_are_built_in_slices_bounded_by_time(monkeypatch):
         fake_now[0] += 1e-3
         return fake_now[0]
 
-    monkeypatch.setattr("epc_offboard.control.epc.time.perf_counter", perf_counter)
+    monkeypatch.setattr("epc_offboard.control.epc.candidates.time.perf_counter", perf_counter)
     assert ctrl.build_candidates(0.0) == 1
     # start at t0; after each map a reading: t0 + 1 and + 2 ms go on, + 3 ms stops it
     assert ctrl.build_candidates(2.5e-3) == 3
@@ -563,7 +564,7 @@ def test_a_query_checks_at_most_its_budget_likely_successors_first(kernel, monke
     from epc_offboard.control import kernels
 
     if kernel == "numpy":
-        monkeypatch.setattr(epc_module, "query_maps", kernels.query_maps_numpy)
+        monkeypatch.setattr(library_module, "query_maps", kernels.query_maps_numpy)
     p = position_problem(6)
     x, a = sets_for(p, [[0, 0, 0], [10, 0, 0]])
     assert x.active_set != a.active_set

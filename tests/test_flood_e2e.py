@@ -23,7 +23,7 @@ from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
 from epc_offboard.service.config import load_service_config
-from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD
+from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import MIN_RATE_FRACTION, Rig
 from tests.test_sharing import free_tcp_port
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 from epc_offboard.tools.sim.analysis import sitl_counters
-from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD
+from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import Rig, deployed_priority
 
 pytestmark = pytest.mark.timeout(240)

@@ -16,7 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.vehicle.state import StateTracker, px4_custom_mode
+from epc_offboard.vehicle.dialect_px4 import px4_custom_mode
+from epc_offboard.vehicle.state import StateTracker
 from tests.test_state import heartbeat
 
 APM = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA

@@ -20,7 +20,8 @@ import time
 
 import pytest
 
-from epc_offboard.vehicle.state import PX4_MAIN_MODE_OFFBOARD, StateLimits
+from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
+from epc_offboard.vehicle.state import StateLimits
 from tests.rig import Rig
 
 pytestmark = pytest.mark.timeout(240)

@@ -3,6 +3,10 @@ deferred import inside a function counts as well as one at the top).
 
 * pure numerics import no I/O: no asyncio, sockets, MAVLink, Zenoh, SQLite or processes,
   and none of the product's I/O modules;
+* the control law (``control/``) never imports the vehicle's MAVLink side (``vehicle/``):
+  what it exchanges is ``control/types.py``'s, which ``vehicle/`` decodes into; and the inner
+  loop (``control/attitude.py``) never imports the outer loop's module;
+* the miss worker builds no controller: it loads the learner and the map builder only;
 * the plant (``sitl``) never imports the controller;
 * the service never imports the tools (sim, compare, benchmarks, figures, db, exporters);
 * no import cycle among modules, even counting deferred imports inside functions;
@@ -115,6 +119,30 @@ def test_numerics_import_no_io(module):
         assert not bad, f"{module} reaches {m}, which imports {sorted(bad)}"
     io = _reachable(graph, module) & set(IO_MODULES)
     assert not io, f"{module} imports the I/O modules {sorted(io)}"
+
+
+def test_the_control_law_never_imports_the_vehicle_side():
+    graph = _graph(top_level_only=False)
+    for m in _in("epc_offboard.control"):
+        bad = {d for d in _reachable(graph, m) if d.startswith("epc_offboard.vehicle")}
+        assert not bad, f"{m} imports the vehicle side: {sorted(bad)}"
+
+
+def test_the_inner_loop_does_not_import_the_outer_loop():
+    reached = _reachable(_graph(top_level_only=False), "epc_offboard.control.attitude")
+    assert "epc_offboard.control.position" not in reached
+
+
+def test_the_miss_worker_loads_no_controller():
+    """The worker process imports ``service/miss_solver.py``: it gets the full QP's learner,
+    the map builder and the candidate pool, never the controller, the cascade or the loops."""
+    bad = _loaded_by(
+        "epc_offboard.service.miss_solver",
+        "'ExperienceController' in getattr(sys.modules[m], '__dict__', {}) "
+        "or m in ('epc_offboard.control.cascade', 'epc_offboard.control.position', "
+        "'epc_offboard.control.attitude')",
+    )
+    assert not bad, f"the miss worker loads {bad}"
 
 
 def test_the_plant_never_imports_the_controller():

@@ -15,11 +15,9 @@ import numpy as np
 import pytest
 
 from epc_offboard.common.logsetup import LogConfig
-from epc_offboard.control.position import PositionOutput
-from epc_offboard.control.reference import ReferenceHorizon
+from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
 from epc_offboard.service.flightlog import FLIGHT_LOG_COLUMNS, pack_row
 from epc_offboard.service.logwriter import LogWriter
-from epc_offboard.vehicle.state import VehicleState
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from epc_offboard.common.configio import ConfigError, from_dict
+from epc_offboard.vehicle.dialect import Heartbeat
 from epc_offboard.vehicle.offboard import (
     LANDED_STATE_IN_AIR,
     LANDED_STATE_ON_GROUND,
@@ -17,7 +18,6 @@ from epc_offboard.vehicle.offboard import (
     OffboardStateMachine,
     Phase,
 )
-from epc_offboard.vehicle.state import Heartbeat
 
 AUTO = OffboardConfig(auto_arm=True, auto_takeoff=True, auto_offboard=True)
 HOME_AMSL_M = 488.0

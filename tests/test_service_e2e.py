@@ -20,7 +20,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.store.database import LibraryStore
 from epc_offboard.tools.sim.scenario import SCENARIO_DIR
-from epc_offboard.vehicle.state import (
+from epc_offboard.vehicle.dialect_px4 import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
     PX4_MAIN_MODE_OFFBOARD,

@@ -26,8 +26,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from epc_offboard.common import frames
 from epc_offboard.common.logsetup import LogGate
 from epc_offboard.control.cascade import Cascade
-from epc_offboard.control.position import PositionOutput
 from epc_offboard.control.trajectories import TrajectoryConfig
+from epc_offboard.control.types import PositionOutput, VehicleState
 from epc_offboard.fleet import keys
 from epc_offboard.fleet.sharing import FleetSharing
 from epc_offboard.fleet.wire import ReferenceMessage, encode_reference
@@ -40,7 +40,7 @@ from epc_offboard.service.supervisor import Supervisor
 from epc_offboard.service.systemd import Systemd
 from epc_offboard.vehicle.commands import IGNORE_ATTITUDE, IGNORE_RATES
 from epc_offboard.vehicle.offboard import Outputs, Phase
-from epc_offboard.vehicle.state import StateTracker, VehicleState
+from epc_offboard.vehicle.state import StateTracker
 from tests.test_sharing import FLEET, endpoint, free_tcp_port
 from tests.test_sharing import config as sharing_config
 

@@ -542,10 +542,10 @@ def test_origin_is_kept_through_the_store_and_db_info(tmp_path, capsys):
     such, and `db info` does not count it as this vehicle's own solve."""
     from epc_offboard.cli import main as cli_main
     from epc_offboard.control.cascade import Cascade
+    from epc_offboard.control.types import VehicleState
     from epc_offboard.service.config import load_service_config
     from epc_offboard.store import experience
     from epc_offboard.store.database import LibraryStore
-    from epc_offboard.vehicle.state import VehicleState
 
     cfg = load_service_config("config/sitl.toml")
 

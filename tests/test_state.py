@@ -12,14 +12,15 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common import frames
-from epc_offboard.vehicle.offboard import Inputs, OffboardConfig, OffboardStateMachine, Phase
-from epc_offboard.vehicle.state import (
+from epc_offboard.vehicle.dialect_px4 import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
-    StateTracker,
+    PX4_MAIN_MODE_OFFBOARD,
     px4_custom_mode,
     px4_modes,
 )
+from epc_offboard.vehicle.offboard import Inputs, OffboardConfig, OffboardStateMachine, Phase
+from epc_offboard.vehicle.state import StateTracker
 
 MAV = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
 OTHER = mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
@@ -174,7 +175,7 @@ def test_heartbeat_decodes_armed_and_mode():
     tr.handle(decode(hb))
     assert tr.heartbeat is not None
     assert tr.heartbeat.armed
-    assert tr.heartbeat.offboard
+    assert tr.heartbeat.main_mode == PX4_MAIN_MODE_OFFBOARD
 
 
 # ---- timestamps from a hostile or rebooting autopilot (issue 16, 1; issue 11, 4) ----------

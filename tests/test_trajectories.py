@@ -132,8 +132,8 @@ def test_the_reference_horizon_holds_the_old_rows_bit_for_bit(shape):
     """ReferenceHorizon round trip: what the tick receives is the (N, 9) rows it used to
     receive, its stage 0 the reference now, its columns the position, velocity and
     acceleration; a rejoin's gap is added to every stage."""
-    from epc_offboard.control.reference import ReferenceHorizon
     from epc_offboard.control.trajectories import RefSample, Rejoin
+    from epc_offboard.control.types import ReferenceHorizon
 
     traj = Trajectory(TrajectoryConfig(shape=shape, ramp_s=3.0, period_s=12.0),
                       np.array([1.0, 2.0, -2.5]), start_s=6.0)  # fmt: skip

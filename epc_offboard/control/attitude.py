@@ -29,7 +29,6 @@ from epc_offboard.common.airframe import Airframe
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.epc import budgeted_controller
 from epc_offboard.control.models import attitude_model
-from epc_offboard.control.position import PositionOutput
 from epc_offboard.control.qp import MpcProblem
 from epc_offboard.control.rate_response import (
     MAX_DEAD_TIME_S,
@@ -42,7 +41,7 @@ from epc_offboard.control.rate_response import (
     RateResponse,
     default_rate_response,
 )
-from epc_offboard.vehicle.state import VehicleState
+from epc_offboard.control.types import AttitudeCommand, PositionOutput, VehicleState
 
 Vec3 = tuple[float, float, float]
 
@@ -138,13 +137,6 @@ class AttitudeControlConfig:
 
 def _or(value: float | None, default: float) -> float:
     return default if value is None else value
-
-
-@dataclass(frozen=True)
-class AttitudeOutput:
-    rates_frd_rad_s: FloatArray | None  # None: let the autopilot track q_target itself
-    thrust_norm: float
-    source: str
 
 
 def attitude_problem(
@@ -287,7 +279,7 @@ class AttitudeLoop:
         now_s: float | None = None,
         *,
         acting: bool = True,
-    ) -> AttitudeOutput:
+    ) -> AttitudeCommand:
         """Body rates for tick ``now_s`` (default: the state's time): the QP from the state
         predicted to when this command starts to act. ``acting``: the autopilot flies our
         setpoints (in offboard); before, what is streamed is no evidence about the response."""
@@ -300,7 +292,7 @@ class AttitudeLoop:
         d = self.controller.step(x0, refs)
         u = np.asarray(d.u, dtype=np.float64)
         self._sent(now, u, valid=acting)
-        return AttitudeOutput(u, target.thrust_norm, d.source)
+        return AttitudeCommand(target.q_target, u, target.thrust_norm, d.source)
 
     def _p_law(self, state: VehicleState, target: PositionOutput) -> FloatArray:
         x0, refs = self._refs(state, target)
@@ -312,11 +304,11 @@ class AttitudeLoop:
 
     def attitude_fallback(
         self, state: VehicleState, target: PositionOutput, now_s: float | None = None
-    ) -> AttitudeOutput:
+    ) -> AttitudeCommand:
         now = state.time_s if now_s is None else now_s
         rates = self._p_law(state, target)
         self._sent(now, rates, valid=True)
-        return AttitudeOutput(rates, target.thrust_norm, "fallback")
+        return AttitudeCommand(target.q_target, rates, target.thrust_norm, "fallback")
 
     def attitude_delegated(
         self, state: VehicleState, target: PositionOutput, now_s: float

@@ -8,16 +8,15 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import numpy.typing as npt
 
-from epc_offboard.control.decision import Decision
+from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.decision import Controller, Decision, elapsed_us
 from epc_offboard.control.qp import MpcProblem, OsqpSolver, QpStatus
 
 
-class PdController:
+class PdController(Controller):
     """PD on ``x = [p (n), v (n), ...]`` with acceleration input ``u`` (n,).
 
     Further states (the lagged acceleration of the position model) are not fed back.
@@ -46,27 +45,18 @@ class PdController:
         self.kp = np.broadcast_to(np.asarray(kp, dtype=np.float64), (nu,)).copy()
         self.kd = np.broadcast_to(np.asarray(kd, dtype=np.float64), (nu,)).copy()
 
-    def step(
-        self,
-        x0: npt.ArrayLike,
-        refs: npt.ArrayLike,
-        u_p: npt.ArrayLike | None = None,
-        *,
-        perturbation: npt.ArrayLike | None = None,
-    ) -> Decision:
-        t0 = time.perf_counter()
+    def decide(self, theta: FloatArray, t0: float) -> Decision:
         p = self.problem
         n = p.nu
-        theta = p.theta(x0, refs, u_p, perturbation=perturbation)
         x = theta[: p.nx]
         r = theta[p.nx : p.nx + p.horizon * p.nx].reshape(p.horizon, p.nx)
         v = slice(n, 2 * n)
         a_ff = (r[1, v] - r[0, v]) / self.dt_s if p.horizon > 1 else np.zeros(n)
         u = a_ff + self.kp * (r[0, :n] - x[:n]) + self.kd * (r[0, v] - x[v]) + p.u_p(theta)
-        return Decision(p.clip_input(u), "solved", (time.perf_counter() - t0) * 1e6)
+        return Decision(p.clip_input(u), "solved", elapsed_us(t0))
 
 
-class MpcController:
+class MpcController(Controller):
     """Linear MPC solved every tick with OSQP (set up once, warm-started, polished).
 
     Source "solved" on success; a failed solve degrades to the bounded hover input
@@ -81,22 +71,15 @@ class MpcController:
         self._theta = np.zeros(problem.n_theta)
         self.failures = 0
 
-    def step(
-        self,
-        x0: npt.ArrayLike,
-        refs: npt.ArrayLike,
-        u_p: npt.ArrayLike | None = None,
-        *,
-        perturbation: npt.ArrayLike | None = None,
-    ) -> Decision:
-        t0 = time.perf_counter()
+    def theta_buffer(self) -> FloatArray:
+        return self._theta
+
+    def decide(self, theta: FloatArray, t0: float) -> Decision:
         p = self.problem
-        theta = p.theta(x0, refs, u_p, perturbation=perturbation, out=self._theta)
         h, gamma = p.vectors(theta)
         res = self._solver.solve(h, gamma)
         if res.status in (QpStatus.SOLVED, QpStatus.INACCURATE):
             u = p.clip_input(res.x[: p.nu])
-            return Decision(u, "solved", (time.perf_counter() - t0) * 1e6,
-                            p.predict(theta, res.x))
+            return Decision(u, "solved", elapsed_us(t0), p.predict(theta, res.x))
         self.failures += 1
-        return Decision(p.hover_input(theta), "fallback", (time.perf_counter() - t0) * 1e6)
+        return Decision(p.hover_input(theta), "fallback", elapsed_us(t0))

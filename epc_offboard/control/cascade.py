@@ -1,31 +1,121 @@
 """The control cascade of one vehicle: the position loop (100 Hz,
 :mod:`~epc_offboard.control.position`) feeding the attitude loop (200 Hz,
-:mod:`~epc_offboard.control.attitude`).
+:mod:`~epc_offboard.control.attitude`), and the loop policy between them.
 
-Pure numerics (no asyncio, no MAVLink): the service hands in a VehicleState and a
-:class:`~epc_offboard.control.reference.ReferenceHorizon` and gets back setpoints. What is
-stored of the controllers is translated by :mod:`epc_offboard.store.experience`.
+Pure numerics (no asyncio, no MAVLink): the service hands in a
+:class:`~epc_offboard.control.types.VehicleState` and a
+:class:`~epc_offboard.control.types.ReferenceHorizon` and gets back the
+commands to encode and send. What is stored of the
+controllers is translated by :mod:`epc_offboard.store.experience`.
+
+The policy of an attitude tick (:func:`attitude_command`): body rates from the attitude EPC
+when they can be trusted; else the attitude itself, which the autopilot's own attitude loop
+tracks: with ``attitude.mode = "autopilot"`` always, on a late tick or an old attitude sample
+(rates computed now would be flown until the next tick, stale), outside the envelope where
+the EPC's hover linearisation holds, and while the attitude loop's model of the autopilot's
+rate response does not predict the measured rates (``control/rate_response.py``). An
+exception in the attitude EPC degrades to the P-law fallback rates. With the px4 baseline the
+autopilot's own position controller flies the reference now (:class:`~epc_offboard.control.
+types.PositionTarget`).
 """
 
 from __future__ import annotations
 
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Literal
 
 import numpy as np
 
 from epc_offboard.common.airframe import Airframe
 from epc_offboard.control import kernels, lwpr, lwpr_kernels, rate_response, trajectories
-from epc_offboard.control.attitude import AttitudeControlConfig, AttitudeLoop, AttitudeOutput
+from epc_offboard.control.attitude import AttitudeControlConfig, AttitudeLoop
 from epc_offboard.control.decision import Controller
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.perturbation import EstimatorConfig
-from epc_offboard.control.position import PositionControlConfig, PositionLoop, PositionOutput
-from epc_offboard.control.reference import ReferenceHorizon
-from epc_offboard.vehicle.state import VehicleState
+from epc_offboard.control.position import PositionControlConfig, PositionLoop
+from epc_offboard.control.types import (
+    AttitudeCommand,
+    PositionOutput,
+    ReferenceHorizon,
+    VehicleState,
+)
+
+# an attitude sample older than this many attitude periods is not flown as body rates: a
+# 123 Hz stream (8.1 ms) read one tick late is 13 ms old; 20 ms is a stall
+LATE_ATTITUDE_PERIODS = 4.0
+# a tick started this many periods after its schedule is late
+LATE_TICK_PERIODS = 1.5
 
 
-def _stats(ctrl: Controller) -> dict[str, Any]:
+def late_tick(delay_s: float, attitude_age_s: float, period_s: float) -> bool:
+    """Whether an attitude tick started ``delay_s`` after its schedule, on an attitude
+    sample ``attitude_age_s`` old, is late (attitude loop period ``period_s``).
+
+    A late tick or an old attitude sample: body rates computed now would be flown until the
+    next tick, stale; the attitude itself goes instead, which the autopilot's own attitude
+    loop keeps tracking whatever we do next. The attitude loop predicts over the sample's
+    age, so an age within the stream's interval (PX4 grants ATTITUDE_QUATERNION 123 Hz,
+    8.1 ms) plus a tick or two is normal, not late; and a tick one period behind (lockstep
+    runs it at the next vehicle time with state) is the newest possible: only half a period
+    more, or an age over :data:`LATE_ATTITUDE_PERIODS` ticks, is late.
+    """
+    return (
+        delay_s > LATE_TICK_PERIODS * period_s
+        or attitude_age_s > LATE_ATTITUDE_PERIODS * period_s
+    )
+
+
+# who flies the attitude: the attitude EPC's body rates, or the autopilot's own attitude loop
+# (quaternion + thrust); "auto" is resolved per autopilot before it gets here
+AttitudeMode = Literal["epc", "autopilot"]
+
+
+def attitude_command(
+    loop: AttitudeLoop,
+    state: VehicleState,
+    target: PositionOutput,
+    now_s: float,
+    *,
+    late: bool,
+    mode: AttitudeMode,
+    acting: bool = True,
+    on_error: Callable[[Exception], None] | None = None,
+) -> AttitudeCommand:
+    """The attitude tick's command for ``target`` from ``state`` at loop time ``now_s``.
+
+    In order: ``mode`` "autopilot": the attitude, always (source "delegated"); a ``late``
+    tick or attitude sample: the attitude ("late"); outside the rate envelope
+    (:meth:`AttitudeLoop.rates_trusted`): the attitude ("envelope"); a rate model that does
+    not predict the measured rates (:meth:`AttitudeLoop.rate_model_trusted`): the attitude
+    ("model"); else the attitude EPC's body rates (its decision's source), or, when it
+    raises (handed to ``on_error``), the P-law fallback ("fallback"). ``acting``: the
+    autopilot flies our setpoints (offboard), so the rates measured answer them. Each tick
+    that sends the attitude while we fly body rates is noted in ``loop`` (the autopilot's
+    loop stands in for our rates in its history). The checks run in this order and only as
+    far as needed: the rate model's gate keeps time.
+    """
+    def quaternion(source: Literal["late", "envelope", "model"]) -> AttitudeCommand:
+        loop.attitude_delegated(state, target, now_s)  # the autopilot's, in flight
+        return AttitudeCommand(target.q_target, None, target.thrust_norm, source)
+
+    if mode == "autopilot":
+        return AttitudeCommand(target.q_target, None, target.thrust_norm, "delegated")
+    if late:
+        return quaternion("late")
+    if not loop.rates_trusted(state, target):
+        return quaternion("envelope")
+    if not loop.rate_model_trusted(now_s):
+        return quaternion("model")
+    try:
+        return loop.attitude_tick(state, target, now_s, acting=acting)
+    except Exception as exc:  # degrade, never die: the caller logs and counts it
+        if on_error is not None:
+            on_error(exc)
+        return loop.attitude_fallback(state, target, now_s)
+
+
+def _stats(ctrl: Controller | None) -> dict[str, Any]:
     if isinstance(ctrl, ExperienceController):
         s = ctrl.stats
         return {
@@ -97,11 +187,16 @@ class Cascade:
         """The safe command when the position loop cannot answer: level, hover thrust."""
         return self.position.hover(state)
 
+    @property
+    def flies_reference(self) -> bool:
+        """The px4 baseline: the autopilot's own position controller flies the reference
+        now (a :class:`PositionTarget` of its stage 0, each attitude tick); the position
+        loop computes nothing, and the reference it is handed is the reference now, not a
+        horizon."""
+        return self.position.controller is None
+
     def rates_trusted(self, state: VehicleState, target: PositionOutput) -> bool:
         return self.attitude.rates_trusted(state, target)
-
-    def rate_model_trusted(self, now_s: float) -> bool:
-        return self.attitude.rate_model_trusted(now_s)
 
     def attitude_tick(
         self,
@@ -110,18 +205,28 @@ class Cascade:
         now_s: float | None = None,
         *,
         acting: bool = True,
-    ) -> AttitudeOutput:
+    ) -> AttitudeCommand:
         return self.attitude.attitude_tick(state, target, now_s, acting=acting)
 
     def attitude_fallback(
         self, state: VehicleState, target: PositionOutput, now_s: float | None = None
-    ) -> AttitudeOutput:
+    ) -> AttitudeCommand:
         return self.attitude.attitude_fallback(state, target, now_s)
 
-    def attitude_delegated(
-        self, state: VehicleState, target: PositionOutput, now_s: float
-    ) -> None:
-        self.attitude.attitude_delegated(state, target, now_s)
+    def attitude_command(
+        self,
+        state: VehicleState,
+        target: PositionOutput,
+        now_s: float,
+        *,
+        late: bool,
+        mode: AttitudeMode,
+        acting: bool = True,
+        on_error: Callable[[Exception], None] | None = None,
+    ) -> AttitudeCommand:
+        """:func:`attitude_command` on this cascade's attitude loop."""
+        return attitude_command(self.attitude, state, target, now_s, late=late, mode=mode,
+                                acting=acting, on_error=on_error)
 
     def warm_up(self) -> float:
         """Run both ticks of a scratch cascade with this configuration at hover, so every

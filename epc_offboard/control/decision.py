@@ -2,17 +2,20 @@
 
 EPC, the PD baseline and MPC-every-tick share one interface so the service, the simulator
 and the benchmark can swap them: ``step(x0, refs, u_p=None, *, perturbation=None) ->
-Decision`` (``u_p``: the nominal input, (nu,) or per stage (N, nu)).
+Decision`` (``u_p``: the nominal input, (nu,) or per stage (N, nu)), written once, in
+:class:`Controller`.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy.typing as npt
 
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.qp import MpcProblem
 
 # hit: a stored controller passed the KKT check; solved: the exact QP optimum was computed
 # this tick (for PD: its control law was evaluated — PD has no library and always "solves");
@@ -32,6 +35,13 @@ class Decision:
 
 
 class Controller(Protocol):
+    """What every controller of the loops is (EPC, PD, MPC-every-tick): the ONE place the
+    ``step`` signature is written. Implementations subclass it and write :meth:`decide`;
+    ``step`` stacks the QP's parameter vector θ (:meth:`MpcProblem.theta
+    <epc_offboard.control.qp.MpcProblem.theta>`) once for all of them."""
+
+    problem: MpcProblem
+
     def step(
         self,
         x0: npt.ArrayLike,
@@ -39,4 +49,25 @@ class Controller(Protocol):
         u_p: npt.ArrayLike | None = None,
         *,
         perturbation: npt.ArrayLike | None = None,
-    ) -> Decision: ...
+    ) -> Decision:
+        """One control tick. ``x0`` (nx,), ``refs`` (N, nx) absolute references for
+        x_1..x_N, ``u_p`` (nu,) or (N, nu) nominal input, ``perturbation`` p^ (nx,) added to
+        the model offset. With a perturbation and no ``u_p``, ``u_p = -pinv(B) p^`` (the
+        input cancelling it)."""
+        t0 = time.perf_counter()
+        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation,
+                                   out=self.theta_buffer())
+        return self.decide(theta, t0)
+
+    def theta_buffer(self) -> FloatArray | None:
+        """Where :meth:`step` writes θ (None: a new array each tick)."""
+        return None
+
+    def decide(self, theta: FloatArray, t0: float) -> Decision:
+        """The tick's decision at θ (nθ,); ``t0``: the step's start (``time.perf_counter``)."""
+        ...
+
+
+def elapsed_us(t0: float) -> float:
+    """Microseconds since ``t0`` (``time.perf_counter``): a decision's ``compute_us``."""
+    return (time.perf_counter() - t0) * 1e6

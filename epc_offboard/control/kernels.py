@@ -2,8 +2,9 @@
 
 ``apply_map(M, width, theta_aug, n_check, u_out, u_min, u_max) -> bool`` computes
 ``w = M theta_aug`` row by row; the first ``n_check`` rows must satisfy ``0 <= w <= width``
-(the KKT check, see :class:`epc_offboard.control.epc.ActiveSetMap`), the last ``nu`` rows are the
-first input, written clipped to ``[u_min, u_max]`` into ``u_out`` when the check passes.
+(the KKT check, see :class:`epc_offboard.control.epc.maps.ActiveSetMap`), the last ``nu``
+rows are the first input, written clipped to ``[u_min, u_max]`` into ``u_out`` when the check
+passes.
 
 Compiled with numba when it is installed: one call instead of five numpy calls, and an early
 exit on the first violated row, which makes refusing a candidate cheaper than applying it.

@@ -52,8 +52,7 @@ from epc_offboard.control.models import (
 )
 from epc_offboard.control.perturbation import EstimatorConfig, PerturbationConfig, make_estimator
 from epc_offboard.control.qp import MpcProblem
-from epc_offboard.control.reference import ReferenceHorizon
-from epc_offboard.vehicle.state import VehicleState
+from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
 
 Vec3 = tuple[float, float, float]
 
@@ -161,19 +160,6 @@ class PositionControlConfig:
         return math.radians(self.yaw_deg)
 
 
-@dataclass(frozen=True)
-class PositionOutput:
-    """The position loop's answer: the attitude + thrust the vehicle should have."""
-
-    q_target: FloatArray  # [w, x, y, z] body FRD -> NED
-    euler_target_rad: Vec3  # roll, pitch, yaw
-    thrust_norm: float
-    acc_cmd_ned_m_s2: FloatArray
-    p_hat_ned_m_s2: FloatArray  # the acceleration disturbance estimate used
-    source: str
-    compute_us: float
-
-
 @dataclass
 class _Observation:
     t_s: float  # when the velocity was measured (vehicle time of its position sample)
@@ -221,6 +207,37 @@ def position_problem(cfg: PositionControlConfig, limits: AccelLimits) -> MpcProb
     )
 
 
+@dataclass(frozen=True)
+class PositionStrategy:
+    """How the position loop turns the reference horizon into a command (``controller``
+    in ``PositionControlConfig``): its ``controller`` (None: the px4 baseline, the
+    autopilot's own position controller flies the reference and this loop computes
+    nothing), and whether the nominal input ``u_p`` carries the reference's acceleration
+    feedforward (the QP methods) or only cancels the disturbance (PD: thesis A.1 takes its
+    feedforward from the horizon itself)."""
+
+    controller: Controller | None
+    nominal_feedforward: bool
+
+
+def position_strategy(
+    cfg: PositionControlConfig, problem: MpcProblem, *, learn_on_miss: bool = True
+) -> PositionStrategy:
+    """The strategy ``cfg.controller`` names, over ``problem``: EPC with its library budget,
+    MPC solved every tick, PD with ``cfg``'s gains, or the autopilot's (px4)."""
+    if cfg.controller == "epc":
+        epc = budgeted_controller(
+            problem, cfg.library.size, cfg.library.query_budget_us, learn_on_miss
+        )
+        return PositionStrategy(epc, nominal_feedforward=True)
+    if cfg.controller == "mpc":
+        return PositionStrategy(MpcController(problem), nominal_feedforward=True)
+    if cfg.controller == "pd":
+        pd = PdController(problem, kp=cfg.pd.kp_1_s2, kd=cfg.pd.kd_1_s)
+        return PositionStrategy(pd, nominal_feedforward=False)
+    return PositionStrategy(None, nominal_feedforward=False)
+
+
 class PositionLoop:
     """The position loop's numerics for one vehicle: its QP, controller and estimator.
 
@@ -251,15 +268,9 @@ class PositionLoop:
             frame.hover_thrust_norm,
         )
         self.problem = position_problem(cfg, self.acc_limits)
-        self.controller: Controller
-        if cfg.controller == "epc":
-            self.controller = budgeted_controller(
-                self.problem, cfg.library.size, cfg.library.query_budget_us, learn_on_miss
-            )
-        elif cfg.controller == "mpc":
-            self.controller = MpcController(self.problem)
-        else:  # pd, and px4's (unused: the autopilot flies the reference)
-            self.controller = PdController(self.problem, kp=cfg.pd.kp_1_s2, kd=cfg.pd.kd_1_s)
+        strategy = position_strategy(cfg, self.problem, learn_on_miss=learn_on_miss)
+        self.controller = strategy.controller
+        self._nominal_feedforward = strategy.nominal_feedforward
         filtered = PerturbationConfig(
             lwpr=replace(estimator.lwpr, dt_s=loop_period_s),
             kf=replace(estimator.kf, dt_s=loop_period_s),
@@ -489,7 +500,13 @@ class PositionLoop:
         estimator still learns, with the autopilot's thrust inferred (:meth:`observe`), so
         it is warm when control starts; the command is rate-limited from the first tick of
         an entry until ``entry_ramp_s`` after confirmation (:meth:`_entry_ramp`).
+
+        With the px4 baseline (no controller: the autopilot flies the reference) the tick
+        is the level hover, which only the flight log shows.
         """
+        controller = self.controller
+        if controller is None:
+            return self.hover(state)
         t0 = time.perf_counter()
         refs = reference.ahead
         axis_down = _thrust_axis_ned(state)[2]
@@ -497,7 +514,7 @@ class PositionLoop:
         achieved = self.achieved_acceleration(state, ours=learn)
         self.observe(state, ours=learn)
         d_max = self._d_max
-        if isinstance(self.controller, PdController):
+        if not self._nominal_feedforward:
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
             # itself; the nominal input only cancels the disturbance
             d_hat = np.clip(self.estimator.estimate(state.vel_ned_m_s), -d_max, d_max)
@@ -518,7 +535,7 @@ class PositionLoop:
         x0[0:3] = state.pos_ned_m
         x0[3:6] = state.vel_ned_m_s
         x0[6:9] = achieved
-        decision: Decision = self.controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
+        decision: Decision = controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
         acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
         acc = limit_tilt(acc, self.acc_limits)

@@ -36,7 +36,7 @@ import numpy.typing as npt
 
 from epc_offboard.common import jit
 from epc_offboard.common.frames import FloatArray
-from epc_offboard.control.reference import STAGE_WIDTH, ReferenceHorizon
+from epc_offboard.control.types import STAGE_WIDTH, ReferenceHorizon
 
 _F = TypeVar("_F", bound=Callable[..., Any])
 

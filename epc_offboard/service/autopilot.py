@@ -20,6 +20,8 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common.logsetup import LogGate
 from epc_offboard.common.signing import load_signing_key
+from epc_offboard.control.cascade import AttitudeMode
+from epc_offboard.control.types import VehicleState
 from epc_offboard.service.clock import Clock, VehicleClock
 from epc_offboard.service.config import ServiceConfig
 from epc_offboard.vehicle import commands
@@ -36,7 +38,7 @@ from epc_offboard.vehicle.dialect import (
 from epc_offboard.vehicle.link import MavlinkLink, TlogWriter
 from epc_offboard.vehicle.rates import RateMonitor
 from epc_offboard.vehicle.receive import SERVICE_MESSAGE_IDS
-from epc_offboard.vehicle.state import StateTracker, VehicleState
+from epc_offboard.vehicle.state import StateTracker
 
 log = logging.getLogger("epc_offboard.service")
 
@@ -199,7 +201,7 @@ class Autopilot:
                 )  # fmt: skip
 
     @property
-    def attitude_mode(self) -> str:
+    def attitude_mode(self) -> AttitudeMode:
         """attitude.mode, "auto" resolved by the dialect ("epc" until one is known)."""
         mode = self.cfg.attitude.mode
         if mode != "auto":

@@ -14,9 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 if TYPE_CHECKING:  # the writer process imports this module: it needs none of the controller
-    from epc_offboard.control.position import PositionOutput
-    from epc_offboard.control.reference import ReferenceHorizon
-    from epc_offboard.vehicle.state import VehicleState
+    from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
 
 FLIGHT_LOG_COLUMNS = [
     "t_s", "vehicle_t_s", "phase",

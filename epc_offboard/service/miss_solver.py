@@ -2,8 +2,8 @@
 
 On a library miss the tick applies the intermediate controller at once (thesis 3.1.3) and
 the controller queues the parameter vector θ (``ExperienceController(learn_on_miss=False)``,
-:attr:`~epc_offboard.control.epc.ExperienceController.pending`). :class:`MissSolver` takes those θ,
-solves the full QP, recovers and verifies its active set in ONE worker process (a standard
+its ``pending``). :class:`MissSolver` takes those θ, solves the full QP, recovers and
+verifies its active set in ONE worker process (a standard
 ``ProcessPoolExecutor``; each problem is sent once, at start, then only θ travels), and hands
 the active set back with its KKT map, built there (0.3-1.3 ms of factorisation and products
 for the position problem that the loop's tick no longer pays). The loop adds it only after
@@ -18,8 +18,8 @@ body-rate mode, flipped the vehicle.
 * ``wait=True`` (lockstep simulation) blocks until the solve in flight has returned, so the
   result enters the library at the same tick every run: deterministic.
 
-Fleet candidates (:class:`~epc_offboard.control.epc.CandidatePool`) are screened here too, so a
-flood of received controllers costs the loops nothing but bookkeeping: the loop's
+Fleet candidates (:class:`~epc_offboard.control.epc.candidates.CandidatePool`) are screened
+here too, so a flood of received controllers costs the loops nothing but bookkeeping: the loop's
 controller keeps the bounded pool of active sets, the worker a copy with their maps, built
 in slices bounded by time (``slice_s``) between solves. A miss is first checked against
 the built candidates; one that passes is handed back with its origin instead of a solve,
@@ -36,6 +36,10 @@ by the pool's size in maps, the rest of a snapshot waiting as tuples. In lockste
 the wanted maps (at most a few per slice) are a count, not a time, and the slice is waited
 for, so maps arrive at the same tick every run.
 
+The worker builds no controller: per problem it holds the full QP's
+:class:`~epc_offboard.control.epc.learner.Learner`, the
+:class:`~epc_offboard.control.epc.maps.MapBuilder` and its copy of the candidate pool.
+
 No asyncio here: :meth:`pump` is called from the position loop's tick.
 """
 
@@ -44,56 +48,117 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
-from collections import Counter, deque
+import time
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import numpy as np
 
 from epc_offboard.common.children import die_with_parent
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.common.procstats import process_report
-from epc_offboard.control.epc import ActiveSetMap, ExperienceController
+from epc_offboard.control import kernels
+from epc_offboard.control.epc.candidates import CandidatePool
+from epc_offboard.control.epc.learner import Learner
+from epc_offboard.control.epc.maps import ActiveSetMap, DependentActiveSetError, MapBuilder
 from epc_offboard.control.library import LibraryEntry
 from epc_offboard.control.qp import MpcProblem
+
+if TYPE_CHECKING:  # the loop's side only: the worker never builds a controller
+    from epc_offboard.control.epc.controller import ExperienceController
 
 log = logging.getLogger(__name__)
 _T = TypeVar("_T")
 
-# worker-process state: one learner per problem, built once by the initializer
-_LEARNERS: dict[str, ExperienceController] = {}
-
 # an active set, its origin ("solved" or a peer's) and its map, built here: the loop only
 # checks it (building it there cost 0.3-1.3 ms, most of a miss tick's time)
 Found = tuple[tuple[int, ...], str, ActiveSetMap | None]
+Built = list[tuple[tuple[int, ...], ActiveSetMap | None]]
 _MAX_WANTED = 8  # candidate maps asked of the worker per slice (it builds what its time allows)
+_RECENT = 8  # active sets the worker remembers having solved (not screened again as offers)
 
 
-def _init_worker(problems: dict[str, tuple[MpcProblem, int, int]], parent_pid: int) -> None:
+@dataclass
+class _Worker:
+    """The worker's state for one problem: the full QP, the map builder, its copy of the
+    candidate pool (no backlog: the loop's pool keeps that and asks for maps), and the sets
+    it solved last (an offer of one of those is not screened again)."""
+
+    builder: MapBuilder
+    learner: Learner
+    pool: CandidatePool
+    recent: OrderedDict[tuple[int, ...], None] = field(default_factory=OrderedDict)
+
+    def solved(self, active: tuple[int, ...]) -> None:
+        self.pool.take(active)  # solved here: no longer a candidate
+        self.recent[active] = None
+        if len(self.recent) > _RECENT:
+            self.recent.popitem(last=False)
+
+    def screen(self, theta_aug: FloatArray, budget_s: float) -> Found | None:
+        """A pool candidate optimal at ``theta_aug``, taken out of the pool, with its origin
+        and map: the worker's half of a promotion (the loop checks it again). Builds for up
+        to ``budget_s`` first."""
+        self.pool.build(self.builder.build, budget_s)
+        p = self.builder.problem
+        found = self.pool.find(theta_aug, np.empty(p.nu), p.u_min, p.u_max)
+        if found is None:
+            return None
+        active, cand = found
+        self.pool.take(active)
+        if cand.map is None:  # find() returns built candidates only
+            return None
+        return active, cand.origin, cand.map
+
+    def build_maps(self, actives: list[tuple[int, ...]], budget_s: float | None) -> Built:
+        """Maps for ``actives`` (None where the rows are dependent), reusing the pool's,
+        until ``budget_s`` is spent (at least one)."""
+        t0 = time.perf_counter()
+        out: Built = []
+        for active in actives:
+            if budget_s is not None and out and time.perf_counter() - t0 >= budget_s:
+                break
+            amap = self.pool.map_of(active)
+            if amap is None:
+                try:
+                    amap = self.builder.build(active)
+                except DependentActiveSetError:
+                    amap = None
+            out.append((active, amap))
+        return out
+
+
+# worker-process state: one per problem, built once by the initializer
+_WORKERS: dict[str, _Worker] = {}
+
+
+def _init_worker(
+    problems: dict[str, tuple[MpcProblem, float, int, int]], parent_pid: int
+) -> None:
     die_with_parent(parent_pid)  # no 168 MB orphan when the service is SIGKILLed
-    _LEARNERS.clear()
-    for name, (problem, pool, per_origin) in problems.items():
-        # the worker only solves and screens: its own library may stay tiny, and its pool
-        # copy needs no backlog (the loop's pool keeps that and asks for maps)
-        _LEARNERS[name] = ExperienceController(
-            problem, max_size=8, max_candidates=pool, max_candidates_per_origin=per_origin,
-            max_candidate_backlog=pool, max_candidate_backlog_per_origin=per_origin,
-        )
+    kernels.warm_up()  # the KKT check's compiled scan: before the first solve, not in it
+    _WORKERS.clear()
+    for name, (problem, tol, pool, per_origin) in problems.items():
+        builder = MapBuilder(problem, tol)
+        _WORKERS[name] = _Worker(builder, Learner(builder),
+                                 CandidatePool(pool, per_origin, pool, per_origin))
 
 
 def _solve(name: str, theta: FloatArray, slice_s: float) -> Found | None:
-    learner = _LEARNERS[name]
-    found = learner.screen_candidates(theta, slice_s)
+    worker = _WORKERS[name]
+    theta_aug = np.append(np.asarray(theta, dtype=np.float64), 1.0)
+    found = worker.screen(theta_aug, slice_s)
     if found is not None:
         return found
-    entry = learner.learn_theta(theta)
-    if entry is None:
+    amap = worker.learner.solve(theta_aug, np.empty(worker.builder.problem.nu))
+    if amap is None:
         return None
-    return entry.active_set, "solved", learner.map_of(entry.active_set)
-
-
-Built = list[tuple[tuple[int, ...], ActiveSetMap | None]]
+    worker.solved(amap.active)
+    return amap.active, "solved", amap
 
 
 def _offer(
@@ -103,15 +168,16 @@ def _offer(
     """Copy candidates into the worker's pool; build the maps the loop wants for one slice,
     or, when it wants none, a slice of the pool's. Returns how many of the pool's wait
     unbuilt, and the maps built for the loop."""
-    learner = _LEARNERS[name]
+    worker = _WORKERS[name]
     for active, origin in items:
-        learner.offer_candidates([LibraryEntry(active)], origin)
+        worker.pool.offer_checked(worker.builder.check_entry, worker.recent,
+                                  [LibraryEntry(active)], origin)
     if wanted:
-        built = learner.build_maps(wanted, slice_s)
+        built = worker.build_maps(wanted, slice_s)
     else:
         built = []
-        learner.build_candidates(slice_s)
-    return learner.candidates.unbuilt, built
+        worker.pool.build(worker.builder.build, slice_s)
+    return worker.pool.unbuilt, built
 
 
 def _ping() -> bool:
@@ -156,7 +222,7 @@ class MissSolver:
         READY: a worker that cannot start is an error now, not mid-flight). ``wait`` False:
         return at once and :meth:`wait_ready` later (its start overlaps other work)."""
         problems = {
-            name: (lane.ctrl.problem, lane.ctrl.candidates.max_size,
+            name: (lane.ctrl.problem, lane.ctrl.tol, lane.ctrl.candidates.max_size,
                    lane.ctrl.candidates.max_per_origin)
             for name, lane in self._lanes.items()
         }  # fmt: skip

@@ -4,7 +4,7 @@ In offboard, a fresh live reference from a planner (``[reference] source = "zeno
 first; else the mission's trajectory, closing the gap to it after a hold (a failsafe, a
 pilot) with a :class:`~epc_offboard.control.trajectories.Rejoin`; else the hold point (the
 trajectory's anchor, or where the vehicle was when there was nothing else). Whichever it is
-arrives as one :class:`~epc_offboard.control.reference.ReferenceHorizon`: the position tick
+arrives as one :class:`~epc_offboard.control.types.ReferenceHorizon`: the position tick
 flies it and the flight log reads the reference now from it.
 """
 
@@ -19,15 +19,14 @@ import numpy as np
 
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.position import PositionControlConfig
-from epc_offboard.control.reference import ReferenceHorizon
 from epc_offboard.control.trajectories import (
     Rejoin,
     Trajectory,
     TrajectoryConfig,
     live_reference_horizon,
 )
+from epc_offboard.control.types import ReferenceHorizon, VehicleState
 from epc_offboard.fleet.sharing import FleetSharing
-from epc_offboard.vehicle.state import VehicleState
 
 log = logging.getLogger("epc_offboard.service")
 

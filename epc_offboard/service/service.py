@@ -7,8 +7,10 @@ One asyncio TaskGroup with named tasks:
   rates, parameters and commands out);
 * ``position-loop``  — 100 Hz: state -> reference horizon (``reference_selector.py``) ->
   ``Cascade.position_tick`` (``control/position.py``: estimator, EPC, attitude map);
-* ``attitude-loop``  — 200 Hz: Cascade.attitude_tick -> SET_ATTITUDE_TARGET (rates + thrust),
-  or the autopilot's own attitude loop fed quaternion + thrust (``setpoints.py``);
+* ``attitude-loop``  — 200 Hz: ``Cascade.attitude_command`` (the loop policy,
+  ``control/cascade.py``) -> SET_ATTITUDE_TARGET (rates + thrust, or quaternion + thrust
+  for the autopilot's own attitude loop), or the px4 baseline's position target
+  (``setpoints.py``);
   both loops are ``loop.py``'s periodic loop around a tick of this module;
 * ``library-saver``  — new controllers and learned models to SQLite, written by the store
   process (``library_keeper.py``);
@@ -51,9 +53,8 @@ from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
 from epc_offboard.common.procstats import process_report
-from epc_offboard.control.cascade import Cascade, compiled_signatures
-from epc_offboard.control.position import PositionOutput
-from epc_offboard.control.reference import ReferenceHorizon
+from epc_offboard.control.cascade import Cascade, compiled_signatures, late_tick
+from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
 from epc_offboard.fleet.sharing import FleetSharing, open_or_fly_alone
 from epc_offboard.service import realtime
 from epc_offboard.service.autopilot import Autopilot
@@ -71,14 +72,9 @@ from epc_offboard.service.systemd import Systemd
 from epc_offboard.service.timing import LoopTiming
 from epc_offboard.vehicle import commands
 from epc_offboard.vehicle.offboard import Action, Outputs, Phase
-from epc_offboard.vehicle.state import StateTracker, VehicleState
+from epc_offboard.vehicle.state import StateTracker
 
 log = logging.getLogger("epc_offboard.service")
-
-
-# an attitude sample older than this many attitude periods is not flown as body rates: a
-# 123 Hz stream (8.1 ms) read one tick late is 13 ms old; 20 ms is a stall
-_LATE_ATTITUDE_PERIODS = 4.0
 
 
 class Service:
@@ -192,12 +188,11 @@ class Service:
         reference: ReferenceHorizon | None = None  # what the flight log shows
         offboard = self.outputs.phase == Phase.OFFBOARD
         try:
-            if self.cfg.position.controller == "px4":
+            if self.cascade.flies_reference:  # the autopilot takes the reference now only
                 reference = self.references.now(state, t_s)
-                out = self.cascade.hover(state)
             else:
                 reference = self.references.horizon(state, t_s, self.sharing, offboard=offboard)
-                out = self.cascade.position_tick(state, reference, learn=offboard)
+            out = self.cascade.position_tick(state, reference, learn=offboard)
         except Exception as exc:  # degrade, never die
             self.loops.error("position", exc)
             out = self.cascade.hover(state)
@@ -213,23 +208,11 @@ class Service:
             await asyncio.sleep(0)
         # (ArduPilot without GUID_OPTIONS bit 3 would read our thrust as a climb rate)
         streaming = self.outputs.stream_setpoints and not self.autopilot.offboard_refusal()
-        if streaming and state is not None and self.cfg.position.controller == "px4":
+        if streaming and state is not None and self.cascade.flies_reference:
             self.setpoints.position_target(state, self.references.now(state, tick.start_s))
         elif streaming and state is not None:
             target = self._position_out or self.cascade.hover(state)
-            # A late tick or an old attitude sample: body rates computed now would be
-            # flown until the next tick, stale; send the attitude itself instead, which
-            # the autopilot's own attitude loop keeps tracking whatever we do next.
-            # The attitude loop predicts over the sample's age, so an age within the
-            # stream's interval (PX4 grants ATTITUDE_QUATERNION 123 Hz, 8.1 ms) plus a tick
-            # or two is normal, not late; and a tick one period behind (lockstep runs it at
-            # the next vehicle time with state) is the newest possible: only half a period
-            # more, or an age over _LATE_ATTITUDE_PERIODS ticks, is late.
-            period = tick.period_s
-            late = (
-                tick.start_s - tick.scheduled_s > 1.5 * period
-                or state.attitude_age_s > _LATE_ATTITUDE_PERIODS * period
-            )
+            late = late_tick(tick.start_s - tick.scheduled_s, state.attitude_age_s, tick.period_s)
             offboard = self.outputs.phase == Phase.OFFBOARD
             self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard)
         elif self.clock.vehicle_time and state is not None:

@@ -1,15 +1,13 @@
-"""What the attitude loop sends, each tick: the setpoint that flies the position loop's
-target (SET_ATTITUDE_TARGET), or with the ``px4`` baseline the reference itself to the
-autopilot's own position controller (SET_POSITION_TARGET_LOCAL_NED).
+"""What the attitude loop sends, each tick, encoded and sent: SET_ATTITUDE_TARGET for the
+cascade's :class:`~epc_offboard.control.types.AttitudeCommand` (body rates + thrust, or the
+attitude itself for the autopilot's own attitude loop), or, with the px4 baseline,
+SET_POSITION_TARGET_LOCAL_NED for the reference now (a :class:`~epc_offboard.control.types.
+PositionTarget`).
 
-Body rates from the cascade's attitude EPC when they can be trusted; else the attitude
-itself, which the autopilot's own attitude loop tracks: with ``attitude.mode =
-"autopilot"`` always, on a late tick or an old attitude sample (rates computed now would be
-flown until the next tick, stale), outside the envelope where the EPC's hover
-linearisation holds, and while the attitude loop's model of the autopilot's rate response
-does not predict the measured rates (``control/rate_response.py``; said once in the log per
-change). An exception in the attitude EPC degrades to the cascade's fallback rates; a
-non-finite setpoint to a level hover (``vehicle/commands.py``). Each is counted.
+Which command flies is the cascade's policy (:func:`epc_offboard.control.cascade.
+attitude_command`); here each kind of fallback is counted, the rate-model gate's changes
+are said once in the log, and a non-finite setpoint is replaced by a level hover
+(``vehicle/commands.py``) and counted.
 """
 
 from __future__ import annotations
@@ -18,15 +16,24 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 
-from epc_offboard.control.attitude import AttitudeOutput
 from epc_offboard.control.cascade import Cascade
-from epc_offboard.control.position import PositionOutput
-from epc_offboard.control.reference import ReferenceHorizon
+from epc_offboard.control.types import (
+    PositionOutput,
+    PositionTarget,
+    ReferenceHorizon,
+    VehicleState,
+)
 from epc_offboard.service.autopilot import Autopilot
 from epc_offboard.vehicle import commands
-from epc_offboard.vehicle.state import VehicleState
 
 log = logging.getLogger("epc_offboard.service")
+
+# the service's counter of each source that sends the attitude instead of body rates
+_FALLBACK_COUNTERS = {
+    "late": "attitude_late_fallbacks",
+    "envelope": "attitude_envelope_fallbacks",
+    "model": "attitude_model_fallback_ticks",
+}
 
 
 class SetpointSender:
@@ -48,9 +55,10 @@ class SetpointSender:
         """The px4 baseline: the reference's position, velocity and acceleration now (stage
         0), to the autopilot's own position controller (as MAVSDK's offboard plugin sends
         them); a non-finite one is not sent, and counted."""
+        target = PositionTarget.now(reference)
         msg = commands.position_target(
-            self.autopilot.target, state.time_s, reference.pos_ned_m[0],
-            reference.vel_ned_m_s[0], reference.acc_ned_m_s2[0], float(reference.yaw_rad[0]),
+            self.autopilot.target, state.time_s, target.pos_ned_m, target.vel_ned_m_s,
+            target.acc_ned_m_s2, target.yaw_rad,
         )  # fmt: skip
         if msg is None:
             self.counters["non_finite_setpoints_replaced"] += 1
@@ -66,30 +74,19 @@ class SetpointSender:
         late: bool = False,
         acting: bool = True,
     ) -> None:
-        """Fly ``target`` from ``state`` at tick ``now_s`` (the loops' clock); ``late``: the
-        tick or its attitude sample is late; ``acting``: the autopilot flies our setpoints
-        (offboard), so the rates measured answer them."""
-        cascade = self.cascade
-        if self.autopilot.attitude_mode == "autopilot":
-            out = AttitudeOutput(None, target.thrust_norm, "delegated")
-        elif late:
-            self.counters["attitude_late_fallbacks"] += 1
-            out = AttitudeOutput(None, target.thrust_norm, "late")
-        elif not cascade.rates_trusted(state, target):
-            self.counters["attitude_envelope_fallbacks"] += 1
-            out = AttitudeOutput(None, target.thrust_norm, "envelope")
-        elif not cascade.rate_model_trusted(now_s):
-            self.counters["attitude_model_fallback_ticks"] += 1
-            out = AttitudeOutput(None, target.thrust_norm, "model")
-        else:
-            try:
-                out = cascade.attitude_tick(state, target, now_s, acting=acting)
-            except Exception as exc:
-                self._loop_error("attitude", exc)
-                out = cascade.attitude_fallback(state, target, now_s)
-        if out.rates_frd_rad_s is None and self.autopilot.attitude_mode != "autopilot":
-            cascade.attitude_delegated(state, target, now_s)  # the autopilot's, in flight
+        """Fly ``target`` from ``state`` at tick ``now_s`` (the loops' clock): the cascade's
+        attitude command (``late``: the tick or its attitude sample is late; ``acting``: the
+        autopilot flies our setpoints, so the rates measured answer them), its fallbacks
+        counted, encoded as SET_ATTITUDE_TARGET and sent."""
+        cmd = self.cascade.attitude_command(
+            state, target, now_s, late=late, mode=self.autopilot.attitude_mode, acting=acting,
+            on_error=lambda exc: self._loop_error("attitude", exc),
+        )  # fmt: skip
+        counter = _FALLBACK_COUNTERS.get(cmd.source)
+        if counter is not None:
+            self.counters[counter] += 1
         self._model_events()
+        cascade = self.cascade
 
         def hover() -> commands.AttitudeSetpoint:
             level = cascade.hover(state)
@@ -97,7 +94,7 @@ class SetpointSender:
 
         msg, replaced = commands.attitude_target(
             self.autopilot.target, state.time_s,
-            commands.AttitudeSetpoint.of(target.q_target, out.rates_frd_rad_s, out.thrust_norm),
+            commands.AttitudeSetpoint.of(cmd.q_target, cmd.rates_frd_rad_s, cmd.thrust_norm),
             max_rate_rad_s=self.max_rate_rad_s, fallback=hover,
             wire_thrust=lambda thrust: self.autopilot.wire_thrust(thrust, state),
         )  # fmt: skip

@@ -18,12 +18,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from epc_offboard.control.types import VehicleState
 from epc_offboard.service.autopilot import Autopilot
 from epc_offboard.service.clock import Clock
 from epc_offboard.service.config import ServiceConfig
 from epc_offboard.service.systemd import Systemd
 from epc_offboard.vehicle.offboard import Inputs, OffboardStateMachine, Outputs, Phase
-from epc_offboard.vehicle.state import StateTracker, VehicleState
+from epc_offboard.vehicle.state import StateTracker
 
 log = logging.getLogger("epc_offboard.service")
 

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from epc_offboard.common.errors import EpcError
-from epc_offboard.vehicle.state import Heartbeat
 
 # MAV_AUTOPILOT
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
@@ -38,6 +37,21 @@ MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
 
 AutopilotSetting = Literal["auto", "px4", "ardupilot"]
 AUTOPILOT_SETTINGS: tuple[str, ...] = ("auto", "px4", "ardupilot")
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    """A HEARTBEAT as the state tracker decodes it (vehicle/state.py) and the dialects read
+    it: armed, the mode as sent, and who sent it."""
+
+    system_id: int
+    armed: bool
+    main_mode: int  # PX4's main and sub mode of custom_mode (dialect_px4.px4_modes)
+    sub_mode: int
+    received_s: float  # local monotonic time
+    custom_mode: int = 0  # as sent: ArduPilot's plain mode number (PX4's is main/sub above)
+    autopilot: int = 12  # MAV_AUTOPILOT: 12 PX4, 3 ArduPilot
+
 
 
 class Action(enum.Enum):

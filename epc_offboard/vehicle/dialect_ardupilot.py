@@ -22,6 +22,14 @@ from __future__ import annotations
 
 import math
 
+from epc_offboard.common.arducopter import (  # ArduCopter's mode numbers, GUID_OPTIONS bits
+    BRAKE,
+    GUID_OPTIONS_THRUST_AS_THROTTLE,
+    GUIDED,
+    GUIDED_NOGPS,
+    LAND,
+    LOITER,
+)
 from epc_offboard.vehicle.dialect import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     Action,
@@ -29,21 +37,12 @@ from epc_offboard.vehicle.dialect import (
     Dialect,
     EncodeError,
     FlightMode,
+    Heartbeat,
     Position,
     TakeoffTarget,
     command,
     set_custom_mode,
 )
-from epc_offboard.vehicle.state import Heartbeat
-
-# ArduCopter's mode numbers (custom_mode)
-STABILIZE = 0
-GUIDED = 4
-LOITER = 5
-RTL = 6
-LAND = 9
-BRAKE = 17
-GUIDED_NOGPS = 20
 
 MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_COMPONENT_ARM_DISARM = 400
@@ -51,7 +50,6 @@ MSG_GLOBAL_POSITION_INT = 33
 MSG_EXTENDED_SYS_STATE = 245
 
 GUID_OPTIONS = "GUID_OPTIONS"
-GUID_OPTIONS_THRUST_AS_THROTTLE = 8  # bit 3: SET_ATTITUDE_TARGET thrust is throttle
 MOT_THST_HOVER = "MOT_THST_HOVER"
 PARAMS_READ_AT_LINK_UP = (GUID_OPTIONS, MOT_THST_HOVER)
 

@@ -24,26 +24,51 @@ from epc_offboard.vehicle.dialect import (
     Dialect,
     EncodeError,
     FlightMode,
+    Heartbeat,
     Position,
     TakeoffTarget,
     command,
     message_interval,
     set_custom_mode,
 )
-from epc_offboard.vehicle.state import (
-    PX4_AUTO_SUB_LAND,
-    PX4_AUTO_SUB_LOITER,
-    PX4_AUTO_SUB_TAKEOFF,
-    PX4_MAIN_MODE_AUTO,
-    PX4_MAIN_MODE_OFFBOARD,
-    Heartbeat,
-)
 
-__all__ = ["PX4", "Command", "EncodeError", "Position", "encode", "message_interval"]
+__all__ = [
+    "PX4",
+    "PX4_AUTO_SUB_LAND",
+    "PX4_AUTO_SUB_LOITER",
+    "PX4_AUTO_SUB_TAKEOFF",
+    "PX4_MAIN_MODE_AUTO",
+    "PX4_MAIN_MODE_OFFBOARD",
+    "PX4_MAIN_MODE_POSCTL",
+    "Command",
+    "EncodeError",
+    "Position",
+    "encode",
+    "message_interval",
+    "px4_custom_mode",
+    "px4_modes",
+]
 
 MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_FRAME_GLOBAL = 0
+
+# PX4 custom_mode: main mode in bits 16-23, sub mode in bits 24-31.
+PX4_MAIN_MODE_POSCTL = 3
+PX4_MAIN_MODE_AUTO = 4
+PX4_MAIN_MODE_OFFBOARD = 6
+PX4_AUTO_SUB_TAKEOFF = 2
+PX4_AUTO_SUB_LOITER = 3
+PX4_AUTO_SUB_LAND = 6
+
+
+def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
+    return (main_mode << 16) | (sub_mode << 24)
+
+
+def px4_modes(custom_mode: int) -> tuple[int, int]:
+    """(main_mode, sub_mode) of a PX4 custom_mode."""
+    return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
 
 
 def set_mode(main_mode: int, sub_mode: int = 0) -> Command:

@@ -52,8 +52,7 @@ import math
 from dataclasses import dataclass, field
 
 from epc_offboard.vehicle import dialect_px4
-from epc_offboard.vehicle.dialect import Action, Dialect, FlightMode, TakeoffTarget
-from epc_offboard.vehicle.state import Heartbeat
+from epc_offboard.vehicle.dialect import Action, Dialect, FlightMode, Heartbeat, TakeoffTarget
 
 __all__ = ["Action", "Inputs", "OffboardConfig", "OffboardStateMachine", "Outputs", "Phase"]
 

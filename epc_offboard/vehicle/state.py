@@ -29,6 +29,9 @@ import numpy as np
 
 from epc_offboard.common import frames
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.types import VehicleState
+from epc_offboard.vehicle.dialect import Heartbeat
+from epc_offboard.vehicle.dialect_px4 import px4_modes
 from epc_offboard.vehicle.timesync import AutopilotClock
 
 log = logging.getLogger(__name__)
@@ -54,24 +57,6 @@ _MAX_CANDIDATES = 4  # candidate timelines kept per stream while judging a resyn
 MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_LOCAL_FRD = 20
 MAV_FRAME_BODY_FRD = 12
-
-# PX4 custom_mode: main mode in bits 16-23, sub mode in bits 24-31.
-PX4_MAIN_MODE_POSCTL = 3
-PX4_MAIN_MODE_AUTO = 4
-PX4_MAIN_MODE_OFFBOARD = 6
-PX4_AUTO_SUB_TAKEOFF = 2
-PX4_AUTO_SUB_LOITER = 3
-PX4_AUTO_SUB_LAND = 6
-
-
-def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
-    return (main_mode << 16) | (sub_mode << 24)
-
-
-def px4_modes(custom_mode: int) -> tuple[int, int]:
-    """(main_mode, sub_mode) of a PX4 custom_mode."""
-    return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-
 
 @dataclass(frozen=True)
 class StateLimits:
@@ -138,43 +123,6 @@ class StateLimits:
                      "innovation_ang_accel_rad_s2"):  # fmt: skip
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-
-
-@dataclass(frozen=True)
-class Heartbeat:
-    system_id: int
-    armed: bool
-    main_mode: int
-    sub_mode: int
-    received_s: float  # local monotonic time
-    custom_mode: int = 0  # as sent: ArduPilot's plain mode number (PX4's is main/sub above)
-    autopilot: int = 12  # MAV_AUTOPILOT: 12 PX4, 3 ArduPilot
-
-    @property
-    def offboard(self) -> bool:
-        return self.main_mode == PX4_MAIN_MODE_OFFBOARD
-
-
-@dataclass(frozen=True)
-class VehicleState:
-    """The newest valid state, predicted to ``time_s``. Arrays are NED/FRD, SI units."""
-
-    time_s: float  # vehicle time this state is for
-    pos_ned_m: FloatArray
-    vel_ned_m_s: FloatArray
-    q_ned_frd: FloatArray  # [w, x, y, z], body FRD -> world NED
-    rate_frd_rad_s: FloatArray
-    position_age_s: float  # vehicle time since the position sample this is predicted from
-    attitude_age_s: float
-
-    @property
-    def euler_rad(self) -> tuple[float, float, float]:
-        """(roll, pitch, yaw) Z-Y-X."""
-        return frames.quat_to_euler(self.q_ned_frd)
-
-    @property
-    def yaw_rad(self) -> float:
-        return self.euler_rad[2]
 
 
 @dataclass

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from epc_offboard.common.arducopter import BRAKE, GUIDED, LAND, LOITER, RTL, STABILIZE
 from epc_offboard.common.frames import quat_to_euler
-from sitl.ardupilot import BRAKE, GUIDED, LAND, LOITER, RTL, STABILIZE, ArduCopter
+from sitl.ardupilot import ArduCopter
 from sitl.autopilot import (
     HOLD,
     IGNORE_ATTITUDE,

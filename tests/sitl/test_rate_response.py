@@ -9,8 +9,9 @@ import math
 import numpy as np
 import pytest
 
+from epc_offboard.common.arducopter import GUIDED
 from epc_offboard.common.configio import ConfigError
-from sitl.ardupilot import GUIDED, ArduCopter
+from sitl.ardupilot import ArduCopter
 from sitl.autopilot import HOLD, IGNORE_ATTITUDE, OFFBOARD, AttitudeSetpoint, Result
 from sitl.params import DEFAULT_VEHICLE_FILE, load_sim_config
 from sitl.simulation import Simulation

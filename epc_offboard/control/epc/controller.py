@@ -1,0 +1,237 @@
+"""Experience-driven Predictive Control, the hot path (thesis algorithm 1): query the library
+by the KKT check; on a miss try the fleet's candidates, then learn (or queue θ for a worker)
+and apply the intermediate controller meanwhile; a bounded hover when nothing answers.
+
+The parts, each in its module as the thesis explains them: the active-set map
+(:mod:`~epc_offboard.control.epc.maps`), the library (:mod:`~epc_offboard.control.epc.
+library`), the fleet's candidates (:mod:`~epc_offboard.control.epc.candidates`), the full QP
+and the intermediate QP (:mod:`~epc_offboard.control.epc.learner`); what the controller
+trades with the store, the fleet and the miss worker is :mod:`~epc_offboard.control.epc.
+exchange`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.decision import Controller, Decision, elapsed_us
+from epc_offboard.control.epc.candidates import CandidatePool
+from epc_offboard.control.epc.exchange import LibraryExchange
+from epc_offboard.control.epc.learner import IntermediateQp, Learner
+from epc_offboard.control.epc.library import Entry, Library
+from epc_offboard.control.epc.maps import MapBuilder
+from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.models import LinearModel
+from epc_offboard.control.qp import MpcProblem
+
+
+@dataclass(frozen=True)
+class EpcStats:
+    hits: int
+    misses: int
+    qp_solves: int
+    size: int
+    intermediate: int
+    fallback: int
+    learn_failures: int
+    received_shared: int = 0  # fleet candidates promoted into the library (KKT-checked here)
+    candidates: int = 0  # fleet candidates waiting in the pool
+
+    @property
+    def hit_rate(self) -> float:
+        total = self.hits + self.misses
+        return self.hits / total if total else 0.0
+
+
+class ExperienceController(LibraryExchange, Controller):
+    """EPC over one :class:`MpcProblem` (thesis algorithm 1).
+
+    ``max_size`` bounds the library (least important evicted); ``tol`` is the KKT check's
+    tolerance (multipliers >= -tol, bounds within tol); ``intermediate_horizon`` the short
+    horizon of the slack QP; ``learn_on_miss`` False leaves the full solve to the caller
+    (``step`` applies the intermediate controller and queues the parameter vectors in
+    :attr:`pending`, for a worker to pass to :meth:`learn_theta`); ``with_prediction`` adds the
+    predicted trajectory to hit decisions (one more mat-vec); ``max_candidates`` and
+    ``max_candidates_per_origin`` bound the pool of fleet candidates (:class:`CandidatePool`;
+    with ``learn_on_miss`` a miss builds and checks them before solving, without it the
+    worker holds a copy and does both off the loop).
+
+    Not thread-safe: ``step``, ``learn`` and the library methods share the solver and the
+    library, so a worker running ``learn`` must be serialised with the loop (or hand its
+    entries back through :meth:`import_entries`, which re-validates them).
+    """
+
+    def __init__(
+        self,
+        problem: MpcProblem,
+        *,
+        max_size: int = 500,
+        tol: float = 1e-9,
+        intermediate_horizon: int = 5,
+        slack_weight: float = 1e3,
+        learn_on_miss: bool = True,
+        with_prediction: bool = False,
+        max_pending: int = 8,
+        max_candidates: int = 64,
+        max_candidates_per_origin: int = 16,
+        max_checks: int | None = None,
+        max_candidate_backlog: int = 2048,
+        max_candidate_backlog_per_origin: int = 512,
+    ) -> None:
+        self.library = Library(max_size, max_checks)
+        if not (tol > 0.0 and math.isfinite(tol)):
+            raise ValueError(f"tol must be a positive finite number, got {tol}")
+        if intermediate_horizon < 1:
+            raise ValueError(f"intermediate_horizon must be >= 1, got {intermediate_horizon}")
+        self.tol = tol
+        self.learn_on_miss = learn_on_miss
+        self.with_prediction = with_prediction
+        self._int_horizon = min(intermediate_horizon, problem.horizon)
+        self._slack_weight = slack_weight
+        self._max_pending = max_pending
+        self.pending: list[FloatArray] = []
+        self._new: list[LibraryEntry] = []
+        self._hits = self._misses = self._solves = 0
+        self._intermediate = self._fallback = self._learn_failures = 0
+        self._received_shared = 0
+        self.candidates = CandidatePool(max_candidates, max_candidates_per_origin,
+                                        max_candidate_backlog, max_candidate_backlog_per_origin)
+        self.model_epoch = 0  # counts changes of A or B: maps built before are stale
+        # (root, promotions) of the last refocus
+        self._focus_state: tuple[tuple[int, ...] | None, int] | None = None
+        self._setup(problem)
+
+    @property
+    def max_size(self) -> int:
+        return self.library.max_size
+
+    @property
+    def max_checks(self) -> int | None:
+        """The most candidates one query checks (None: the whole library)."""
+        return self.library.max_checks
+
+    @max_checks.setter
+    def max_checks(self, value: int | None) -> None:
+        self.library.max_checks = value
+
+    @property
+    def last_query_checks(self) -> int:
+        return self.library.last_query_checks
+
+    # -- model ------------------------------------------------------------------------------
+
+    def _setup(self, problem: MpcProblem) -> None:
+        self.problem = problem
+        self.builder = MapBuilder(problem, self.tol)
+        self.learner = Learner(self.builder)
+        # theta_aug = [theta; 1]: the maps carry their constant as a last column
+        self._theta_aug = np.zeros(problem.n_theta + 1)
+        self._theta_aug[-1] = 1.0
+        self._intermediate_qp = IntermediateQp(problem, self._int_horizon, self._slack_weight)
+
+    def set_model(self, model: LinearModel) -> None:
+        """Adopt a new model of equal size; rebuild every cached map (the library is kept).
+
+        Entries whose rows become dependent under the new model are dropped.
+        """
+        old = self.problem.model
+        if np.array_equal(old.A, model.A) and np.array_equal(old.B, model.B):
+            # only the offset changed: it enters through theta, the maps stay valid
+            self.problem = self.problem.with_offset(model)
+            return
+        self._setup(self.problem.with_model(model))
+        self.model_epoch += 1
+        self.candidates.forget_maps()
+        self.library.rebuild(self.builder.build)
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def theta_buffer(self) -> FloatArray:
+        return self._theta_aug[:-1]
+
+    def decide(self, theta: FloatArray, t0: float) -> Decision:
+        """Algorithm 1's body at θ (written into ``_theta_aug`` by :meth:`step`)."""
+        th_aug = self._theta_aug
+        p = self.problem
+        self.library.tick += 1
+        u = np.empty(p.nu)
+        entry = self.library.query(th_aug, u, p.u_min, p.u_max)
+        if entry is not None:
+            return self._hit(entry, u, th_aug, t0)
+        if len(self.candidates):
+            # with learn_on_miss every candidate is built here; without, only the maps the
+            # worker built for proven origins are checked (mat-vecs, no factorisation)
+            entry = self._promote(th_aug, u, budget_s=None, build=self.learn_on_miss)
+            if entry is not None:  # a fleet candidate, optimal here: exact, no solve
+                return self._hit(entry, u, th_aug, t0)
+        self._misses += 1
+        if self.learn_on_miss:
+            entry = self._learn(th_aug, u)
+            if entry is not None:
+                self.library.use(entry)
+                return Decision(u, "solved", elapsed_us(t0), self._predict(entry, th_aug))
+        elif len(self.pending) < self._max_pending:
+            self.pending.append(theta.copy())
+        return self._degraded(theta, t0)
+
+    def _hit(self, entry: Entry, u: FloatArray, theta_aug: FloatArray, t0: float) -> Decision:
+        self._hits += 1
+        self.library.use(entry)
+        x_pred = self._predict(entry, theta_aug) if self.with_prediction else None
+        return Decision(u, "hit", elapsed_us(t0), x_pred)
+
+    def _predict(self, entry: Entry, theta_aug: FloatArray) -> FloatArray:
+        return self.problem.predict(theta_aug[:-1], entry.map.U @ theta_aug)
+
+    def _degraded(self, theta: FloatArray, t0: float) -> Decision:
+        """The miss's answer this tick: the intermediate QP, else a bounded hover."""
+        u = self._intermediate_qp.solve(theta)
+        if u is not None:
+            self._intermediate += 1
+            return Decision(u, "intermediate", elapsed_us(t0))
+        self._fallback += 1
+        return Decision(self.problem.hover_input(theta), "fallback", elapsed_us(t0))
+
+    def _learn(self, theta_aug: FloatArray, u_out: FloatArray) -> Entry | None:
+        """Solve the full QP, recover and verify its active set, add it (the exact first
+        input written to ``u_out``); None when the QP is infeasible or no active set passes
+        the check."""
+        self._solves += 1
+        amap = self.learner.solve(theta_aug, u_out)
+        if amap is None:
+            self._learn_failures += 1
+            return None
+        entry = self.library.get(amap.active)
+        if entry is not None:
+            return entry
+        entry = self._add(amap, origin="solved")
+        self._new.append(LibraryEntry(amap.active, entry.importance, entry.uses, "solved"))
+        return entry
+
+    @property
+    def stats(self) -> EpcStats:
+        return EpcStats(
+            hits=self._hits,
+            misses=self._misses,
+            qp_solves=self._solves,
+            size=len(self.library),
+            intermediate=self._intermediate,
+            fallback=self._fallback,
+            learn_failures=self._learn_failures,
+            received_shared=self._received_shared,
+            candidates=len(self.candidates),
+        )
+
+
+def budgeted_controller(
+    problem: MpcProblem, library_size: int, query_budget_us: float, learn_on_miss: bool
+) -> ExperienceController:
+    """EPC over ``problem`` with a library of ``library_size`` controllers whose queries
+    check no more candidates than fit in ``query_budget_us`` of the worst-case model."""
+    epc = ExperienceController(problem, max_size=library_size, learn_on_miss=learn_on_miss)
+    epc.max_checks = epc.checks_within(query_budget_us)
+    return epc
