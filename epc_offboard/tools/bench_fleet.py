@@ -43,7 +43,8 @@ _FLEET = "bench"
 
 
 def _problem() -> Any:
-    from epc_offboard.mpc import LinearModel, MpcProblem
+    from epc_offboard.control.models import LinearModel
+    from epc_offboard.control.qp import MpcProblem
 
     dt = 0.1  # a double integrator per axis: x = (p, v), u = a; bounds make active sets
     A = np.eye(6)
