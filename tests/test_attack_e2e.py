@@ -231,5 +231,11 @@ def test_a_peer_replaying_messages_or_flapping_tokens_neither_stops_the_loops_no
     assert all(r["phase"] == "offboard" for r in rows), {r["phase"] for r in rows}
     assert code == 0, log
     assert summary["sent"] >= 0.5 * RATE_PER_S * PEER_ATTACK_S, summary  # a real attack
-    reached = "messages_received" if kind == "replay" else "queries_sent"
+    reached = "messages_received" if kind == "replay" else "peer_joins"
     assert stats["sharing"][reached] > 50, stats["sharing"]  # it reached the victim
+    if kind == "flap":  # every arrival counted; queries and log lines within the fleet budget
+        budget = 20 + 10.0 * (PEER_ATTACK_S + 10.0)  # burst + 10/s over the attack and after
+        assert stats["sharing"]["queries_sent"] <= budget, stats["sharing"]
+        assert stats["sharing"]["queries_skipped"] > 0, stats["sharing"]
+        lines = (tmp_path / "service.log").read_text(errors="replace")
+        assert lines.count(" joined (") + lines.count(" left (") <= 2 * budget

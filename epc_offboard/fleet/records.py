@@ -161,5 +161,7 @@ STAT_NAMES = (
     "tasks_dropped",
     "publish_seq_done",  # the last publish frame the helper handled (the control's number)
     "session_open_failures",  # sessions that did not open (a router's refusal among them)
+    "peer_joins", "peer_leaves",  # liveliness changes (a flapping token: each counted)
+    "queries_skipped",  # arrivals not queried: the fleet's query budget was spent
 )  # fmt: skip
 STAT_INDEX = {name: i for i, name in enumerate(STAT_NAMES)}

@@ -68,6 +68,11 @@ _LOG_EVERY_S = 5.0  # at most one log line per reason and peer this often
 _MAX_REFERENCE_BYTES = 16384
 _TRANSITION_BYTES = 12  # one (from, to, count) on the wire (wire._TRANSITION)
 _TURN_S = 0.1  # the main thread's heartbeat period when idle
+# library snapshot queries (one per arriving peer) and arrival / departure log lines the whole
+# fleet may cause: a fleet's genuine arrivals are rare, a flapping token's (1,000 a second,
+# rotating ids) are not
+_QUERIES_PER_S = 10.0
+_QUERY_BURST = 20
 
 
 class _TokenBuckets:
@@ -331,6 +336,8 @@ class FleetSession:
         self.peers: dict[int, set[str]] = {}
         self._senders: OrderedDict[str, None] = OrderedDict()
         self._buckets = _TokenBuckets(cfg.max_messages_per_s, cfg.burst_messages)
+        self._query_bucket = _TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
+        self._leave_log_bucket = _TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
         # all peers together: rotating ids each get a fresh burst, so without a fleet-wide
         # limit a flood is decoded in full (here, at least, in a process of its own)
         self._fleet_bucket = _TokenBuckets(
@@ -463,12 +470,27 @@ class FleetSession:
             if len(peers) >= _MAX_PEERS:
                 return
             peers.add(peer)
-            log.info("fleet %s: vehicle %s joined (%s)", self.cfg.fleet, peer, p.spec.name)
-            self._query_library(p, peer)
+            self.counters.add("peer_joins")
+            self._peer_arrived(index, peer)
         elif not joined and peer in peers:
             peers.discard(peer)
-            log.info("fleet %s: vehicle %s left (%s)", self.cfg.fleet, peer, p.spec.name)
+            self.counters.add("peer_leaves")
+            if self._leave_log_bucket.allow("fleet", time.monotonic()):
+                log.info("fleet %s: vehicle %s left (%s)", self.cfg.fleet, peer, p.spec.name)
         self.counters.set("peers", len(set().union(*self.peers.values())))
+
+    def _peer_arrived(self, index: int, peer: str) -> None:
+        """Say it and query the peer's library, once per peer every ``_LOG_EVERY_S`` and within
+        the fleet's query budget: a flapping token (1,000 arrivals a second from rotating ids
+        in ``bench --attack``) made a log line (19,600 a flight) and a query of each."""
+        if not self._once_per_interval("joined", f"{index}/{peer}"):
+            return
+        if not self._query_bucket.allow("fleet", time.monotonic()):
+            self.counters.add("queries_skipped")
+            return
+        p = self.problems[index]
+        log.info("fleet %s: vehicle %s joined (%s)", self.cfg.fleet, peer, p.spec.name)
+        self._query_library(p, peer)
 
     def _query_library(self, p: _Problem, peer: str) -> None:
         if self._session is None:
@@ -597,15 +619,20 @@ class FleetSession:
         self.reference.put(reference_record(msg, time.monotonic()).tobytes())
 
     def _log_limited(self, reason: str, peer: str, fmt: str, *args: object) -> None:
+        if self._once_per_interval(reason, peer):
+            log.warning(fmt, *args)
+
+    def _once_per_interval(self, reason: str, peer: str) -> bool:
+        """True at most once per ``reason`` and ``peer`` every ``_LOG_EVERY_S`` (bounded)."""
         now = time.monotonic()
         with self._lock:
             last = self._last_log.get((reason, peer), -float("inf"))
             if now - last < _LOG_EVERY_S:
-                return
+                return False
             if len(self._last_log) > _MAX_PEERS:
                 self._last_log.clear()
             self._last_log[(reason, peer)] = now
-        log.warning(fmt, *args)
+        return True
 
 
 # -- the helper process ----------------------------------------------------------------------
