@@ -225,6 +225,9 @@ def _add_bench(sub: _Subparsers) -> None:
         help="instead: LWPR's cost per control tick, compiled against the numpy reference "
         "(ratios printed), and its learning curves",
     )
+    from epc_offboard.tools.bench_modes import add_modes_arguments
+
+    add_modes_arguments(bench)
 
 
 def _add_log(sub: _Subparsers) -> None:
