@@ -268,7 +268,7 @@ class _GroundStation:
 
 def _script(gcs: _GroundStation, flight: Flight, stop: threading.Event) -> None:
     try:
-        gcs.connect(time.monotonic() + 60.0)
+        gcs.connect(time.monotonic() + _WALL_LIMIT_S)
         deadline = time.monotonic() + _WALL_LIMIT_S
         while not gcs.controlled and not stop.is_set() and time.monotonic() < deadline:
             gcs.pump()

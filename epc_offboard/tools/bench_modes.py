@@ -303,6 +303,11 @@ def targets(results: list[dict[str, Any]], ratios: dict[str, Any]) -> dict[str, 
     }
 
 
+def _num(value: Any) -> float:
+    """A report's figure, NaN when it has none (a flight that never tracked)."""
+    return float(value) if isinstance(value, float | int) else math.nan
+
+
 def format_table(results: list[dict[str, Any]]) -> str:
     head = (
         f"{'flight':13s} {'mode':9s} {'timing':8s} {'rmse cm':>8s} {'max cm':>7s} "
@@ -316,9 +321,10 @@ def format_table(results: list[dict[str, Any]]) -> str:
             continue
         fb = sum(r["quaternion_fallback_ticks"].values())
         att = r["loops"]["attitude"]["rate_hz"]
+        rmse, worst = (_num(r[k]) for k in ("rmse_m", "max_error_m"))
         lines.append(
             f"{r['flight']:13s} {r['mode']:9s} {r['timing']:8s} "
-            f"{100 * r['rmse_m']:8.2f} {100 * r['max_error_m']:7.1f} "
+            f"{100 * rmse:8.2f} {100 * worst:7.1f} "
             f"{r['max_tilt_outside_entry_deg']:6.1f} {r['max_climb_above_ref_m']:6.2f} "
             f"{r['flips']:4d} {r['failsafes']:3d} {fb:5d} {att or 0:6.1f} "
             f"{r['load_1min'][0]:5.1f}-{r['load_1min'][1]:<5.1f}"
