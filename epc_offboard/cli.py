@@ -237,7 +237,7 @@ def _add_bench(sub: _Subparsers) -> None:
     )
     bench.add_argument(
         "--hogs", type=bounded_int(0), default=0, metavar="N",
-        help="with --attack: N CPU hogs beside the flight",
+        help="with --attack or --modes: N CPU hogs beside the real-time flights",
     )  # fmt: skip
     bench.add_argument(
         "--attitude-mode", choices=["quaternion", "rates"], default="quaternion",
@@ -257,6 +257,9 @@ def _add_bench(sub: _Subparsers) -> None:
         help="instead: LWPR's cost per control tick, compiled against the numpy reference "
         "(ratios printed), and its learning curves",
     )
+    from epc_offboard.tools.bench_modes import add_modes_arguments
+
+    add_modes_arguments(bench)
 
 
 def _add_log(sub: _Subparsers) -> None:

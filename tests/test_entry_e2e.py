@@ -10,11 +10,14 @@ the vehicle is held where it is until offboard is confirmed.
 Bounds over the first 2 s of each entry: altitude within 0.2 m of the entry's; tilt under
 30 deg in 3 m/s wind. In 6 m/s wind the SITL's drag (SIH's, 1 m/s^2 per m/s) needs 31.5 deg
 of tilt just to hold, so there the tilt may change by at most 30 deg from the entry's and
-stay inside the 45 deg tilt limit.
+stay inside the 45 deg tilt limit; the randomised re-entries judge every tilt against the
+one that holds at rest in the wind blowing then (within 30 deg of it), in any wind.
 """
 
 from __future__ import annotations
 
+import os
+import random
 from pathlib import Path
 
 import pytest
@@ -23,24 +26,32 @@ from hypothesis import strategies as st
 
 from tests.entry import Flight, fly
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]
 
 MAX_ALT_CHANGE_M = 0.2
 MAX_TILT_DEG = 30.0
 TILT_LIMIT_DEG = 45.0 + 3.0  # the configured limit, and the attitude loop's overshoot
 
 
-def _judge(flight: Flight, entries: int) -> None:
+# the randomised re-entries: the tilt within this of the one that holds against the wind
+MAX_TILT_FROM_HOLD_DEG = 30.0
+COMBOS = [(a, m) for a in ("px4", "ardupilot") for m in ("epc", "autopilot")]
+
+
+def _judge(flight: Flight, entries: int, *, from_hold: bool = False) -> None:
+    """The flight's bounds; ``from_hold``: its tilt judged against the wind's hold only."""
     assert flight.exit_code == 0, flight.name
     assert len(flight.entries) == entries, (flight.name, flight.entries, flight.freezes_done)
     for e in flight.entries:
         what = f"{flight.name} entry at {e.t_s:.2f} s: {e}"
         assert e.alt_change_m < MAX_ALT_CHANGE_M, what
-        if flight.wind_m_s <= 3.0:
+        assert e.tilt_max_deg < TILT_LIMIT_DEG, what
+        if from_hold:
+            assert e.tilt_from_hold_deg < MAX_TILT_FROM_HOLD_DEG, what
+        elif flight.wind_m_s <= 3.0:
             assert e.tilt_max_deg < MAX_TILT_DEG, what
         else:
             assert e.tilt_change_deg < MAX_TILT_DEG, what
-            assert e.tilt_max_deg < TILT_LIMIT_DEG, what
 
 
 def test_px4_body_rates_3_m_s_entry_and_reentry_after_a_short_freeze(tmp_path):
@@ -51,24 +62,41 @@ def test_px4_body_rates_3_m_s_entry_and_reentry_after_a_short_freeze(tmp_path):
 
 def test_ardupilot_quaternion_6_m_s_entry(tmp_path):
     """Fails on the old code: ArduCopter hands over still climbing out of its takeoff, and
-    the estimate started at zero: 1.3 m of altitude change. (Re-entries on this personality
-    are judged by the bench, python -m tests.entry: its BRAKE holds level and lets the wind
-    take the vehicle, so holding after the freeze needs the whole wind's tilt anew.)"""
+    the estimate started at zero: 1.3 m of altitude change."""
     _judge(fly(Flight("ardupilot", "autopilot", 6.0), tmp_path), entries=1)
 
 
+@pytest.mark.parametrize("mode", ["epc", "autopilot"])
+def test_ardupilot_reentry_in_6_m_s_wind_after_a_short_freeze(tmp_path, mode):
+    """The hardest re-entry: 0.6 s of frozen telemetry is a failsafe, LOITER, whose hold
+    starts from its own integrators (the vehicle levels and drifts downwind), then offboard
+    again at once, tilting up 10 deg into the wind to brake the drift. A thrust sized for
+    the target's tilt lifted the vehicle while the tilt lagged: 0.15-0.16 m on the old code
+    (seeds 0-2; under the bound: tests/test_entry.py's thrust test is the one that fails
+    on it), 0.05-0.08 m now."""
+    flight = Flight("ardupilot", mode, 6.0, freezes_s=(0.6,))
+    _judge(fly(flight, Path(tmp_path), seed=1), entries=2, from_hold=True)
+
+
+@pytest.mark.parametrize(("autopilot", "mode"), COMBOS)
 @settings(
-    max_examples=2,
+    max_examples=int(os.environ.get("ENTRY_EXAMPLES", "1")),
     deadline=None,
-    derandomize=True,
+    derandomize="ENTRY_EXAMPLES" not in os.environ,  # more examples asked: new ones
     suppress_health_check=[HealthCheck.function_scoped_fixture],
 )
-@given(
-    freeze_s=st.floats(0.4, 5.0),
-    settle_s=st.floats(2.0, 6.0),
-    mode=st.sampled_from(["epc", "autopilot"]),
-)
-def test_every_reentry_after_a_random_freeze_is_calm(tmp_path, freeze_s, settle_s, mode):
-    out = Path(tmp_path) / f"freeze{freeze_s:.2f}-settle{settle_s:.2f}-{mode}"
-    flight = Flight("px4", mode, 3.0, freezes_s=(freeze_s,), settle_s=settle_s)
-    _judge(fly(flight, out), entries=2)
+@given(draw=st.integers(0, 2**31 - 1))
+def test_every_reentry_after_a_random_freeze_is_calm(tmp_path, autopilot, mode, draw):
+    """Randomised freezes of the position telemetry (0.4-5 s, a failsafe each), after a
+    random time in offboard, in random wind up to 6 m/s, in both personalities and both
+    attitude modes: the entry and the re-entry each hold their altitude within 0.2 m and
+    their tilt within 30 deg of the wind's over their first 2 s. The case is drawn from
+    ``draw`` (hypothesis's minimal example, 0, is then a random case, not the calm corner);
+    ENTRY_EXAMPLES=N flies N new cases per personality and mode."""
+    rng = random.Random(f"{autopilot}-{mode}-{draw}")
+    wind_m_s = rng.uniform(0.0, 6.0)
+    freeze_s, settle_s = rng.uniform(0.4, 5.0), rng.uniform(2.0, 6.0)
+    seed = rng.randrange(1000)
+    flight = Flight(autopilot, mode, wind_m_s, freezes_s=(freeze_s,), settle_s=settle_s)
+    out = Path(tmp_path) / f"{flight.name}-settle{settle_s:.2f}-s{seed}"
+    _judge(fly(flight, out, seed=seed), entries=2, from_hold=True)

@@ -127,8 +127,18 @@ class PositionControlConfig:
     # vertically, within this: a calm entry holds its altitude (the QP may otherwise buy
     # tilt authority with thrust and climb with it: 0.36 m on an ArduCopter re-entry)
     entry_max_vertical_acc_m_s2: float = 0.6
+    # The thrust is sized for the tilt the vehicle flies (measured), not the target's, so
+    # that its vertical part is the commanded one while the tilt lags the target: sized for
+    # the target's, a tilt-up into 6 m/s wind lagging 3-6 deg climbed 0.15 m (ArduCopter
+    # re-entry; its own angle boost does the same for its own targets). The thrust stays
+    # within this factor of the target's (and 1/factor); 1.0: the target's tilt alone.
+    thrust_tilt_ratio_max: float = 1.4
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.thrust_tilt_ratio_max) and self.thrust_tilt_ratio_max >= 1.0):
+            raise ValueError(
+                f"thrust_tilt_ratio_max must be >= 1, got {self.thrust_tilt_ratio_max}"
+            )
         if self.horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {self.horizon}")
         if self.dt_s <= 0.0:
@@ -150,8 +160,7 @@ class PositionControlConfig:
             and self.entry_max_vertical_acc_m_s2 > 0.0
         ):
             raise ValueError(
-                "entry_max_vertical_acc_m_s2 must be > 0, got "
-                f"{self.entry_max_vertical_acc_m_s2}"
+                f"entry_max_vertical_acc_m_s2 must be > 0, got {self.entry_max_vertical_acc_m_s2}"
             )
 
     @property
@@ -539,16 +548,37 @@ class PositionLoop:
         acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
         acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
         acc = limit_tilt(acc, self.acc_limits)
-        out = self._attitude_target(acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0)
+        out = self._attitude_target(
+            acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0, axis_down
+        )
         self._last_thrust_norm = out.thrust_norm
         return out
 
     def _attitude_target(
-        self, acc: FloatArray, yaw_rad: float, d_hat: FloatArray, source: str, t0: float
+        self,
+        acc: FloatArray,
+        yaw_rad: float,
+        d_hat: FloatArray,
+        source: str,
+        t0: float,
+        axis_down: float = 1.0,
     ) -> PositionOutput:
-        frame = self.airframe
+        """The attitude and thrust of ``acc``; ``axis_down``: the NED z component of the
+        measured thrust axis (the cosine of the tilt flown), for which the thrust is sized
+        (``thrust_tilt_ratio_max``)."""
+        cfg, frame = self.config, self.airframe
         att = accel_to_attitude(acc, yaw_rad, frame.hover_thrust_norm)
-        thrust = min(max(att.thrust_norm, frame.min_thrust_norm), frame.max_thrust_norm)
+        thrust = att.thrust_norm
+        if cfg.thrust_tilt_ratio_max > 1.0 and thrust > 0.0:
+            # the vertical part of the thrust at the tilt flown: (g - a_d) / cos(tilt flown),
+            # against |g e_z - a| at the target's
+            target_down = (GRAVITY_M_S2 - float(acc[2])) / (
+                thrust * GRAVITY_M_S2 / frame.hover_thrust_norm
+            )
+            ratio = target_down / max(axis_down, 0.1)
+            bound = cfg.thrust_tilt_ratio_max
+            thrust *= min(max(ratio, 1.0 / bound), bound)
+        thrust = min(max(thrust, frame.min_thrust_norm), frame.max_thrust_norm)
         return PositionOutput(
             q_target=frames.euler_to_quat(att.roll_rad, att.pitch_rad, att.yaw_rad),
             euler_target_rad=(att.roll_rad, att.pitch_rad, att.yaw_rad),

@@ -320,6 +320,10 @@ def run_bench_command(args: argparse.Namespace) -> int:
         from epc_offboard.tools.bench_link import run_link_bench_command
 
         return run_link_bench_command(args.json, int(args.steps) * 10)
+    if getattr(args, "modes", False):
+        from epc_offboard.tools.bench_modes import run_modes_bench
+
+        return run_modes_bench(args)
     if getattr(args, "service", False):
         from epc_offboard.tools.bench_service import ServiceBenchError, run_service_bench
 
