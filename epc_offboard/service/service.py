@@ -79,10 +79,6 @@ log = logging.getLogger("epc_offboard.service")
 # an attitude sample older than this many attitude periods is not flown as body rates: a
 # 123 Hz stream (8.1 ms) read one tick late is 13 ms old; 20 ms is a stall
 _LATE_ATTITUDE_PERIODS = 4.0
-# a lockstep answer stamped one ms (the stamps' resolution) before the supervisor's next
-# step lets the simulator run up to and including the tick of that step, then wait: the step
-# reads exactly that tick's state, and its commands reach the simulator before the next tick
-_ANSWER_MARGIN_S = 0.001
 
 
 class Service:
@@ -131,8 +127,6 @@ class Service:
         self.gc_monitor = realtime.GcMonitor()
         self._position_out: PositionOutput | None = None
         self._processes_at_exit: dict[str, Any] | None = None
-        self._supervisor_next_s = 0.0  # loop time of the supervisor's next step
-        self._answered_ahead_s = 0.0  # the newest lockstep answer sent ahead of the state
         self._signatures_warm = 0  # compiled kernel signatures once warmed (0: numpy twins)
         self.sharing: FleetSharing | None = None
         live = cfg.reference.source == "zenoh"
@@ -173,7 +167,6 @@ class Service:
             # a loaded machine takes; a step run on a wall-clock timeout would read the clock
             # at whatever tick the simulator had reached (an answer may have released it)
             # and shift every later step (a landing 20 ms later under load)
-            self._supervisor_next_s = now + period
             await self.loops.wait(now + period, until_reached=self.clock.vehicle_time and now > 0.0)
 
     def _state_at(self, now_s: float) -> VehicleState | None:
@@ -243,16 +236,10 @@ class Service:
             # setpoint streams (before takeoff, landing) the answer is a SYSTEM_TIME
             self.link.send(commands.system_time(state.time_s))
         elif self.clock.vehicle_time and self.tracker.vehicle_time_s > 0.0:
-            # lockstep with attitude but no position (ArduCopter before its EKF origin, 36 s):
-            # nothing to control, and nothing sent before the supervisor's next step, so the
-            # answer releases the simulator up to just before that step: ~10 ticks a round
-            # trip instead of one (the wait cost its full 36 s of wall time under load). The
-            # supervisor still steps at the same vehicle times on the same state.
-            # An answer already sent to that stamp is not sent again.
-            ahead_s = max(self.tracker.vehicle_time_s, self._supervisor_next_s - _ANSWER_MARGIN_S)
-            if ahead_s > self._answered_ahead_s:
-                self._answered_ahead_s = ahead_s
-                self.link.send(commands.system_time(ahead_s))
+            # lockstep with attitude but no position (ArduCopter before its EKF origin, 36 s
+            # of vehicle time): the tick is answered all the same, or the simulator would
+            # hold (or fall back to real-time pace) until a position it never sends
+            self.link.send(commands.system_time(self.tracker.vehicle_time_s))
         return self.outputs.stream_setpoints
 
     # -- lifecycle --------------------------------------------------------------------
