@@ -299,9 +299,13 @@ class SitlEndpoint(asyncio.DatagramProtocol):
     def announce(self) -> None:
         """While lockstep waits for a controller to join: the heartbeat and state of the
         current tick again (same stamps, no new noise), so a controller that starts later
-        finds the vehicle and can answer."""
+        finds the vehicle and can answer. No position before ArduCopter's EKF origin, as in
+        ``emit``: a controller must not fly, nor wait, on a position the vehicle never sent."""
         batch = bytearray(self._pack(self._heartbeat()))
+        has_position = self.sim.autopilot.has_position(self.sim.time_s)
         for msg_id, interval in self._interval_us.items():
+            if msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED and not has_position:
+                continue
             if interval > 0 and msg_id in STATE_STREAMS:
                 batch += self._pack(
                     self._odometry(self._previous)

@@ -50,6 +50,33 @@ def test_sim_circle_against_ardupilot(tmp_path):
     assert order == sorted(order)
     stats = json.loads((out / "vehicle1" / "stats.json").read_text())
     assert stats["params"]["GUID_OPTIONS"] == 8.0
+    # lockstep through ArduCopter's 36 s wait for an EKF origin, with no position announced
+    # before it: the service answers its attitude-only ticks, so vehicle time runs as fast
+    # as it answers, never at real-time pace
+    assert sitl["lockstep_timeouts"] == 0
+    origin_ms = 36_000
+    answers, waited_wall_s = _answers_before(out / "vehicle1" / "session.tlog", origin_ms)
+    assert answers > 0.9 * origin_ms / 5, answers  # every 5 ms tick answered
+    # 7200 round trips: 3-13 s at load 2-30; the bound is half the vehicle time
+    assert waited_wall_s < 0.5 * origin_ms / 1000.0, waited_wall_s
+
+
+def _answers_before(tlog, origin_ms: int) -> tuple[int, float]:
+    """The service's lockstep answers stamped before ``origin_ms``, and the wall time from
+    the vehicle's first state to its first position (the origin), from the service's tlog
+    (each frame stamped with the wall time it was sent or received)."""
+    conn = mavutil.mavlink_connection(str(tlog), dialect="common")
+    answers, first_state_s = 0, None
+    while (msg := conn.recv_match()) is not None:
+        kind = msg.get_type()
+        if kind in ("SYSTEM_TIME", "SET_ATTITUDE_TARGET", "SET_POSITION_TARGET_LOCAL_NED"):
+            answers += msg.time_boot_ms < origin_ms
+        elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION") and first_state_s is None:
+            first_state_s = msg._timestamp
+        elif kind == "LOCAL_POSITION_NED" and msg.time_boot_ms >= origin_ms:
+            assert first_state_s is not None
+            return answers, msg._timestamp - first_state_s
+    raise AssertionError(f"no LOCAL_POSITION_NED from {origin_ms} ms on in {tlog}")
 
 
 def _wait_for_log(path, text: str, timeout_s: float) -> str:

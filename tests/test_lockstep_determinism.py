@@ -31,7 +31,7 @@ WALL_CLOCK_WARNINGS = ("loop clock waits timed out", "SITL lockstep timeouts")
 def fly(out: Path) -> dict[str, Any]:
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "circle",
-         "--duration", "8", "--wind", "2,30", "--out", str(out)],
+         "--duration", "8", "--wind", "2,30", "--gcs-port", "0", "--out", str(out)],
         capture_output=True, text=True, timeout=240, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -37,7 +37,8 @@ HOLD = (PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER)
 def sim(tmp_path, *args, expect: int = 0):
     out = tmp_path / "out"
     proc = subprocess.run(
-        [sys.executable, "-m", "epc_offboard", "sim", "--out", str(out), *args],
+        # (--gcs-port 0: nothing streamed to a ground station's UDP 14550)
+        [sys.executable, "-m", "epc_offboard", "sim", "--out", str(out), "--gcs-port", "0", *args],
         capture_output=True,
         text=True,
         timeout=220,

@@ -20,7 +20,8 @@ def test_a_vehicle_joining_after_another_flies_on_its_library(tmp_path):
     out = tmp_path / "out"
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--out", str(out), "--scenario", "hover",
-         "--duration", "5", "--adaptation", "none", "--vehicles", "2", "--stagger"],
+         "--duration", "5", "--adaptation", "none", "--vehicles", "2", "--stagger",
+         "--gcs-port", "0"],
         capture_output=True, text=True, timeout=220, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -219,6 +219,11 @@ class Service:
             # lockstep: the simulator advances only on an answer for each tick; when no
             # setpoint streams (before takeoff, landing) the answer is a SYSTEM_TIME
             self.link.send(commands.system_time(state.time_s))
+        elif self.clock.vehicle_time and self.tracker.vehicle_time_s > 0.0:
+            # lockstep with attitude but no position (ArduCopter before its EKF origin, 36 s
+            # of vehicle time): the tick is answered all the same, or the simulator would
+            # hold (or fall back to real-time pace) until a position it never sends
+            self.link.send(commands.system_time(self.tracker.vehicle_time_s))
         return self.outputs.stream_setpoints
 
     # -- lifecycle --------------------------------------------------------------------

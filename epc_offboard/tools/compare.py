@@ -32,6 +32,7 @@ from epc_offboard.tools.figures import (
     PHASE_COLOURS,
     flight_title,
     mark_events,
+    save_once,
     vehicle_colour,
     vehicle_style,
 )
@@ -279,5 +280,5 @@ def write_compare_figure(
                fontsize=8, frameon=False)  # fmt: skip
     methods = " vs ".join(run.method for run in flown)
     fig.suptitle(flight_title(name, methods, autopilot, wind))
-    fig.savefig(path, dpi=100)
+    save_once(fig, path)
     plt.close(fig)

@@ -604,5 +604,16 @@ def write_figure(
         frameon=False,
     )
     fig.suptitle(title, fontsize=12)
-    fig.savefig(path, dpi=100)
+    save_once(fig, path)
     plt.close(fig)
+
+
+def save_once(fig: Any, path: Path, dpi: int = 100) -> None:
+    """``fig`` to ``path``, drawn once: savefig with a layout engine draws the whole figure
+    twice (once with rendering off, to lay it out, then for real). Laid out here and saved
+    without the engine, it gives the same pixels."""
+    engine = fig.get_layout_engine()
+    if engine is not None:
+        engine.execute(fig)
+        fig.set_layout_engine(None)  # (not "none": a placeholder engine, drawn twice still)
+    fig.savefig(path, dpi=dpi)

@@ -278,6 +278,29 @@ def test_no_local_position_until_the_ekf_has_an_origin():
     assert len(stamps["LOCAL_POSITION_NED"]) == 101
 
 
+def test_the_lockstep_announcement_sends_no_position_before_the_ekf_origin():
+    """While lockstep waits for a controller, the vehicle is announced as it streams: before
+    the origin attitude only (an announced position let the service fly, and answer, on a
+    position ArduCopter never sends), from the origin on with its position."""
+    sim, ep, transport = make(ekf_origin_s=1.0)
+    peer = Peer()
+    for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE):
+        ask(ep, peer, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 10_000)
+
+    def announced() -> set[str]:
+        transport.sent.clear()
+        ep.announce()
+        return {m.get_type() for t in emitted(ep, transport) for m in t}
+
+    sim.advance_tick()
+    ep.emit()
+    assert announced() == {"HEARTBEAT", "ATTITUDE"}
+    for _ in range(200):  # to 1.005 s: the origin
+        sim.advance_tick()
+        ep.emit()
+    assert announced() == {"HEARTBEAT", "ATTITUDE", "LOCAL_POSITION_NED"}
+
+
 def test_takeoff_nan_is_denied_on_the_wire_and_params_read_and_set():
     sim, ep, transport = make()
     peer = Peer()
