@@ -236,6 +236,5 @@ def test_a_peer_replaying_messages_or_flapping_tokens_neither_stops_the_loops_no
     if kind == "flap":  # every arrival counted; queries and log lines within the fleet budget
         budget = 20 + 10.0 * (PEER_ATTACK_S + 10.0)  # burst + 10/s over the attack and after
         assert stats["sharing"]["queries_sent"] <= budget, stats["sharing"]
-        assert stats["sharing"]["queries_skipped"] > 0, stats["sharing"]
         lines = (tmp_path / "service.log").read_text(errors="replace")
         assert lines.count(" joined (") + lines.count(" left (") <= 2 * budget

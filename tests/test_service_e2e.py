@@ -244,7 +244,9 @@ def test_sigterm_to_sim_stops_every_process_it_started(tmp_path):
         deadline = time.monotonic() + 10
         while children() and time.monotonic() < deadline:
             time.sleep(0.2)
-        assert children() == [], "sim's SITL or service outlived it"
+        left = {p: Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ")[:160]
+                for p in children()}  # fmt: skip
+        assert left == {}, f"sim's SITL or service outlived it: {left}"
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -162,6 +162,6 @@ STAT_NAMES = (
     "publish_seq_done",  # the last publish frame the helper handled (the control's number)
     "session_open_failures",  # sessions that did not open (a router's refusal among them)
     "peer_joins", "peer_leaves",  # liveliness changes (a flapping token: each counted)
-    "queries_skipped",  # arrivals not queried: the fleet's query budget was spent
+    "queries_skipped",  # arrivals never queried: more were waiting than kept
 )  # fmt: skip
 STAT_INDEX = {name: i for i, name in enumerate(STAT_NAMES)}

@@ -73,6 +73,7 @@ _TURN_S = 0.1  # the main thread's heartbeat period when idle
 # rotating ids) are not
 _QUERIES_PER_S = 10.0
 _QUERY_BURST = 20
+_MAX_ARRIVALS = 256  # arrivals waiting for their query; beyond, the oldest is not queried
 
 
 class _TokenBuckets:
@@ -337,7 +338,8 @@ class FleetSession:
         self._senders: OrderedDict[str, None] = OrderedDict()
         self._buckets = _TokenBuckets(cfg.max_messages_per_s, cfg.burst_messages)
         self._query_bucket = _TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
-        self._leave_log_bucket = _TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
+        self._peer_log_bucket = _TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
+        self._arrivals: OrderedDict[tuple[int, str], None] = OrderedDict()  # to be queried
         # all peers together: rotating ids each get a fresh burst, so without a fleet-wide
         # limit a flood is decoded in full (here, at least, in a process of its own)
         self._fleet_bucket = _TokenBuckets(
@@ -471,26 +473,41 @@ class FleetSession:
                 return
             peers.add(peer)
             self.counters.add("peer_joins")
-            self._peer_arrived(index, peer)
+            with self._lock:  # its library is queried on the main thread's turn, in budget
+                self._arrivals[(index, peer)] = None
+                self._arrivals.move_to_end((index, peer))
+                if len(self._arrivals) > _MAX_ARRIVALS:
+                    self._arrivals.popitem(last=False)
+                    self.counters.add("queries_skipped")
+            if self._peer_log_bucket.allow("fleet", time.monotonic()):
+                log.info("fleet %s: vehicle %s joined (%s)", self.cfg.fleet, peer, p.spec.name)
         elif not joined and peer in peers:
             peers.discard(peer)
             self.counters.add("peer_leaves")
-            if self._leave_log_bucket.allow("fleet", time.monotonic()):
+            if self._peer_log_bucket.allow("fleet", time.monotonic()):
                 log.info("fleet %s: vehicle %s left (%s)", self.cfg.fleet, peer, p.spec.name)
         self.counters.set("peers", len(set().union(*self.peers.values())))
 
-    def _peer_arrived(self, index: int, peer: str) -> None:
-        """Say it and query the peer's library, once per peer every ``_LOG_EVERY_S`` and within
-        the fleet's query budget: a flapping token (1,000 arrivals a second from rotating ids
-        in ``bench --attack``) made a log line (19,600 a flight) and a query of each."""
-        if not self._once_per_interval("joined", f"{index}/{peer}"):
-            return
-        if not self._query_bucket.allow("fleet", time.monotonic()):
-            self.counters.add("queries_skipped")
-            return
-        p = self.problems[index]
-        log.info("fleet %s: vehicle %s joined (%s)", self.cfg.fleet, peer, p.spec.name)
-        self._query_library(p, peer)
+    def query_arrivals(self) -> None:
+        """Query the library of each peer that arrived and is still here, oldest first, within
+        the fleet's query budget (the rest wait for the next turn): a flapping token (1,000
+        arrivals a second from rotating ids in ``bench --attack``) made a query and a log line
+        of each arrival (19,600 lines a flight); its ids are gone by the next turn, while a
+        returning vehicle (a router restarted) is still here and is queried."""
+        now = time.monotonic()
+        while True:
+            with self._lock:
+                if not self._arrivals:
+                    return
+                index, peer = next(iter(self._arrivals))
+                if peer in self.peers.get(index, ()):
+                    if not self._query_bucket.allow("fleet", now):
+                        return
+                    del self._arrivals[(index, peer)]
+                else:  # left again: nothing to query
+                    del self._arrivals[(index, peer)]
+                    continue
+            self._query_library(self.problems[index], peer)
 
     def _query_library(self, p: _Problem, peer: str) -> None:
         if self._session is None:
@@ -722,6 +739,7 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
             counters.set("heartbeat_ns", time.monotonic_ns())
             counters.set("candidates_waiting", len(session.inbox))
             counters.set("references_superseded", session.reference.superseded)
+            session.query_arrivals()
             try:
                 task = session.tasks.get(timeout=_TURN_S)
             except queue.Empty:

@@ -9,6 +9,7 @@ both processes' logs) is then analysed (:mod:`.analysis`) and reported (:mod:`.r
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import signal
@@ -17,6 +18,7 @@ import subprocess
 import sys
 import time
 import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -228,15 +230,41 @@ def stop_process(proc: subprocess.Popen[bytes] | None, timeout_s: float = 5.0) -
         proc.wait()
 
 
+class _Deferral:
+    """A SIGTERM that arrives while sim starts a process is taken when the start is over:
+    raised inside Popen (after the fork, before it returned), it left that SITL flying,
+    unknown to the ``finally`` that stops every process sim started."""
+
+    depth = 0
+    signum = 0
+
+
 def stop_on_sigterm() -> None:
     """SIGTERM (systemd, a test harness, `kill`) ends sim as Ctrl-C does: through the
     ``finally`` that stops every SITL and service it started (the default action killed sim
     alone and left its children flying)."""
 
     def handler(signum: int, _frame: object) -> None:
+        if _Deferral.depth:
+            _Deferral.signum = signum
+            return
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, handler)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """SIGTERM held (not blocked: a blocked mask is inherited by the processes started) until
+    the block is over."""
+    _Deferral.depth += 1
+    try:
+        yield
+    finally:
+        _Deferral.depth -= 1
+        if not _Deferral.depth and _Deferral.signum:
+            signum, _Deferral.signum = _Deferral.signum, 0
+            raise SystemExit(128 + signum)
 
 
 def _last_row(path: Path) -> tuple[list[str], list[str]]:
@@ -384,28 +412,29 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
         if options.autopilot == "ardupilot":
             # what the README asks of a real ArduCopter: thrust as throttle, not climb rate
             sitl_cmd += ["--param", "GUID_OPTIONS=8"]
-        run.service = _start(
-            [sys.executable, "-m", "epc_offboard.cli", "run", "--config",
-             str(run.service_config)],
-            run.service_log,
-            service_env(),
-        )  # fmt: skip
-        run.sitl = _start(sitl_cmd, run.sitl_log)
-        runs.append(run)
+        runs.append(run)  # before its processes: a SIGTERM from here on stops them
+        with signals_deferred():
+            run.service = _start(
+                [sys.executable, "-m", "epc_offboard.cli", "run", "--config",
+                 str(run.service_config)],
+                run.service_log,
+                service_env(),
+            )  # fmt: skip
+            run.sitl = _start(sitl_cmd, run.sitl_log)
         print(telemetry_routes(options, k, listen_port, offboard_port), flush=True)
 
-    for k in range(1, (1 if stagger else vehicles) + 1):
-        start(k)
-    envelope = flight_envelope(options, tomllib.loads(runs[0].service_config.read_text()))
-    flights = vehicles if stagger else 1
-    # wall time: lockstep flies faster than real time even at load 6; a SITL that stops
-    # advancing (its vehicle time is bounded by the envelope) is caught here
-    wall_budget_s = flights * max(120.0, 4.0 * envelope.max_flight_s)
-    deadline = time.monotonic() + wall_budget_s
-    # the bar counts the scenario's seconds under offboard, the only ones the scenario names;
-    # takeoff and landing show as the phase in its label
-    total_s = scenario.duration_s * (vehicles if stagger else 1)
-    try:
+    try:  # from the first start: a SIGTERM (sim's SystemExit) anywhere stops what started
+        for k in range(1, (1 if stagger else vehicles) + 1):
+            start(k)
+        envelope = flight_envelope(options, tomllib.loads(runs[0].service_config.read_text()))
+        flights = vehicles if stagger else 1
+        # wall time: lockstep flies faster than real time even at load 6; a SITL that stops
+        # advancing (its vehicle time is bounded by the envelope) is caught here
+        wall_budget_s = flights * max(120.0, 4.0 * envelope.max_flight_s)
+        deadline = time.monotonic() + wall_budget_s
+        # the bar counts the scenario's seconds under offboard, the only ones the scenario names;
+        # takeoff and landing show as the phase in its label
+        total_s = scenario.duration_s * (vehicles if stagger else 1)
         with Progress(
             TextColumn("[bold]{task.description}"),
             BarColumn(),
