@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common.children import die_with_launcher
 from epc_offboard.common.cliargs import (
     MAX_PORT,
     WIND_PROFILE_HELP,
@@ -238,6 +239,7 @@ async def run(args: argparse.Namespace) -> Counters:
 
 
 def main(argv: list[str] | None = None) -> int:
+    die_with_launcher()
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(join_negative_values(argv, ("--wind",)))
     try:

@@ -47,6 +47,26 @@ def die_with_parent(parent_pid: int, sig: int | None = signal.SIGKILL) -> None:
         os._exit(0)
 
 
+LAUNCHER_ENV = "EPC_OFFBOARD_LAUNCHER_PID"  # set by `sim` for the SITLs and services it starts
+
+
+def launched_env() -> dict[str, str]:
+    """The environment entry a launcher (`sim`) gives the SITLs and services it starts, so that
+    they end with it (:func:`die_with_launcher`)."""
+    return {LAUNCHER_ENV: str(os.getpid())}
+
+
+def die_with_launcher() -> None:
+    """In a SITL or service started by `sim`: SIGTERM (a clean stop: the service holds and
+    saves its library) when `sim` dies, even SIGKILLed, so that a killed `sim` (a test's
+    timeout, an OOM kill) leaves no vehicle flying; it left both before. Nothing when started
+    otherwise (systemd, a shell): then no launcher's pid is in the environment. Call from the
+    main thread, first thing."""
+    pid = os.environ.pop(LAUNCHER_ENV, "")
+    if pid.isdigit():
+        die_with_parent(int(pid), signal.SIGTERM)
+
+
 def lower_priority(niceness: int) -> None:
     """In a child: run ``niceness`` below the parent (the control process keeps the CPU)."""
     with contextlib.suppress(OSError):

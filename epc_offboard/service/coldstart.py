@@ -29,6 +29,7 @@ import threading
 import time
 
 from epc_offboard.common import jit
+from epc_offboard.common.children import die_with_launcher
 
 log = logging.getLogger("epc_offboard.service")
 
@@ -75,6 +76,7 @@ def start_background_compile(config_path: str) -> subprocess.Popen[bytes]:
 
 def run(args: argparse.Namespace) -> int:
     """`epc-offboard run`: choose the kernels, start the compile when cold, run the service."""
+    die_with_launcher()
     mode = choose()
     child = start_background_compile(args.config) if mode == "numpy-cold" else None
     from epc_offboard.service.service import run_service_command

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.common import jit
+from epc_offboard.common.children import launched_env
 from epc_offboard.common.cliargs import WindProfile, check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
@@ -204,7 +205,7 @@ def _start(
     cmd: list[str], log_path: Path, extra_env: dict[str, str] | None = None
 ) -> subprocess.Popen[bytes]:
     log_fh = log_path.open("wb")
-    env = dict(os.environ, PYTHONUNBUFFERED="1", **(extra_env or {}))
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **launched_env(), **(extra_env or {}))
     return subprocess.Popen(cmd, stdout=log_fh, stderr=subprocess.STDOUT, env=env)
 
 
