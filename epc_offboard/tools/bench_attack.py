@@ -54,6 +54,7 @@ import numpy as np
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.errors import EpcError
 from epc_offboard.tools import attack_analysis as analysis
+from epc_offboard.tools.bench_modes import start_hogs, stop_hogs
 from epc_offboard.tools.sim.analysis import read_csv_columns
 from epc_offboard.tools.sim.orchestrate import service_env, stop_process, vehicle_file
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG, load_scenario
@@ -313,8 +314,7 @@ def fly(run_dir: Path, hogs: int, mode: str) -> dict[str, Any]:
         )  # fmt: skip
         sitl_fifo = _is_fifo(sitl.pid)
         attackers = Attackers(zenoh_port, config_path, run_dir)
-        hog_procs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"])
-                     for _ in range(hogs)]  # fmt: skip
+        hog_procs = start_hogs(hogs)
         sampler = Sampler(service.pid)
         sampler.start()
         attackers.wait_ready()
@@ -340,9 +340,7 @@ def fly(run_dir: Path, hogs: int, mode: str) -> dict[str, Any]:
         load_end = os.getloadavg()
         code = _stop(service)  # holds the vehicle, writes its stats
     finally:
-        for hog in hog_procs:  # by PID, first: the rest stops faster without them
-            hog.kill()
-            hog.wait()
+        stop_hogs(hog_procs)  # by PID, first: the rest stops faster without them
         if sampler is not None:
             sampler.stop.set()
         if attackers is not None:
