@@ -68,9 +68,11 @@ def test_a_corrupt_library_moved_aside_fails_the_flight_and_its_error_is_reporte
 
 
 def hold_port(port: int) -> socket.socket | None:
-    """A real listening socket on tcp 127.0.0.1:``port``; None if another process has it."""
+    """A real listening socket on tcp 127.0.0.1:``port``; None if another process has it.
+    SO_REUSEADDR as a server binds it: the TIME_WAIT connections an earlier fleet flight
+    left on the port are nobody's (without it, this test skipped after such a flight)."""
     holder = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
+    holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         holder.bind(("127.0.0.1", port))
     except OSError:
