@@ -636,20 +636,15 @@ class FleetSession:
         self.reference.put(reference_record(msg, time.monotonic()).tobytes())
 
     def _log_limited(self, reason: str, peer: str, fmt: str, *args: object) -> None:
-        if self._once_per_interval(reason, peer):
-            log.warning(fmt, *args)
-
-    def _once_per_interval(self, reason: str, peer: str) -> bool:
-        """True at most once per ``reason`` and ``peer`` every ``_LOG_EVERY_S`` (bounded)."""
         now = time.monotonic()
         with self._lock:
             last = self._last_log.get((reason, peer), -float("inf"))
             if now - last < _LOG_EVERY_S:
-                return False
+                return
             if len(self._last_log) > _MAX_PEERS:
                 self._last_log.clear()
             self._last_log[(reason, peer)] = now
-        return True
+        log.warning(fmt, *args)
 
 
 # -- the helper process ----------------------------------------------------------------------

@@ -17,6 +17,7 @@ from epc_offboard.common.bundled import bundled_dir
 from epc_offboard.common.cliargs import parse_wind_profile
 from epc_offboard.common.configio import ConfigError, from_dict
 from epc_offboard.control.trajectories import TrajectoryConfig
+from epc_offboard.service.airframe import airframe_path
 from epc_offboard.tools.sim.envelope import EnvelopeConfig
 from epc_offboard.tools.targets import CompareConfig, TargetConfig
 
@@ -65,18 +66,13 @@ class ScenarioConfig:
         for metric in self.metrics:
             if metric not in EXTRA_METRICS:
                 raise ValueError(f"metrics: unknown {metric!r} (known: {', '.join(EXTRA_METRICS)})")
-        if self.vehicle and not self.vehicle_file.exists():
+        if self.vehicle and not airframe_path(self.vehicle).is_file():
             known = ", ".join(sorted(p.stem for p in VEHICLE_DIR.glob("*.toml")))
             raise ValueError(f"vehicle: no {self.vehicle!r} in {VEHICLE_DIR} (known: {known})")
         try:
             parse_wind_profile(self.wind_profile)
         except argparse.ArgumentTypeError as exc:
             raise ValueError(f"wind_profile: {exc}") from exc
-
-    @property
-    def vehicle_file(self) -> Path:
-        """The SITL's vehicle file (the scenario's ``vehicle``, else the default)."""
-        return VEHICLE_DIR / f"{self.vehicle or 'quad_x_1500g'}.toml"
 
 
 def load_scenario(name: str) -> ScenarioConfig:
