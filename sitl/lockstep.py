@@ -14,8 +14,10 @@ with the same seed and commands are identical. Before the first answer the clock
 its first tick and announces the vehicle (a heartbeat and the tick's telemetry, every
 ``ANNOUNCE_PERIOD_S``) until a controller joins. Only a controller that has gone (no answer
 for ``lockstep_timeout_s``, ``lockstep_max_timeouts`` times in a row) lets the clock fall back
-to real-time pace (times ``speedup``); each timeout is counted and reported, and the next
-answer puts the clock back into lockstep.
+to real-time pace (times ``speedup``); the next answer puts the clock back into lockstep.
+A timeout is counted and reported once an answer follows it: the controller was slow. The
+ones no answer ever follows are a controller that has left (a service that saves its library
+and exits at the end of a flight), not a stall, and are not counted.
 
 A peer that sends commands along with its answer must send the answer last: datagrams are
 handled in arrival order, and the answer is what releases the tick.
@@ -41,12 +43,15 @@ class LockstepGate:
         self.timeout_s = timeout_s
         self.max_timeouts = max_timeouts
         self.newest_stamp_ms = -1
-        self.timeouts = 0
+        self.timeouts = 0  # timeouts an answer followed: the controller was slow, not gone
+        self._unanswered_timeouts = 0
         self._consecutive_timeouts = 0
         self._event = asyncio.Event()
 
     def on_answer(self, time_boot_ms: int) -> None:
         self.newest_stamp_ms = max(self.newest_stamp_ms, time_boot_ms)
+        self.timeouts += self._unanswered_timeouts
+        self._unanswered_timeouts = 0
         if self.enabled:
             self.waiting = True
             self.joined = True
@@ -73,7 +78,7 @@ class LockstepGate:
         while self.newest_stamp_ms < stamp_ms and not stop.is_set():
             remaining = deadline - time.monotonic()
             if remaining <= 0.0:
-                self.timeouts += 1
+                self._unanswered_timeouts += 1
                 self._consecutive_timeouts += 1
                 if self._consecutive_timeouts >= self.max_timeouts:
                     self.waiting = False

@@ -137,3 +137,30 @@ def test_future_stamps_do_not_starve_the_event_loop():
 
     run_clock(gate, 5, on_tick)
     assert seen_by_last_tick == [1]
+
+
+def test_a_controller_that_leaves_is_not_counted_as_lockstep_timeouts():
+    """At the end of a flight the service stops answering while it saves its library and
+    exits, and the SITL waits until sim stops it: those timeouts were reported as "SITL
+    lockstep timeouts", a stall warning after a healthy flight. Only a timeout an answer
+    follows (a slow controller) counts."""
+    gate = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=3)
+    gate.on_answer(0)
+
+    def on_tick(k: int) -> None:
+        if k <= 5:  # then the controller is gone
+            asyncio.get_running_loop().call_soon(gate.on_answer, k * 5)
+
+    run_clock(gate, 20, on_tick)
+    assert not gate.waiting  # it did time out, into real-time pace...
+    assert gate.timeouts == 0  # ...and that is not a stall
+
+    slow = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=50)
+    slow.on_answer(0)
+
+    def on_slow_tick(k: int) -> None:
+        delay_s = 0.035 if k == 2 else 0.0  # tick 2's answer after 3 timeouts
+        asyncio.get_running_loop().call_later(delay_s, slow.on_answer, k * 5)
+
+    run_clock(slow, 5, on_slow_tick)
+    assert slow.timeouts >= 1  # a slow answer is still counted
