@@ -109,6 +109,26 @@ def test_the_trajectory_starts_at_its_altitude_above_home_through_a_rejoin():
     assert settled.pos_ned_m[0][2] == pytest.approx(-2.5, abs=1e-3)
 
 
+def test_a_re_entry_at_speed_closes_its_gap_within_half_the_entry_budget():
+    """Re-entering offboard at 1.3 m/s against a circle running the other way: the rejoin
+    slows (a longer time constant) until its gap asks for at most half of
+    ``entry_max_acc_m_s2``; the fixed 1 s asked for 5 m/s^2, the entry ramp would not fly it
+    and the vehicle overshot the reference by 3.9 m (a loaded soak)."""
+    sel = _selector()
+    sel.start_trajectory(_state(), None, now_s=0.0)
+    traj_now = sel.trajectory.sample(7.5)  # type: ignore[union-attr]
+    vel = -traj_now.vel_ned_m_s  # flying the other way, at the circle's speed
+    assert float(np.linalg.norm(vel)) > 1.0
+    sel.start_rejoin(_state(pos=tuple(traj_now.pos_ned_m), vel=tuple(vel), t_s=7.5), 7.5)
+    assert sel.rejoin is not None
+    budget = 0.5 * CFG.position.entry_max_acc_m_s2
+    assert sel.rejoin.max_acc_m_s2() <= budget
+    assert sel.rejoin.tau_s > sel.trajectory_cfg.rejoin_tau_s
+    first = sel.horizon(_state(pos=tuple(traj_now.pos_ned_m), vel=tuple(vel)), 7.5, None,
+                        offboard=True)  # fmt: skip
+    np.testing.assert_allclose(first.vel_ned_m_s[0][:2], vel[:2], atol=1e-9)  # bumpless
+
+
 def test_the_mission_is_complete_only_after_its_duration_on_the_trajectory():
     sel = _selector()
     assert not sel.mission_complete(100.0, 10.0)  # no trajectory yet

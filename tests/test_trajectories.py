@@ -187,6 +187,29 @@ def test_rejoin_starts_at_the_vehicle_and_closes_the_gap_smoothly():
     assert not rj.done(24.0)
 
 
+def test_a_rejoin_asks_no_more_acceleration_than_its_budget():
+    """A soak re-entered offboard at 1.3 m/s north while the circle ran 1.2 m/s south: the
+    gap's fixed 1 s time constant asked for 5 m/s^2 at once, the entry ramp (rightly) would
+    not command it, and the vehicle flew 3.9 m past the reference, then climbed 0.9 m."""
+    from epc_offboard.control.trajectories import RefSample, Rejoin
+
+    traj = RefSample(np.array([0.0, 0.0, -2.5]), np.array([-1.2, 0.9, 0.0]), np.zeros(3))
+    fast = Rejoin.onto(traj, traj.pos_ned_m, np.array([1.33, 0.62, 0.0]), t_s=5.0, tau_s=1.0)
+    assert fast.max_acc_m_s2() > 4.5  # the old ask: 2 |dv| / tau
+    gentle = fast.within(1.25)
+    assert gentle.max_acc_m_s2() <= 1.25
+    assert gentle.tau_s > fast.tau_s
+    t = 5.0 + np.linspace(0.0, 40.0, 4001)
+    assert np.linalg.norm(gentle.rows(t)[:, 6:9], axis=1).max() <= 1.25 + 1e-9
+    # still bumpless: it starts where the vehicle is, at its speed
+    np.testing.assert_allclose(gentle.rows([5.0])[0][:6], fast.rows([5.0])[0][:6], atol=1e-12)
+    # a gap that is gentle already keeps its time constant (never shortened), and a hopeless
+    # one stops at the longest
+    calm = Rejoin.onto(traj, traj.pos_ned_m + 0.05, traj.vel_ned_m_s, t_s=5.0, tau_s=1.0)
+    assert calm.within(1.25) == calm
+    assert fast.within(1e-6, max_tau_s=8.0).tau_s == 8.0
+
+
 def test_vertical_figure8_is_neural_flys():
     """north = 1.25 sin t, up = 0.75 sin 2t after the ramp (which lags progress by ramp/2),
     east fixed; about 1.95 m/s at its fastest."""

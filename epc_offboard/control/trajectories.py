@@ -116,6 +116,24 @@ class Rejoin:
         out: FloatArray = np.hstack([e, de, dde])
         return out
 
+    def max_acc_m_s2(self) -> float:
+        """The largest acceleration the gap asks of the vehicle (norm, m/s^2), over its
+        whole closing (it peaks at the start or once, ~2 tau later; sampled to 8 tau)."""
+        t = self.start_s + np.linspace(0.0, 8.0 * self.tau_s, 97)
+        return float(np.linalg.norm(self.rows(t)[:, 6:9], axis=1).max())
+
+    def within(self, max_acc_m_s2: float, max_tau_s: float = 30.0) -> Rejoin:
+        """This rejoin, slowed (a longer ``tau_s``, never a shorter one) until the gap asks
+        for at most ``max_acc_m_s2``. A fixed tau asked a vehicle re-entering at 1.3 m/s
+        against a circle turning the other way for 5.5 m/s^2 at once, which the entry ramp
+        (rightly) would not command: the vehicle flew 3.9 m past the reference and the QP,
+        that far off, climbed 0.9 m buying horizontal authority with thrust."""
+        rejoin = self
+        while rejoin.tau_s < max_tau_s and rejoin.max_acc_m_s2() > max_acc_m_s2:
+            rejoin = Rejoin(self.gap_ned_m, self.gap_rate_ned_m_s, self.start_s,
+                            min(rejoin.tau_s * 1.25, max_tau_s))  # fmt: skip
+        return rejoin
+
     def done(self, t_s: float) -> bool:
         """The gap has closed to nothing that matters (15 time constants: a 3 m gap is then
         below 0.1 mm, so dropping the rejoin is no jump)."""

@@ -110,7 +110,11 @@ class ReferenceSelector:
         # its rate, a tilt the vehicle already flies.
         rate = rejoin.gap_rate_ned_m_s.copy()
         rate[2] = 0.0
-        self.rejoin = dataclasses.replace(rejoin, gap_rate_ned_m_s=rate)
+        # no faster than half the entry ramp's acceleration budget asks: the trajectory's
+        # own acceleration and the wind's share the rest
+        self.rejoin = dataclasses.replace(rejoin, gap_rate_ned_m_s=rate).within(
+            0.5 * self.position.entry_max_acc_m_s2
+        )
         gap = float(np.linalg.norm(self.rejoin.gap_ned_m))
         if gap > 0.05:
             self.counters["trajectory_rejoins"] += 1
