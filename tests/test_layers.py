@@ -178,7 +178,9 @@ def test_the_running_plant_loads_no_controller():
     assert not bad, f"the SITL loads {bad}"
 
 
-@pytest.mark.parametrize("module", ["epc_offboard.fleet.wire", "epc_offboard.control.library"])
+@pytest.mark.parametrize(
+    "module", ["epc_offboard.fleet.wire", "epc_offboard.control.library_types"]
+)
 def test_the_library_types_and_the_codec_load_no_numerics(module):
     """The library's value types and the fleet's codec are plain Python: a planner (or any
     peer) decoding controller messages loads no numpy, numba, OSQP or scipy."""
