@@ -393,32 +393,53 @@ class FleetExchange:
         """One payload from ``key`` (its last part names the sender) for shared problem
         ``problem``: checked, rate-limited, decoded, validated, queued as candidates."""
         sender = key.rsplit("/", 1)[-1]
+        if not self._admitted(sender, key, len(payload)):
+            return
+        msg = self._decoded(spec, sender, key, payload, kind)
+        if msg is None:
+            return
+        self.tally.add("entries_received", len(msg.entries))
+        records = candidate_records(
+            msg, problem, self.dtype, successors_of(msg, self.max_successors)
+        )
+        self._queue(spec, sender, msg.kind, records)
+
+    def _admitted(self, sender: str, key: str, size: int) -> bool:
+        """Not our own, within the size limit and both token buckets (the sender counted as
+        heard): before anything is copied or decoded."""
         count = self.tally.add
         if sender == self.vehicle_id:
             count("own_ignored")
-            return
+            return False
         count("messages_received")
-        if len(payload) > self.cfg.max_payload_bytes:
+        if size > self.cfg.max_payload_bytes:
             count("rejected_oversized")
             self._log_limited("size", sender, "dropped a %d-byte payload from %s (limit %d)",
-                              len(payload), sender, self.cfg.max_payload_bytes)  # fmt: skip
-            return
+                              size, sender, self.cfg.max_payload_bytes)  # fmt: skip
+            return False
         now = time.monotonic()
         if not self._fleet_bucket.allow("fleet", now):
             count("fleet_rate_limited")
             self._log_limited("fleet-rate", "fleet", "rate-limiting the fleet: %s on %s",
                               sender, key)  # fmt: skip
-            return
+            return False
         if not self._buckets.allow(sender, now):
             count("rate_limited")
             self._log_limited("rate", sender, "rate-limiting vehicle %s on %s", sender, key)
-            return
+            return False
         with self._lock:
             self._senders.pop(sender, None)
             self._senders[sender] = None
             if len(self._senders) > MAX_PEERS:
                 self._senders.popitem(last=False)  # the least recently heard
             self.tally.set("senders", len(self._senders))
+        return True
+
+    def _decoded(
+        self, spec: ProblemSpec, sender: str, key: str, payload: Payload, kind: MessageKind
+    ) -> ControllerMessage | None:
+        """The message, valid for ``spec``, from the key's sender, of the kind expected on
+        that key; None (counted, logged) when it is not."""
         try:
             msg = decode_controllers(
                 payload.to_bytes(),
@@ -433,18 +454,18 @@ class FleetExchange:
             if msg.kind != kind:
                 raise WireError(f"a {msg.kind.name} message where a {kind.name} belongs")
         except WireError as exc:
-            count("rejected_malformed")
+            self.tally.add("rejected_malformed")
             self._log_limited("malformed", sender, "rejected a payload from %s on %s: %s",
                               sender, key, exc)  # fmt: skip
-            return
-        count("entries_received", len(msg.entries))
-        records = candidate_records(
-            msg, problem, self.dtype, successors_of(msg, self.max_successors)
-        )
+            return None
+        return msg
+
+    def _queue(self, spec: ProblemSpec, sender: str, kind: MessageKind, records: Records) -> None:
+        """Into the inbox, for the forwarding thread (counted: duplicates, drops, gauges)."""
         queued, dup, dropped = self.inbox.put(sender, records)
-        count("entries_duplicate", dup)
+        self.tally.add("entries_duplicate", dup)
         if dropped:
-            count("dropped_queue_full", dropped)
+            self.tally.add("dropped_queue_full", dropped)
             self._log_limited("queue", "", "candidate inbox full: dropped %d from %s",
                               dropped, sender)  # fmt: skip
         self.tally.set("candidates_waiting", len(self.inbox))
@@ -452,11 +473,10 @@ class FleetExchange:
         self.tally.set("rate_buckets_evicted", self._buckets.evicted)
         if queued:
             log.log(
-                logging.INFO if msg.kind == MessageKind.SNAPSHOT else logging.DEBUG,
+                logging.INFO if kind == MessageKind.SNAPSHOT else logging.DEBUG,
                 "%s: %d new controllers from vehicle %s (%s), %d waiting for the control process",
-                spec.name, queued, sender, msg.kind.name.lower(), len(self.inbox),
+                spec.name, queued, sender, kind.name.lower(), len(self.inbox),
             )  # fmt: skip
-
 
 def offer_records(
     records: Records, libraries: Sequence[tuple[str, FleetLibrary]], counters: Counter[str]
