@@ -26,7 +26,7 @@ __version__ = "0.1.0"
 # ``epc_offboard.common`` and must not pull in the controller (numba, OSQP) with it.
 _PUBLIC = {
     "ExperienceController": "epc_offboard.control.epc",
-    "LibraryEntry": "epc_offboard.control.library",
+    "LibraryEntry": "epc_offboard.control.library_types",
     "LinearModel": "epc_offboard.control.models",
     "MpcProblem": "epc_offboard.control.qp",
     "LWPR": "epc_offboard.control.lwpr",
@@ -36,7 +36,7 @@ _PUBLIC = {
 if TYPE_CHECKING:
     from epc_offboard.common.errors import EpcError
     from epc_offboard.control.epc import ExperienceController
-    from epc_offboard.control.library import LibraryEntry
+    from epc_offboard.control.library_types import LibraryEntry
     from epc_offboard.control.lwpr import LWPR
     from epc_offboard.control.models import LinearModel
     from epc_offboard.control.qp import MpcProblem

@@ -14,7 +14,7 @@ from __future__ import annotations
 from epc_offboard.control.baselines import MpcController, PdController
 from epc_offboard.control.decision import Controller, Decision, Source
 from epc_offboard.control.epc import EpcStats, ExperienceController
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.control.models import LinearModel, attitude_model, position_model
 from epc_offboard.control.qp import MpcProblem, OsqpSolver, QpResult, QpStatus
 

@@ -23,7 +23,7 @@ from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.models import acceleration_limits
 from epc_offboard.fleet.config import SharingConfig
 from epc_offboard.fleet.sharing import FleetSharing
-from epc_offboard.service.airframe import airframe_path, load_airframe
+from epc_offboard.service.airframe_file import airframe_path, load_airframe
 from epc_offboard.service.config import load_service_config
 from epc_offboard.tools.sim.options import SimOptions
 from epc_offboard.tools.sim.orchestrate import flight_envelope, service_config_for, vehicle_file

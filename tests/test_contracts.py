@@ -34,7 +34,7 @@ import pytest
 
 from epc_offboard.cli import build_parser
 from epc_offboard.common import errors
-from epc_offboard.control.library import (
+from epc_offboard.control.library_types import (
     LibraryEntry,
     LibrarySnapshot,
     SignatureSnapshot,
@@ -446,3 +446,70 @@ def test_every_cited_document_is_in_the_repository() -> None:
                     if not by_path or not (ROOT / cited).exists():
                         bad.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")
     assert not bad, "citations of documents not in the repository:\n" + "\n".join(bad)
+
+
+# -- a fleet message, file by file (docs/DESIGN.md) ------------------------------------------
+
+
+def _fleet_path_section() -> str:
+    text = (ROOT / "docs" / "DESIGN.md").read_text()
+    return text.split("## A fleet message, file by file", 1)[1].split("\n## ", 1)[0]
+
+
+def _defined_names(path: Path) -> set[str]:
+    """Every function, class and class field of ``path``, bare and as ``Class.name``."""
+    out: set[str] = set()
+
+    def walk(body: list[ast.stmt], prefix: str) -> None:
+        for node in body:
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+                out.update({node.name, prefix + node.name})
+                walk(node.body, prefix + node.name + "." if isinstance(node, ast.ClassDef)
+                     else prefix)  # fmt: skip
+            elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                out.update({node.target.id, prefix + node.target.id})
+
+    walk(ast.parse(path.read_text()).body, "")
+    return out
+
+
+def test_the_fleet_message_path_names_at_most_four_files_and_real_code() -> None:
+    """The path a received fleet message takes, as docs/DESIGN.md tells it: at most four
+    files, each existing, and every function, class or field it names defined in the
+    package (a renamed one fails here, not in a reader's five minutes)."""
+    section = _fleet_path_section()
+    files = re.findall(r"^\d+\. `(epc_offboard/[\w/]+\.py)`", section, re.M)
+    assert 1 <= len(files) <= 4, files
+    defined: set[str] = set()
+    for path in (ROOT / "epc_offboard").rglob("*.py"):
+        defined |= _defined_names(path)
+    for rel in files:
+        assert (ROOT / rel).is_file(), rel
+    names = [t for t in re.findall(r"`([A-Za-z_][\w.]*)`", section)
+             if not t.endswith(".py") and not t.startswith("epc_offboard")]  # fmt: skip
+    assert names
+    missing = sorted({n for n in names if n not in defined})
+    assert not missing, f"named in docs/DESIGN.md's fleet path, defined nowhere: {missing}"
+
+
+@pytest.mark.parametrize(
+    ("rel", "qualname", "callee"),
+    [
+        ("epc_offboard/fleet/session.py", "FleetSession._on_batch", "receive"),
+        ("epc_offboard/fleet/sharing.py", "FleetSharing.poll", "_offer"),
+        ("epc_offboard/fleet/sharing.py", "FleetSharing._offer", "offer_records"),
+        ("epc_offboard/fleet/exchange.py", "offer_records", "offer"),
+        ("epc_offboard/control/epc/exchange.py", "FleetPort.offer", "offer_candidates"),
+    ],
+)
+def test_each_step_of_the_fleet_path_calls_the_next(rel: str, qualname: str, callee: str) -> None:
+    """Each hop docs/DESIGN.md names calls the next one it names."""
+    section = _fleet_path_section()
+    assert f"`{qualname}`" in section
+    assert f"`{rel}`" in section
+    func = _function(ROOT / rel, qualname)
+    called = {
+        n.func.attr if isinstance(n.func, ast.Attribute) else getattr(n.func, "id", "")
+        for n in ast.walk(func) if isinstance(n, ast.Call)
+    }  # fmt: skip
+    assert callee in called, f"{qualname} does not call {callee}"

@@ -9,7 +9,7 @@ import pytest
 
 from epc_offboard.cli import build_parser, main
 from epc_offboard.control.cascade import Cascade
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.service.config import load_service_config
 from epc_offboard.store.database import LibraryStore
 

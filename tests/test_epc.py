@@ -14,7 +14,7 @@ import epc_offboard.control.epc.library as library_module
 import epc_offboard.control.epc.maps as maps_module
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.kernels import apply_map_numpy
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.control.models import LinearModel, attitude_model, position_model
 from epc_offboard.control.qp import MpcProblem
 from tests.mpc_cases import A_MAX, V_MAX, exact_solution, hover_refs, position_problem

@@ -30,7 +30,7 @@ import pytest
 import trustme
 import zenoh
 
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
 from tests.test_sharing import TARGETS, controller, free_tcp_port, learn_new, until

@@ -20,7 +20,7 @@ import pytest
 import zenoh
 
 from epc_offboard.control.cascade import Cascade
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
 from epc_offboard.service.config import load_service_config
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD

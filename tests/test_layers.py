@@ -178,7 +178,9 @@ def test_the_running_plant_loads_no_controller():
     assert not bad, f"the SITL loads {bad}"
 
 
-@pytest.mark.parametrize("module", ["epc_offboard.fleet.wire", "epc_offboard.control.library"])
+@pytest.mark.parametrize(
+    "module", ["epc_offboard.fleet.wire", "epc_offboard.control.library_types"]
+)
 def test_the_library_types_and_the_codec_load_no_numerics(module):
     """The library's value types and the fleet's codec are plain Python: a planner (or any
     peer) decoding controller messages loads no numpy, numba, OSQP or scipy."""
@@ -239,3 +241,21 @@ def test_every_error_is_an_epc_error_and_a_builtin():
                 f"{name}.{cls.__name__} subclasses no specific builtin"
             )
     assert checked >= 10
+
+
+def test_the_fleet_exchange_is_pure_and_the_session_holds_the_io():
+    """The fleet's exchange (messages <-> offers, quotas, buckets) imports no I/O library and
+    neither the session nor the control process's side; Zenoh is the session's alone (and
+    the config's: its validation, deferred, probes the overrides on a zenoh.Config, never
+    run by the exchange, hence top-level imports here)."""
+    graph = _graph(top_level_only=True)
+    exchange = "epc_offboard.fleet.exchange"
+    for m in (exchange, *_reachable(graph, exchange)):
+        bad = {d for d in _imports(MODULES[m], top_level_only=True)
+               if d.split(".")[0] in IO_LIBRARIES}  # fmt: skip
+        assert not bad, f"{exchange} reaches {m}, which imports {sorted(bad)}"
+    assert not _reachable(graph, exchange) & {"epc_offboard.fleet.session",
+                                              "epc_offboard.fleet.sharing"}  # fmt: skip
+    zenoh_users = {m for m in _in("epc_offboard.fleet")
+                   if "zenoh" in _imports(MODULES[m], top_level_only=True)}  # fmt: skip
+    assert zenoh_users <= {"epc_offboard.fleet.session", "epc_offboard.fleet.router"}, zenoh_users

@@ -11,7 +11,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from epc_offboard.common.errors import EpcError
-from epc_offboard.control.library import EntryError, LibraryEntry, parse_active_set, parse_entry
+from epc_offboard.control.library_types import (
+    EntryError,
+    LibraryEntry,
+    parse_active_set,
+    parse_entry,
+)
 
 N_CON = 12
 MAX_ROWS = 4

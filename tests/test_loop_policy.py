@@ -162,6 +162,6 @@ def test_the_other_strategies_fly_the_attitude():
         cascade = _cascade(controller)
         assert not cascade.flies_reference
         assert cascade.position.controller is not None
-        cmd = cascade.attitude_command(_state(5.0), _level(cascade), 1.0, late=False,
-                                       mode="epc")
+        cmd = attitude_command(cascade.attitude, _state(5.0), _level(cascade), 1.0,
+                               late=False, mode="epc")
         assert cmd.rates_frd_rad_s is not None

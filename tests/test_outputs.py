@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from epc_offboard.cli import build_parser, main
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.service.timing import LoopTiming
 from epc_offboard.store.database import LibraryStore
 from epc_offboard.tools.sim.analysis import fleet_figures

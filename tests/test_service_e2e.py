@@ -202,7 +202,7 @@ def test_unknown_config_key_exits_2_naming_key_and_file(tmp_path):
 def test_truncated_library_is_moved_aside_and_the_service_flies(tmp_path):
     lib = tmp_path / "library.sqlite"
     with LibraryStore.open(lib) as store:
-        from epc_offboard.control.library import LibraryEntry
+        from epc_offboard.control.library_types import LibraryEntry
 
         store.save_controllers("x", [LibraryEntry((i,), 1.0, 1) for i in range(300)])
     lib.write_bytes(lib.read_bytes()[:2000])

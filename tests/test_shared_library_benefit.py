@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from epc_offboard.control.epc import CandidatePool, ExperienceController
-from epc_offboard.fleet.session import snapshot_payload
+from epc_offboard.fleet.exchange import snapshot_payload
 from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 from epc_offboard.fleet.wire import decode_controllers
 from epc_offboard.service.miss_solver import MissSolver

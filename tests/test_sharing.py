@@ -19,7 +19,7 @@ import pytest
 import zenoh
 
 from epc_offboard.control.epc import ExperienceController
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 from epc_offboard.fleet.wire import (
     ControllerMessage,
@@ -525,9 +525,9 @@ def test_a_received_controller_joins_the_library_only_when_optimal_for_a_tick_he
 
 
 def test_token_buckets_expire_and_never_refuse_a_new_sender():
-    from epc_offboard.fleet.session import _TokenBuckets
+    from epc_offboard.fleet.exchange import TokenBuckets
 
-    buckets = _TokenBuckets(rate_per_s=1.0, burst=2)
+    buckets = TokenBuckets(rate_per_s=1.0, burst=2)
     assert all(buckets.allow(f"evil{k}", 0.0) for k in range(1200))  # one burst each
     assert len(buckets) <= 1024
     assert buckets.allow("legit", 0.5)  # a new peer, mid-flood

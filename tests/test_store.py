@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.store.database import (
     LibraryStore,
     StoreError,
@@ -107,7 +107,7 @@ def test_kill_9_keeps_every_committed_controller(tmp_path):
     script = textwrap.dedent(
         f"""
         import sys
-        from epc_offboard.control.library import LibraryEntry
+        from epc_offboard.control.library_types import LibraryEntry
         from epc_offboard.store.database import LibraryStore
         store = LibraryStore.open({str(path)!r})
         i = 0

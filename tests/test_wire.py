@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.wire import (
     ControllerMessage,
     MessageKind,

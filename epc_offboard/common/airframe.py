@@ -44,7 +44,7 @@ class AirframeEnvelope:
 @dataclass(frozen=True)
 class Airframe:
     """The airframe as the service flies it (from its vehicle file, :func:`~epc_offboard.
-    service.airframe.load_airframe`). The defaults are a generic PX4 quad's, for the numerics
+    service.airframe_file.load_airframe`). The defaults are a generic PX4 quad's, for the numerics
     built without a file (tests, benchmarks)."""
 
     mass_kg: float = 1.5

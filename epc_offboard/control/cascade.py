@@ -213,21 +213,6 @@ class Cascade:
     ) -> AttitudeCommand:
         return self.attitude.attitude_fallback(state, target, now_s)
 
-    def attitude_command(
-        self,
-        state: VehicleState,
-        target: PositionOutput,
-        now_s: float,
-        *,
-        late: bool,
-        mode: AttitudeMode,
-        acting: bool = True,
-        on_error: Callable[[Exception], None] | None = None,
-    ) -> AttitudeCommand:
-        """:func:`attitude_command` on this cascade's attitude loop."""
-        return attitude_command(self.attitude, state, target, now_s, late=late, mode=mode,
-                                acting=acting, on_error=on_error)
-
     def warm_up(self) -> float:
         """Run both ticks of a scratch cascade with this configuration at hover, so every
         compiled kernel (numba) is compiled or loaded from its cache now, not inside the

@@ -1,7 +1,7 @@
 """What crosses from the fleet helper process to the control process: fixed-size records.
 
 A received controller arrives in the control process already decoded and validated (by the
-helper, :mod:`epc_offboard.fleet.session`) as one row of :func:`candidate_dtype`: its active
+helper, :mod:`epc_offboard.fleet.exchange`) as one row of its ``candidate_dtype``: its active
 set, importance, uses, origin and likeliest successors, padded to the problem's largest
 active set. A live reference is one row of :data:`REFERENCE_DTYPE`. Counters and the
 helper's heartbeat are slots of a shared int64 array (:data:`STAT_NAMES`), written by the
@@ -10,18 +10,14 @@ helper only. Pure: numpy in, numpy and tuples out.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from epc_offboard.control.library import LibraryEntry
 from epc_offboard.fleet.wire import (
     MAX_HORIZON_POINTS,
-    MAX_VEHICLE_ID_LEN,
-    ControllerMessage,
     ReferenceMessage,
 )
 
@@ -38,63 +34,6 @@ class ProblemSpec:
     n_con: int  # constraint rows: active-set indices are below this
     max_active: int  # rows of an active set at most (the problem's n_u)
     max_entries: int  # controllers in one message at most (the library's size)
-
-
-def candidate_dtype(max_active: int, max_successors: int) -> np.dtype[Any]:
-    """One received controller: ``active[:n_active]`` is its active set; successor ``k`` is
-    ``successors[k, :successor_len[k]]`` for ``k < n_successors``."""
-    return np.dtype(
-        [
-            ("problem", "u1"),  # index into the shared problems
-            ("n_active", "u2"),
-            ("n_successors", "u1"),
-            ("importance", "f8"),
-            ("uses", "u4"),
-            ("origin", f"S{MAX_VEHICLE_ID_LEN}"),  # the sender's vehicle id (ASCII, checked)
-            ("active", "u2", (max_active,)),
-            ("successor_len", "u2", (max_successors,)),
-            ("successors", "u2", (max_successors, max_active)),
-        ]
-    )
-
-
-def candidate_records(
-    msg: ControllerMessage,
-    problem: int,
-    dtype: np.dtype[Any],
-    successors: Mapping[ActiveSet, Sequence[ActiveSet]],
-) -> Records:
-    """``msg``'s entries as records, the sender's least used first (a peer past its pool
-    quota keeps its most used, offered last)."""
-    entries = sorted(msg.entries, key=lambda e: (e.uses, e.importance))
-    out = np.zeros(len(entries), dtype=dtype)
-    max_succ = dtype["successor_len"].shape[0]
-    out["problem"] = problem
-    out["origin"] = msg.vehicle_id.encode()
-    for i, e in enumerate(entries):
-        row = out[i]
-        row["n_active"] = len(e.active_set)
-        row["active"][: len(e.active_set)] = e.active_set
-        row["importance"] = e.importance
-        row["uses"] = e.uses
-        succ = list(successors.get(e.active_set, ()))[:max_succ]
-        row["n_successors"] = len(succ)
-        for k, s in enumerate(succ):
-            row["successor_len"][k] = len(s)
-            row["successors"][k, : len(s)] = s
-    return out
-
-
-def candidate_of(row: Any) -> tuple[LibraryEntry, str, tuple[ActiveSet, ...]]:
-    """A record back as (entry, origin ``shared:<vehicle>``, successors)."""
-    n = int(row["n_active"])
-    active = tuple(row["active"][:n].tolist())
-    lens = row["successor_len"].tolist()
-    succ = tuple(
-        tuple(row["successors"][k, : lens[k]].tolist()) for k in range(int(row["n_successors"]))
-    )
-    entry = LibraryEntry(active, float(row["importance"]), int(row["uses"]))
-    return entry, f"shared:{row['origin'].decode()}", succ
 
 
 REFERENCE_DTYPE = np.dtype(

@@ -1,11 +1,12 @@
 """The fleet's Zenoh session, in a process of its own (the fleet helper).
 
 Everything a peer can make expensive runs here, at lower priority, never holding the
-control process's interpreter lock: Zenoh's threads, the size check, the fleet-wide and
-per-peer token buckets, decoding and validation (:mod:`epc_offboard.fleet.wire`), the
-candidate inbox (bounded in entries and per peer, fair across peers, duplicates dropped),
-answering library queries from a prepared snapshot, encoding and publishing this vehicle's
-new controllers. The control process (:class:`epc_offboard.fleet.sharing.FleetSharing`)
+control process's interpreter lock: Zenoh's threads and the exchange's side of a received
+message (:class:`epc_offboard.fleet.exchange.FleetExchange`: the size check, the fleet-wide
+and per-peer token buckets, decoding and validation, the candidate inbox), answering library
+queries from a prepared snapshot, publishing this vehicle's new controllers. This module
+does the I/O: Zenoh, the pipes, the threads; what a message means is the exchange's. The
+control process (:class:`epc_offboard.fleet.sharing.FleetSharing`)
 reads decoded candidates as fixed-size records (:mod:`epc_offboard.fleet.records`) at most
 ``candidates_per_s`` a second, and the newest live reference; it sends new controllers and
 library snapshots as frames. Counters and a heartbeat are slots of a shared int64 array.
@@ -15,10 +16,6 @@ Threads here: Zenoh's (callbacks: check, decode, queue), ``forward-candidates`` 
 wait and the inbox drops), ``frames`` (what the control process sends), and the main thread,
 which does the rest (publishing, snapshots, library queries on a peer's arrival) and beats
 the heartbeat: a main thread that stops turning is a wedged helper, and is restarted.
-
-Rate limits: one token bucket per sending vehicle id. A bucket that has refilled is
-forgotten (a new one is the same), and when the table is full the least recently heard
-sender's is dropped: a flood from many rotating ids never locks a new, legitimate peer out.
 """
 
 from __future__ import annotations
@@ -30,7 +27,7 @@ import os
 import queue
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -43,30 +40,24 @@ from epc_offboard.common.channel import ChannelClosedError, read_frames, write_a
 from epc_offboard.common.children import die_with_parent, lower_priority
 from epc_offboard.common.logsetup import LogConfig, setup_logging
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet import keys
 from epc_offboard.fleet.config import SharingConfig
-from epc_offboard.fleet.records import (
-    STAT_INDEX,
-    ProblemSpec,
-    candidate_records,
-    reference_record,
+from epc_offboard.fleet.exchange import (
+    MAX_PEERS,
+    FleetExchange,
+    LimitedLog,
+    Snapshot,
+    TokenBuckets,
+    batch_payloads,
+    snapshot_payload,
 )
-from epc_offboard.fleet.wire import (
-    ControllerMessage,
-    MessageKind,
-    WireError,
-    decode_controllers,
-    decode_reference,
-    encode_controllers,
-)
+from epc_offboard.fleet.records import STAT_INDEX, ProblemSpec, reference_record
+from epc_offboard.fleet.wire import MessageKind, WireError, decode_reference
 
 log = logging.getLogger("epc_offboard.fleet")
 
-_MAX_PEERS = 1024  # token buckets and per-sender counts kept (least recently heard dropped)
-_LOG_EVERY_S = 5.0  # at most one log line per reason and peer this often
 _MAX_REFERENCE_BYTES = 16384
-_TRANSITION_BYTES = 12  # one (from, to, count) on the wire (wire._TRANSITION)
 _TURN_S = 0.1  # the main thread's heartbeat period when idle
 # library snapshot queries (one per arriving peer) and arrival / departure log lines the whole
 # fleet may cause: a fleet's genuine arrivals are rare, a flapping token's (1,000 a second,
@@ -74,120 +65,6 @@ _TURN_S = 0.1  # the main thread's heartbeat period when idle
 _QUERIES_PER_S = 10.0
 _QUERY_BURST = 20
 _MAX_ARRIVALS = 256  # arrivals waiting for their query; beyond, the oldest is not queried
-
-
-class _TokenBuckets:
-    """Per-peer token buckets that expire (thread-safe: Zenoh delivers on several threads).
-
-    A bucket idle for its refill time (``burst / rate``) is full again, the same as a new
-    one, so it is dropped. At most ``max_peers`` are kept: beyond, the least recently used
-    goes. A sender is never refused for being new: spoofed, rotating ids each get a burst,
-    which the bounded inbox absorbs.
-    """
-
-    def __init__(self, rate_per_s: float, burst: int, max_peers: int = _MAX_PEERS) -> None:
-        self._rate = rate_per_s
-        self._burst = float(burst)
-        self._refill_s = burst / rate_per_s
-        self._max_peers = max_peers
-        self._state: OrderedDict[str, tuple[float, float]] = OrderedDict()  # LRU first
-        self._lock = threading.Lock()
-        self.evicted = 0  # buckets dropped while not yet refilled (table full)
-
-    def __len__(self) -> int:
-        return len(self._state)
-
-    def allow(self, peer: str, now_s: float) -> bool:
-        with self._lock:
-            state = self._state.pop(peer, None)
-            if state is None:
-                self._expire(now_s)
-                state = (self._burst, now_s)
-            tokens, last = state
-            tokens = min(self._burst, tokens + (now_s - last) * self._rate)
-            ok = tokens >= 1.0
-            self._state[peer] = (tokens - 1.0 if ok else tokens, now_s)  # most recent last
-            return ok
-
-    def _expire(self, now_s: float) -> None:
-        """Make room for one more: drop refilled buckets, then the least recently used."""
-        state = self._state
-        while state:
-            peer, (_tokens, last) = next(iter(state.items()))
-            if now_s - last >= self._refill_s:
-                del state[peer]
-            elif len(state) >= self._max_peers:
-                del state[peer]
-                self.evicted += 1
-            else:
-                break
-
-
-def successors_of(
-    msg: ControllerMessage, max_successors: int
-) -> dict[tuple[int, ...], tuple[tuple[int, ...], ...]]:
-    """Each entry's likeliest successors in the sender's transition counts (most frequent
-    first, at most ``max_successors``), by active set."""
-    n = len(msg.entries)
-    out: dict[int, list[tuple[int, int]]] = {}
-    for a, b, count in msg.transitions:
-        if 0 <= a < n and 0 <= b < n and a != b:
-            out.setdefault(a, []).append((count, b))
-    return {
-        msg.entries[a].active_set: tuple(
-            msg.entries[b].active_set for _, b in sorted(succ, reverse=True)[:max_successors]
-        )
-        for a, succ in out.items()
-    }
-
-
-Snapshot = tuple[list[LibraryEntry], dict[tuple[int, int], int]]  # entries, transitions
-
-
-def chunks(
-    entries: Sequence[LibraryEntry], max_payload_bytes: int
-) -> list[tuple[LibraryEntry, ...]]:
-    """Split into messages that each fit ``max_payload_bytes`` (in the order given)."""
-    budget = max_payload_bytes - 64  # header + id + count
-    out: list[tuple[LibraryEntry, ...]] = []
-    cur: list[LibraryEntry] = []
-    size = 0
-    for e in entries:
-        n = 14 + 2 * len(e.active_set)
-        if n > budget:
-            continue
-        if size + n > budget or len(cur) >= 0xFFFF:
-            out.append(tuple(cur))
-            cur, size = [], 0
-        cur.append(e)
-        size += n
-    if cur:
-        out.append(tuple(cur))
-    return out
-
-
-def snapshot_payload(
-    signature: str, vehicle_id: str, entries: list[LibraryEntry],
-    transitions: dict[tuple[int, int], int] | None, max_payload_bytes: int,
-) -> bytes:
-    """The snapshot a late joiner's query gets: the most important controllers that fit one
-    payload, and as many of their transition counts (most frequent first) as still fit —
-    they tell the joiner which controller is likely next."""
-    parts = chunks(entries, max_payload_bytes)
-    kept = parts[0] if parts else ()
-    index = {id(e): i for i, e in enumerate(kept)}
-    room = max_payload_bytes - 64 - 4 - sum(14 + 2 * len(e.active_set) for e in kept)
-    trans = sorted(
-        (
-            (index[id(entries[a])], index[id(entries[b])], n)
-            for (a, b), n in (transitions or {}).items()
-            if id(entries[a]) in index and id(entries[b]) in index
-        ),
-        key=lambda t: -t[2],
-    )[: max(0, room // _TRANSITION_BYTES)]
-    return encode_controllers(
-        ControllerMessage(MessageKind.SNAPSHOT, signature, vehicle_id, kept, tuple(trans))
-    )  # fmt: skip
 
 
 class Counters:
@@ -204,71 +81,6 @@ class Counters:
 
     def set(self, name: str, value: int) -> None:
         self.slots[STAT_INDEX[name]] = value
-
-
-class CandidateInbox:
-    """Decoded candidates waiting for the control process: at most ``max_total`` records,
-    ``max_per_peer`` from one sender, handed out one peer at a time in turn (a flood from
-    many ids delays a real peer by a turn, never locks it out); an active set already
-    handed out recently is dropped as a duplicate."""
-
-    def __init__(self, max_total: int, max_per_peer: int) -> None:
-        self.max_total = max_total
-        self.max_per_peer = max_per_peer
-        self._queues: OrderedDict[str, deque[bytes]] = OrderedDict()  # next turn first
-        self._total = 0
-        self._seen: OrderedDict[bytes, None] = OrderedDict()  # (problem, active set) keys
-        self._cond = threading.Condition()
-
-    def __len__(self) -> int:
-        return self._total
-
-    def put(self, peer: str, records: npt.NDArray[Any]) -> tuple[int, int, int]:
-        """Queue ``records`` from ``peer``; returns (queued, duplicates, dropped)."""
-        queued = dup = dropped = 0
-        with self._cond:
-            q = self._queues.get(peer)
-            for rec in records:
-                key = rec["problem"].tobytes() + rec["active"][: rec["n_active"]].tobytes()
-                if key in self._seen:
-                    self._seen.move_to_end(key)
-                    dup += 1
-                    continue
-                if q is not None and len(q) >= self.max_per_peer:
-                    q.popleft()  # a peer's newest (its most used last) win its quota
-                    self._total -= 1
-                    dropped += 1
-                elif self._total >= self.max_total or (
-                    q is None and len(self._queues) >= _MAX_PEERS
-                ):
-                    dropped += 1
-                    continue
-                if q is None:
-                    q = self._queues[peer] = deque()
-                q.append(rec.tobytes())
-                self._total += 1
-                self._seen[key] = None
-                if len(self._seen) > 4 * self.max_total:
-                    self._seen.popitem(last=False)
-                queued += 1
-            if queued:
-                self._cond.notify()
-        return queued, dup, dropped
-
-    def take(self, timeout_s: float) -> bytes | None:
-        with self._cond:
-            if not self._total and not self._cond.wait(timeout_s):
-                return None
-            if not self._queues:
-                return None
-            peer, q = next(iter(self._queues.items()))
-            rec = q.popleft()
-            self._total -= 1
-            if q:
-                self._queues.move_to_end(peer)  # its next one after everyone else's
-            else:
-                del self._queues[peer]
-            return rec
 
 
 class _LatestReference:
@@ -331,22 +143,17 @@ class FleetSession:
         self.problems = [
             _Problem(i, s, cfg.fleet) for i, s in enumerate(specs)
         ]
-        self.inbox = CandidateInbox(cfg.max_queued_entries, inbox_per_peer)
+        self._log_limited = LimitedLog()
+        self.exchange = FleetExchange(cfg, counters, candidate_dtype, max_successors,
+                                      inbox_per_peer, self._log_limited)  # fmt: skip
+        self.inbox = self.exchange.inbox  # what the forwarding thread hands on
         self.reference = _LatestReference()
         self.tasks: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=cfg.queue_size)
         self.peers: dict[int, set[str]] = {}
-        self._senders: OrderedDict[str, None] = OrderedDict()
-        self._buckets = _TokenBuckets(cfg.max_messages_per_s, cfg.burst_messages)
-        self._query_bucket = _TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
-        self._peer_log_bucket = _TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
+        self._query_bucket = TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
+        self._peer_log_bucket = TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
         self._arrivals: OrderedDict[tuple[int, str], None] = OrderedDict()  # to be queried
-        # all peers together: rotating ids each get a fresh burst, so without a fleet-wide
-        # limit a flood is decoded in full (here, at least, in a process of its own)
-        self._fleet_bucket = _TokenBuckets(
-            cfg.fleet_messages_per_s, cfg.fleet_burst_messages, max_peers=1
-        )
         self._lock = threading.Lock()
-        self._last_log: dict[tuple[str, str], float] = {}
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
 
@@ -441,10 +248,8 @@ class FleetSession:
         p = self.problems[index]
         if self._session is None:
             return
-        for chunk in chunks(entries, self.cfg.max_payload_bytes):
-            payload = encode_controllers(
-                ControllerMessage(MessageKind.BATCH, p.spec.signature, self.vehicle_id, chunk)
-            )
+        for payload, n in batch_payloads(p.spec.signature, self.vehicle_id, entries,
+                                         self.cfg.max_payload_bytes):  # fmt: skip
             try:
                 self._session.put(
                     p.key(keys.CONTROLLERS, self.vehicle_id),
@@ -455,7 +260,7 @@ class FleetSession:
                 self.counters.add("publish_errors")
                 self._log_limited("publish", p.spec.name, "publishing controllers failed: %s", exc)
                 continue
-            self.counters.add("entries_published", len(chunk))
+            self.counters.add("entries_published", n)
 
     def prepare_snapshot(
         self, index: int, entries: list[LibraryEntry], transitions: dict[tuple[int, int], int]
@@ -469,7 +274,7 @@ class FleetSession:
         p = self.problems[index]
         peers = self.peers.setdefault(index, set())
         if joined and peer not in peers:
-            if len(peers) >= _MAX_PEERS:
+            if len(peers) >= MAX_PEERS:
                 return
             peers.add(peer)
             self.counters.add("peer_joins")
@@ -527,81 +332,16 @@ class FleetSession:
     # -- Zenoh's threads ------------------------------------------------------------------
 
     def _on_batch(self, p: _Problem, sample: zenoh.Sample) -> None:
-        self._receive(p, str(sample.key_expr), sample.payload, MessageKind.BATCH)
+        self.exchange.receive(p.index, p.spec, str(sample.key_expr), sample.payload,
+                              MessageKind.BATCH)  # fmt: skip
 
     def _on_reply(self, p: _Problem, reply: zenoh.Reply) -> None:
         sample = reply.ok
         if sample is None:
             self.counters.add("query_errors")
             return
-        self._receive(p, str(sample.key_expr), sample.payload, MessageKind.SNAPSHOT)
-
-    def _receive(self, p: _Problem, key: str, payload: zenoh.ZBytes, kind: MessageKind) -> None:
-        sender = key.rsplit("/", 1)[-1]
-        count = self.counters.add
-        if sender == self.vehicle_id:
-            count("own_ignored")
-            return
-        count("messages_received")
-        if len(payload) > self.cfg.max_payload_bytes:
-            count("rejected_oversized")
-            self._log_limited("size", sender, "dropped a %d-byte payload from %s (limit %d)",
-                              len(payload), sender, self.cfg.max_payload_bytes)  # fmt: skip
-            return
-        now = time.monotonic()
-        if not self._fleet_bucket.allow("fleet", now):
-            count("fleet_rate_limited")
-            self._log_limited("fleet-rate", "fleet", "rate-limiting the fleet: %s on %s",
-                              sender, key)  # fmt: skip
-            return
-        if not self._buckets.allow(sender, now):
-            count("rate_limited")
-            self._log_limited("rate", sender, "rate-limiting vehicle %s on %s", sender, key)
-            return
-        with self._lock:
-            self._senders.pop(sender, None)
-            self._senders[sender] = None
-            if len(self._senders) > _MAX_PEERS:
-                self._senders.popitem(last=False)  # the least recently heard
-            self.counters.set("senders", len(self._senders))
-        spec = p.spec
-        try:
-            msg = decode_controllers(
-                payload.to_bytes(),
-                max_payload_bytes=self.cfg.max_payload_bytes,
-                max_entries=spec.max_entries,
-                n_con=spec.n_con,
-                max_active=spec.max_active,
-                expect_signature=spec.signature,
-            )
-            if msg.vehicle_id != sender:
-                raise WireError(f"sender {msg.vehicle_id!r} differs from the key's {sender!r}")
-            if msg.kind != kind:
-                raise WireError(f"a {msg.kind.name} message where a {kind.name} belongs")
-        except WireError as exc:
-            count("rejected_malformed")
-            self._log_limited("malformed", sender, "rejected a payload from %s on %s: %s",
-                              sender, key, exc)  # fmt: skip
-            return
-        count("entries_received", len(msg.entries))
-        records = candidate_records(
-            msg, p.index, self.dtype, successors_of(msg, self.max_successors)
-        )
-        queued, dup, dropped = self.inbox.put(sender, records)
-        count("entries_duplicate", dup)
-        if dropped:
-            count("dropped_queue_full", dropped)
-            self._log_limited("queue", "", "candidate inbox full: dropped %d from %s",
-                              dropped, sender)  # fmt: skip
-        self.counters.set("candidates_waiting", len(self.inbox))
-        self.counters.set("rate_buckets", len(self._buckets))
-        self.counters.set("rate_buckets_evicted", self._buckets.evicted)
-        if queued:
-            log.log(
-                logging.INFO if msg.kind == MessageKind.SNAPSHOT else logging.DEBUG,
-                "%s: %d new controllers from vehicle %s (%s), %d waiting for the control process",
-                spec.name, queued, sender, msg.kind.name.lower(), len(self.inbox),
-            )  # fmt: skip
+        self.exchange.receive(p.index, p.spec, str(sample.key_expr), sample.payload,
+                              MessageKind.SNAPSHOT)  # fmt: skip
 
     def _on_query(self, p: _Problem, query: zenoh.Query) -> None:
         self.counters.add("queries_answered")
@@ -634,17 +374,6 @@ class FleetSession:
             return
         self.counters.add("references_received")
         self.reference.put(reference_record(msg, time.monotonic()).tobytes())
-
-    def _log_limited(self, reason: str, peer: str, fmt: str, *args: object) -> None:
-        now = time.monotonic()
-        with self._lock:
-            last = self._last_log.get((reason, peer), -float("inf"))
-            if now - last < _LOG_EVERY_S:
-                return
-            if len(self._last_log) > _MAX_PEERS:
-                self._last_log.clear()
-            self._last_log[(reason, peer)] = now
-        log.warning(fmt, *args)
 
 
 # -- the helper process ----------------------------------------------------------------------

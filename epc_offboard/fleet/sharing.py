@@ -53,21 +53,26 @@ from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.epc import MAX_SUCCESSORS, ExperienceController
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.epc.exchange import FleetPort
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet import keys
 from epc_offboard.fleet.config import SharingConfig
+from epc_offboard.fleet.exchange import (
+    FleetLibrary,
+    candidate_dtype,
+    candidate_records,
+    offer_records,
+    successors_of,
+)
 from epc_offboard.fleet.records import (
     REFERENCE_DTYPE,
     STAT_INDEX,
     STAT_NAMES,
     ProblemSpec,
     Records,
-    candidate_dtype,
-    candidate_of,
-    candidate_records,
     reference_of,
 )
-from epc_offboard.fleet.session import HelperArgs, helper_main, successors_of
+from epc_offboard.fleet.session import HelperArgs, helper_main
 from epc_offboard.fleet.wire import ControllerMessage, ReferenceMessage
 
 __all__ = ["FleetSharing", "LiveReference", "SharingConfig", "open_or_fly_alone"]
@@ -195,16 +200,14 @@ class FleetSharing:
         self.subscribe_reference = reference
         self.log_cfg = log_cfg or LogConfig()  # the helper's log lines, on the same stderr
         self.counters: Counter[str] = Counter()
-        self._controllers = list(controllers)
         pool = self.candidates = candidates or CandidatePoolConfig()
-        for _name, ctrl in self._controllers:
-            ctrl.limit_candidates(pool.pool_size, pool.per_peer, pool.backlog_size,
-                                  pool.backlog_per_peer)  # fmt: skip
+        ports = [(name, FleetPort(ctrl, pool)) for name, ctrl in controllers]
         self.specs = tuple(
-            ProblemSpec(name, ctrl.problem.signature(), ctrl.problem.n_con, ctrl.problem.n_u,
-                        ctrl.max_size)
-            for name, ctrl in self._controllers
-        )  # fmt: skip
+            ProblemSpec(name, port.signature, port.n_con, port.max_active, port.max_entries)
+            for name, port in ports
+        )
+        # the exchange sees each controller through its narrow protocol, nothing else
+        self._libraries: list[tuple[str, FleetLibrary]] = list(ports)
         max_active = max((s.max_active for s in self.specs), default=1)
         self.candidate_dtype = candidate_dtype(max_active, MAX_SUCCESSORS)
         self._ctx = multiprocessing.get_context("spawn")  # no fork of a threaded process
@@ -216,7 +219,7 @@ class FleetSharing:
         self._restarts = Backoff(1.0, cfg.helper_restart_max_s)
         self._budget = float(self._per_turn())
         self._budget_at_s = time.monotonic()
-        self._dirty = [True] * len(self._controllers)
+        self._dirty = [True] * len(self._libraries)
         self._reference: LiveReference | None = None
         self._backlog = PublishBacklog(cfg.publish_backlog_entries)
 
@@ -262,9 +265,7 @@ class FleetSharing:
         cand_r, cand_w = self._ctx.Pipe(duplex=False)
         ref_r, ref_w = self._ctx.Pipe(duplex=False)
         frames_r, frames_w = self._ctx.Pipe(duplex=False)
-        snapshots = tuple(
-            (ctrl.export_library(), ctrl.export_transitions()) for _, ctrl in self._controllers
-        )
+        snapshots = tuple(library.snapshot() for _, library in self._libraries)
         args = HelperArgs(self.cfg, self.specs, self.candidate_dtype, MAX_SUCCESSORS,
                           self.share_library, self.subscribe_reference, snapshots, os.getpid(),
                           self.log_cfg, self.candidates.backlog_per_peer)  # fmt: skip
@@ -285,7 +286,7 @@ class FleetSharing:
             [cand_r, ref_r, frames_w],
             time.monotonic(),
         )
-        self._dirty = [False] * len(self._controllers)  # it started with the snapshots
+        self._dirty = [False] * len(self._libraries)  # it started with the snapshots
 
     def _stop_helper(self, *, kill: bool) -> None:
         helper, self._helper = self._helper, None
@@ -370,30 +371,14 @@ class FleetSharing:
         self.counters["publish_requeued"] += self._backlog.requeue()
 
     def _offer(self, records: Records) -> int:
-        """Offer decoded candidates to their controllers' pools (no factorisation)."""
-        offered = 0
-        for row in records:
-            index = int(row["problem"])
-            if index >= len(self._controllers):
-                self.counters["entries_rejected_by_problem"] += 1
-                continue
-            name, ctrl = self._controllers[index]
-            entry, origin, successors = candidate_of(row)
-            n = ctrl.offer_candidates([entry], origin, successors={entry.active_set: successors})
-            offered += n
-            if n:
-                self.counters["entries_offered"] += 1
-                log.debug("%s: candidate from %s, %d in the pool", name, origin,
-                          len(ctrl.candidates))  # fmt: skip
-            else:
-                self.counters["entries_known"] += 1
-        self.counters["candidates_taken"] += len(records)
-        return offered
+        """Candidates read from the helper to their libraries (the fleet bench stamps their
+        arrival here)."""
+        return offer_records(records, self._libraries, self.counters)
 
     def offer_message(self, name: str, msg: ControllerMessage) -> int:
         """Offer a decoded message's entries as they would arrive from the helper (a fleet
         query's answer, an import): returns how many were new to the pool."""
-        index = next(i for i, (n, _) in enumerate(self._controllers) if n == name)
+        index = next(i for i, (n, _) in enumerate(self._libraries) if n == name)
         records = candidate_records(msg, index, self.candidate_dtype,
                                     successors_of(msg, MAX_SUCCESSORS))  # fmt: skip
         return self._offer(records)
@@ -408,8 +393,8 @@ class FleetSharing:
         """Queue every controller learned since the last call for publication, and hand what
         waits to the helper if its session is open; returns how many were queued."""
         queued = 0
-        for i, (_name, ctrl) in enumerate(self._controllers):
-            new = ctrl.pop_new_entries()
+        for i, (_name, library) in enumerate(self._libraries):
+            new = library.new_entries()
             if not new or not self.share_library:
                 continue
             self._dirty[i] = True
@@ -427,11 +412,11 @@ class FleetSharing:
         self._backlog.hand_off(self._send)
 
     def _refresh_snapshots(self) -> None:
-        for i, (_name, ctrl) in enumerate(self._controllers):
+        for i, (_name, library) in enumerate(self._libraries):
             if not self.share_library or not self._dirty[i]:
                 continue
             # here, on the event loop: the library is not thread-safe
-            if self._send(("snapshot", i, ctrl.export_library(), ctrl.export_transitions())):
+            if self._send(("snapshot", i, *library.snapshot())):
                 self._dirty[i] = False
 
     def _send(self, frame: tuple[Any, ...]) -> bool:
@@ -470,8 +455,9 @@ class FleetSharing:
             out["outbox_refused"] = helper.outbox.refused
         out["publish_waiting"] = len(self._backlog)
         out["publish_dropped"] = self._backlog.dropped
-        out["candidates"] = sum(len(c.candidates) for _, c in self._controllers)
-        out["promoted"] = sum(c.stats.received_shared for _, c in self._controllers)
+        counts = [library.fleet_counts() for _, library in self._libraries]
+        out["candidates"] = sum(waiting for waiting, _ in counts)
+        out["promoted"] = sum(promoted for _, promoted in counts)
         return out
 
     def process_stats(self) -> dict[str, Any]:

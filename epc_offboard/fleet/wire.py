@@ -49,7 +49,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from epc_offboard.common.errors import EpcError
-from epc_offboard.control.library import EntryError, LibraryEntry, parse_entry
+from epc_offboard.control.library_types import EntryError, LibraryEntry, parse_entry
 
 MAGIC = b"EPCL"
 SCHEMA_VERSION = 1

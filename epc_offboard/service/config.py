@@ -20,7 +20,7 @@ from epc_offboard.control.perturbation import EstimatorConfig
 from epc_offboard.control.position import PositionControlConfig
 from epc_offboard.control.trajectories import TrajectoryConfig
 from epc_offboard.fleet.config import SharingConfig
-from epc_offboard.service.airframe import load_airframe
+from epc_offboard.service.airframe_file import load_airframe
 from epc_offboard.vehicle.offboard import OffboardConfig
 from epc_offboard.vehicle.state import StateLimits
 

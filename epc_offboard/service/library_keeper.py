@@ -30,7 +30,7 @@ from epc_offboard.common.children import Backoff, spawn_fed
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.cascade import Cascade
-from epc_offboard.control.library import LibrarySnapshot
+from epc_offboard.control.library_types import LibrarySnapshot
 from epc_offboard.service.config import StoreConfig
 from epc_offboard.store import experience
 from epc_offboard.store.database import LibraryStore

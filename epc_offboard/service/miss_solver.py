@@ -65,7 +65,7 @@ from epc_offboard.control import kernels
 from epc_offboard.control.epc.candidates import CandidatePool
 from epc_offboard.control.epc.learner import Learner
 from epc_offboard.control.epc.maps import ActiveSetMap, DependentActiveSetError, MapBuilder
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.control.qp import MpcProblem
 
 if TYPE_CHECKING:  # the loop's side only: the worker never builds a controller

@@ -7,7 +7,7 @@ One asyncio TaskGroup with named tasks:
   rates, parameters and commands out);
 * ``position-loop``  — 100 Hz: state -> reference horizon (``reference_selector.py``) ->
   ``Cascade.position_tick`` (``control/position.py``: estimator, EPC, attitude map);
-* ``attitude-loop``  — 200 Hz: ``Cascade.attitude_command`` (the loop policy,
+* ``attitude-loop``  — 200 Hz: ``cascade.attitude_command`` (the loop policy,
   ``control/cascade.py``) -> SET_ATTITUDE_TARGET (rates + thrust, or quaternion + thrust
   for the autopilot's own attitude loop), or the px4 baseline's position target
   (``setpoints.py``);

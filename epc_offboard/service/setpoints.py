@@ -16,7 +16,7 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 
-from epc_offboard.control.cascade import Cascade
+from epc_offboard.control.cascade import Cascade, attitude_command
 from epc_offboard.control.types import (
     PositionOutput,
     PositionTarget,
@@ -78,8 +78,9 @@ class SetpointSender:
         attitude command (``late``: the tick or its attitude sample is late; ``acting``: the
         autopilot flies our setpoints, so the rates measured answer them), its fallbacks
         counted, encoded as SET_ATTITUDE_TARGET and sent."""
-        cmd = self.cascade.attitude_command(
-            state, target, now_s, late=late, mode=self.autopilot.attitude_mode, acting=acting,
+        cmd = attitude_command(
+            self.cascade.attitude, state, target, now_s, late=late,
+            mode=self.autopilot.attitude_mode, acting=acting,
             on_error=lambda exc: self._loop_error("attitude", exc),
         )  # fmt: skip
         counter = _FALLBACK_COUNTERS.get(cmd.source)

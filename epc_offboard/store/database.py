@@ -29,7 +29,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from epc_offboard.common.errors import EpcError
-from epc_offboard.control.library import (
+from epc_offboard.control.library_types import (
     ActiveSet,
     LibraryEntry,
     LibrarySnapshot,
@@ -89,7 +89,7 @@ def encode_active_set(active_set: Iterable[int]) -> str:
 
 def decode_active_set(text: str) -> ActiveSet:
     """Parse a stored active set; ValueError unless it is a sorted list of unique ints >= 0
-    (:func:`~epc_offboard.control.library.parse_active_set`)."""
+    (:func:`~epc_offboard.control.library_types.parse_active_set`)."""
     return parse_active_set(json.loads(text))
 
 

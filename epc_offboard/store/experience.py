@@ -14,7 +14,7 @@ import logging
 from dataclasses import replace
 
 from epc_offboard.control.cascade import Cascade
-from epc_offboard.control.library import LibrarySnapshot, SignatureSnapshot, Transition
+from epc_offboard.control.library_types import LibrarySnapshot, SignatureSnapshot, Transition
 from epc_offboard.store.database import LibraryStore
 
 log = logging.getLogger(__name__)

@@ -82,7 +82,7 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, queue: Any) -> dict[str, Any]:
     0 starts; this vehicle learns in slot ``k`` and stops after the last slot."""
     from epc_offboard.common.procstats import process_report
     from epc_offboard.control.epc import ExperienceController
-    from epc_offboard.fleet.records import candidate_of
+    from epc_offboard.fleet.exchange import candidate_of
     from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 
     arrivals: dict[str, float] = {}  # origin -> first arrival (one controller each)

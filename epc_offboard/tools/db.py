@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from epc_offboard.common.errors import EXIT_OK, EpcError, UsageError
-from epc_offboard.control.library import (
+from epc_offboard.control.library_types import (
     ActiveSet,
     EntryError,
     LibraryEntry,

@@ -62,7 +62,7 @@ Payloads = list[tuple[str, bytes]]  # (key, payload)
 
 def useless_batches(fleet: str, problem: Any, ids: list[str], seed: int = 0) -> Payloads:
     """One batch per id of FLOOD_ENTRIES random (decodable, useless) active sets."""
-    from epc_offboard.control.library import LibraryEntry
+    from epc_offboard.control.library_types import LibraryEntry
     from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
 
     rng = random.Random(seed)
@@ -82,7 +82,7 @@ def genuine_batches(fleet: str, problem: Any, seed: int = 0) -> Payloads:
     """REPLAY_PEERS batches of valid controllers: full QP solves at random states (position,
     velocity, acceleration within a few units of hover), each optimal where it was solved."""
     from epc_offboard.control.epc import ExperienceController
-    from epc_offboard.control.library import LibraryEntry
+    from epc_offboard.control.library_types import LibraryEntry
     from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
 
     ctl = ExperienceController(problem, max_size=REPLAY_SOLVES)

@@ -18,7 +18,7 @@ from typing import Literal
 
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.epc.maps import ActiveSetMap, DependentActiveSetError
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 
 
 @dataclass

@@ -24,7 +24,7 @@ from epc_offboard.control.epc.exchange import LibraryExchange
 from epc_offboard.control.epc.learner import IntermediateQp, Learner
 from epc_offboard.control.epc.library import Entry, Library
 from epc_offboard.control.epc.maps import MapBuilder
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.control.models import LinearModel
 from epc_offboard.control.qp import MpcProblem
 

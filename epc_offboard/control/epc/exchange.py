@@ -10,7 +10,8 @@ fleet's candidates. None of it runs on the hot path but the candidates' check at
   (its map) or :meth:`~LibraryExchange.add_solved` (the active set), and joins the library
   only after this controller's own KKT check passes at that θ;
 * the fleet: received controllers go into the candidate pool
-  (:meth:`~LibraryExchange.offer_candidates`); the worker builds the maps the loop wants
+  (:meth:`~LibraryExchange.offer_candidates`, which the fleet reaches only through
+  :class:`FleetPort`'s four methods); the worker builds the maps the loop wants
   (:meth:`~LibraryExchange.wanted_maps`, :meth:`~LibraryExchange.attach_maps`), and a miss
   checks them before it counts (:meth:`~LibraryExchange._promote`).
 """
@@ -25,13 +26,16 @@ import numpy as np
 import numpy.typing as npt
 
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.epc.candidates import CandidatePool
 from epc_offboard.control.epc.library import Entry, Library
 from epc_offboard.control.epc.maps import ActiveSetMap, MapBuilder
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.control.qp import MpcProblem
 
 logger = logging.getLogger(__name__)
+
+ActiveSet = tuple[int, ...]
 
 
 class LibraryExchange:
@@ -337,3 +341,32 @@ class LibraryExchange:
         assert cand.map is not None
         self._received_shared += 1
         return self._add(cand.map, origin=cand.origin)
+
+
+class FleetPort:
+    """One controller as the fleet exchange sees it (``epc_offboard.fleet.exchange.
+    FleetLibrary``, matched by shape: ``control/`` imports nothing of the fleet): four
+    methods, the only ones the fleet calls. Sizes the controller's candidate pool."""
+
+    def __init__(self, controller: LibraryExchange, pool: CandidatePoolConfig) -> None:
+        self._ctrl = controller
+        controller.limit_candidates(pool.pool_size, pool.per_peer, pool.backlog_size,
+                                    pool.backlog_per_peer)  # fmt: skip
+        p = controller.problem
+        # what the helper checks a peer's message against (fleet.records.ProblemSpec)
+        self.signature, self.n_con, self.max_active = p.signature(), p.n_con, p.n_u
+        self.max_entries = controller.library.max_size
+
+    def offer(self, entry: LibraryEntry, origin: str, successors: tuple[ActiveSet, ...]) -> bool:
+        """Into the candidate pool (:meth:`LibraryExchange.offer_candidates`); whether new."""
+        return self._ctrl.offer_candidates(
+            [entry], origin, successors={entry.active_set: successors}) > 0  # fmt: skip
+
+    def new_entries(self) -> list[LibraryEntry]:
+        return self._ctrl.pop_new_entries()
+
+    def snapshot(self) -> tuple[list[LibraryEntry], dict[tuple[int, int], int]]:
+        return self._ctrl.export_library(), self._ctrl.export_transitions()
+
+    def fleet_counts(self) -> tuple[int, int]:
+        return len(self._ctrl.candidates), self._ctrl._received_shared

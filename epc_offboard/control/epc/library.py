@@ -11,7 +11,7 @@ compiled call over the maps in that order (:func:`epc_offboard.control.kernels.q
 bounded by ``max_checks`` candidates: a query never costs more than that many KKT checks,
 whatever the library's size (a stored controller beyond the bound is a miss this tick).
 
-Exchange: entries leave as :class:`~epc_offboard.control.library.LibraryEntry` values (the
+Exchange: entries leave as :class:`~epc_offboard.control.library_types.LibraryEntry` values (the
 active set as sorted row indices into the problem's layout, importance, uses, origin), most
 important first; transition counts are exported separately, keyed by pairs of indices into
 that list.
@@ -31,7 +31,7 @@ from epc_offboard.common.frames import FloatArray
 from epc_offboard.control import kernels
 from epc_offboard.control.epc.maps import ActiveSetMap, DependentActiveSetError
 from epc_offboard.control.kernels import new_map_lists, query_maps, store_map
-from epc_offboard.control.library import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry
 
 logger = logging.getLogger(__name__)
 

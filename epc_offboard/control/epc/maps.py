@@ -27,7 +27,7 @@ import scipy.linalg as sla
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.kernels import apply_map
-from epc_offboard.control.library import EntryError, LibraryEntry, parse_entry
+from epc_offboard.control.library_types import EntryError, LibraryEntry, parse_entry
 from epc_offboard.control.qp import MpcProblem
 
 # Cholesky pivots of Ga H^-1 Ga' below this fraction of the largest mean cond > ~1e12:

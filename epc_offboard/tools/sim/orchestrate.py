@@ -30,7 +30,7 @@ from epc_offboard.common.children import launched_env
 from epc_offboard.common.cliargs import WindProfile, check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
-from epc_offboard.service.airframe import airframe_path, load_airframe
+from epc_offboard.service.airframe_file import airframe_path, load_airframe
 from epc_offboard.service.config import AirframeConfig
 from epc_offboard.tools.figures import flight_title, write_figure
 from epc_offboard.tools.sim.analysis import VehicleResult, analyse, read_flight
