@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import hashlib
 import os
 import subprocess
 import sys
+import tempfile
 import time
+from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -29,10 +35,26 @@ def warm_kernel_cache() -> None:
         return
     from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
 
-    t0 = time.monotonic()
-    subprocess.run(
-        [sys.executable, "-m", "epc_offboard.service.coldstart", str(SITL_SERVICE_CONFIG),
-         str(os.getpid())],
-        check=True, timeout=600, env=dict(os.environ, **{jit.ENV: "1"}),
-    )  # fmt: skip
+    # pytest-xdist runs this in every worker: the first compiles under the lock, the others
+    # wait for it and find the cache warm (two compiles at once wrote the same cache files)
+    with _warm_up_lock():
+        if jit.cache_warm():
+            return
+        t0 = time.monotonic()
+        subprocess.run(
+            [sys.executable, "-m", "epc_offboard.service.coldstart", str(SITL_SERVICE_CONFIG),
+             str(os.getpid())],
+            check=True, timeout=600, env=dict(os.environ, **{jit.ENV: "1"}),
+        )  # fmt: skip
     print(f"\nkernel cache warmed in {time.monotonic() - t0:.1f} s", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _warm_up_lock() -> Iterator[None]:
+    """An exclusive lock for this checkout's (or NUMBA_CACHE_DIR's) kernel cache, released
+    when its holder ends, however it ends (flock)."""
+    cache = str(jit.cache_dir() or Path(jit.__file__).resolve().parent.parent)
+    name = f"epc-offboard-warm-{hashlib.sha256(cache.encode()).hexdigest()[:12]}.lock"
+    with (Path(tempfile.gettempdir()) / name).open("a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        yield

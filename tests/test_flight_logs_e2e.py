@@ -23,7 +23,8 @@ from epc_offboard.cli import main
 from tests.test_logexport import read_mcap
 from tests.test_service_e2e import sim
 
-pytestmark = pytest.mark.timeout(240)
+# the flight is a module fixture: all on one xdist worker, flown once
+pytestmark = [pytest.mark.timeout(240), pytest.mark.xdist_group("test_flight_logs_e2e")]
 
 MAVLOGDUMP = Path(sys.executable).with_name("mavlogdump.py")
 CHECKED = ("HEARTBEAT", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "SET_ATTITUDE_TARGET")

@@ -17,7 +17,8 @@ import pytest
 
 from tests.rig import cpu_hog
 
-pytestmark = pytest.mark.timeout(300)
+# its two CPU hogs: never beside another test's (test_suite_ports.py)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.xdist_group("cpu-hogs")]
 
 # measured on the wall clock: may differ between runs by design; the logged lines' kinds
 # too (warning_examples; their counts in "warnings"): log lines are rate-limited on the wall

@@ -5,7 +5,9 @@ station is a TCP server only when asked for (--gcs-port PORT; none by default)."
 
 from __future__ import annotations
 
+import ast
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 TESTS = Path(__file__).resolve().parent
@@ -32,3 +34,54 @@ def test_every_sim_a_test_starts_streams_to_no_ground_station_port() -> None:
             if "--gcs-port" not in command and "ardupilot" not in command:
                 offenders.append(f"{path.name}:{text.count(chr(10), 0, match.start()) + 1}")
     assert not offenders, f"sim without --gcs-port 0: {offenders}"
+
+
+def _xdist_groups(decorators: list[ast.expr]) -> set[str]:
+    """The names of the ``pytest.mark.xdist_group("name")`` marks among ``decorators``."""
+    return {
+        str(node.args[0].value)
+        for deco in decorators
+        for node in ast.walk(deco)
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and node.func.attr == "xdist_group"
+        and node.args
+        and isinstance(node.args[0], ast.Constant)
+    }
+
+
+# what a test's own source does -> the xdist group it must be in (pyproject's addopts run the
+# suite on two workers; a group runs on one worker, one test after another)
+_NEEDS_GROUP: dict[str, Callable[[str], bool]] = {
+    # `sim --vehicles N` with sharing binds the fixed Zenoh ports 7447..: two at once collide
+    "zenoh-fixed-ports": lambda source: any(
+        re.search(r'"--vehicles",\s*"[2-9]', command) and "--no-share" not in command
+        for command in (_command(source, m.start()) for m in _SIM.finditer(source))
+    ),
+    # two CPU hogs each: two such tests at once would load the machine far beyond load 6
+    "cpu-hogs": lambda source: re.search(r"\bcpu_hog\(|\brun_soak\(", source) is not None,
+}
+
+
+def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> None:
+    offenders = []
+    for path in sorted(TESTS.glob("test_*.py")):
+        text = path.read_text()
+        tree = ast.parse(text)
+        module_groups: set[str] = set()
+        for node in tree.body:
+            if isinstance(node, ast.Assign) and any(
+                isinstance(t, ast.Name) and t.id == "pytestmark" for t in node.targets
+            ):
+                module_groups |= _xdist_groups([node.value])
+        for node in tree.body:
+            if not (isinstance(node, ast.FunctionDef) and node.name.startswith("test_")):
+                continue
+            source = ast.get_source_segment(text, node) or ""
+            groups = module_groups | _xdist_groups(node.decorator_list)
+            offenders += [
+                f"{path.name}::{node.name} not in xdist_group({group!r})"
+                for group, needs in _NEEDS_GROUP.items()
+                if needs(source) and group not in groups
+            ]
+    assert not offenders, offenders
