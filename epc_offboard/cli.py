@@ -164,6 +164,13 @@ def _add_sim(sub: _Subparsers) -> None:
         "listens on tcp/127.0.0.1:(7446+k) and connects to the others)",
     )
     sim.add_argument(
+        "--fleet-router",
+        metavar="ENDPOINT",
+        help="share through this Zenoh router (e.g. tcp/127.0.0.1:24447, an `epc-offboard "
+        "fleet router` or zenohd) as its clients instead of as peers on the fixed ports; "
+        "shares with --vehicles 1 too",
+    )
+    sim.add_argument(
         "--stagger",
         action="store_true",
         help="start vehicle k only after vehicle k-1 has flown the whole scenario and "

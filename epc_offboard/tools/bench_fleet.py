@@ -13,8 +13,10 @@ includes ``publish_period_s`` (the batching) and the control process's turn.
 Reported: discovery (from the last session opened until every vehicle has seen every
 other's liveliness token), propagation p50/p99/max over
 every (publisher, receiver) pair, and the CPU share of the router, of each vehicle's control
-process and of its helper. Not yet: bytes per vehicle per second, the late joiner at N = 25
-with flying vehicles, the figure.
+process and of its helper; bytes per vehicle per second, on the wire (the kernel's count of
+each vehicle's TCP connection at the router, ``ss -ti``: Zenoh has no byte counters in its
+Python API nor, in the pip build, in its admin space) and as payloads (the helper's counts).
+The figure: latency, CPU and bytes against N.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import json
 import math
 import multiprocessing
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -113,10 +116,12 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, queue: Any) -> dict[str, Any]:
         task = asyncio.create_task(sharing.run())
         learned = False
         cpu_at_go: tuple[float, float, float] | None = None  # (t, control cpu_s, helper cpu_s)
+        bytes_at_go: dict[str, int] = {}
         while go_s.value == 0.0 or time.monotonic() < go_s.value + a.n * _SLOT_S + _TAIL_S:
             now = time.monotonic()
             if cpu_at_go is None and go_s.value and now >= go_s.value:
                 cpu_at_go = (now, _cpu_s(None), _cpu_s(sharing.helper_pid()))
+                bytes_at_go = {k: sharing.stats().get(k, 0) for k in _BYTES}
             if "all_peers_s" not in out and sharing.stats().get("peers", 0) >= a.n - 1:
                 out["all_peers_s"] = now
             if not learned and go_s.value and now >= go_s.value + a.k * _SLOT_S:
@@ -134,8 +139,52 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, queue: Any) -> dict[str, Any]:
             window = time.monotonic() - cpu_at_go[0]
             out["control_share"] = (_cpu_s(None) - cpu_at_go[1]) / window
             out["helper_share"] = (_cpu_s(sharing.helper_pid()) - cpu_at_go[2]) / window
+            out["payload_bytes_s"] = {k: (out["stats"].get(k, 0) - bytes_at_go[k]) / window
+                                      for k in _BYTES}  # fmt: skip
         task.cancel()
     return out
+
+
+_BYTES = ("bytes_published", "bytes_answered", "bytes_received")  # the helper's payload counts
+
+
+def tcp_bytes(port: int) -> dict[str, tuple[int, int]]:
+    """The kernel's byte counts of every established TCP connection on local ``port`` (the
+    router's side): {peer address: (bytes sent to it, bytes received from it)}, read with
+    ``ss -ti`` (tcp_info: payload bytes on the wire, Zenoh's framing included, TCP/IP
+    headers not). {} where ``ss`` is missing."""
+    try:
+        text = subprocess.run(
+            ["ss", "-tinH", "state", "established", f"( sport = :{port} )"],
+            capture_output=True, text=True, timeout=10, check=False,
+        ).stdout  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    out: dict[str, tuple[int, int]] = {}
+    peer = ""
+    for line in text.splitlines():
+        if not line[:1].isspace():  # the connection's line: state-less with -H, addresses
+            fields = line.split()
+            peer = fields[-1] if len(fields) >= 4 else ""
+            continue
+        sent = re.search(r"bytes_sent:(\d+)", line)
+        received = re.search(r"bytes_received:(\d+)", line)
+        if peer:
+            out[peer] = (int(sent.group(1)) if sent else 0,
+                         int(received.group(1)) if received else 0)  # fmt: skip
+    return out
+
+
+def _wire_rates(before: dict[str, tuple[int, int]], after: dict[str, tuple[int, int]],
+                window_s: float) -> dict[str, Any]:  # fmt: skip
+    """Bytes a second per vehicle connection, down (router -> vehicle) and up, over the window
+    (a connection opened inside it counts from 0)."""
+    down = [(s - before.get(k, (0, 0))[0]) / window_s for k, (s, _r) in after.items()]
+    up = [(r - before.get(k, (0, 0))[1]) / window_s for k, (_s, r) in after.items()]
+    return {"connections": len(after),
+            "down_p50": _pct(down, 50), "down_max": _pct(down, 100),
+            "up_p50": _pct(up, 50), "up_max": _pct(up, 100),
+            "router_total": round(sum(down) + sum(up), 1)}  # fmt: skip
 
 
 def _cpu_s(pid: int | None) -> float:
@@ -183,6 +232,12 @@ def run_fleet_bench(n: int, start_timeout_s: float = 600.0) -> dict[str, Any]:
             results.get(timeout=start_timeout_s)
     go_s.value = time.monotonic() + _SETTLE_S
     router_cpu_at_go = (go_s.value, _cpu_s(router.pid))
+    while time.monotonic() < go_s.value:
+        time.sleep(0.01)
+    wire_at_go = (time.monotonic(), tcp_bytes(port))
+    # the end's count just before the vehicles stop (their sessions close at the end)
+    time.sleep(max(0.0, go_s.value + n * _SLOT_S + _TAIL_S - 0.2 - time.monotonic()))
+    wire = _wire_rates(wire_at_go[1], tcp_bytes(port), time.monotonic() - wire_at_go[0])
     reports = [results.get(timeout=_SETTLE_S + n * _SLOT_S + _TAIL_S + 120.0) for _ in procs]
     for p in procs:
         p.join(timeout=10)
@@ -218,6 +273,14 @@ def run_fleet_bench(n: int, start_timeout_s: float = 600.0) -> dict[str, Any]:
             "helper_p50": _pct([r.get("helper_share", 0.0) for r in reports], 50),
             "helper_max": _pct([r.get("helper_share", 0.0) for r in reports], 100),
         },
+        # bytes a second per vehicle, slot 0 to the end: on the wire (the router's TCP
+        # connections, one per vehicle's helper: Zenoh's framing, liveliness and keep-alives
+        # included) and the payloads each helper put / answered / took in (medians)
+        "bytes_per_vehicle_s": {
+            "wire": wire,
+            "payload": {k: _pct([r["payload_bytes_s"][k] for r in reports
+                                 if "payload_bytes_s" in r], 50) for k in _BYTES},
+        },
         "router": router_stats,
         "load_1min": os.getloadavg()[0],
     }
@@ -231,7 +294,7 @@ def write_figure(runs: list[dict[str, Any]], path: str) -> None:
     import matplotlib.pyplot as plt
 
     n = [r["vehicles"] for r in runs]
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.2))
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.4))
     for q in ("p50", "p99"):
         ax1.plot(n, [1e3 * (r["propagation_s"][q] or 0.0) for r in runs], "o-", label=q)
     ax1.set_xlabel("vehicles through one router")
@@ -243,6 +306,15 @@ def write_figure(runs: list[dict[str, Any]], path: str) -> None:
     ax2.set_xlabel("vehicles through one router")
     ax2.set_ylabel("% of one core while sharing")
     ax2.legend(fontsize=8)
+    for key, label in (("down_p50", "router -> vehicle (wire, p50)"),
+                       ("up_p50", "vehicle -> router (wire, p50)")):  # fmt: skip
+        ax3.plot(n, [(r["bytes_per_vehicle_s"]["wire"][key] or 0.0) / 1e3 for r in runs], "o-",
+                 label=label)  # fmt: skip
+    ax3.plot(n, [(r["bytes_per_vehicle_s"]["payload"]["bytes_received"] or 0.0) / 1e3
+                 for r in runs], "s--", label="controller payloads received (p50)")  # fmt: skip
+    ax3.set_xlabel("vehicles through one router")
+    ax3.set_ylabel("kB per vehicle per second")
+    ax3.legend(fontsize=8)
     loads = ", ".join(f"{r['load_1min']:.0f}" for r in runs)
     fig.suptitle(f"bench --fleet (machine load {loads})", fontsize=9)
     fig.tight_layout()
