@@ -259,6 +259,12 @@ def _add_bench(sub: _Subparsers) -> None:
     bench.add_argument("--vehicles", type=_sizes, default=[5], metavar="N[,N...]",
                        help="with --fleet: vehicles, e.g. 5,10,25,50 (one run each)")  # fmt: skip
     bench.add_argument(
+        "--late-joiner", action="store_true",
+        help="with --fleet --vehicles N: 3 flying vehicles (lockstep, staggered) among N - 3 "
+        "replaying light ones: the late joiner's first-lap misses, then a real-time flight's "
+        "loops beside the fleet and alone (FILE without suffix: the flights)",
+    )  # fmt: skip
+    bench.add_argument(
         "--lwpr",
         action="store_true",
         help="instead: LWPR's cost per control tick, compiled against the numpy reference "
