@@ -11,6 +11,7 @@ by the library's size), while a controller v1 learned during the outage still ar
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import signal
 from dataclasses import replace
@@ -86,3 +87,34 @@ def test_a_rejoining_vehicle_pulls_only_what_is_new(tmp_path):
                         assert v2.stats()["bytes_received"] > 0
 
     asyncio.run(main())
+
+
+def test_high_water_marks_follow_on_and_survive_in_the_shared_buffer():
+    """The bookkeeping alone: a publication advances a mark only from where it stands, a
+    snapshot reply sets it, and a new helper reads both tables from the buffer."""
+    import ctypes
+
+    from epc_offboard.control.library import LibraryEntry
+    from epc_offboard.fleet.session import HighWater
+
+    a = HighWater(1)
+    lib = [LibraryEntry((i,)) for i in range(5)]
+    assert a.number(0, lib[:3]) == (0, 3)
+    assert a.number(0, lib[1:4]) == (3, 4)  # only (3,) is new
+    b = HighWater(1)
+    b.received(0, "a", {"e": a.epoch, "p": 0, "s": 3}, True)  # follows on from nothing
+    b.received(0, "a", {"e": a.epoch, "p": 4, "s": 5}, True)  # a gap: not advanced
+    assert b.held[(0, "a")] == (a.epoch, 3)
+    query = json.loads(b.query(0, "*"))
+    assert a.since(query, "a") == 3
+    assert [e.active_set for e in a.newer(0, lib, 3)] == [(3,)]
+    assert a.since(query, "other") == 0
+    assert a.since({"h": {"a": [a.epoch + 1, 3]}}, "a") == 0
+    b.received(0, "a", {"e": a.epoch, "s": 4}, False)  # a snapshot reply sets it
+    buf = (ctypes.c_char * 4096)()
+    b.save(buf)
+    c = HighWater(1, bytes(buf.raw))
+    assert c.held == {(0, "a"): (a.epoch, 4)}
+    assert c.epoch == b.epoch
+    assert HighWater(2, bytes(buf.raw)).held == {}  # another set of problems: start afresh
+    assert HighWater(1, b"\xff garbage").held == {}
