@@ -118,3 +118,8 @@ def test_high_water_marks_follow_on_and_survive_in_the_shared_buffer():
     assert c.epoch == b.epoch
     assert HighWater(2, bytes(buf.raw)).held == {}  # another set of problems: start afresh
     assert HighWater(1, b"\xff garbage").held == {}
+    many = [LibraryEntry((i, i + 1)) for i in range(100)]
+    a.number(0, many)
+    a.forget(0, lib[:2], keep=10)  # the library's two and the newest ten others
+    assert set(a.numbers[0]) == {(0,), (1,)} | {e.active_set for e in many[-10:]}
+    assert a.number(0, [LibraryEntry((2,))]) == (104, 105)  # forgotten: numbered anew

@@ -261,6 +261,20 @@ class HighWater:
                     self.dirty = True
             return before, self.last[index]
 
+    def forget(self, index: int, entries: Sequence[LibraryEntry], keep: int) -> None:
+        """Numbers are kept for the library's controllers and the newest ``keep`` others (a
+        long flight numbers thousands of active sets): a forgotten one learned again gets a
+        new number, and travels again."""
+        with self._lock:
+            numbers = self.numbers[index]
+            if len(numbers) <= len(entries) + keep:
+                return
+            live = {e.active_set for e in entries}
+            recent = sorted(numbers.values())[-keep:]
+            floor = recent[0] if recent else self.last[index] + 1
+            self.numbers[index] = {a: n for a, n in numbers.items() if a in live or n >= floor}
+            self.dirty = True
+
     def newer(self, index: int, entries: Sequence[LibraryEntry], since: int) -> list[LibraryEntry]:
         with self._lock:
             numbers = self.numbers[index]
@@ -602,6 +616,7 @@ class FleetSession:
     ) -> None:
         p = self.problems[index]
         self.high_water.number(index, entries)
+        self.high_water.forget(index, entries, keep=p.spec.max_entries)
         numbered = self.high_water.numbered(index, entries)
         p.snapshot = snapshot_payload(p.spec.signature, self.vehicle_id, entries, transitions,
                                       self.cfg.max_payload_bytes)  # fmt: skip
