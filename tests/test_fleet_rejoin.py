@@ -20,8 +20,9 @@ import numpy as np
 
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.fleet.sharing import FleetSharing
+from tests.mpc_cases import hover_refs
 from tests.test_fleet_trust import router, vehicle_config
-from tests.test_sharing import TARGETS, controller, hover_refs, learn_new, until
+from tests.test_sharing import TARGETS, controller, learn_new, until
 from tests.test_sharing import peer as vehicle
 
 
@@ -75,10 +76,15 @@ def test_a_rejoining_vehicle_pulls_only_what_is_new(tmp_path):
                             assert pid is not None
                             queries = v1.stats().get("queries_answered", 0)
                             os.kill(pid, sig)
-                            await until(lambda p=pid: v2.helper_pid() not in (None, p),
-                                        "v2's helper replaced", 60)  # fmt: skip
-                            await until(lambda q=queries: v1.stats()["queries_answered"] > q,
-                                        "the new helper's query", 60)  # fmt: skip
+
+                            def replaced(p: int = pid) -> bool:
+                                return v2.helper_pid() not in (None, p)
+
+                            def queried(q: int = queries) -> bool:
+                                return v1.stats()["queries_answered"] > q
+
+                            await until(replaced, "v2's helper replaced", 60)
+                            await until(queried, "the new helper's query", 60)
                             await asyncio.sleep(v2.cfg.query_timeout_s)
                             assert v2.stats()["entries_received"] == got, "re-pulled"
                         up_to_date = v1.stats()["queries_up_to_date"]
