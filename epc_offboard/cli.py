@@ -164,6 +164,13 @@ def _add_sim(sub: _Subparsers) -> None:
         "listens on tcp/127.0.0.1:(7446+k) and connects to the others)",
     )
     sim.add_argument(
+        "--fleet-router",
+        metavar="ENDPOINT",
+        help="share through this Zenoh router (e.g. tcp/127.0.0.1:24447, an `epc-offboard "
+        "fleet router` or zenohd) as its clients instead of as peers on the fixed ports; "
+        "shares with --vehicles 1 too",
+    )
+    sim.add_argument(
         "--stagger",
         action="store_true",
         help="start vehicle k only after vehicle k-1 has flown the whole scenario and "
@@ -251,6 +258,12 @@ def _add_bench(sub: _Subparsers) -> None:
     )
     bench.add_argument("--vehicles", type=_sizes, default=[5], metavar="N[,N...]",
                        help="with --fleet: vehicles, e.g. 5,10,25,50 (one run each)")  # fmt: skip
+    bench.add_argument(
+        "--late-joiner", action="store_true",
+        help="with --fleet --vehicles N: 3 flying vehicles (lockstep, staggered) among N - 3 "
+        "replaying light ones: the late joiner's first-lap misses, then a real-time flight's "
+        "loops beside the fleet and alone (FILE without suffix: the flights)",
+    )  # fmt: skip
     bench.add_argument(
         "--lwpr",
         action="store_true",

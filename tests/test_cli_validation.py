@@ -183,3 +183,22 @@ def test_the_service_names_a_taken_port_before_its_warm_up(tmp_path: Path) -> No
     assert proc.returncode == 1, out
     says(out, f"127.0.0.1:{port}", "link.url", "in use")
     assert "compiled and warmed" not in out  # said before the ~4 s of warm-up, not after
+
+
+def test_sim_through_a_fleet_router_shares_as_clients_with_no_fixed_port() -> None:
+    from epc_offboard.cli import build_parser
+    from epc_offboard.common.errors import UsageError
+    from epc_offboard.tools.sim.options import sim_options
+    from epc_offboard.tools.sim.orchestrate import _sharing_flags
+
+    def options(*argv: str):
+        return sim_options(build_parser().parse_args(["sim", *argv]))
+
+    ep = "tcp/127.0.0.1:24447"
+    flags = _sharing_flags(options("--fleet-router", ep), 1)  # one vehicle shares too
+    assert flags["mode"] == "client"
+    assert flags["connect"] == [ep]
+    assert "listen" not in flags
+    assert _sharing_flags(options("--vehicles", "2"), 1)["listen"]  # peers: as before
+    with pytest.raises(UsageError, match="--fleet-router with --no-share"):
+        options("--vehicles", "2", "--fleet-router", ep, "--no-share")

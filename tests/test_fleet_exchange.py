@@ -84,8 +84,8 @@ def _exchange(**cfg: object) -> tuple[FleetExchange, _Tally]:
 
 
 def _payload(sender: str, entries: list[LibraryEntry]) -> bytes:
-    ((payload, n),) = batch_payloads(SIG, sender, entries, 4096)
-    assert n == len(entries)
+    ((payload, chunk),) = batch_payloads(SIG, sender, entries, 4096)
+    assert list(chunk) == entries
     return payload
 
 

@@ -325,4 +325,9 @@ def test_the_fleet_bench_runs_three_vehicles_through_a_router(tmp_path):
     assert report["propagation_s"]["received"] == report["propagation_s"]["pairs"] == 6
     assert 0 < report["propagation_s"]["p50"] <= report["propagation_s"]["max"]
     assert report["router"]["event"] == "stopped"
+    wire = report["bytes_per_vehicle_s"]["wire"]  # every vehicle's connection, both ways
+    assert wire["connections"] == 3
+    assert 0 < wire["down_p50"] <= wire["down_max"]
+    assert 0 < wire["up_p50"] <= wire["up_max"]
+    assert report["bytes_per_vehicle_s"]["payload"]["bytes_published"] > 0
     assert (tmp_path / "fleet.png").stat().st_size > 0  # the figure beside it

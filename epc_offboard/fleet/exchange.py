@@ -205,12 +205,12 @@ def chunks(
 
 def batch_payloads(
     signature: str, vehicle_id: str, entries: Sequence[LibraryEntry], max_payload_bytes: int
-) -> list[tuple[bytes, int]]:
+) -> list[tuple[bytes, Sequence[LibraryEntry]]]:
     """This vehicle's new controllers as BATCH payloads that each fit ``max_payload_bytes``:
-    (payload, entries in it)."""
+    (payload, the entries in it)."""
     return [
-        (encode_controllers(
-            ControllerMessage(MessageKind.BATCH, signature, vehicle_id, chunk)), len(chunk))
+        (encode_controllers(ControllerMessage(MessageKind.BATCH, signature, vehicle_id, chunk)),
+         chunk)
         for chunk in chunks(entries, max_payload_bytes)
     ]  # fmt: skip
 
@@ -389,20 +389,23 @@ class FleetExchange:
 
     def receive(
         self, problem: int, spec: ProblemSpec, key: str, payload: Payload, kind: MessageKind
-    ) -> None:
+    ) -> str:
         """One payload from ``key`` (its last part names the sender) for shared problem
-        ``problem``: checked, rate-limited, decoded, validated, queued as candidates."""
+        ``problem``: checked, rate-limited, decoded, validated, queued as candidates. Returns
+        the sender when the message was valid (its high-water marks may then be believed),
+        else ""."""
         sender = key.rsplit("/", 1)[-1]
         if not self._admitted(sender, key, len(payload)):
-            return
+            return ""
         msg = self._decoded(spec, sender, key, payload, kind)
         if msg is None:
-            return
+            return ""
         self.tally.add("entries_received", len(msg.entries))
         records = candidate_records(
             msg, problem, self.dtype, successors_of(msg, self.max_successors)
         )
         self._queue(spec, sender, msg.kind, records)
+        return sender
 
     def _admitted(self, sender: str, key: str, size: int) -> bool:
         """Not our own, within the size limit and both token buckets (the sender counted as
@@ -412,6 +415,7 @@ class FleetExchange:
             count("own_ignored")
             return False
         count("messages_received")
+        count("bytes_received", size)
         if size > self.cfg.max_payload_bytes:
             count("rejected_oversized")
             self._log_limited("size", sender, "dropped a %d-byte payload from %s (limit %d)",

@@ -102,5 +102,8 @@ STAT_NAMES = (
     "session_open_failures",  # sessions that did not open (a router's refusal among them)
     "peer_joins", "peer_leaves",  # liveliness changes (a flapping token: each counted)
     "queries_skipped",  # arrivals never queried: more were waiting than kept
+    # payload bytes (+ attachments) this vehicle put, took in and answered queries with; a
+    # query from a vehicle that holds everything is answered with nothing (up to date)
+    "bytes_published", "bytes_received", "bytes_answered", "queries_up_to_date",
 )  # fmt: skip
 STAT_INDEX = {name: i for i, name in enumerate(STAT_NAMES)}

@@ -22,7 +22,11 @@ only when it is first decided for a key expression (later ones come from a per-k
 unlogged), and it logs the cache's precomputed denials of every message kind when a client
 merely declares a key expression (zenoh/src/net/routing/interceptor/access_control.rs,
 ``compute_keyexpr_cache``, ``cached_result_or_action``), so the log neither bounds nor counts
-them. A denied publication is observable where it matters: it never arrives.
+them. A denied publication is observable where it matters: it never arrives. Nor does the
+admin space count them: in the pip build (1.10) ``@/<zid>/router/metrics`` (gzip'd
+OpenMetrics) holds only ``zenoh_build_info`` (Zenoh's ``stats`` feature, whose counters
+would be there, is not compiled in), and ``@/<zid>/**`` lists sessions, links and link
+states. Bytes on the wire are counted outside Zenoh, by the kernel (``bench --fleet``).
 """
 
 from __future__ import annotations

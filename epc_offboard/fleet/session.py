@@ -20,6 +20,7 @@ the heartbeat: a main thread that stops turning is a wedged helper, and is resta
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import logging
@@ -67,6 +68,151 @@ _QUERY_BURST = 20
 _MAX_ARRIVALS = 256  # arrivals waiting for their query; beyond, the oldest is not queried
 
 
+_MAX_ATTACHMENT_BYTES = 65536  # a query's or reply's high-water attachment, at most
+
+
+def _attachment(obj: object) -> bytes:
+    return json.dumps(obj, separators=(",", ":")).encode()
+
+
+def _read_attachment(raw: zenoh.ZBytes | None) -> dict[str, Any]:
+    """A peer's attachment as a dict, or {} (none, too large, or not ours: an outside Zenoh
+    client's query gets the whole snapshot, as before)."""
+    if raw is None or len(raw) > _MAX_ATTACHMENT_BYTES:
+        return {}
+    try:
+        obj = json.loads(raw.to_bytes())
+    except ValueError:
+        return {}
+    return obj if isinstance(obj, dict) else {}
+
+
+class HighWater:
+    """What makes a rejoin O(what is new) (issue 25).
+
+    As an answerer: this vehicle numbers its controllers (per problem, 1, 2, ... in the order
+    it first published or snapshotted each active set) under an ``epoch`` (random, per
+    numbering). Each publication carries ``{"e": epoch, "p": last number before it, "s":
+    last number after it}`` as a Zenoh attachment and each snapshot reply ``{"e", "s"}``.
+
+    As a querier: per (problem, peer), the ``(epoch, number)`` up to which it holds that
+    peer's controllers: set by a snapshot reply, advanced by a publication that follows on
+    (its ``p`` is what is held). A library query carries ``{"h": {peer: [epoch, number]}}``;
+    the peer answers only its controllers numbered above it, and nothing when there are
+    none. A vehicle that rejoins (a router restarted, a network blip: the peers' liveliness
+    tokens come back and each is queried) is answered with what it missed, not with every
+    library again. Both tables are saved to a shared buffer that outlives the helper, so a
+    restarted helper keeps them too. Without an attachment (an older vehicle, another tool)
+    the whole snapshot goes, as before. Thread-safe (Zenoh delivers on several threads).
+    """
+
+    def __init__(self, problems: int, saved: bytes = b"") -> None:
+        state = {}
+        with contextlib.suppress(ValueError, UnicodeDecodeError):
+            state = json.loads(saved.rstrip(b"\0") or b"{}")
+        try:
+            self.epoch = int(state["epoch"])
+            self.numbers = [
+                {tuple(row[:-1]): int(row[-1]) for row in rows} for rows in state["numbers"]
+            ]
+            self.held = {(int(i), str(peer)): (int(e), int(n)) for i, peer, e, n in state["held"]}
+            if len(self.numbers) != problems:
+                raise ValueError("another set of problems")
+        except (KeyError, TypeError, ValueError):
+            self.epoch = int.from_bytes(os.urandom(6), "little")
+            self.numbers = [{} for _ in range(problems)]
+            self.held = {}
+        self.last = [max(n.values(), default=0) for n in self.numbers]
+        self._lock = threading.Lock()
+        self.dirty = False
+
+    def number(self, index: int, entries: Sequence[LibraryEntry]) -> tuple[int, int]:
+        """Number the active sets not numbered yet; returns (last before, last after)."""
+        with self._lock:
+            numbers, before = self.numbers[index], self.last[index]
+            for e in entries:
+                if e.active_set not in numbers:
+                    self.last[index] += 1
+                    numbers[e.active_set] = self.last[index]
+                    self.dirty = True
+            return before, self.last[index]
+
+    def forget(self, index: int, entries: Sequence[LibraryEntry], keep: int) -> None:
+        """Numbers are kept for the library's controllers and the newest ``keep`` others (a
+        long flight numbers thousands of active sets): a forgotten one learned again gets a
+        new number, and travels again."""
+        with self._lock:
+            numbers = self.numbers[index]
+            if len(numbers) <= len(entries) + keep:
+                return
+            live = {e.active_set for e in entries}
+            recent = sorted(numbers.values())[-keep:]
+            floor = recent[0] if recent else self.last[index] + 1
+            self.numbers[index] = {a: n for a, n in numbers.items() if a in live or n >= floor}
+            self.dirty = True
+
+    def newer(self, index: int, entries: Sequence[LibraryEntry], since: int) -> list[LibraryEntry]:
+        with self._lock:
+            numbers = self.numbers[index]
+            return [e for e in entries if numbers.get(e.active_set, 0) > since]
+
+    def query(self, index: int, peer: str) -> bytes:
+        """The attachment of a query to ``peer`` (keys.ANY: every peer) for problem ``index``."""
+        with self._lock:
+            held = {p: list(v) for (i, p), v in self.held.items()
+                    if i == index and (peer == keys.ANY or p == peer)}  # fmt: skip
+        return _attachment({"h": held})
+
+    def since(self, query: dict[str, Any], me: str) -> int:
+        """The number above which a query's sender wants this vehicle's controllers (0: all)."""
+        mine = query.get("h", {}).get(me) if isinstance(query.get("h"), dict) else None
+        if isinstance(mine, list) and len(mine) == 2 and mine[0] == self.epoch:
+            return int(mine[1]) if isinstance(mine[1], int) else 0
+        return 0
+
+    def numbered(self, index: int, entries: Sequence[LibraryEntry]) -> int:
+        """The highest number among ``entries`` (0: none numbered)."""
+        with self._lock:
+            numbers = self.numbers[index]
+            return max((numbers.get(e.active_set, 0) for e in entries), default=0)
+
+    def reply(self, numbered: int) -> bytes:
+        return _attachment({"e": self.epoch, "s": numbered})
+
+    def published(self, index: int, before: int, after: int) -> bytes:
+        return _attachment({"e": self.epoch, "p": before, "s": after})
+
+    def received(self, index: int, peer: str, att: dict[str, Any], follows_on: bool) -> None:
+        """A peer's message arrived (valid); ``att`` its attachment. A snapshot reply
+        (``follows_on`` False) sets what is held; a publication advances it only if it
+        follows on from what is held (a missed one leaves the gap to the next query)."""
+        e, n = att.get("e"), att.get("s")
+        if not isinstance(e, int) or not isinstance(n, int):
+            return
+        with self._lock:
+            key = (index, peer)
+            if follows_on and self.held.get(key, (e, 0)) != (e, att.get("p")):
+                return
+            if self.held.get(key) != (e, n):
+                self.held[key] = (e, n)
+                if len(self.held) > MAX_PEERS * max(1, len(self.numbers)):
+                    self.held.pop(next(iter(self.held)))
+                self.dirty = True
+
+    def save(self, buf: Any) -> None:
+        """Into the shared buffer (a restarted helper reads it); too large: left empty."""
+        with self._lock:
+            self.dirty = False
+            data = _attachment({
+                "epoch": self.epoch,
+                "numbers": [[[*k, v] for k, v in n.items()] for n in self.numbers],
+                "held": [[i, p, e, n] for (i, p), (e, n) in self.held.items()],
+            })  # fmt: skip
+        if len(data) >= len(buf):
+            data = b""
+        buf[: len(data) + 1] = data + b"\0"
+
+
 class Counters:
     """The shared int64 slots (:data:`~epc_offboard.fleet.records.STAT_NAMES`): this process
     writes them (under a lock: several threads count), the control process reads them."""
@@ -112,6 +258,8 @@ class _Problem:
     spec: ProblemSpec
     fleet: str
     snapshot: bytes = b""  # read by Zenoh's threads (one reference swap: atomic)
+    # what the snapshot was made of (a delta answer's source) and its highest number
+    library: tuple[list[LibraryEntry], dict[tuple[int, int], int], int] = ([], {}, 0)
 
     def key(self, template: str, vehicle: str) -> str:
         """This problem's key of ``template`` (:mod:`.keys`) for ``vehicle`` (or keys.ANY)."""
@@ -132,8 +280,10 @@ class FleetSession:
         share_library: bool,
         reference: bool,
         inbox_per_peer: int = CandidatePoolConfig.backlog_per_peer,
+        saved: bytes = b"",
     ) -> None:
         self.cfg = cfg
+        self.high_water = HighWater(len(specs), saved)  # ``saved``: a previous helper's
         self.vehicle_id = cfg.vehicle_id
         self.share_library = share_library
         self.subscribe_reference = reference
@@ -248,26 +398,33 @@ class FleetSession:
         p = self.problems[index]
         if self._session is None:
             return
-        for payload, n in batch_payloads(p.spec.signature, self.vehicle_id, entries,
-                                         self.cfg.max_payload_bytes):  # fmt: skip
+        for payload, chunk in batch_payloads(p.spec.signature, self.vehicle_id, entries,
+                                             self.cfg.max_payload_bytes):  # fmt: skip
+            attachment = self.high_water.published(p.index, *self.high_water.number(p.index, chunk))
             try:
                 self._session.put(
                     p.key(keys.CONTROLLERS, self.vehicle_id),
                     payload,
                     congestion_control=zenoh.CongestionControl.DROP,
+                    attachment=attachment,
                 )
             except zenoh.ZError as exc:
                 self.counters.add("publish_errors")
                 self._log_limited("publish", p.spec.name, "publishing controllers failed: %s", exc)
                 continue
-            self.counters.add("entries_published", n)
+            self.counters.add("entries_published", len(chunk))
+            self.counters.add("bytes_published", len(payload) + len(attachment))
 
     def prepare_snapshot(
         self, index: int, entries: list[LibraryEntry], transitions: dict[tuple[int, int], int]
     ) -> None:
         p = self.problems[index]
+        self.high_water.number(index, entries)
+        self.high_water.forget(index, entries, keep=p.spec.max_entries)
+        numbered = self.high_water.numbered(index, entries)
         p.snapshot = snapshot_payload(p.spec.signature, self.vehicle_id, entries, transitions,
                                       self.cfg.max_payload_bytes)  # fmt: skip
+        p.library = (entries, transitions, numbered)
         self.counters.add("snapshots_prepared")
 
     def _peer_changed(self, index: int, peer: str, joined: bool) -> None:
@@ -324,6 +481,7 @@ class FleetSession:
                 functools.partial(self._on_reply, p),
                 timeout=self.cfg.query_timeout_s,
                 allowed_destination=zenoh.Locality.REMOTE,  # not our own queryable
+                attachment=self.high_water.query(p.index, peer),  # what is held already
             )
         except zenoh.ZError as exc:
             self.counters.add("query_errors")
@@ -332,21 +490,47 @@ class FleetSession:
     # -- Zenoh's threads ------------------------------------------------------------------
 
     def _on_batch(self, p: _Problem, sample: zenoh.Sample) -> None:
-        self.exchange.receive(p.index, p.spec, str(sample.key_expr), sample.payload,
-                              MessageKind.BATCH)  # fmt: skip
+        sender = self.exchange.receive(p.index, p.spec, str(sample.key_expr), sample.payload,
+                                       MessageKind.BATCH)  # fmt: skip
+        if sender:
+            self.high_water.received(p.index, sender, _read_attachment(sample.attachment), True)
 
     def _on_reply(self, p: _Problem, reply: zenoh.Reply) -> None:
         sample = reply.ok
         if sample is None:
             self.counters.add("query_errors")
             return
-        self.exchange.receive(p.index, p.spec, str(sample.key_expr), sample.payload,
-                              MessageKind.SNAPSHOT)  # fmt: skip
+        sender = self.exchange.receive(p.index, p.spec, str(sample.key_expr), sample.payload,
+                                       MessageKind.SNAPSHOT)  # fmt: skip
+        if sender:
+            self.high_water.received(p.index, sender, _read_attachment(sample.attachment), False)
 
     def _on_query(self, p: _Problem, query: zenoh.Query) -> None:
+        """Answer with what the querier does not hold yet (:class:`HighWater`): nothing when
+        it holds everything, the controllers numbered above its mark, or the snapshot."""
         self.counters.add("queries_answered")
+        hw = self.high_water
+        since = hw.since(_read_attachment(query.attachment), self.vehicle_id)
+        entries, transitions, numbered = p.library
+        payload = p.snapshot
+        if since:
+            newer = hw.newer(p.index, entries, since)
+            if not newer:  # (numbered <= since)
+                self.counters.add("queries_up_to_date")
+                return
+            keep = {id(e) for e in newer}
+            index = {id(e): i for i, e in enumerate(newer)}
+            trans = {(index[id(entries[a])], index[id(entries[b])]): n
+                     for (a, b), n in transitions.items()
+                     if id(entries[a]) in keep and id(entries[b]) in keep}  # fmt: skip
+            payload = snapshot_payload(p.spec.signature, self.vehicle_id, newer, trans,
+                                       self.cfg.max_payload_bytes)  # fmt: skip
+        # the mark the querier holds after this: the snapshot's highest number (one that is
+        # newer went out in a publication, or comes with the next snapshot)
+        attachment = hw.reply(numbered)
+        self.counters.add("bytes_answered", len(payload) + len(attachment))
         try:
-            query.reply(p.key(keys.LIBRARY, self.vehicle_id), p.snapshot)
+            query.reply(p.key(keys.LIBRARY, self.vehicle_id), payload, attachment=attachment)
         except zenoh.ZError as exc:
             self.counters.add("query_reply_errors")
             self._log_limited("reply", "", "answering a library query failed: %s", exc)
@@ -420,7 +604,7 @@ def _read_frames(fd: int, tasks: queue.Queue[tuple[Any, ...]], stop: threading.E
 
 
 def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: Any,
-                frames_fd: Any) -> None:  # fmt: skip
+                frames_fd: Any, saved: Any) -> None:  # fmt: skip
     """The fleet helper process: the session, its forwarders, and the main thread's turns
     until the control process closes the frames pipe (or dies)."""
     die_with_parent(args.parent_pid)
@@ -430,7 +614,7 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
     session = FleetSession(
         args.cfg, args.specs, counters, args.candidate_dtype, args.max_successors,
         share_library=args.share_library, reference=args.reference,
-        inbox_per_peer=args.inbox_per_peer,
+        inbox_per_peer=args.inbox_per_peer, saved=bytes(saved.raw),
     )  # fmt: skip
     try:
         session.open(args.snapshots)
@@ -464,6 +648,8 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
             counters.set("candidates_waiting", len(session.inbox))
             counters.set("references_superseded", session.reference.superseded)
             session.query_arrivals()
+            if session.high_water.dirty:
+                session.high_water.save(saved)
             try:
                 task = session.tasks.get(timeout=_TURN_S)
             except queue.Empty:

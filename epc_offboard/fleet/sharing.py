@@ -83,6 +83,7 @@ _TURN_S = 0.05  # the library-sharing task's period: candidates, references, the
 _MAX_OUTBOX_BYTES = 4 << 20  # frames to the helper waiting in this process, at most
 _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is restarted
 _REFERENCES_PER_READ = 4  # the newest of these is kept
+_HIGH_WATER_BYTES = 1 << 20  # session.HighWater's saved tables (a larger one is not kept)
 _FRAME_ENTRIES = 512  # controllers in one publish frame: far below the outbox's bound
 
 
@@ -215,6 +216,8 @@ class FleetSharing:
         # theirs: int64 slots); one array for every helper, so counts add up across restarts
         self._slots_raw = self._ctx.RawArray("q", len(STAT_NAMES))
         self._slots = np.frombuffer(self._slots_raw, dtype=np.int64)
+        # the helper's high-water marks (session.HighWater), kept for the next helper
+        self._high_water_raw = self._ctx.RawArray("c", _HIGH_WATER_BYTES)
         self._helper: _Helper | None = None
         self._restarts = Backoff(1.0, cfg.helper_restart_max_s)
         self._budget = float(self._per_turn())
@@ -272,7 +275,8 @@ class FleetSharing:
         self._slots[STAT_INDEX["state"]] = 0
         self._slots[STAT_INDEX["heartbeat_ns"]] = 0  # the dead one's beat is not this one's
         proc = self._ctx.Process(
-            target=helper_main, args=(args, self._slots_raw, cand_w, ref_w, frames_r),
+            target=helper_main,
+            args=(args, self._slots_raw, cand_w, ref_w, frames_r, self._high_water_raw),
             name="epc-fleet", daemon=True,
         )  # fmt: skip
         proc.start()

@@ -303,7 +303,8 @@ def run_bench_command(args: argparse.Namespace) -> int:
     if getattr(args, "fleet", False):
         from epc_offboard.tools.bench_fleet import run_fleet_bench_command
 
-        return run_fleet_bench_command(list(args.vehicles), args.json)
+        return run_fleet_bench_command(list(args.vehicles), args.json,
+                                       getattr(args, "late_joiner", False))
     if getattr(args, "lwpr", False):
         from epc_offboard.tools import bench_lwpr
 

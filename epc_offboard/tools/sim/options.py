@@ -40,6 +40,7 @@ class SimOptions:
     autopilot: str = "px4"
     share: bool = True  # fleet sharing over Zenoh when vehicles > 1
     stagger: bool = False  # vehicle k starts once vehicle k-1 has landed
+    fleet_router: str = ""  # share as clients of this Zenoh router ("": peers, fixed ports)
     out_dir: Path = Path("out")
     json_path: Path | None = None  # also write the report JSON here
     compare: tuple[str, ...] | None = None  # `--compare`: the methods; None: one flight
@@ -95,6 +96,7 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
         autopilot=args.autopilot,
         share=not args.no_share,
         stagger=args.stagger,
+        fleet_router=args.fleet_router or "",
         out_dir=Path(args.out),
         json_path=Path(args.json) if args.json else None,
         compare=compare,
@@ -103,6 +105,8 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
 
 def _check_combinations(args: argparse.Namespace) -> None:
     """Flags another flag makes meaningless are errors, not silently ignored."""
+    if args.fleet_router and args.no_share:
+        raise UsageError("--fleet-router with --no-share: give one (a router is for sharing)")
     if args.vehicles == 1:
         for flag, given in (("--stagger", args.stagger), ("--no-share", args.no_share)):
             if given:

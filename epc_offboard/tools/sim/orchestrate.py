@@ -144,6 +144,10 @@ def _sharing_flags(options: SimOptions, vehicle_id: int) -> dict[str, Any]:
     """Fleet sharing for ``--vehicles N > 1`` unless ``--no-share``: every vehicle listens on
     its own loopback port and connects to all the others (no multicast scouting)."""
     n = options.vehicles
+    if options.fleet_router and options.share:  # clients of a router: no fixed port
+        return {"enabled": True, "fleet": "sim", "vehicle_id": f"v{vehicle_id}",
+                "mode": "client", "connect": [options.fleet_router],
+                "scouting_multicast": False}  # fmt: skip
     if n < 2 or not options.share:
         return {"enabled": False}
     return {
@@ -163,7 +167,7 @@ def check_ports(options: SimOptions) -> None:
     ports, ArduPilot's ground-station TCP ports): PortInUseError naming the port and the
     vehicle now, before any process starts, instead of a service failing after its warm-up."""
     for k in range(1, options.vehicles + 1):
-        if options.vehicles > 1 and options.share:
+        if options.vehicles > 1 and options.share and not options.fleet_router:
             check_port_free("tcp", "127.0.0.1", ZENOH_BASE_PORT + k,
                             f"vehicle {k}'s fleet sharing (Zenoh; --no-share: none)")  # fmt: skip
         gcs = _gcs_port(options, k)
@@ -185,7 +189,9 @@ def telemetry_routes(
         f"vehicle {vehicle_id}: SITL (system id {vehicle_id}) on UDP 127.0.0.1:{listen_port} "
         f"-> service on UDP 127.0.0.1:{offboard_port}; ground station: {station}"
     )
-    if options.vehicles > 1 and options.share:
+    if options.fleet_router and options.share:
+        routes += f"; fleet sharing: a client of the Zenoh router {options.fleet_router}"
+    elif options.vehicles > 1 and options.share:
         routes += f"; fleet sharing: Zenoh tcp/127.0.0.1:{ZENOH_BASE_PORT + vehicle_id}"
     return routes
 
