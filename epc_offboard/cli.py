@@ -251,6 +251,10 @@ def _add_bench(sub: _Subparsers) -> None:
         help="with --attack: quaternion (config/default.toml's) or body rates (config/sitl.toml's)",
     )  # fmt: skip
     bench.add_argument(
+        "--loops-cpu", type=bounded_int(0), default=None, metavar="CPU",
+        help="with --attack: the service's loops pinned to CPU (loops.cpu_affinity)",
+    )  # fmt: skip
+    bench.add_argument(
         "--fleet",
         action="store_true",
         help="instead: N light vehicles (the real sharing stack, no physics) through one "

@@ -5,13 +5,17 @@ normal scheduling), or a clear refusal."""
 from __future__ import annotations
 
 import gc
+import os
 import subprocess
 import sys
 import textwrap
+import threading
+from collections import Counter
 
 import pytest
 
 from epc_offboard.common.configio import ConfigError
+from epc_offboard.service import realtime
 from epc_offboard.service.config import load_service_config
 from epc_offboard.service.realtime import GcMonitor, apply_priority, freeze_startup_objects
 
@@ -110,3 +114,57 @@ def test_a_bad_priority_is_refused_naming_the_key_and_file(tmp_path, value):
 def test_the_real_vehicle_config_asks_for_fifo_and_the_sitl_config_does_not():
     assert load_service_config("config/default.toml").loops.realtime_priority > 0
     assert load_service_config("config/sitl.toml").loops.realtime_priority == 0
+
+
+@pytest.mark.parametrize("text", ["[-1]", "[0, 0]", "[1.5]", "[true]", "0"])
+def test_a_bad_cpu_affinity_is_refused_naming_the_key_and_file(tmp_path, text):
+    path = tmp_path / "service.toml"
+    path.write_text(f'[link]\nurl = "udpin://127.0.0.1:14540"\n[loops]\ncpu_affinity = {text}\n')
+    with pytest.raises(ConfigError, match=r"loops.*cpu_affinity") as err:
+        load_service_config(path)
+    assert str(path) in str(err.value)
+
+
+def test_cpu_affinity_pins_the_loops_thread_only_and_is_off_by_default():
+    """``loops.cpu_affinity`` pins the calling thread (the loops'), not the process: the
+    thread reads back the CPU it asked for, the others keep theirs; a CPU the machine does
+    not offer is refused by name and changes nothing."""
+    assert load_service_config("config/default.toml").loops.cpu_affinity == ()
+    offered = os.sched_getaffinity(0)
+    cpu = max(offered)
+    seen: dict[str, object] = {}
+
+    def loops_thread() -> None:
+        seen["how"] = realtime.apply_affinity((cpu,))
+        seen["mine"] = os.sched_getaffinity(0)
+        with pytest.raises(realtime.AffinityError, match="4095"):
+            realtime.apply_affinity((cpu, 4095))
+        seen["after_refusal"] = os.sched_getaffinity(0)
+
+    thread = threading.Thread(target=loops_thread)
+    thread.start()
+    thread.join()
+    assert seen["how"] == f"pinned to CPU(s) [{cpu}]"
+    assert seen["mine"] == {cpu}
+    assert seen["after_refusal"] == {cpu}
+    assert os.sched_getaffinity(0) == offered  # this thread: untouched
+    assert "no CPU affinity" in realtime.apply_affinity(())
+
+
+def test_a_refused_affinity_is_counted_and_the_loops_go_on():
+    counters: Counter[str] = Counter()
+    done: dict[str, object] = {}
+
+    monitor = realtime.GcMonitor()
+
+    def loops_thread() -> None:
+        realtime.prepare(0, monitor, counters, (4095,))
+        done["ok"] = True
+
+    thread = threading.Thread(target=loops_thread)
+    thread.start()
+    thread.join()
+    monitor.uninstall()
+    gc.unfreeze()  # prepare froze this test process's objects
+    assert done == {"ok": True}
+    assert counters["cpu_affinity_refused"] == 1

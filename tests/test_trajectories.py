@@ -115,15 +115,18 @@ def test_config_rejects_bad_values():
         TrajectoryConfig(shape="waypoints")
 
 
-@pytest.mark.parametrize("shape", ["circle", "figure8", "figure8_vertical", "zigzag"])
+@pytest.mark.parametrize("shape", ["circle", "figure8", "figure8_vertical", "zigzag", "hover"])
 def test_the_tick_horizon_equals_sample_to_the_last_bit(shape):
+    # (-0.0: the hover's rows are sample()'s anchor + 0.0, not the anchor's bits)
     traj = Trajectory(TrajectoryConfig(shape=shape, ramp_s=3.0, period_s=12.0, radius_m=1.5),
-                      np.array([1.0, 2.0, -2.5]), start_s=6.0)
+                      np.array([1.0, -0.0, -2.5]), start_s=6.0)
     for t0 in np.arange(0.0, 30.0, 0.37):  # before the start, in the ramp and after it
         rows = traj.horizon_from_now(t0, 0.05, 20)
         want = [traj.sample(t0 + k * 0.05) for k in range(21)]
-        assert np.array_equal(rows, [[*r.pos_ned_m, *r.vel_ned_m_s, *r.acc_ned_m_s2]
-                                     for r in want])
+        sampled = np.array([[*r.pos_ned_m, *r.vel_ned_m_s, *r.acc_ned_m_s2] for r in want])
+        assert np.array_equal(rows, sampled)
+        if shape == "hover":  # its own fast path: the same bits, signed zeros included
+            assert rows.tobytes() == sampled.tobytes()
         assert np.array_equal(traj.horizon(t0, 0.05, 20), rows[1:])
 
 

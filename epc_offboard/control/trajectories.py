@@ -329,6 +329,13 @@ class Trajectory:
             _closed_path_rows(_SHAPE_CODE[cfg.shape], a, cfg.size_z_m, 2 * math.pi / period,
                               cfg.ramp_s, t0_s, dt_s, self.start_s, self.anchor_ned_m, out)
             return out
+        if cfg.shape == "hover":
+            # every stage is the anchor at rest (sample()'s arithmetic: anchor + 0.0, and
+            # zeros): 21 Python-level samples were a fifth of the position step's time
+            # in a real-time hover (py-spy, bench --attack)
+            out[:, :3] = self.anchor_ned_m + 0.0
+            out[:, 3:] = 0.0
+            return out
         for k in range(steps + 1):
             r = self.sample(t0_s + k * dt_s)
             out[k, :3] = r.pos_ned_m

@@ -55,11 +55,20 @@ class LoopsConfig:
     # > 0: the loops' thread runs SCHED_FIFO at this priority (1-99), so other processes
     # cannot delay a tick (service/realtime.py); needs CAP_SYS_NICE, else logged and ignored
     realtime_priority: int = 0
+    # CPUs the loops' thread is pinned to ([] = wherever the OS schedules it): with the
+    # kernel's isolcpus= keeping other work off them, its caches stay its own
+    # (service/realtime.py); a CPU this machine does not offer is logged and ignored
+    cpu_affinity: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         prio = self.realtime_priority
         if isinstance(prio, bool) or not isinstance(prio, int) or not 0 <= prio <= 99:
             raise ValueError(f"realtime_priority must be an integer 0..99, got {prio!r}")
+        cpus = self.cpu_affinity
+        if any(isinstance(c, bool) or not isinstance(c, int) or c < 0 for c in cpus):
+            raise ValueError(f"cpu_affinity must list CPU numbers >= 0, got {list(cpus)!r}")
+        if len(set(cpus)) != len(cpus):
+            raise ValueError(f"cpu_affinity lists a CPU twice: {list(cpus)!r}")
         for name in (
             "position_rate_hz",
             "attitude_rate_hz",

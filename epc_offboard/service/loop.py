@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import resource
 import time
 from collections import Counter
 from collections.abc import Awaitable, Callable
@@ -89,10 +90,20 @@ class Loops:
         while True:
             await self.wait(t_next, until_reached=True)
             start = self.clock.now_s()
+            # the thread's CPU time and context switches (the rusage's CPU time lags by up
+            # to a scheduler tick; the thread clock does not), read outside the wall time
+            use0 = resource.getrusage(resource.RUSAGE_THREAD)
+            cpu0 = time.thread_time()
             wall0 = time.perf_counter()
             controlled = await tick(Tick(start, t_next, period))
+            wall = time.perf_counter() - wall0
             if controlled:
-                timing.record(start, time.perf_counter() - wall0, scheduled_s=t_next)
+                cpu = time.thread_time() - cpu0
+                use = resource.getrusage(resource.RUSAGE_THREAD)
+                timing.record(
+                    start, wall, scheduled_s=t_next, cpu_s=cpu,
+                    blocked=use.ru_nvcsw > use0.ru_nvcsw, preempted=use.ru_nivcsw > use0.ru_nivcsw,
+                )  # fmt: skip
             # In lockstep the next tick is planned from the vehicle time the tick ran at,
             # not the clock now: the tick's answer has released the simulator, and whether
             # its next datagrams were read by now is the scheduler's doing, not the vehicle's.

@@ -20,6 +20,12 @@
   Without the privilege (``CAP_SYS_NICE``; the
   systemd unit's ``CPUSchedulingPolicy=`` grants the same without it) the service says why
   and flies on normal scheduling.
+* **CPU affinity.** With ``loops.cpu_affinity`` the loops' thread is pinned to those CPUs
+  (:func:`apply_affinity`), as deployments with the kernel's ``isolcpus=`` do: a tick's time
+  is the interpreter running on the CPU (its thread's CPU time equals its wall time in real
+  time, 0 preemptions under FIFO, see ``timing.py``), and a thread that wakes on whichever
+  core is free finds caches another process left. Helpers started later (a restart) inherit
+  the pin; the kernel spreads nothing else off those CPUs unless ``isolcpus=`` says so.
 """
 
 from __future__ import annotations
@@ -138,12 +144,44 @@ def _raise_other_threads(policy: int, priority: int) -> int:
     return raised
 
 
-def prepare(priority: int, monitor: GcMonitor, counters: Counter[str]) -> None:
+class AffinityError(EpcError, OSError):
+    """The CPU affinity could not be set (a CPU this machine does not offer, not Linux)."""
+
+
+def apply_affinity(cpus: tuple[int, ...]) -> str:
+    """Pin the calling thread to ``cpus``; () leaves it as it is. Returns what was done, for
+    the log; raises :class:`AffinityError` naming why it could not (nothing is changed)."""
+    if not cpus:
+        return "no CPU affinity (loops.cpu_affinity = [])"
+    getter = getattr(os, "sched_getaffinity", None)
+    setter = getattr(os, "sched_setaffinity", None)
+    if getter is None or setter is None:
+        raise AffinityError("CPU affinity is not available on this system")
+    offered = getter(0)
+    missing = sorted(set(cpus) - offered)
+    if missing:
+        raise AffinityError(f"CPU(s) {missing} not offered to this process (it may use "
+                            f"{sorted(offered)})")  # fmt: skip
+    try:
+        setter(0, set(cpus))  # pid 0: the calling thread only
+    except OSError as exc:
+        raise AffinityError(f"CPU affinity {sorted(cpus)} refused: {exc}") from exc
+    return f"pinned to CPU(s) {sorted(cpus)}"
+
+
+def prepare(
+    priority: int, monitor: GcMonitor, counters: Counter[str], cpus: tuple[int, ...] = ()
+) -> None:
     """Start-up is over, the loops are next: freeze the start-up objects, time every
-    collection from now on, and raise the loops' priority if configured (a refusal is
-    logged and counted, never fatal)."""
+    collection from now on, and raise the loops' priority and pin them to ``cpus`` if
+    configured (a refusal is logged and counted, never fatal)."""
     frozen = freeze_startup_objects()
     monitor.install()
+    try:
+        log.info("loops: %s", apply_affinity(cpus))
+    except AffinityError as exc:
+        counters["cpu_affinity_refused"] += 1
+        log.warning("loops.cpu_affinity not applied: %s", exc)
     try:
         how = apply_priority(priority)
     except PriorityError as exc:

@@ -270,7 +270,9 @@ class Service:
             self.logs.start()
         self.sharing = await open_or_fly_alone(self.sharing, self.counters)
         await self.link.open()
-        realtime.prepare(self.cfg.loops.realtime_priority, self.gc_monitor, self.counters)
+        loops_cfg = self.cfg.loops
+        realtime.prepare(loops_cfg.realtime_priority, self.gc_monitor, self.counters,
+                         loops_cfg.cpu_affinity)  # fmt: skip
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)
         loop.add_signal_handler(signal.SIGINT, self.request_stop)

@@ -1,6 +1,13 @@
 """Per-loop timing statistics: rate, period jitter, deadline misses, compute time.
 
 Pure bookkeeping over a bounded window, so a long flight keeps constant memory.
+
+A tick's compute is wall time, and in real time wall time is not all the tick's own work:
+the loops' thread may wait for the interpreter lock another thread holds, or be preempted.
+Each tick therefore also records the CPU time its thread used (``cpu_s``) and whether the
+thread switched out during it, voluntarily (it blocked: the interpreter lock, a lock, a
+syscall) or not (preempted); ``compute_cpu_us_*``, ``ticks_blocked`` and
+``ticks_preempted`` say which part of a slow tick was the tick's.
 """
 
 from __future__ import annotations
@@ -20,8 +27,12 @@ class LoopReport:
     compute_us_median: float
     compute_us_p99: float
     ticks: int
+    compute_cpu_us_median: float = math.nan
+    compute_cpu_us_p99: float = math.nan
+    ticks_blocked: int = 0
+    ticks_preempted: int = 0
 
-    def as_dict(self) -> dict[str, float | int]:
+    def as_dict(self) -> dict[str, float | int | None]:
         """Rounded to what the figures can mean: tick times are differences of clock readings
         (vehicle time in ms steps, or the wall clock), so a lockstep 100 Hz loop measures
         99.99999999999999 Hz and a jitter of 1.6e-12 ms, which are 100 and 0. Rates to 0.01 Hz,
@@ -32,7 +43,15 @@ class LoopReport:
             "period_jitter_p99_ms": round(self.period_jitter_p99_ms, 3),
             "compute_us_median": round(self.compute_us_median, 1),
             "compute_us_p99": round(self.compute_us_p99, 1),
+            "compute_cpu_us_median": _round_or_none(self.compute_cpu_us_median),
+            "compute_cpu_us_p99": _round_or_none(self.compute_cpu_us_p99),
+            "ticks_blocked": self.ticks_blocked,
+            "ticks_preempted": self.ticks_preempted,
         }
+
+
+def _round_or_none(value_us: float) -> float | None:
+    return None if math.isnan(value_us) else round(value_us, 1)
 
 
 @dataclass
@@ -47,13 +66,33 @@ class LoopTiming:
     window: int = 20_000
     ticks: int = 0
     deadline_misses: int = 0
+    ticks_blocked: int = 0  # the thread switched out voluntarily during the tick
+    ticks_preempted: int = 0  # ... involuntarily
     _starts: deque[float] = field(default_factory=deque)
     _compute: deque[float] = field(default_factory=deque)
+    _cpu: deque[float] = field(default_factory=deque)
     _first_start_s: float = math.nan
     _last_start_s: float = math.nan
 
-    def record(self, start_s: float, compute_s: float, scheduled_s: float | None = None) -> None:
+    def record(
+        self,
+        start_s: float,
+        compute_s: float,
+        scheduled_s: float | None = None,
+        *,
+        cpu_s: float | None = None,
+        blocked: bool = False,
+        preempted: bool = False,
+    ) -> None:
+        """``cpu_s``: the CPU time the loops' thread used in the tick (None: not measured);
+        ``blocked`` / ``preempted``: it switched out during the tick, voluntarily / not."""
         self.ticks += 1
+        self.ticks_blocked += blocked
+        self.ticks_preempted += preempted
+        if cpu_s is not None:
+            self._cpu.append(cpu_s)
+            if len(self._cpu) > self.window:
+                self._cpu.popleft()
         if math.isnan(self._first_start_s):
             self._first_start_s = start_s
         self._last_start_s = start_s
@@ -74,6 +113,7 @@ class LoopTiming:
         periods = np.diff(np.fromiter(self._starts, dtype=np.float64))
         jitter = np.abs(periods - self.period_s)
         compute_us = np.fromiter(self._compute, dtype=np.float64) * 1e6
+        cpu_us = np.fromiter(self._cpu, dtype=np.float64) * 1e6
         return LoopReport(
             rate_hz=rate,
             deadline_misses=self.deadline_misses,
@@ -81,4 +121,8 @@ class LoopTiming:
             compute_us_median=float(np.median(compute_us)),
             compute_us_p99=float(np.percentile(compute_us, 99)),
             ticks=self.ticks,
+            compute_cpu_us_median=float(np.median(cpu_us)) if cpu_us.size else math.nan,
+            compute_cpu_us_p99=float(np.percentile(cpu_us, 99)) if cpu_us.size else math.nan,
+            ticks_blocked=self.ticks_blocked,
+            ticks_preempted=self.ticks_preempted,
         )

@@ -313,7 +313,8 @@ def run_bench_command(args: argparse.Namespace) -> int:
         from epc_offboard.tools.bench_attack import AttackBenchError, run_attack_bench
 
         try:
-            return run_attack_bench(args.json, int(args.hogs), str(args.attitude_mode))
+            return run_attack_bench(args.json, int(args.hogs), str(args.attitude_mode),
+                                    loops_cpu=getattr(args, "loops_cpu", None))
         except AttackBenchError as exc:
             print(f"epc-offboard bench --attack: {exc}", file=sys.stderr)
             return 1

@@ -104,16 +104,18 @@ def _autopilot_priority() -> None:
         _deployed_priority()
 
 
-def service_config(run_dir: Path, port: int, zenoh_port: int, mode: str) -> dict[str, Any]:
+def service_config(run_dir: Path, port: int, zenoh_port: int, mode: str,
+                   loops_cpu: int | None = None) -> dict[str, Any]:  # fmt: skip
     """config/sitl.toml + what the bench flies: real time, the deployed scheduling, a hover
     to begin with (the figure-8 comes by SIGHUP), every log, fleet sharing listening on
-    ``zenoh_port``."""
+    ``zenoh_port``; ``loops_cpu``: the loops pinned to that CPU."""
     with SITL_SERVICE_CONFIG.open("rb") as fh:
         base = tomllib.load(fh)
     scenario = load_scenario("figure8")
     return merge_dicts(base, {
         "link": {"url": f"udpin://127.0.0.1:{port}", "autopilot": "px4"},
-        "loops": {"clock": "wall", "realtime_priority": REALTIME_PRIORITY},
+        "loops": {"clock": "wall", "realtime_priority": REALTIME_PRIORITY,
+                  "cpu_affinity": [] if loops_cpu is None else [loops_cpu]},
         "attitude": {"mode": MODES[mode]},
         "trajectory": {"shape": "hover"},
         "trajectory_altitude_m": scenario.altitude_m,
@@ -281,11 +283,11 @@ def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 10.0) -> int 
     return None if proc is None else proc.returncode
 
 
-def fly(run_dir: Path, hogs: int, mode: str) -> dict[str, Any]:
+def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> dict[str, Any]:
     """The flight and its windows; returns the raw record (windows, samples, ports)."""
     port, sitl_port = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_DGRAM)
     zenoh_port = _free_port(socket.SOCK_STREAM)
-    cfg = service_config(run_dir, port, zenoh_port, mode)
+    cfg = service_config(run_dir, port, zenoh_port, mode, loops_cpu)
     config_path = run_dir / "service.toml"
     config_path.write_text(dump_toml(cfg))
     scenario = load_scenario("figure8")
@@ -349,7 +351,8 @@ def fly(run_dir: Path, hogs: int, mode: str) -> dict[str, Any]:
         _stop(sitl)
     return {"windows": windows, "samples": sampler.samples if sampler else [],
             "service_exit": code, "load_avg": {"start": load_start, "end": load_end},
-            "fifo_priority": REALTIME_PRIORITY, "sitl_fifo": sitl_fifo}  # fmt: skip
+            "fifo_priority": REALTIME_PRIORITY, "sitl_fifo": sitl_fifo,
+            "loops_cpu": loops_cpu}  # fmt: skip
 
 
 # -- the report -------------------------------------------------------------------------------
@@ -384,6 +387,9 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "fifo_requested": record["fifo_priority"],
         "sitl_fifo": record["sitl_fifo"],
         "fifo_applied": counters.get("realtime_priority_refused", 0) == 0,
+        "loops_cpu": record.get("loops_cpu"),
+        "loops_cpu_applied": (record.get("loops_cpu") is not None
+                              and counters.get("cpu_affinity_refused", 0) == 0),
         "window_s": WINDOW_S, "zenoh_rate_per_s": ZENOH_RATE_PER_S, "fuzz_rate_hz": FUZZ_RATE_HZ,
         "load_avg": {k: [round(x, 2) for x in v] for k, v in record["load_avg"].items()},
         "service_exit": record["service_exit"],
@@ -428,7 +434,8 @@ def lockstep_rmse_m() -> float | None:
         return rmse
 
 
-def run_attack_bench(json_path: str | None, hogs: int, mode: str) -> int:
+def run_attack_bench(json_path: str | None, hogs: int, mode: str,
+                     loops_cpu: int | None = None) -> int:  # fmt: skip
     if hogs < 0:
         raise AttackBenchError("--hogs must be >= 0")
     out = Path(json_path) if json_path else None
@@ -438,7 +445,7 @@ def run_attack_bench(json_path: str | None, hogs: int, mode: str) -> int:
         for stale in ("flight.csv", "groundtruth.csv", "session.tlog", "stats.json"):
             (run_dir / stale).unlink(missing_ok=True)
         unix_minus_monotonic_s = time.time() - time.monotonic()
-        record = fly(run_dir, hogs, mode)
+        record = fly(run_dir, hogs, mode, loops_cpu)
         lockstep = lockstep_rmse_m() if mode == "rates" else None
         report, series = analyse(run_dir, record, hogs, mode, unix_minus_monotonic_s,
                                  lockstep)  # fmt: skip
