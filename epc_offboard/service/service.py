@@ -269,8 +269,12 @@ class Service:
         if self.logs is not None:
             self.logs.start()
         self.sharing = await open_or_fly_alone(self.sharing, self.counters)
-        await self.link.open()
+        # before the link binds: an autopilot streams from boot, and what the socket queues
+        # while start-up finishes is read as a burst of old samples. The gc freeze took
+        # 1.1-1.9 s on a loaded machine beside a real PX4, and that backlog read as a time
+        # jump ("samples on another timeline ... resynchronised") on 7 of 9 starts.
         realtime.prepare(self.cfg.loops.realtime_priority, self.gc_monitor, self.counters)
+        await self.link.open()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)
         loop.add_signal_handler(signal.SIGINT, self.request_stop)
