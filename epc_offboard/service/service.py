@@ -269,10 +269,14 @@ class Service:
         if self.logs is not None:
             self.logs.start()
         self.sharing = await open_or_fly_alone(self.sharing, self.counters)
-        await self.link.open()
+        # before the link binds: an autopilot streams from boot, and what the socket queues
+        # while start-up finishes is read as a burst of old samples. The gc freeze took
+        # 1.1-1.9 s on a loaded machine beside a real PX4, and that backlog read as a time
+        # jump ("samples on another timeline ... resynchronised") on 7 of 9 starts.
         loops_cfg = self.cfg.loops
         realtime.prepare(loops_cfg.realtime_priority, self.gc_monitor, self.counters,
                          loops_cfg.cpu_affinity)  # fmt: skip
+        await self.link.open()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)
         loop.add_signal_handler(signal.SIGINT, self.request_stop)
