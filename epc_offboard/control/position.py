@@ -108,15 +108,6 @@ class PositionControlConfig:
     # horizontally the attitude loop's response (identified on the bundled SITL from
     # commanded vs ground-truth acceleration), vertically the motors' (thrust is direct)
     tau_acc_s: Vec3 = (0.12, 0.12, 0.03)
-    # Dead time from a command to when the achieved acceleration starts to follow it (the
-    # setpoint's way through the autopilot, the rate loop's dead time), and the age of the
-    # state the tick starts from that its timestamps do not show (a telemetry delay). A
-    # first-order lag alone cannot hold a dead time: the tick predicts the state over both
-    # with the commands already sent (through the lagged model, with the disturbance
-    # estimate: a Smith predictor) and plans from there against the reference
-    # ``dead_time_s`` ahead, so the QP and its library are unchanged. 0: off.
-    dead_time_s: float = 0.0
-    state_delay_s: float = 0.0
     r_acc: Vec3 = (0.3, 0.3, 0.3)
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     geofence_min_ned_m: Vec3 | None = None  # optional position box
@@ -154,10 +145,6 @@ class PositionControlConfig:
             raise ValueError(f"dt_s must be > 0, got {self.dt_s}")
         if any(v <= 0.0 for v in self.max_vel_m_s):
             raise ValueError(f"max_vel_m_s must be > 0, got {self.max_vel_m_s}")
-        for key in ("dead_time_s", "state_delay_s"):
-            value = getattr(self, key)
-            if not (math.isfinite(value) and 0.0 <= value <= 0.5):
-                raise ValueError(f"{key} must be in [0, 0.5] s, got {value}")
         if any(not t > 0.0 for t in self.tau_acc_s):
             raise ValueError(f"tau_acc_s must be > 0, got {self.tau_acc_s}")
         if any(q < 0.0 for q in (*self.q_pos, *self.q_vel, *self.q_acc)):
@@ -206,27 +193,6 @@ def _thrust_axis_ned(state: VehicleState) -> FloatArray:
     attitude: thrust acts along minus this."""
     roll, pitch, yaw = state.euler_rad
     return attitude_to_axis(roll, pitch, yaw)
-
-
-def shift_reference(stages: FloatArray, dt_s: float, lead_s: float) -> FloatArray:
-    """(N, 9) the references of x[1..N] ``lead_s`` later than ``stages`` (N + 1, 9) gives
-    them (stage k at k ``dt_s``): from the stage at or before each time, with the jerk j
-    that takes its acceleration to the next stage's (the last's carried on), p + v s +
-    a s²/2 + j s³/6, v + a s + j s²/2, a + j s: exact for a reference whose acceleration is
-    piecewise linear between stages."""
-    n = stages.shape[0] - 1
-    times = np.arange(1, n + 1) * dt_s + lead_s
-    idx = np.minimum((times / dt_s + 1e-9).astype(int), n - 1) if n >= 1 else np.zeros(0, int)
-    s = (times - idx * dt_s)[:, None]
-    base = stages[idx]
-    nxt = stages[np.minimum(idx + 1, n)]
-    a = base[:, 6:9]
-    j = (nxt[:, 6:9] - a) / dt_s
-    out = np.empty((n, 9))
-    out[:, 0:3] = base[:, 0:3] + s * (base[:, 3:6] + s * (a / 2.0 + s * j / 6.0))
-    out[:, 3:6] = base[:, 3:6] + s * (a + s * j / 2.0)
-    out[:, 6:9] = a + j * s
-    return out
 
 
 def position_problem(cfg: PositionControlConfig, limits: AccelLimits) -> MpcProblem:
@@ -346,13 +312,6 @@ class PositionLoop:
         # how far a vehicle flying the ramp lags behind it: the jerk over twice the slowest
         # inner-loop lag
         self._ramp_lead_m_s2 = cfg.entry_jerk_m_s3 * 2.0 * max(cfg.tau_acc_s)
-        # the Smith predictor (dead_time_s, state_delay_s): the lagged model over one loop
-        # period, and the commands sent over the last dead + state delay (oldest first)
-        step = position_model_lagged(loop_period_s, cfg.tau_acc_s)
-        self._step_a, self._step_b = step.A, step.B
-        self._step_e = velocity_disturbance_input(step)
-        self._pending_ticks = round((cfg.dead_time_s + cfg.state_delay_s) / loop_period_s)
-        self._sent: deque[FloatArray] = deque(maxlen=max(self._pending_ticks, 1))
         # the tick's scratch arrays (not kept by anything the tick returns)
         self._z_stages = np.empty((cfg.horizon + 1, 3))  # estimator query: v of x_0..x_N
         self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
@@ -559,8 +518,6 @@ class PositionLoop:
             return self.hover(state)
         t0 = time.perf_counter()
         refs = reference.ahead
-        if self.config.dead_time_s > 0.0:
-            refs = shift_reference(reference.stages, self.config.dt_s, self.config.dead_time_s)
         axis_down = _thrust_axis_ned(state)[2]
         self._advance_thrust(learn, self._balance_thrust_norm(axis_down))
         achieved = self.achieved_acceleration(state, ours=learn)
@@ -587,35 +544,15 @@ class PositionLoop:
         x0[0:3] = state.pos_ned_m
         x0[3:6] = state.vel_ned_m_s
         x0[6:9] = achieved
-        if self._pending_ticks > 0:
-            self._predict_pending(x0, d_hat, achieved, state.time_s)
         decision: Decision = controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
         acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
         acc = limit_tilt(acc, self.acc_limits)
-        if self._pending_ticks > 0:
-            self._sent.append(acc.copy())
         out = self._attitude_target(
             acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0, axis_down
         )
         self._last_thrust_norm = out.thrust_norm
         return out
-
-    def _predict_pending(
-        self, x0: FloatArray, d_hat: FloatArray, achieved: FloatArray, t_s: float
-    ) -> None:
-        """``x0`` (9,) predicted in place over the commands sent but not yet acting (the last
-        ``dead_time_s + state_delay_s``), one loop period each through the lagged model with
-        the disturbance estimate ``d_hat``. After a gap in the ticks (entry, re-entry)
-        nothing sent before it is pending: the vehicle flies ``achieved`` meanwhile."""
-        sent = self._sent
-        if t_s - self._last_tick_s > 3.0 * self.loop_period_s:
-            sent.clear()
-        while len(sent) < self._pending_ticks:
-            sent.appendleft(achieved.copy())
-        drift = self._step_e @ d_hat
-        for u in sent:
-            x0[:] = self._step_a @ x0 + self._step_b @ u + drift
 
     def _attitude_target(
         self,
