@@ -42,9 +42,12 @@ def _steady_offset_m(residual_m_s2: np.ndarray, seconds: float = 5.0) -> np.ndar
         )  # fmt: skip
         out = loop.position_tick(state, reference)
         roll, pitch, yaw = out.euler_target_rad
-        acc = attitude_to_accel(
-            AttitudeThrust(roll, pitch, yaw, out.thrust_norm), loop.airframe.hover_thrust_norm
-        ) + residual_m_s2
+        acc = (
+            attitude_to_accel(
+                AttitudeThrust(roll, pitch, yaw, out.thrust_norm), loop.airframe.hover_thrust_norm
+            )
+            + residual_m_s2
+        )
         pos, vel = pos + vel * _DT_S + 0.5 * acc * _DT_S**2, vel + acc * _DT_S
         q = out.q_target
     return pos - hold
