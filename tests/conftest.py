@@ -49,12 +49,29 @@ def warm_kernel_cache() -> None:
     print(f"\nkernel cache warmed in {time.monotonic() - t0:.1f} s", file=sys.stderr)
 
 
-@contextlib.contextmanager
-def _warm_up_lock() -> Iterator[None]:
-    """An exclusive lock for this checkout's (or NUMBA_CACHE_DIR's) kernel cache, released
-    when its holder ends, however it ends (flock)."""
+@pytest.fixture(autouse=True)
+def one_at_a_time(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A test marked ``one_at_a_time(name)`` holds that name's lock while it runs: tests that
+    bind the fixed Zenoh ports or start two CPU hogs never run beside another of their kind
+    in the other xdist worker (nor in another checkout's suite on this machine: the ports and
+    the cores are the machine's)."""
+    mark = request.node.get_closest_marker("one_at_a_time")
+    if mark is None:
+        yield
+        return
+    with _lock(f"epc-offboard-tests-{mark.args[0]}.lock"):
+        yield
+
+
+def _warm_up_lock() -> contextlib.AbstractContextManager[None]:
+    """This checkout's (or NUMBA_CACHE_DIR's) kernel cache's lock."""
     cache = str(jit.cache_dir() or Path(jit.__file__).resolve().parent.parent)
-    name = f"epc-offboard-warm-{hashlib.sha256(cache.encode()).hexdigest()[:12]}.lock"
+    return _lock(f"epc-offboard-warm-{hashlib.sha256(cache.encode()).hexdigest()[:12]}.lock")
+
+
+@contextlib.contextmanager
+def _lock(name: str) -> Iterator[None]:
+    """An exclusive lock, released when its holder ends, however it ends (flock)."""
     with (Path(tempfile.gettempdir()) / name).open("a") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         yield

@@ -23,8 +23,7 @@ from epc_offboard.cli import main
 from tests.test_logexport import read_mcap
 from tests.test_service_e2e import sim
 
-# the flight is a module fixture: all on one xdist worker, flown once
-pytestmark = [pytest.mark.timeout(240), pytest.mark.xdist_group("test_flight_logs_e2e")]
+pytestmark = pytest.mark.timeout(240)
 
 MAVLOGDUMP = Path(sys.executable).with_name("mavlogdump.py")
 CHECKED = ("HEARTBEAT", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "SET_ATTITUDE_TARGET")

@@ -18,7 +18,7 @@ import pytest
 from tests.rig import cpu_hog
 
 # its two CPU hogs: never beside another test's (test_suite_ports.py)
-pytestmark = [pytest.mark.timeout(300), pytest.mark.xdist_group("cpu-hogs")]
+pytestmark = [pytest.mark.timeout(300), pytest.mark.one_at_a_time("cpu-hogs")]
 
 # measured on the wall clock: may differ between runs by design; the logged lines' kinds
 # too (warning_examples; their counts in "warnings"): log lines are rate-limited on the wall

@@ -57,7 +57,6 @@ def cross_model() -> tuple[LWPR, list[float]]:
     return model, errors
 
 
-@pytest.mark.xdist_group("test_lwpr-cross_model")  # its module fixture, trained once
 def test_cross_function_is_learned_to_the_reference_accuracy(cross_model):
     model, (after_1, after_5, after_20) = cross_model
     print(f"cross nMSE after 1/5/20 epochs: {after_1:.4f} {after_5:.4f} {after_20:.4f}")
@@ -68,7 +67,6 @@ def test_cross_function_is_learned_to_the_reference_accuracy(cross_model):
     assert model.n_updates == 10_000
 
 
-@pytest.mark.xdist_group("test_lwpr-cross_model")  # its module fixture, trained once
 def test_cross_confidence_is_small_inside_and_absent_far_away(cross_model):
     model, _ = cross_model
     y, conf = model.predict_conf(np.array([0.0, 0.0]))

@@ -19,9 +19,7 @@ import pytest
 
 from epc_offboard.tools.sim.scenario import load_scenario
 
-# the compare flights are module fixtures: all on one xdist worker, each flown once
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(420),
-              pytest.mark.xdist_group("test_scenarios")]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
 
 def compare(tmp: Path, scenario: str, duration_s: float, methods: str) -> dict[str, Any]:

@@ -15,7 +15,7 @@ import pytest
 
 # sim --vehicles binds the fixed Zenoh ports 7447..: one at a time (test_suite_ports.py)
 pytestmark = [pytest.mark.timeout(240), pytest.mark.slow,
-              pytest.mark.xdist_group("zenoh-fixed-ports")]
+              pytest.mark.one_at_a_time("zenoh-fixed-ports")]
 
 
 def test_a_vehicle_joining_after_another_flies_on_its_library(tmp_path):

@@ -83,7 +83,7 @@ def hold_port(port: int) -> socket.socket | None:
 
 
 # sim --vehicles binds the fixed Zenoh ports 7447..: one at a time (test_suite_ports.py)
-@pytest.mark.xdist_group("zenoh-fixed-ports")
+@pytest.mark.one_at_a_time("zenoh-fixed-ports")
 def test_a_fleet_port_taken_before_start_is_named_before_any_process_starts(tmp_path):
     holder = hold_port(ZENOH_BASE_PORT + 1)  # vehicle 1's Zenoh listening port
     if holder is None:
@@ -105,7 +105,7 @@ def test_a_fleet_port_taken_before_start_is_named_before_any_process_starts(tmp_
     assert time.monotonic() - t0 < 60.0  # said before any warm-up
 
 
-@pytest.mark.xdist_group("zenoh-fixed-ports")
+@pytest.mark.one_at_a_time("zenoh-fixed-ports")
 def test_a_fleet_whose_sharing_cannot_open_fails_and_says_so(tmp_path):
     # The port is free when sim checks it and taken (by a real socket) before vehicle 1's fleet
     # helper opens its session: another program won the race, and the session cannot open.

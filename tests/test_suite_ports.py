@@ -36,22 +36,22 @@ def test_every_sim_a_test_starts_streams_to_no_ground_station_port() -> None:
     assert not offenders, f"sim without --gcs-port 0: {offenders}"
 
 
-def _xdist_groups(decorators: list[ast.expr]) -> set[str]:
-    """The names of the ``pytest.mark.xdist_group("name")`` marks among ``decorators``."""
+def _groups(decorators: list[ast.expr]) -> set[str]:
+    """The names of the ``pytest.mark.one_at_a_time("name")`` marks among ``decorators``."""
     return {
         str(node.args[0].value)
         for deco in decorators
         for node in ast.walk(deco)
         if isinstance(node, ast.Call)
         and isinstance(node.func, ast.Attribute)
-        and node.func.attr == "xdist_group"
+        and node.func.attr == "one_at_a_time"
         and node.args
         and isinstance(node.args[0], ast.Constant)
     }
 
 
-# what a test's own source does -> the xdist group it must be in (pyproject's addopts run the
-# suite on two workers; a group runs on one worker, one test after another)
+# what a test's own source does -> the group it must be in (pyproject's addopts run the suite
+# on two xdist workers; tests/conftest.py runs a group's tests one at a time)
 _NEEDS_GROUP: dict[str, Callable[[str], bool]] = {
     # `sim --vehicles N` with sharing binds the fixed Zenoh ports 7447..: two at once collide
     "zenoh-fixed-ports": lambda source: any(
@@ -73,14 +73,14 @@ def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> Non
             if isinstance(node, ast.Assign) and any(
                 isinstance(t, ast.Name) and t.id == "pytestmark" for t in node.targets
             ):
-                module_groups |= _xdist_groups([node.value])
+                module_groups |= _groups([node.value])
         for node in tree.body:
             if not (isinstance(node, ast.FunctionDef) and node.name.startswith("test_")):
                 continue
             source = ast.get_source_segment(text, node) or ""
-            groups = module_groups | _xdist_groups(node.decorator_list)
+            groups = module_groups | _groups(node.decorator_list)
             offenders += [
-                f"{path.name}::{node.name} not in xdist_group({group!r})"
+                f"{path.name}::{node.name} not in one_at_a_time({group!r})"
                 for group, needs in _NEEDS_GROUP.items()
                 if needs(source) and group not in groups
             ]
