@@ -101,13 +101,8 @@ class PositionControlConfig:
     controller: Literal["epc", "pd", "mpc", "px4"] = "epc"
     horizon: int = 20
     dt_s: float = 0.05  # prediction step, separate from the loop period
-    # Four times the position weight (twice the position gain) of (20, 20, 30) / (3, 3, 3):
-    # what was left of the tracking error was a steady offset, a residual of the
-    # disturbance model held off by the position gain, not the cascade's lag (issue 24:
-    # removing the dead time with a Smith predictor moved the circle 4.57 -> 4.45 cm RMSE,
-    # the heavier weights 4.57 -> 1.96; Neural-Fly's figure-8 at 8.5 m/s 3.81 -> 2.97 cm)
-    q_pos: Vec3 = (80.0, 80.0, 120.0)
-    q_vel: Vec3 = (6.0, 6.0, 6.0)
+    q_pos: Vec3 = (20.0, 20.0, 30.0)
+    q_vel: Vec3 = (3.0, 3.0, 3.0)
     q_acc: Vec3 = (0.0, 0.0, 0.0)  # weight on the achieved-acceleration error
     # inner-loop lag from commanded to achieved acceleration, first order, per NED axis:
     # horizontally the attitude loop's response (identified on the bundled SITL from
