@@ -49,17 +49,43 @@ def warm_kernel_cache() -> None:
     print(f"\nkernel cache warmed in {time.monotonic() - t0:.1f} s", file=sys.stderr)
 
 
+# a group whose tests run with nothing else at all beside them, in any worker: the real-time
+# flights (and the CPU hogs' tests) judge the loops' timing, which the other worker's flight
+# would load; every other test runs beside any test but these
+ALONE = ("alone", "cpu-hogs")
+
+
 @pytest.fixture(autouse=True)
 def one_at_a_time(request: pytest.FixtureRequest) -> Iterator[None]:
     """A test marked ``one_at_a_time(name)`` holds that name's lock while it runs: tests that
-    bind the fixed Zenoh ports or start two CPU hogs never run beside another of their kind
-    in the other xdist worker (nor in another checkout's suite on this machine: the ports and
-    the cores are the machine's)."""
+    bind the fixed Zenoh ports never run beside another of their kind in the other xdist
+    worker (nor in another checkout's suite on this machine: the ports and the cores are the
+    machine's). The :data:`ALONE` groups hold the machine's lock exclusively; every other
+    test holds it shared, so a real-time flight runs with no other test beside it."""
     mark = request.node.get_closest_marker("one_at_a_time")
-    if mark is None:
+    group = mark.args[0] if mark is not None else None
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(_machine_lock(exclusive=group in ALONE))
+        if group is not None:
+            stack.enter_context(_lock(f"epc-offboard-tests-{group}.lock"))
         yield
-        return
-    with _lock(f"epc-offboard-tests-{mark.args[0]}.lock"):
+
+
+@contextlib.contextmanager
+def _machine_lock(exclusive: bool) -> Iterator[None]:
+    """A readers-writer lock with a turnstile (flock grants new shared holders while an
+    exclusive one waits, so a worker running short tests back to back could starve it): a
+    writer closes the turnstile while it waits and runs, readers pass through it first."""
+    tmp = Path(tempfile.gettempdir())
+    with (tmp / "epc-offboard-tests-turnstile.lock").open("a") as gate, \
+            (tmp / "epc-offboard-tests-machine.lock").open("a") as machine:  # fmt: skip
+        fcntl.flock(gate, fcntl.LOCK_EX)
+        if exclusive:
+            fcntl.flock(machine, fcntl.LOCK_EX)  # the turnstile stays closed till the end
+            yield
+            return
+        fcntl.flock(gate, fcntl.LOCK_UN)
+        fcntl.flock(machine, fcntl.LOCK_SH)
         yield
 
 

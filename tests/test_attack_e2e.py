@@ -35,7 +35,7 @@ from tests.rig import Rig
 from tests.test_flood_e2e import hover_overrides
 from tests.test_sharing import free_tcp_port
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone")]
 
 FLEET = "attack"
 ATTACK_S = 6.0

@@ -17,7 +17,7 @@ import pytest
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import MIN_RATE_FRACTION, Rig
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone")]
 
 # Loose: holds at load 6 on 2 cores (measured on such a machine: 8-12 s, against 30-50 s
 # before, when the compile ran first).

@@ -27,7 +27,8 @@ from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import MIN_RATE_FRACTION, Rig
 from tests.test_sharing import free_tcp_port
 
-pytestmark = pytest.mark.timeout(360)  # waits below: safety bounds for a loaded machine
+# waits below: safety bounds for a loaded machine
+pytestmark = [pytest.mark.timeout(360), pytest.mark.one_at_a_time("alone")]
 
 FLEET = "floodtest"
 FLOOD_S = 6.0

@@ -26,7 +26,7 @@ from epc_offboard.tools.sim.analysis import sitl_counters
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import Rig, deployed_priority
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone")]
 
 FUZZ_S = 10.0
 FUZZ_RATE_HZ = 2000.0

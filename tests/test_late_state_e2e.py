@@ -24,7 +24,7 @@ from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from epc_offboard.vehicle.state import StateLimits
 from tests.rig import Rig
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone")]
 
 DELAY_S = 1.0
 DELAYED_FOR_S = 5.0

@@ -61,6 +61,8 @@ _NEEDS_GROUP: dict[str, Callable[[str], bool]] = {
     # two CPU hogs each: two such tests at once would load the machine far beyond load 6
     "cpu-hogs": lambda source: re.search(r"\bcpu_hog\(|\brun_soak\(", source) is not None,
 }
+# a real-time flight (its loops' timing judged) runs alone: conftest.ALONE
+_ALONE_GROUPS = ("alone", "cpu-hogs")
 
 
 def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> None:
@@ -84,4 +86,7 @@ def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> Non
                 for group, needs in _NEEDS_GROUP.items()
                 if needs(source) and group not in groups
             ]
+            # ("lockstep=" + "False": this file, which names it, does not count itself)
+            if "lockstep=" + "False" in text and not groups & set(_ALONE_GROUPS):
+                offenders.append(f"{path.name}::{node.name} flies in real time: not alone")
     assert not offenders, offenders

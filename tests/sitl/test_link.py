@@ -81,7 +81,9 @@ def test_offboard_flight_with_failsafe_to_hold(client):
     assert rc == 0
     counters = counters_from(err)
     assert counters["offboard_failsafes"] == 1
-    assert counters["lockstep_timeouts"] >= 3  # the controller gone: then real-time pace
+    # the controller gone (no answer ever again): real-time pace (the hold above came by the
+    # clock), and not a stall: its timeouts are not counted (sitl/lockstep.py)
+    assert counters["lockstep_timeouts"] == 0
 
 
 def test_signing_rejects_unsigned_and_wrongly_signed_commands(tmp_path):
