@@ -105,5 +105,6 @@ STAT_NAMES = (
     # payload bytes (+ attachments) this vehicle put, took in and answered queries with; a
     # query from a vehicle that holds everything is answered with nothing (up to date)
     "bytes_published", "bytes_received", "bytes_answered", "queries_up_to_date",
+    "queries_repeated",  # library queries asked again: no reply came back (see session)
 )  # fmt: skip
 STAT_INDEX = {name: i for i, name in enumerate(STAT_NAMES)}
