@@ -101,3 +101,23 @@ def _lock(name: str) -> Iterator[None]:
     with (Path(tempfile.gettempdir()) / name).open("a") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         yield
+
+
+# The longest modules first: on two xdist workers (--dist loadfile, modules handed out in
+# collection order) a long module collected last ran alone at the end while the other worker
+# idled (the scenarios' compare flights: a minute). Measured on the suite's own durations.
+SLOW_FIRST = (
+    "test_entry_e2e", "test_scenarios", "test_sim_truth_e2e", "test_service_e2e",
+    "test_ardupilot_e2e", "test_neuralfly_e2e", "test_wheel_install", "test_daemon",
+    "test_sharing_e2e", "test_bench", "test_soak", "test_attack_e2e", "test_fuzz_e2e",
+    "test_flood_e2e", "test_px4_faults_e2e", "test_lockstep_determinism",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: k for k, name in enumerate(SLOW_FIRST)}
+
+    def key(item: pytest.Item) -> int:
+        return rank.get(item.path.stem, len(rank))
+
+    items.sort(key=key)  # stable: a module's tests keep their order
