@@ -10,6 +10,8 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
+from tests.conftest import ALONE
+
 TESTS = Path(__file__).resolve().parent
 _SIM = re.compile(r'(?:"-m",\s*"epc_offboard(?:\.cli)?"|"epc-offboard"),\s*"sim"')
 
@@ -61,8 +63,6 @@ _NEEDS_GROUP: dict[str, Callable[[str], bool]] = {
     # two CPU hogs each: two such tests at once would load the machine far beyond load 6
     "cpu-hogs": lambda source: re.search(r"\bcpu_hog\(|\brun_soak\(", source) is not None,
 }
-# a real-time flight (its loops' timing judged) runs alone: conftest.ALONE
-_ALONE_GROUPS = ("alone", "cpu-hogs")
 
 
 def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> None:
@@ -87,6 +87,6 @@ def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> Non
                 if needs(source) and group not in groups
             ]
             # ("lockstep=" + "False": this file, which names it, does not count itself)
-            if "lockstep=" + "False" in text and not groups & set(_ALONE_GROUPS):
+            if "lockstep=" + "False" in text and not groups & set(ALONE):  # run alone
                 offenders.append(f"{path.name}::{node.name} flies in real time: not alone")
     assert not offenders, offenders

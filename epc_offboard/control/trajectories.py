@@ -28,7 +28,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal, TypeVar, cast
 
 import numpy as np
@@ -130,8 +130,7 @@ class Rejoin:
         that far off, climbed 0.9 m buying horizontal authority with thrust."""
         rejoin = self
         while rejoin.tau_s < max_tau_s and rejoin.max_acc_m_s2() > max_acc_m_s2:
-            rejoin = Rejoin(self.gap_ned_m, self.gap_rate_ned_m_s, self.start_s,
-                            min(rejoin.tau_s * 1.25, max_tau_s))  # fmt: skip
+            rejoin = replace(rejoin, tau_s=min(rejoin.tau_s * 1.25, max_tau_s))
         return rejoin
 
     def done(self, t_s: float) -> bool:

@@ -68,8 +68,6 @@ _QUERY_BURST = 20
 _MAX_ARRIVALS = 256  # arrivals waiting for their query; beyond, the oldest is not queried
 _REQUERY_ATTEMPTS = 3  # a library query no reply came back to is sent again, this many in all
 _REQUERY_S = 1.0  # after this, then twice this
-
-
 _MAX_ATTACHMENT_BYTES = 65536  # a query's or reply's high-water attachment, at most
 
 
@@ -181,7 +179,7 @@ class HighWater:
     def reply(self, numbered: int) -> bytes:
         return _attachment({"e": self.epoch, "s": numbered})
 
-    def published(self, index: int, before: int, after: int) -> bytes:
+    def published(self, before: int, after: int) -> bytes:
         return _attachment({"e": self.epoch, "p": before, "s": after})
 
     def received(self, index: int, peer: str, att: dict[str, Any], follows_on: bool) -> None:
@@ -304,10 +302,10 @@ class FleetSession:
         self.peers: dict[int, set[str]] = {}
         self._query_bucket = TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
         self._peer_log_bucket = TokenBuckets(_QUERIES_PER_S, _QUERY_BURST)
-        self._arrivals: OrderedDict[tuple[int, str], None] = OrderedDict()  # to be queried
+        # to be queried: (problem, peer) -> the attempt (0: an arrival; 1.. asked again)
+        self._arrivals: OrderedDict[tuple[int, str], int] = OrderedDict()
         # queries no reply came back to, asked again later: (due, index, peer, attempt)
         self._requery: list[tuple[float, int, str, int]] = []
-        self._attempts: dict[tuple[int, str], int] = {}
         self._lock = threading.Lock()
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
@@ -405,7 +403,7 @@ class FleetSession:
             return
         for payload, chunk in batch_payloads(p.spec.signature, self.vehicle_id, entries,
                                              self.cfg.max_payload_bytes):  # fmt: skip
-            attachment = self.high_water.published(p.index, *self.high_water.number(p.index, chunk))
+            attachment = self.high_water.published(*self.high_water.number(p.index, chunk))
             try:
                 self._session.put(
                     p.key(keys.CONTROLLERS, self.vehicle_id),
@@ -441,7 +439,7 @@ class FleetSession:
             peers.add(peer)
             self.counters.add("peer_joins")
             with self._lock:  # its library is queried on the main thread's turn, in budget
-                self._arrivals[(index, peer)] = None
+                self._arrivals[(index, peer)] = 0
                 self._arrivals.move_to_end((index, peer))
                 if len(self._arrivals) > _MAX_ARRIVALS:
                     self._arrivals.popitem(last=False)
@@ -466,13 +464,12 @@ class FleetSession:
             due = [r for r in self._requery if r[0] <= now]
             self._requery = [r for r in self._requery if r[0] > now]
             for _, index, peer, attempt in due:
-                self._attempts[(index, peer)] = attempt
-                self._arrivals[(index, peer)] = None
+                self._arrivals[(index, peer)] = attempt
         while True:
             with self._lock:
                 if not self._arrivals:
                     return
-                index, peer = next(iter(self._arrivals))
+                (index, peer), attempt = next(iter(self._arrivals.items()))
                 if peer in self.peers.get(index, ()):
                     if not self._query_bucket.allow("fleet", now):
                         return
@@ -480,14 +477,14 @@ class FleetSession:
                 else:  # left again: nothing to query
                     del self._arrivals[(index, peer)]
                     continue
-            self._query_library(self.problems[index], peer)
+            self._query_library(self.problems[index], peer, attempt)
 
-    def _query_library(self, p: _Problem, peer: str) -> None:
+    def _query_library(self, p: _Problem, peer: str, attempt: int = 0) -> None:
+        """Query ``peer``'s library (keys.ANY: every peer's); ``attempt``: how many times
+        this peer was asked already without a reply (:meth:`_query_done`)."""
         if self._session is None:
             return
         self.counters.add("queries_sent")
-        with self._lock:
-            attempt = self._attempts.pop((p.index, peer), 0)
         replied = [False]
         try:
             self._session.get(
