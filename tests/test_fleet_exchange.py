@@ -75,6 +75,9 @@ class _Library:
     def fleet_counts(self) -> tuple[int, int]:
         return len(self.offered), 0
 
+    def received(self) -> list[tuple[LibraryEntry, tuple[tuple[int, ...], ...]]]:
+        return [(e, s) for e, _o, s in self.offered]
+
 
 def _exchange(**cfg: object) -> tuple[FleetExchange, _Tally]:
     tally = _Tally()

@@ -74,6 +74,10 @@ class LibrarySnapshot:
     """A whole library file (or the part of it under some signatures), as plain values."""
 
     signatures: Mapping[str, SignatureSnapshot]
+    # the fleet's state beside the library (``FleetSharing.fleet_state``: received
+    # controllers not proven yet, high-water marks), opaque texts by name; empty: not
+    # shared, and a save leaves what the file holds
+    fleet: Mapping[str, str] = field(default_factory=dict)
 
     def counts(self) -> dict[str, int]:
         return {

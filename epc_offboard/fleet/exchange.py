@@ -80,6 +80,11 @@ class FleetLibrary(Protocol):
         """(candidates waiting in the pool, candidates promoted into the library)."""
         ...
 
+    def received(self) -> list[tuple[LibraryEntry, tuple[ActiveSet, ...]]]:
+        """Received controllers not in the library, each with its successors (kept on
+        disk by a vehicle that restarts)."""
+        ...
+
 
 class Tally(Protocol):
     """Where the exchange counts (the helper's shared slots)."""
@@ -252,6 +257,7 @@ class CandidateInbox:
         self._total = 0
         self._seen: OrderedDict[bytes, None] = OrderedDict()  # (problem, active set) keys
         self._cond = threading.Condition()
+        self.taken = 0  # records handed out, ever (counted as taken: see :meth:`drained`)
 
     def __len__(self) -> int:
         return self._total
@@ -288,6 +294,12 @@ class CandidateInbox:
                 self._cond.notify()
         return queued, dup, dropped
 
+    def drained(self) -> int | None:
+        """When nothing waits: how many records were ever taken (the forwarder writes each
+        to the control process's pipe, in order, after taking it); None while some wait."""
+        with self._cond:
+            return None if self._total else self.taken
+
     def take(self, timeout_s: float) -> bytes | None:
         with self._cond:
             if not self._total and not self._cond.wait(timeout_s):
@@ -297,6 +309,7 @@ class CandidateInbox:
             peer, q = next(iter(self._queues.items()))
             rec = q.popleft()
             self._total -= 1
+            self.taken += 1
             if q:
                 self._queues.move_to_end(peer)  # its next one after everyone else's
             else:

@@ -125,6 +125,11 @@ class HighWater:
         self.last = [max(n.values(), default=0) for n in self.numbers]
         self._lock = threading.Lock()
         self.dirty = False
+        # the marks as they stood when every controller they cover had left the helper's
+        # inbox, and how many records it had handed out by then: (rows, taken); the
+        # control process keeps these for a restart once it has read that many
+        self.settled: tuple[list[list[Any]], int] | None = None
+        self.unsettled = bool(self.held)
 
     def number(self, index: int, entries: Sequence[LibraryEntry]) -> tuple[int, int]:
         """Number the active sets not numbered yet; returns (last before, last after)."""
@@ -197,6 +202,23 @@ class HighWater:
                 self.held[key] = (e, n)
                 if len(self.held) > MAX_PEERS * max(1, len(self.numbers)):
                     self.held.pop(next(iter(self.held)))
+                self.dirty = self.unsettled = True
+
+    def settle(self, drained: Callable[[], int | None]) -> None:
+        """Take the marks as settled if the inbox has handed out every controller they
+        cover: ``drained`` (the inbox's) is read after the marks are copied, and a
+        controller's records are queued before its mark moves."""
+        if not self.unsettled:
+            return
+        with self._lock:
+            rows = [[i, p, e, n] for (i, p), (e, n) in self.held.items()]
+            self.unsettled = False
+        taken = drained()
+        with self._lock:
+            if taken is None:
+                self.unsettled = True  # some wait: try again on a later turn
+            else:
+                self.settled = (rows, taken)
                 self.dirty = True
 
     def save(self, buf: Any) -> None:
@@ -207,6 +229,8 @@ class HighWater:
                 "epoch": self.epoch,
                 "numbers": [[[*k, v] for k, v in n.items()] for n in self.numbers],
                 "held": [[i, p, e, n] for (i, p), (e, n) in self.held.items()],
+                **({"settled": self.settled[0], "taken": self.settled[1], "pid": os.getpid()}
+                   if self.settled is not None else {}),
             })  # fmt: skip
         if len(data) >= len(buf):
             data = b""
@@ -678,6 +702,7 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
             counters.set("candidates_waiting", len(session.inbox))
             counters.set("references_superseded", session.reference.superseded)
             session.query_arrivals()
+            session.high_water.settle(session.inbox.drained)
             if session.high_water.dirty:
                 session.high_water.save(saved)
             try:

@@ -35,13 +35,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 import multiprocessing
 import os
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -85,6 +86,7 @@ _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is r
 _REFERENCES_PER_READ = 4  # the newest of these is kept
 _HIGH_WATER_BYTES = 1 << 20  # session.HighWater's saved tables (a larger one is not kept)
 _FRAME_ENTRIES = 512  # controllers in one publish frame: far below the outbox's bound
+_MARKS, _CANDIDATES = "marks", "candidates:"  # fleet_state's names
 
 
 @dataclass(frozen=True)
@@ -225,6 +227,8 @@ class FleetSharing:
         self._dirty = [True] * len(self._libraries)
         self._reference: LiveReference | None = None
         self._backlog = PublishBacklog(cfg.publish_backlog_entries)
+        self._read = 0  # candidate records read from the running helper
+        self._marks: list[list[Any]] = []  # [signature, peer, epoch, number]: fleet_state's
 
     def _per_turn(self) -> int:
         return max(1, math.ceil(self.cfg.candidates_per_s * _TURN_S))
@@ -274,6 +278,7 @@ class FleetSharing:
                           self.log_cfg, self.candidates.backlog_per_peer)  # fmt: skip
         self._slots[STAT_INDEX["state"]] = 0
         self._slots[STAT_INDEX["heartbeat_ns"]] = 0  # the dead one's beat is not this one's
+        self._read = 0
         proc = self._ctx.Process(
             target=helper_main,
             args=(args, self._slots_raw, cand_w, ref_w, frames_r, self._high_water_raw),
@@ -344,6 +349,7 @@ class FleetSharing:
             if n >= 1:
                 records = helper.candidates.read(n)
                 self._budget -= len(records)
+                self._read += len(records)
                 offered = self._offer(records)
             helper.outbox.flush()
             self._hand_off()
@@ -432,6 +438,77 @@ class FleetSharing:
         except ChannelClosedError:
             helper.failed = True
             return False
+
+    # -- a restart: what the store keeps beside the library -------------------------------
+
+    def fleet_state(self) -> dict[str, str]:
+        """What a vehicle restarted as a new process needs to ask the fleet only for what is
+        new, as texts the library store keeps beside the library (on this task's thread, as
+        the library's snapshot): per problem, every received controller not in the library
+        (yet) with its successors; and the high-water marks up to which they are held
+        (``session.HighWater``). The marks are the helper's settled ones, taken only once
+        this process has read every controller they cover (one still in the helper's inbox
+        or pipe would otherwise be lost by a kill), else the last such. {} when not sharing
+        a library."""
+        if not self.share_library:
+            return {}
+        self._settle_marks()
+        out = {_CANDIDATES + spec.signature: json.dumps(
+                   [[list(e.active_set), e.origin, e.importance, e.uses, [list(a) for a in s]]
+                    for e, s in library.received()], separators=(",", ":"))
+               for spec, (_name, library) in zip(self.specs, self._libraries, strict=True)}
+        out[_MARKS] = json.dumps({"held": self._marks}, separators=(",", ":"))  # fmt: skip
+        return out
+
+    def _settle_marks(self) -> None:
+        helper = self._helper
+        try:
+            state = json.loads(bytes(self._high_water_raw.raw).rstrip(b"\0") or b"{}")
+        except (ValueError, UnicodeDecodeError):
+            return
+        settled, taken = state.get("settled"), state.get("taken")
+        if (helper is None or state.get("pid") != helper.process.pid
+                or not isinstance(taken, int) or self._read < taken):  # fmt: skip
+            return
+        with contextlib.suppress(ValueError, TypeError, IndexError):
+            self._marks = [[self.specs[i].signature, str(p), int(e), int(n)]
+                           for i, p, e, n in settled]  # fmt: skip
+
+    def restore(self, saved: Mapping[str, str]) -> int:
+        """Before :meth:`open`: offer the received controllers a previous process kept
+        (:meth:`fleet_state`) to the candidate pools again, and start from its marks, so the
+        fleet's answers hold only what is new. The marks are believed only when every
+        problem's controllers read back whole: a missing or corrupt state costs a whole
+        pull, never a controller. Returns the candidates offered."""
+        index = {spec.signature: i for i, spec in enumerate(self.specs)}
+        offered, whole = 0, True
+        for sig, i in index.items():
+            text = saved.get(_CANDIDATES + sig)
+            if text is None:
+                whole = False
+                continue
+            _name, library = self._libraries[i]
+            try:
+                for active, origin, importance, uses, succ in json.loads(text):
+                    entry = LibraryEntry(tuple(active), float(importance), int(uses), origin)
+                    offered += library.offer(entry, str(origin),
+                                             tuple(tuple(a) for a in succ))  # fmt: skip
+            except (ValueError, TypeError):
+                whole = False
+        marks: list[list[Any]] = []
+        with contextlib.suppress(ValueError, TypeError, AttributeError, KeyError):
+            marks = [[str(sig), str(p), int(e), int(n)]
+                     for sig, p, e, n in json.loads(saved[_MARKS])["held"]
+                     if sig in index]  # fmt: skip
+        self._marks = marks if whole else []
+        self.counters["restored_candidates"] += offered
+        self.counters["restored_marks"] += len(self._marks)
+        held = [[index[sig], p, e, n] for sig, p, e, n in self._marks]
+        data = json.dumps({"epoch": int.from_bytes(os.urandom(6), "little"),
+                           "numbers": [{} for _ in self.specs], "held": held}).encode()
+        if len(data) < _HIGH_WATER_BYTES:  # the first helper starts from these marks
+            self._high_water_raw[: len(data) + 1] = data + b"\0"
+        return offered
 
     # -- for the service ------------------------------------------------------------------
 

@@ -20,7 +20,8 @@ import logging
 import multiprocessing
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import replace
 from typing import Any, NoReturn
 
 import numpy as np
@@ -46,7 +47,9 @@ _CLOSE_TIMEOUT_S = 30.0
 
 class LibraryKeeper:
     """``published``: whether the fleet publishes new controllers (it then takes them from
-    the controllers' queues); when nobody does, the queues are emptied here."""
+    the controllers' queues); when nobody does, the queues are emptied here. ``fleet_state``:
+    the fleet's state to keep beside the library (``FleetSharing.fleet_state``), saved in
+    the same snapshot; what the file held at :meth:`open` is :attr:`fleet_saved`."""
 
     def __init__(
         self,
@@ -55,11 +58,14 @@ class LibraryKeeper:
         counters: Counter[str],
         published: Callable[[], bool],
         log_cfg: LogConfig | None = None,
+        fleet_state: Callable[[], Mapping[str, str]] | None = None,
     ) -> None:
         self.cfg = cfg
         self.cascade = cascade
         self.counters = counters
         self._published = published
+        self._fleet_state = fleet_state
+        self.fleet_saved: dict[str, str] = {}
         self._log_cfg = log_cfg or LogConfig()
         self._ctx = multiprocessing.get_context("spawn")
         self._slots_raw = self._ctx.RawArray("q", 2)
@@ -78,6 +84,7 @@ class LibraryKeeper:
         try:
             store.label_loops(experience.loop_names(self.cascade))  # for `db info`
             loaded = experience.load(self.cascade, store)
+            self.fleet_saved = store.fleet_state()
         finally:
             store.close()
         log.info("library %s: loaded %s", self.cfg.path, loaded)
@@ -104,12 +111,18 @@ class LibraryKeeper:
                 self.counters["store_restarts"] += 1
                 self._start()
             try:
-                snap = experience.snapshot(self.cascade)
+                snap = self._snapshot()
             except Exception as exc:  # never let saving take a loop down
                 self.counters["store_snapshot_errors"] += 1
                 log.error("snapshotting the library failed: %s", exc)
                 continue
             self._hand_over(snap)
+
+    def _snapshot(self) -> LibrarySnapshot:
+        """The library and the fleet's state, taken together on the loops' thread."""
+        snap = experience.snapshot(self.cascade)
+        fleet = self._fleet_state() if self._fleet_state is not None else {}
+        return replace(snap, fleet=fleet) if fleet else snap
 
     def _hand_over(self, snap: LibrarySnapshot) -> bool:
         outbox = self._outbox
@@ -150,7 +163,7 @@ class LibraryKeeper:
         if not self.cfg.path:
             return
         try:
-            snap = experience.snapshot(self.cascade)
+            snap = self._snapshot()
         except Exception as exc:
             self.counters["store_errors"] += 1
             log.error("saving the library failed: %s", exc)

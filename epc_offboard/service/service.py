@@ -136,6 +136,7 @@ class Service:
             cfg.store, self.cascade, self.counters,
             published=lambda: self.sharing is not None and self.sharing.share_library,
             log_cfg=cfg.log,
+            fleet_state=lambda: self.sharing.fleet_state() if self.sharing is not None else {},
         )  # fmt: skip
 
     @property
@@ -268,6 +269,8 @@ class Service:
         self.library.open()
         if self.logs is not None:
             self.logs.start()
+        if self.sharing is not None:  # what it held before a restart: only the new is asked
+            self.sharing.restore(self.library.fleet_saved)
         self.sharing = await open_or_fly_alone(self.sharing, self.counters)
         # before the link binds: an autopilot streams from boot, and what the socket queues
         # while start-up finishes is read as a burst of old samples. The gc freeze took

@@ -71,6 +71,7 @@ CREATE TABLE IF NOT EXISTS models (
 
 _TABLES = frozenset({"meta", "controllers", "transitions", "models"})
 _LOOP_KEY = "loop:"  # meta rows "loop:SIGNATURE" -> "position" | "attitude"
+_FLEET_KEY = "fleet:"  # meta rows "fleet:NAME" -> the fleet's state (LibrarySnapshot.fleet)
 _SET_VERSION = f"INSERT OR IGNORE INTO meta VALUES ('schema_version', '{SCHEMA_VERSION}');"
 
 _UPSERT_MODEL = (
@@ -288,6 +289,29 @@ class LibraryStore:
             self.save_transitions(sig, {(t.from_set, t.to_set): t.count for t in part.transitions})
             for name, blob in part.models.items():
                 self.save_model(name, sig, blob)
+        if snapshot.fleet:  # after the controllers: it never names one the file lacks
+            self.save_fleet_state(snapshot.fleet)
+
+    def save_fleet_state(self, texts: Mapping[str, str]) -> None:
+        """Replace the fleet's state (:attr:`LibrarySnapshot.fleet`) in one transaction: a
+        kill leaves the old one or the new one whole."""
+        with self._lock, self._conn:
+            self._conn.execute("DELETE FROM meta WHERE substr(key, 1, ?) = ?",
+                               (len(_FLEET_KEY), _FLEET_KEY))  # fmt: skip
+            self._conn.executemany("INSERT INTO meta VALUES (?, ?)",
+                                   [(_FLEET_KEY + k, v) for k, v in texts.items()])  # fmt: skip
+
+    def fleet_state(self) -> dict[str, str]:
+        """The fleet's state as :meth:`save_fleet_state` wrote it ({} if none)."""
+        return self._meta_under(_FLEET_KEY)
+
+    def _meta_under(self, prefix: str) -> dict[str, str]:
+        """The meta rows whose key starts with ``prefix``, keyed by the rest."""
+        with self._lock:
+            rows = self._conn.execute(
+                "SELECT key, value FROM meta WHERE substr(key, 1, ?) = ?", (len(prefix), prefix)
+            ).fetchall()
+        return {str(k)[len(prefix) :]: str(v) for k, v in rows}
 
     def write_snapshot(
         self, snapshot: LibrarySnapshot, *, origin: str, models: bool = False
@@ -353,12 +377,7 @@ class LibraryStore:
     def loop_labels(self) -> dict[str, str]:
         """signature -> loop name, as :meth:`label_loops` recorded (files written before
         it have none)."""
-        with self._lock:
-            rows = self._conn.execute(
-                "SELECT key, value FROM meta WHERE substr(key, 1, ?) = ?",
-                (len(_LOOP_KEY), _LOOP_KEY),
-            ).fetchall()
-        return {str(k)[len(_LOOP_KEY) :]: str(v) for k, v in rows}
+        return self._meta_under(_LOOP_KEY)
 
     # -- inspection ----------------------------------------------------------------------
 

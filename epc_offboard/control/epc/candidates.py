@@ -115,6 +115,14 @@ class CandidatePool:
         """(active set, origin) of every candidate, oldest first."""
         return [(a, c.origin) for a, c in self._items.items()]
 
+    def known(self) -> list[tuple[LibraryEntry, tuple[tuple[int, ...], ...]]]:
+        """Every received controller not promoted (the pool's and the backlog's), as its
+        origin sent it, with its successors: what a vehicle that restarts offers itself
+        again (:meth:`epc_offboard.fleet.sharing.FleetSharing.fleet_state`)."""
+        return [(LibraryEntry(a, k.importance, k.uses, k.origin), k.successors)
+                for by_origin in self._known.values() for a, k in by_origin.items()
+                if k.state != "promoted"]  # fmt: skip
+
     def proven(self, origin: str) -> bool:
         return self.promotions[origin] > 0
 

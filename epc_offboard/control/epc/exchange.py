@@ -346,7 +346,8 @@ class LibraryExchange:
 class FleetPort:
     """One controller as the fleet exchange sees it (``epc_offboard.fleet.exchange.
     FleetLibrary``, matched by shape: ``control/`` imports nothing of the fleet): four
-    methods, the only ones the fleet calls. Sizes the controller's candidate pool."""
+    methods, the only ones the fleet calls, and :meth:`received` for a restart. Sizes the
+    controller's candidate pool."""
 
     def __init__(self, controller: LibraryExchange, pool: CandidatePoolConfig) -> None:
         self._ctrl = controller
@@ -370,3 +371,7 @@ class FleetPort:
 
     def fleet_counts(self) -> tuple[int, int]:
         return len(self._ctrl.candidates), self._ctrl._received_shared
+
+    def received(self) -> list[tuple[LibraryEntry, tuple[ActiveSet, ...]]]:
+        """Received controllers not in the library (yet), with their successors."""
+        return self._ctrl.candidates.known()
