@@ -8,8 +8,9 @@ certificates are made per test by trustme.
 
 What a refusal looks like from each side: a vehicle refused by the router fails to open its
 session (counted: session_open_failures) and flies alone; the router counts it (refused.*);
-a publication the ACL denies never arrives (0 controllers accepted). The router cannot count
-ACL denials (Zenoh does not report them dependably: see epc_offboard/fleet/router.py).
+a publication the ACL denies never arrives (0 controllers accepted), and the router counts
+each one (refused.acl_denied_put, from Zenoh's TRACE log of its access decisions: see
+epc_offboard/fleet/router.py).
 """
 
 from __future__ import annotations
@@ -177,14 +178,24 @@ async def share_and_deny(
     sig = a.problem.signature()
     forged = [(0, 1, 2), (3, 4)]
     received = v2.stats().get("messages_received", 0)
+    denied = r.refused("acl_denied_put")
     for _ in range(5):
         attacker.put(f"epc/{FLEET}/{sig}/ctl/v1", spoofed_batch(sig, "v1", forged))
+    # a declared publisher: its key expression's decision is cached (logged otherwise)
+    forger = attacker.declare_publisher(f"epc/{FLEET}/{sig}/ctl/v2")
+    for _ in range(4):
+        forger.put(spoofed_batch(sig, "v2", forged))
     # sent after the forged ones, on the same session and route: once it is in, they would be
     attacker.put(f"epc/{FLEET}/{sig}/ctl/v3", spoofed_batch(sig, "v3", [(5, 6)]))
     await until(lambda: (5, 6) in b.candidates, "v3's own publication")
     assert all(s not in b.candidates for s in forged)  # 0 accepted from the denied sender
     assert v2.stats()["messages_received"] == received + 1  # v3's own only
     assert b.stats.received_shared == 0
+    # every denied publication counted by the router, and nothing else taken for one
+    await until(lambda: r.refused("acl_denied_put") >= denied + 9, "the router's count")
+    await asyncio.sleep(1.0)  # (a count above 9 would show by now)
+    assert r.refused("acl_denied_put") == denied + 9
+    forger.undeclare()
 
 
 def test_vehicles_share_through_a_plain_router_and_any_client_reads_its_stats(tmp_path):

@@ -17,12 +17,17 @@ refused TLS handshake is logged at WARN (``zenoh_link_tls``), a refused user-pas
 DEBUG (``zenoh_transport::unicast::establishment``: the accept steps). This process turns
 those targets on, sends Zenoh's log (which it writes to fd 1) through a pipe read by a thread
 that counts the matching lines, and passes the rest to stderr; its own stdout is kept for
-the stats. Messages an access rule denies are NOT counted here: Zenoh logs a denial at TRACE
-only when it is first decided for a key expression (later ones come from a per-key cache,
-unlogged), and it logs the cache's precomputed denials of every message kind when a client
-merely declares a key expression (zenoh/src/net/routing/interceptor/access_control.rs,
-``compute_keyexpr_cache``, ``cached_result_or_action``), so the log neither bounds nor counts
-them. A denied publication is observable where it matters: it never arrives. Nor does the
+the stats. Messages an access rule denies are counted the same way, when the config enables
+``access_control``: Zenoh 1.10 (the pip build) logs every access decision at TRACE
+(``zenoh::net::routing::interceptor::access_control``): a message whose key expression has
+no cached decision as ``... is unauthorized to Put (ingress) on KEY``, one on a declared key
+expression as ``Using cached result: ... is unauthorized to ...``, one line a message
+(measured: 5 forged puts, 5 lines, either way). Declaring a key expression computes its
+cache: one line for every message kind in both flows, none of them a message; such a burst
+(an uncached ``Query (ingress)`` then ``Reply (ingress)`` on one key, on one thread) is not
+counted. Counted by kind: ``acl_denied_put``, ``_delete``, ``_query``, ``_reply``,
+``_declare`` (subscribers, queryables, liveliness), egress denials with ingress ones. The
+cost: a line per message routed (allowed ones too) read by this process. Nor does the
 admin space count them: in the pip build (1.10) ``@/<zid>/router/metrics`` (gzip'd
 OpenMetrics) holds only ``zenoh_build_info`` (Zenoh's ``stats`` feature, whose counters
 would be there, is not compiled in), and ``@/<zid>/**`` lists sessions, links and link
@@ -59,6 +64,14 @@ _REFUSALS = (  # (counter, pattern in a log line), first match wins
     ("auth_refused", re.compile(r"UsrPwd extension.*(Invalid|Expected|mismatch|failed)",
                                 re.IGNORECASE)),
 )  # fmt: skip
+_ACL_TARGET = "zenoh::net::routing::interceptor::access_control"
+_ACL_FILTER = f",{_ACL_TARGET}=trace"  # every access decision (see the docstring)
+_ACL_LINE = re.compile(
+    r"ThreadId\((?P<thread>\d+)\).*?(?P<cached>Using cached result: )?\S+ (?:on \S+ )?"
+    r"is (?P<un>un)?authorized to (?P<what>.+?) \((?P<flow>ingress|egress)\) on (?P<key>\S+)"
+)
+_ACL_KINDS = {"Put": "put", "Delete": "delete", "Query": "query", "Reply": "reply"}
+_ACL_PENDING_S = 0.5  # an uncached query's line, held to see whether a cache burst follows
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _PASS_LOG_EVERY_S = 1.0  # refusal lines passed to stderr at most this often (a flood is counted)
 
@@ -101,12 +114,49 @@ class RefusalLog:
         self.counts: Counter[str] = Counter()
         self._passed_at: dict[str, float] = {}
         self._lock = threading.Lock()
+        # per Zenoh thread: an uncached query's decision (key, counter or "", when), and the
+        # key expression whose cache is being computed (its lines are no messages)
+        self._pending: dict[str, tuple[str, str, float]] = {}
+        self._burst: dict[str, str] = {}
         self._thread = threading.Thread(target=self._run, name="zenoh-log", daemon=True)
         self._thread.start()
 
     def snapshot(self) -> dict[str, int]:
         with self._lock:
-            return {name: self.counts[name] for name, _ in _REFUSALS}
+            now = time.monotonic()
+            for thread, (_key, name, at) in list(self._pending.items()):
+                if now - at > _ACL_PENDING_S:  # no burst followed: it was a query
+                    del self._pending[thread]
+                    self.counts[name] += bool(name)
+            out = {name: self.counts[name] for name, _ in _REFUSALS}
+            out.update({k: v for k, v in self.counts.items() if k.startswith("acl_denied")})
+            return out
+
+    def _acl(self, line: str, now: float) -> bool:
+        """An access decision's line: counted if a message was denied; whether denied."""
+        m = _ACL_LINE.search(line)
+        if m is None:
+            return False
+        thread, key, denied = m["thread"], m["key"], bool(m["un"])
+        cached, ingress = bool(m["cached"]), m["flow"] == "ingress"
+        what = m["what"]
+        kind = _ACL_KINDS.get(what, "declare")
+        name = f"acl_denied_{kind}" if denied else ""
+        with self._lock:
+            if not cached and self._burst.get(thread) == key:
+                return False  # a line of a key expression's cache being computed
+            self._burst.pop(thread, None)
+            pending = self._pending.pop(thread, None)
+            if pending is not None:
+                if not cached and ingress and kind == "reply" and key == pending[0]:
+                    self._burst[thread] = key  # Query, Reply, ... on one key: the cache
+                    return False
+                self.counts[pending[1]] += bool(pending[1])
+            if not cached and ingress and kind == "query":
+                self._pending[thread] = (key, name, now)
+            elif denied:
+                self.counts[name] += 1
+        return denied
 
     def _run(self) -> None:
         with os.fdopen(self._fd, "r", errors="replace") as fh:
@@ -115,8 +165,14 @@ class RefusalLog:
 
     def feed(self, raw: str) -> None:
         line = _ANSI.sub("", raw)
-        kind = next((name for name, pat in _REFUSALS if pat.search(line)), None)
         now = time.monotonic()
+        if _ACL_TARGET in line:
+            if self._acl(line, now) and now - self._passed_at.get("acl", -1e9) >= 1.0:
+                self._passed_at["acl"] = now  # one denial line a second reaches stderr
+                self._out.write(line)
+                self._out.flush()
+            return
+        kind = next((name for name, pat in _REFUSALS if pat.search(line)), None)
         if kind is not None:
             with self._lock:
                 self.counts[kind] += 1
@@ -199,11 +255,18 @@ def run_router_command(args: argparse.Namespace) -> int:
             raise UsageError(f"--listen {ep!r}: expected PROTOCOL/ADDRESS:PORT")
     if not listen and not args.config:
         raise UsageError("give --listen ENDPOINT (or a --config whose listen/endpoints are set)")
-    stats_out, read_fd = _zenoh_log_to_pipe()
-    refusals = RefusalLog(read_fd, sys.stderr)
-    zenoh.init_log_from_env_or(_LOG_FILTER)
     try:
         conf = router_config(listen, args.config, cfg, multicast=args.multicast_scouting)
+        acl = json.loads(conf.get_json("access_control/enabled") or "false") is True
+    except UsageError:
+        raise
+    except Exception as exc:
+        print(f"epc-offboard fleet router: could not read the config: {exc}", file=sys.stderr)
+        return EXIT_RUNTIME
+    stats_out, read_fd = _zenoh_log_to_pipe()
+    refusals = RefusalLog(read_fd, sys.stderr)
+    zenoh.init_log_from_env_or(_LOG_FILTER + (_ACL_FILTER if acl else ""))
+    try:
         router = FleetRouter(conf, listen)
     except UsageError:
         raise
