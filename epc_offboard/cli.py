@@ -171,6 +171,11 @@ def _add_sim(sub: _Subparsers) -> None:
         "shares with --vehicles 1 too",
     )
     sim.add_argument(
+        "--realtime-priority", type=int, default=0, metavar="P",
+        help="each service's loops (loops.realtime_priority) and each SITL SCHED_FIFO at P "
+        "(1..99; needs CAP_SYS_NICE), as an autopilot on hardware of its own; 0: as configured",
+    )  # fmt: skip
+    sim.add_argument(
         "--stagger",
         action="store_true",
         help="start vehicle k only after vehicle k-1 has flown the whole scenario and "

@@ -12,7 +12,9 @@ includes ``publish_period_s`` (the batching) and the control process's turn.
 
 Reported: discovery (from the last session opened until every vehicle has seen every
 other's liveliness token), propagation p50/p99/max over
-every (publisher, receiver) pair, and the CPU share of the router, of each vehicle's control
+every (publisher, receiver) pair (and, with replay traffic, over every controller learned:
+``every_controller``, with those never delivered counted as lost, and the helpers' drop
+and rate-limit counts), and the CPU share of the router, of each vehicle's control
 process and of its helper; bytes per vehicle per second, on the wire (the kernel's count of
 each vehicle's TCP connection at the router, ``ss -ti``: Zenoh has no byte counters in its
 Python API nor, in the pip build, in its admin space) and as payloads (the helper's counts).
@@ -97,13 +99,15 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, end_s: Any, queue: Any) -> dict[s
     from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 
     arrivals: dict[str, float] = {}  # origin -> first arrival (one controller each)
+    sets_in: dict[tuple[int, ...], float] = {}  # every controller's first arrival, from anyone
 
     class _Stamped(FleetSharing):
         def _offer(self, records: Any) -> int:
             now = time.monotonic()
             for row in records:
-                _entry, origin, _succ = candidate_of(row)
+                entry, origin, _succ = candidate_of(row)
                 arrivals.setdefault(origin.removeprefix("shared:"), now)
+                sets_in.setdefault(entry.active_set, now)
             return super()._offer(records)
 
     problem = _problem()
@@ -123,6 +127,7 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, end_s: Any, queue: Any) -> dict[s
         queue.put({"opened": a.k})
         task = asyncio.create_task(sharing.run())
         learned = 0
+        sets_out: list[tuple[tuple[int, ...], float]] = []  # (controller, when learned here)
         rng = np.random.default_rng(a.k)
         cpu_at_go: tuple[float, float, float] | None = None  # (t, control cpu_s, helper cpu_s)
         bytes_at_go: dict[str, int] = {}
@@ -142,11 +147,17 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, end_s: Any, queue: Any) -> dict[s
                     refs[:, :3] = 10.0 * rng.standard_normal(3)
                 else:
                     refs[:, :3] = _target(a.k, a.n)
+                before = {e.active_set for e in ctrl.export_library()}
                 ctrl.step(x0, refs)
                 out.setdefault("learned_s", time.monotonic())  # the first: propagation
+                sets_out.extend((e.active_set, time.monotonic()) for e in ctrl.export_library()
+                                if e.active_set not in before)  # fmt: skip
                 learned += 1
             await asyncio.sleep(0.02)  # arrivals are stamped in _offer, not here
         out["arrivals"] = arrivals
+        out["stopped_s"] = time.monotonic()
+        out["sets_out"] = [(list(x), t) for x, t in sets_out]
+        out["sets_in"] = [(list(x), t) for x, t in sets_in.items()]
         out["stats"] = sharing.stats()
         out["helper"] = sharing.process_stats()
         out["control"] = process_report(os.getpid())
@@ -161,6 +172,46 @@ async def _vehicle(a: _VehicleArgs, go_s: Any, end_s: Any, queue: Any) -> dict[s
 
 
 _BYTES = ("bytes_published", "bytes_answered", "bytes_received")  # the helper's payload counts
+_DROPS = ("messages_received", "entries_received", "entries_published", "publish_errors",
+          "rate_limited", "fleet_rate_limited", "dropped_queue_full", "entries_duplicate",
+          "tasks_dropped", "query_errors", "queries_sent", "queries_gap")  # fmt: skip
+_IN_FLIGHT_S = 2.0  # a controller learned this close to the end may still be on its way
+
+
+def _every_controller(reports: list[dict[str, Any]]) -> dict[str, Any]:
+    """Every controller every vehicle learned (with replay traffic, not only the first), at
+    every other vehicle: from the solve to its first arrival there from anyone. One the
+    receiver held before it was learned (it learned it itself, or another sent it first) is
+    not a propagation; one that never arrived is lost."""
+    lat: list[float] = []
+    held = lost = 0
+    end = min((r["stopped_s"] for r in reports), default=0.0) - _IN_FLIGHT_S
+
+    def first(pairs: list[tuple[list[int], float]]) -> dict[tuple[int, ...], float]:
+        out: dict[tuple[int, ...], float] = {}
+        for a, u in pairs:
+            out[tuple(a)] = min(u, out.get(tuple(a), math.inf))
+        return out
+
+    own = [first(r["sets_out"]) for r in reports]
+    got_in = [first(r["sets_in"]) for r in reports]
+    for i, x in enumerate(reports):
+        for active, t in x["sets_out"]:
+            if t > end:
+                continue
+            for j in range(len(reports)):
+                if j == i:
+                    continue
+                got = got_in[j].get(tuple(active), math.inf)
+                if min(own[j].get(tuple(active), math.inf), got) <= t:
+                    held += 1
+                elif got < math.inf:
+                    lat.append(got - t)
+                else:
+                    lost += 1
+    return {"delivered": len(lat), "held_before": held, "lost": lost, "p50": _pct(lat, 50),
+            "p99": _pct(lat, 99), "max": _pct(lat, 100),
+            "over_1s": sum(v > 1.0 for v in lat)}  # fmt: skip
 
 
 def tcp_bytes(port: int) -> dict[str, tuple[int, int]]:
@@ -299,6 +350,7 @@ def run_fleet_bench(
     pairs = len(reports) * (len(reports) - 1)
     # discovery: from the last session opened to the last vehicle that sees every other
     # (process start-up, which load stretches, is not the network's)
+    every = _every_controller(reports)
     seen = [r["all_peers_s"] for r in reports if "all_peers_s" in r]
     opened = max((r["opened_s"] for r in reports), default=launch)
     disc = [max(0.0, t - opened) for t in seen]
@@ -310,6 +362,11 @@ def run_fleet_bench(
         "discovery_s": {"max": _pct(disc, 100), "p50": _pct(disc, 50)},
         "propagation_s": {"pairs": pairs, "received": len(lat), "p50": _pct(lat, 50),
                           "p99": _pct(lat, 99), "max": _pct(lat, 100)},
+        "every_controller": every,
+        # what each helper dropped or refused, summed over the vehicles (a lost publication
+        # shows as a gap here or nowhere: Zenoh's own drops are not counted by Zenoh)
+        "helper_counts": {k: sum(int(r["stats"].get(k, 0)) for r in reports)
+                          for k in _DROPS},
         # of one core, from slot 0 to the end (process_report's CPU ticks: 10 ms resolution)
         "cpu_share": {
             "router": round(router_share, 4),
@@ -372,7 +429,12 @@ def write_figure(runs: list[dict[str, Any]], path: str) -> None:
 _FLYING = 3  # real vehicles (SITL + service) among the N
 _REPLAY_PERIOD_S = 2.0  # each light vehicle learns (publishes) a controller this often
 _LATE_SCENARIO = ("--scenario", "zigzag_bounded", "--adaptation", "none")  # README's stagger
-_LOOPS_SCENARIO = ("--scenario", "circle", "--realtime")
+# the loops' thread and the SITL SCHED_FIFO (where permitted): the autopilot is hardware of
+# its own on a real vehicle, and the loops run so where the service is deployed; without it
+# the SITL starved beside the light fleet as much as the loops did (19.7 Hz vs 84.8 alone)
+_LOOPS_PRIORITY = 50
+_LOOPS_SCENARIO = ("--scenario", "circle", "--realtime",
+                   "--realtime-priority", str(_LOOPS_PRIORITY))  # fmt: skip
 _SIM_TIMEOUT_S = 1800.0
 
 
@@ -390,11 +452,16 @@ def _sim(args: Sequence[str], out_dir: Path) -> dict[str, Any]:
     return dict(json.loads(report.read_text()))
 
 
-def _loops(report: dict[str, Any]) -> dict[str, Any]:
-    """One real-time flight's loops and tracking (its first vehicle)."""
+def _loops(report: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    """One real-time flight's loops and tracking (its first vehicle), and how its loops were
+    scheduled (the service's own log line)."""
     v = report["vehicles"][0]
     loops = v.get("loops", {})
+    log = out_dir / "vehicle1" / "service.log"
+    sched = re.search(r"loops: (SCHED_FIFO priority \d+|normal scheduling)",
+                      log.read_text(errors="replace") if log.exists() else "")  # fmt: skip
     return {
+        "loops_scheduling": sched.group(1) if sched else None,
         "rmse_m": v["tracking"]["rmse_m"],
         **{f"{loop}_{k}": loops.get(loop, {}).get(k)
            for loop in ("position", "attitude")
@@ -414,7 +481,7 @@ def _late_joiner_beside(out_dir: Path) -> Callable[[str], dict[str, Any]]:
                      "--fleet-router", endpoint], out_dir / "late_joiner")  # fmt: skip
         laps = [v["library"]["first_lap_misses"] for v in late["vehicles"]]
         loops = _loops(_sim([*_LOOPS_SCENARIO, "--fleet-router", endpoint],
-                            out_dir / "loops_fleet"))  # fmt: skip
+                            out_dir / "loops_fleet"), out_dir / "loops_fleet")  # fmt: skip
         return {
             "late_joiner": {
                 "flying": _FLYING, "lockstep": True, "scenario": "zigzag_bounded",
@@ -469,7 +536,8 @@ def run_late_joiner_command(n: int, json_path: str | None) -> int:
     report = run_fleet_bench(n - _FLYING, replay_period_s=_REPLAY_PERIOD_S,
                              during=_late_joiner_beside(out_dir))  # fmt: skip
     report["vehicles_total"] = n
-    report["loops_beside_fleet"]["alone"] = _loops(_sim(_LOOPS_SCENARIO, out_dir / "loops_alone"))
+    report["loops_beside_fleet"]["alone"] = _loops(_sim(_LOOPS_SCENARIO, out_dir / "loops_alone"),
+                                                   out_dir / "loops_alone")  # fmt: skip
     print(json.dumps({k: v for k, v in report.items() if k != "router"}, indent=2))
     if json_path:
         with open(json_path, "w", encoding="utf-8") as fh:

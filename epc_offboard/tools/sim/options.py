@@ -41,12 +41,17 @@ class SimOptions:
     share: bool = True  # fleet sharing over Zenoh when vehicles > 1
     stagger: bool = False  # vehicle k starts once vehicle k-1 has landed
     fleet_router: str = ""  # share as clients of this Zenoh router ("": peers, fixed ports)
+    # > 0: each service's loops and each SITL SCHED_FIFO at this priority (where permitted),
+    # as a vehicle whose autopilot is hardware of its own and whose loops are configured so
+    realtime_priority: int = 0
     out_dir: Path = Path("out")
     json_path: Path | None = None  # also write the report JSON here
     compare: tuple[str, ...] | None = None  # `--compare`: the methods; None: one flight
 
     def __post_init__(self) -> None:
         _check_vehicles(self.vehicles)
+        if not 0 <= self.realtime_priority <= 99:
+            raise ValueError(f"realtime_priority must be 0..99, got {self.realtime_priority}")
         parse_method(self.method)  # ValueError naming a bad controller or adaptation
         if self.autopilot not in AUTOPILOTS:
             raise ValueError(f"autopilot must be one of {AUTOPILOTS}, got {self.autopilot!r}")
@@ -97,6 +102,7 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
         share=not args.no_share,
         stagger=args.stagger,
         fleet_router=args.fleet_router or "",
+        realtime_priority=args.realtime_priority,
         out_dir=Path(args.out),
         json_path=Path(args.json) if args.json else None,
         compare=compare,
