@@ -334,3 +334,33 @@ def test_options_built_in_code_are_checked_too() -> None:
         SimOptions("hover", load_scenario("hover"), vehicles=0)
     with pytest.raises(ValueError, match="controller must be one of"):
         SimOptions("hover", load_scenario("hover"), controller="lqr")
+
+
+def test_realtime_priority_reaches_the_services_loops_and_the_sitl(tmp_path) -> None:
+    """``sim --realtime-priority P``: the loops' thread (loops.realtime_priority) and the SITL
+    process SCHED_FIFO at P, as an autopilot on hardware of its own (issue 25: beside a
+    light fleet the SITL starved as much as the loops)."""
+    import os
+    import subprocess
+    import sys
+
+    from epc_offboard.tools.sim.orchestrate import realtime_sitl, service_config_for
+
+    o = _options("--scenario", "circle", "--realtime", "--realtime-priority", "20")
+    cfg = service_config_for(o, 1, 14999, tmp_path, tmp_path / "lib.sqlite")
+    assert cfg["loops"]["realtime_priority"] == 20
+    assert "realtime_priority" not in service_config_for(_options(), 1, 14999, tmp_path,
+                                                         tmp_path / "l.sqlite")["loops"]
+    with pytest.raises(ValueError, match="realtime_priority"):
+        _options("--realtime-priority", "100")
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        realtime_sitl(child.pid, 1)  # the lowest FIFO priority: this test competes with none
+        try:
+            policy = os.sched_getscheduler(child.pid)
+        finally:
+            child.kill()
+        if os.geteuid() == 0:  # permitted: it took (elsewhere the refusal is printed)
+            assert policy == os.SCHED_FIFO
+    finally:
+        child.wait()
