@@ -229,6 +229,7 @@ class FleetSharing:
         self._backlog = PublishBacklog(cfg.publish_backlog_entries)
         self._read = 0  # candidate records read from the running helper
         self._marks: list[list[Any]] = []  # [signature, peer, epoch, number]: fleet_state's
+        self._received_text: dict[int, tuple[Any, str]] = {}  # per problem: (what, its text)
 
     def _per_turn(self) -> int:
         return max(1, math.ceil(self.cfg.candidates_per_s * _TURN_S))
@@ -453,20 +454,30 @@ class FleetSharing:
         if not self.share_library:
             return {}
         self._settle_marks()
-        out = {_CANDIDATES + spec.signature: json.dumps(
-                   [[list(e.active_set), e.origin, e.importance, e.uses, [list(a) for a in s]]
-                    for e, s in library.received()], separators=(",", ":"))
-               for spec, (_name, library) in zip(self.specs, self._libraries, strict=True)}
-        out[_MARKS] = json.dumps({"held": self._marks}, separators=(",", ":"))  # fmt: skip
+        out = {}
+        for i, (spec, (_name, library)) in enumerate(zip(self.specs, self._libraries,
+                                                         strict=True)):  # fmt: skip
+            received = library.received()
+            key = hash(tuple((e.active_set, e.origin) for e, _ in received))  # same: reused
+            if self._received_text.get(i, (None, ""))[0] != key:
+                self._received_text[i] = (key, json.dumps(
+                    [[list(e.active_set), e.origin, e.importance, e.uses, [list(a) for a in s]]
+                     for e, s in received], separators=(",", ":")))  # fmt: skip
+            out[_CANDIDATES + spec.signature] = self._received_text[i][1]
+        out[_MARKS] = json.dumps({"held": self._marks}, separators=(",", ":"))
         return out
 
     def _settle_marks(self) -> None:
         helper = self._helper
+        # only the settled part (HighWater.save writes it last): the numbering before it can
+        # be large, and this runs on the loops' thread
+        raw = bytes(self._high_water_raw.raw).rstrip(b"\0")
+        at = raw.rfind(b',"settled":')
         try:
-            state = json.loads(bytes(self._high_water_raw.raw).rstrip(b"\0") or b"{}")
+            state = json.loads(b"{" + raw[at + 1 :]) if at >= 0 else {}
         except (ValueError, UnicodeDecodeError):
             return
-        settled, taken = state.get("settled"), state.get("taken")
+        settled, taken = state.get("settled") or [], state.get("taken")
         if (helper is None or state.get("pid") != helper.process.pid
                 or not isinstance(taken, int) or self._read < taken):  # fmt: skip
             return
