@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.fleet.sharing import FleetSharing
@@ -38,6 +39,8 @@ from tests.fleet_vehicle import REPO
 from tests.mpc_cases import hover_refs
 from tests.test_fleet_trust import router, vehicle_config
 from tests.test_sharing import until
+
+pytestmark = pytest.mark.timeout(600)  # four vehicle starts (a cascade each) under load
 
 N_TARGETS = 6
 

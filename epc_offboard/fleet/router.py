@@ -27,7 +27,8 @@ cache: one line for every message kind in both flows, none of them a message; su
 (an uncached ``Query (ingress)`` then ``Reply (ingress)`` on one key, on one thread) is not
 counted. Counted by kind: ``acl_denied_put``, ``_delete``, ``_query``, ``_reply``,
 ``_declare`` (subscribers, queryables, liveliness), egress denials with ingress ones. The
-cost: a line per message routed (allowed ones too) read by this process. Nor does the
+cost: a line per message routed (allowed ones too) read by this process (9 us of CPU each
+to parse here, measured; Zenoh's formatting not included). Nor does the
 admin space count them: in the pip build (1.10) ``@/<zid>/router/metrics`` (gzip'd
 OpenMetrics) holds only ``zenoh_build_info`` (Zenoh's ``stats`` feature, whose counters
 would be there, is not compiled in), and ``@/<zid>/**`` lists sessions, links and link
