@@ -129,7 +129,8 @@ def euler_to_quat(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArr
 
 def quat_to_euler(q: npt.ArrayLike) -> tuple[float, float, float]:
     """Z-Y-X Euler angles (roll_rad, pitch_rad, yaw_rad) of quaternion [w, x, y, z]."""
-    w, x, y, z = np.asarray(q, dtype=np.float64)
+    # (Python floats: numpy scalars' arithmetic is the same IEEE arithmetic, three times slower)
+    w, x, y, z = np.asarray(q, dtype=np.float64).tolist()
     roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     sinp = max(-1.0, min(1.0, 2 * (w * y - z * x)))
     pitch = math.asin(sinp)

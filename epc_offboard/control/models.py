@@ -247,12 +247,20 @@ def accel_to_attitude(
     return AttitudeThrust(roll, pitch, yaw_rad, hover_thrust_norm * mag / GRAVITY_M_S2)
 
 
-def attitude_to_axis(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
-    """The body z axis (FRD: down through the vehicle) in NED, (3,): thrust acts along -z_b."""
+def attitude_to_axis_xyz(
+    roll_rad: float, pitch_rad: float, yaw_rad: float
+) -> tuple[float, float, float]:
+    """The body z axis (FRD: down through the vehicle) in NED as three floats (the position
+    tick's scalar arithmetic takes it so): thrust acts along -z_b."""
     cr, sr = math.cos(roll_rad), math.sin(roll_rad)
     cp, sp_ = math.cos(pitch_rad), math.sin(pitch_rad)
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([cy * cr * sp_ + sy * sr, sy * cr * sp_ - cy * sr, cr * cp])
+    return (cy * cr * sp_ + sy * sr, sy * cr * sp_ - cy * sr, cr * cp)
+
+
+def attitude_to_axis(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
+    """The body z axis (FRD: down through the vehicle) in NED, (3,): thrust acts along -z_b."""
+    return np.array(attitude_to_axis_xyz(roll_rad, pitch_rad, yaw_rad))
 
 
 def attitude_to_accel(sp: AttitudeThrust, hover_thrust_norm: float) -> FloatArray:
