@@ -159,9 +159,12 @@ def test_zero_truncated_payloads(name):
     assert frame[1] == 1  # payload length
     _round_trip(name, zero)
     first = cls.ordered_fieldnames[0]  # never an array in these messages
-    one = dict(zero, **{first: 7.0 if isinstance(zero[first], float) else 0x01020304})
+    size = struct.calcsize("<" + cls.unpacker.format[1])  # its bytes, every one non-zero
+    value = 7.0 if isinstance(zero[first], float) else int.from_bytes(bytes(range(1, size + 1)),
+                                                                      "little")  # fmt: skip
+    one = dict(zero, **{first: value})
     frame = encode(name, one)
-    assert 1 < frame[1] < cls.unpacker.size
+    assert frame[1] == size
     _round_trip(name, one)
 
 

@@ -317,8 +317,14 @@ class LWPR:
 
     def update(self, x: ArrayLike, y: ArrayLike) -> FloatArray:
         """Learn one sample (x (n_in,), y (n_out,)); return the prediction at x before it."""
-        xn = check_vector(x, self.n_in, "x") / self.norm_in
-        yn = check_vector(y, self.n_out, "y") / self.norm_out
+        return self.update_finite(check_vector(x, self.n_in, "x"), check_vector(y, self.n_out, "y"))
+
+    def update_finite(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        """:meth:`update` of a sample its caller has checked: float arrays of shapes (n_in,)
+        and (n_out,), finite (the estimator checks its whole sample once, not each model's
+        share of it again: the position tick updates three models)."""
+        xn = x / self.norm_in
+        yn = y / self.norm_out
         if self.compiled:
             self._kernel_args()
             w = self._w_buf[: self._n]

@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.linalg import expm
 
+from epc_offboard.common import frames
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.frames import GRAVITY_M_S2, FloatArray
 
@@ -219,6 +220,11 @@ class AttitudeThrust:
     thrust_norm: float
 
 
+# g e_z (NED, m/s^2), read-only: subtracted every position tick
+_GRAVITY_NED_M_S2 = np.array([0.0, 0.0, GRAVITY_M_S2])
+_GRAVITY_NED_M_S2.setflags(write=False)
+
+
 def accel_to_attitude(
     accel_ned_m_s2: npt.ArrayLike, yaw_rad: float, hover_thrust_norm: float
 ) -> AttitudeThrust:
@@ -232,27 +238,35 @@ def accel_to_attitude(
     ``pitch = -(a_n cos(yaw) + a_e sin(yaw)) / g``.
     """
     a = np.asarray(accel_ned_m_s2, dtype=np.float64)
-    f = a - np.array([0.0, 0.0, GRAVITY_M_S2])  # = -(T/m) R e_z
-    mag = float(np.linalg.norm(f))
+    f = a - _GRAVITY_NED_M_S2  # = -(T/m) R e_z
+    mag = frames.vector_norm(f)
     if mag < 1e-9:
         # free fall: attitude is arbitrary, keep level
         return AttitudeThrust(0.0, 0.0, yaw_rad, 0.0)
-    z_b = -f / mag  # R e_z, the body z axis (down) in NED
+    fx, fy, fz = f.tolist()
+    zx, zy, bz = -fx / mag, -fy / mag, -fz / mag  # R e_z, the body z axis (down) in NED
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    bx = cy * z_b[0] + sy * z_b[1]  # Rz(-yaw) R e_z
-    by = -sy * z_b[0] + cy * z_b[1]
-    bz = float(z_b[2])
+    bx = cy * zx + sy * zy  # Rz(-yaw) R e_z
+    by = -sy * zx + cy * zy
     roll = math.atan2(-by, math.hypot(bx, bz))
     pitch = math.atan2(bx, bz)
     return AttitudeThrust(roll, pitch, yaw_rad, hover_thrust_norm * mag / GRAVITY_M_S2)
 
 
-def attitude_to_axis(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
-    """The body z axis (FRD: down through the vehicle) in NED, (3,): thrust acts along -z_b."""
+def attitude_to_axis_xyz(
+    roll_rad: float, pitch_rad: float, yaw_rad: float
+) -> tuple[float, float, float]:
+    """The body z axis (FRD: down through the vehicle) in NED as three floats (the position
+    tick's scalar arithmetic takes it so): thrust acts along -z_b."""
     cr, sr = math.cos(roll_rad), math.sin(roll_rad)
     cp, sp_ = math.cos(pitch_rad), math.sin(pitch_rad)
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([cy * cr * sp_ + sy * sr, sy * cr * sp_ - cy * sr, cr * cp])
+    return (cy * cr * sp_ + sy * sr, sy * cr * sp_ - cy * sr, cr * cp)
+
+
+def attitude_to_axis(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
+    """The body z axis (FRD: down through the vehicle) in NED, (3,): thrust acts along -z_b."""
+    return np.array(attitude_to_axis_xyz(roll_rad, pitch_rad, yaw_rad))
 
 
 def attitude_to_accel(sp: AttitudeThrust, hover_thrust_norm: float) -> FloatArray:
@@ -405,7 +419,7 @@ def limit_tilt(acc_ned_m_s2: FloatArray, limits: AccelLimits) -> FloatArray:
     a = np.minimum(np.maximum(acc_ned_m_s2, limits.u_min), limits.u_max)
     slack = limits.p - limits.P[:, 2] * a[2]  # the polygon's reach at this a_z (> 0)
     reach = limits.P[:, :2] @ a[:2]
-    worst = float(np.max(reach / slack))
+    worst = float((reach / slack).max())
     if worst > 1.0:
         a[:2] /= worst
     return a

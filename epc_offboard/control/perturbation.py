@@ -222,6 +222,14 @@ def _indices(indices: Sequence[int], n: int, what: str) -> tuple[int, ...]:
     return out
 
 
+def _selector(indices: tuple[int, ...]) -> slice | npt.NDArray[np.intp]:
+    """Indices as a slice where they are a run (the usual per-axis groups: a view, not a
+    fancy-indexed copy, every tick), else an index array."""
+    if indices == tuple(range(indices[0], indices[0] + len(indices))):
+        return slice(indices[0], indices[0] + len(indices))
+    return np.array(indices, dtype=np.intp)
+
+
 def _check_rows(value: npt.ArrayLike, n: int, name: str) -> FloatArray:
     """``value`` as a finite float array of shape (m, n); else LwprError naming ``name``."""
     try:
@@ -365,7 +373,7 @@ class LwprPerturbation:
             np.ones(nx) if norm_p is None or np.size(norm_p) == 0 else norm_p, nx, "norm_p"
         )
         self.lwpr_kwargs = dict(lwpr_kwargs)
-        self._index = [(np.array(ins), np.array(outs)) for ins, outs in self.groups]
+        self._index = [(_selector(ins), _selector(outs)) for ins, outs in self.groups]
         self.models = self._new_models()  # raises on bad LWPR settings, before anything else
         self.filter = LowPassFilter(nx, lowpass_cutoff_hz, dt_s)
 
@@ -389,7 +397,7 @@ class LwprPerturbation:
         zv = check_vector(z, self.n_z, "z")
         pv = check_vector(p_measured, self.nx, "p_measured")
         for model, (ins, outs) in zip(self.models, self._index, strict=True):
-            model.update(zv[ins], pv[outs])
+            model.update_finite(zv[ins], pv[outs])  # (checked above, as a whole)
 
     def predict_raw(self, z: npt.ArrayLike) -> FloatArray:
         """The unfiltered LWPR prediction of p at z, shape (nx,)."""

@@ -110,10 +110,11 @@ class Rejoin:
         tau = self.tau_s
         a, b = self.gap_ned_m[None, :], (self.gap_rate_ned_m_s + self.gap_ned_m / tau)[None, :]
         decay = np.exp(-t / tau)
-        e = (a + b * t) * decay
-        de = (b - (a + b * t) / tau) * decay
-        dde = (-2.0 * b / tau + (a + b * t) / tau**2) * decay
-        out: FloatArray = np.hstack([e, de, dde])
+        abt = a + b * t  # (each term below its own product and sum: the same numbers)
+        out: FloatArray = np.empty((t.shape[0], 9))  # [e, de, dde], every position tick
+        np.multiply(abt, decay, out=out[:, 0:3])
+        np.multiply(b - abt / tau, decay, out=out[:, 3:6])
+        np.multiply(-2.0 * b / tau + abt / tau**2, decay, out=out[:, 6:9])
         return out
 
     def max_acc_m_s2(self) -> float:
@@ -351,7 +352,7 @@ class Trajectory:
         rows = self.horizon_from_now(t0_s, dt_s, steps)
         if rejoin is not None:
             times = t0_s + dt_s * np.arange(steps + 1, dtype=np.float64)
-            rows = np.add(rows, rejoin.rows(times))
+            rows += rejoin.rows(times)  # (rows is this call's own array)
         return ReferenceHorizon.at_heading(rows, yaw_rad)
 
 

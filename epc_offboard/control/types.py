@@ -9,6 +9,7 @@ writer process reads them without loading the controller. NED / FRD frames, SI u
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -32,9 +33,10 @@ class VehicleState:
     position_age_s: float  # vehicle time since the position sample this is predicted from
     attitude_age_s: float
 
-    @property
+    @cached_property
     def euler_rad(self) -> tuple[float, float, float]:
-        """(roll, pitch, yaw) Z-Y-X."""
+        """(roll, pitch, yaw) Z-Y-X (computed once: a tick reads it several times; the
+        arrays are not written after construction)."""
         return frames.quat_to_euler(self.q_ned_frd)
 
     @property

@@ -112,7 +112,8 @@ class Layout:
     arrays: dict[str, int] = field(default_factory=dict)
 
 
-# The streams the loops fly on (common.xml). A test checks each against pymavlink's codec.
+# The streams the loops fly on (common.xml), and the telemetry that comes with them. A test
+# checks each against pymavlink's codec.
 FAST_LAYOUTS = (
     Layout(
         "HEARTBEAT", 0, 50, "<IBBBBB",
@@ -139,6 +140,16 @@ FAST_LAYOUTS = (
          "reset_counter", "estimator_type", "quality"),  # the last three: extensions
         {"q": 4, "pose_covariance": 21, "velocity_covariance": 21},
     ),
+    # what the autopilot streams beside the state, decoded here too: pymavlink's decode (a
+    # message object, ~50 us a frame) made GLOBAL_POSITION_INT, at the state's rate, and the
+    # SITL's 10 Hz telemetry burst the costliest datagrams of the receive path
+    Layout(
+        "GLOBAL_POSITION_INT", 33, 104, "<IiiiihhhH",
+        ("time_boot_ms", "lat", "lon", "alt", "relative_alt", "vx", "vy", "vz", "hdg"),
+    ),
+    Layout("EXTENDED_SYS_STATE", 245, 130, "<BB", ("vtol_state", "landed_state")),
+    Layout("TIMESYNC", 111, 34, "<qq", ("tc1", "ts1")),
+    Layout("SYSTEM_TIME", 2, 137, "<QI", ("time_unix_usec", "time_boot_ms")),
 )  # fmt: skip
 
 # what follows the payload's values in a FastMessage
