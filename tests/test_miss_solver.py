@@ -167,3 +167,39 @@ def test_fleet_candidates_are_screened_in_the_worker_and_survive_its_death(solve
         (taught.active_set, "shared:v2")
     ]
     assert len(ctrl.candidates) == 10  # the junk waits, bounded; it is no library entry
+
+
+class SlowToUnpickle:
+    """Unpickling it takes ``UNPICKLE_S`` (a worker's imports on a loaded computer)."""
+
+    def __init__(self) -> None:
+        self.slow = True  # a state, or unpickling never calls __setstate__
+
+    def __setstate__(self, state: dict) -> None:
+        time.sleep(UNPICKLE_S)
+        self.__dict__.update(state)
+
+
+UNPICKLE_S = 4.0
+
+
+def test_a_start_without_waiting_returns_before_the_worker_has_read_its_problems():
+    """start(wait=False) returned only once the worker had unpickled its problems (1.2 MB,
+    the pipe's write blocks until the worker has imported what they need): a second idle
+    on a quiet machine, 7 s at load 15 beside a real PX4, before the link could open."""
+    from types import SimpleNamespace
+
+    fake = SimpleNamespace(
+        # then more than a pipe's buffer: the write waits for the worker to read it
+        problem=[SlowToUnpickle(), bytes(1 << 20)], tol=1e-9, model_epoch=0, pending=[],
+        candidates=SimpleNamespace(max_size=1, max_per_origin=1),
+    )  # fmt: skip
+    solver = MissSolver({"position": fake})  # type: ignore[dict-item]
+    t0 = time.monotonic()
+    try:
+        solver.start(wait=False)
+        assert time.monotonic() - t0 < UNPICKLE_S / 2
+        assert solver.pump() == 0  # the loop's pump does not wait for it either
+        assert time.monotonic() - t0 < UNPICKLE_S / 2
+    finally:
+        solver.close()

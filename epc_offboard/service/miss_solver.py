@@ -48,6 +48,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import threading
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
@@ -216,11 +217,14 @@ class MissSolver:
         self.counters: Counter[str] = Counter()
         self._pool: ProcessPoolExecutor | None = None
         self._ready: Future[Any] | None = None
+        self._spawning: threading.Thread | None = None  # start(wait=False) until handed over
+        self._spawn_error: BaseException | None = None
 
     def start(self, timeout_s: float = 30.0, *, wait: bool = True) -> None:
         """Start the worker and wait until it has imported and built its learners (before
         READY: a worker that cannot start is an error now, not mid-flight). ``wait`` False:
-        return at once and :meth:`wait_ready` later (its start overlaps other work)."""
+        return at once and :meth:`wait_ready` later (its start overlaps other work; until
+        it is up, :meth:`pump` keeps the misses waiting)."""
         problems = {
             name: (lane.ctrl.problem, lane.ctrl.tol, lane.ctrl.candidates.max_size,
                    lane.ctrl.candidates.max_per_origin)
@@ -234,12 +238,43 @@ class MissSolver:
             initializer=_init_worker,
             initargs=(problems, os.getpid()),
         )
-        self._ready = self._pool.submit(_ping)
+        self._spawn_error = None
         if wait:
+            self._ready = self._pool.submit(_ping)
             self.wait_ready(timeout_s)
+            return
+        # The first submit spawns the worker and writes it its problems (1.2 MB through a
+        # pipe): the write returns only once the worker has imported all that unpickling
+        # them needs, a second of this process idle on a quiet machine, 7 s at load 15 beside
+        # a real PX4, all of it before the link opened. A thread waits for it instead.
+        self._spawning = threading.Thread(
+            target=self._spawn, args=(self._pool,), name="miss-worker-start", daemon=True
+        )
+        self._spawning.start()
+
+    def _spawn(self, pool: ProcessPoolExecutor) -> None:
+        try:
+            self._ready = pool.submit(_ping)
+        except BaseException as exc:  # said by wait_ready
+            self._spawn_error = exc
+
+    def _spawned(self) -> bool:
+        """Whether the pool may be used: a start(wait=False) has handed the worker its
+        problems (until then a submit would wait on the pool's lock for that write)."""
+        spawning = self._spawning  # (wait_ready, on another thread, may clear it)
+        if spawning is not None and spawning.is_alive():
+            return False
+        return self._spawn_error is None
 
     def wait_ready(self, timeout_s: float = 30.0) -> None:
         """Wait until a worker started with ``start(wait=False)`` is up."""
+        if self._spawning is not None:
+            self._spawning.join(timeout_s)
+            if self._spawning.is_alive():
+                raise TimeoutError(f"EPC miss worker not started in {timeout_s:g} s")
+            self._spawning = None
+        if self._spawn_error is not None:
+            raise RuntimeError(f"EPC miss worker did not start: {self._spawn_error}")
         if self._ready is not None:
             self._ready.result(timeout=timeout_s)
             self._ready = None
@@ -256,15 +291,18 @@ class MissSolver:
         has returned first (lockstep).
         """
         added = 0
+        spawned = self._spawned()  # else the misses wait for the worker's start
         for name, lane in self._lanes.items():
-            added += self._collect(name, lane, wait)
+            if spawned:
+                added += self._collect(name, lane, wait)
             ctrl = lane.ctrl
             while ctrl.pending:
                 if len(lane.waiting) == lane.waiting.maxlen:
                     self.counters["misses_dropped"] += 1  # the oldest gives way
                 lane.waiting.append(ctrl.pending.pop(0))
-            self._offer_next(name, lane, wait)  # first: the worker takes tasks in order
-            self._submit_next(name, lane)
+            if spawned:
+                self._offer_next(name, lane, wait)  # first: the worker takes tasks in order
+                self._submit_next(name, lane)
         return added
 
     def _offer_next(self, name: str, lane: _Lane, wait: bool) -> None:
