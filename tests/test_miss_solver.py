@@ -49,6 +49,32 @@ def test_a_miss_is_solved_off_the_loop_then_hits_exactly(solver_and_ctrl):
     assert [e.active_set for e in ctrl.pop_new_entries()] != []
 
 
+def test_a_worker_started_without_waiting_outlives_the_start_and_solves():
+    """start(wait=False) spawns the worker from a thread; the worker dies with the THREAD
+    that spawned it (PR_SET_PDEATHSIG), so a thread that ended after the start killed it
+    (a lockstep flight's service failed with BrokenProcessPool)."""
+    ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl})
+    solver.start(wait=False)
+    try:
+        solver.wait_ready()
+        # the spawning thread lives as long as the worker (a short-lived thread's end
+        # signals the worker when the kernel reparents it to the thread that dies next)
+        assert solver._spawning is not None
+        assert solver._spawning.is_alive()
+        time.sleep(1.0)
+        pid = solver.worker_pid()
+        assert pid is not None
+        os.kill(pid, 0)  # still there
+        x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+        _, refs = miss(ctrl, x0, [4.0, -3.0, 1.0])
+        assert solver.pump() == 0  # submitted
+        assert solver.pump(wait=True) == 1
+        assert ctrl.step(x0, refs).source == "hit"
+    finally:
+        solver.close()
+
+
 def test_misses_of_one_region_are_solved_once(solver_and_ctrl):
     solver, ctrl = solver_and_ctrl
     x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])

@@ -217,7 +217,12 @@ class MissSolver:
         self.counters: Counter[str] = Counter()
         self._pool: ProcessPoolExecutor | None = None
         self._ready: Future[Any] | None = None
-        self._spawning: threading.Thread | None = None  # start(wait=False) until handed over
+        # start(wait=False): the thread that spawned the worker, parked until close() (the
+        # worker's PR_SET_PDEATHSIG fires when the spawning THREAD ends), and whether it has
+        # handed the worker its problems
+        self._spawning: threading.Thread | None = None
+        self._handed = threading.Event()
+        self._release = threading.Event()
         self._spawn_error: BaseException | None = None
 
     def start(self, timeout_s: float = 30.0, *, wait: bool = True) -> None:
@@ -246,7 +251,10 @@ class MissSolver:
         # The first submit spawns the worker and writes it its problems (1.2 MB through a
         # pipe): the write returns only once the worker has imported all that unpickling
         # them needs, a second of this process idle on a quiet machine, 7 s at load 15 beside
-        # a real PX4, all of it before the link opened. A thread waits for it instead.
+        # a real PX4, all of it before the link opened. A thread waits for it instead, and
+        # stays (parked) as long as the worker: the worker dies with the thread that
+        # spawned it (PR_SET_PDEATHSIG is per thread), as it does with the process.
+        self._handed.clear()
         self._spawning = threading.Thread(
             target=self._spawn, args=(self._pool,), name="miss-worker-start", daemon=True
         )
@@ -257,22 +265,20 @@ class MissSolver:
             self._ready = pool.submit(_ping)
         except BaseException as exc:  # said by wait_ready
             self._spawn_error = exc
+        self._handed.set()
+        self._release.wait()
 
     def _spawned(self) -> bool:
         """Whether the pool may be used: a start(wait=False) has handed the worker its
         problems (until then a submit would wait on the pool's lock for that write)."""
-        spawning = self._spawning  # (wait_ready, on another thread, may clear it)
-        if spawning is not None and spawning.is_alive():
+        if self._spawning is not None and not self._handed.is_set():
             return False
         return self._spawn_error is None
 
     def wait_ready(self, timeout_s: float = 30.0) -> None:
         """Wait until a worker started with ``start(wait=False)`` is up."""
-        if self._spawning is not None:
-            self._spawning.join(timeout_s)
-            if self._spawning.is_alive():
-                raise TimeoutError(f"EPC miss worker not started in {timeout_s:g} s")
-            self._spawning = None
+        if self._spawning is not None and not self._handed.wait(timeout_s):
+            raise TimeoutError(f"EPC miss worker not started in {timeout_s:g} s")
         if self._spawn_error is not None:
             raise RuntimeError(f"EPC miss worker did not start: {self._spawn_error}")
         if self._ready is not None:
@@ -283,6 +289,7 @@ class MissSolver:
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
+        self._release.set()  # the spawning thread ends, and with it the worker
 
     def pump(self, *, wait: bool = False) -> int:
         """Collect returned solves into the libraries, queue new misses, submit the next.
