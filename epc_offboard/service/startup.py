@@ -66,10 +66,6 @@ class Timeline:
         mark = self._marks.get(name)
         return None if mark is None else mark[0]
 
-    def summary(self) -> str:
-        """One log line: ``name t_s/cpu_s`` per milestone."""
-        return ", ".join(f"{name} {t:.2f}/{cpu:.2f}" for name, (t, cpu) in self._marks.items())
-
     def report(self) -> dict[str, Any]:
         """For stats.json: each milestone's wall and CPU seconds since the process started,
         and the time to offboard (absent when offboard was never reached)."""

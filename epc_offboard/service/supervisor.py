@@ -138,8 +138,9 @@ class Supervisor:
         first = TIMELINE.since_start_s(out.phase.value) is None
         TIMELINE.mark(out.phase.value)
         if first and out.phase == Phase.OFFBOARD:
-            log.info("offboard %.1f s after the process started; start-up (s since, CPU s): %s",
-                     TIMELINE.since_start_s("offboard"), TIMELINE.summary())  # fmt: skip
+            log.info("offboard %.1f s after the process started (link open at %.1f s; "
+                     "stats.json startup has each step)", TIMELINE.since_start_s("offboard"),
+                     TIMELINE.since_start_s("link_open") or 0.0)  # fmt: skip
         self.phase_events.append(
             {"t_s": round(now, 4), "phase": out.phase.value, "reason": out.reason}
         )
