@@ -97,6 +97,7 @@ class ArduCopter(Autopilot):
                 rate_dead_time_s=0.0,
                 rate_time_constant_s=0.0,
                 attitude_quaternion_max_hz=0.0,  # ArduCopter reaches the 200 Hz asked for
+                attitude_setpoint_extra_delay_s=0.0,  # PX4's (its shaping is below)
             ),
         )
         self.ardupilot = ardupilot

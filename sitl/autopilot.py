@@ -198,6 +198,9 @@ class Autopilot:
         self._pos_sp: PositionSetpoint | None = None
         # setpoints received but not yet seen by the controllers: (due time s, setpoint)
         self._in_transit: deque[tuple[float, AttitudeSetpoint | PositionSetpoint]] = deque()
+        # quaternion setpoints as they arrived (outer-loop time): flown
+        # attitude_setpoint_extra_delay_s later than a body-rate setpoint would be
+        self._attitude_line: deque[tuple[float, AttitudeSetpoint]] = deque()
         self._setpoint_delay_s = params.setpoint_delay_s(vehicle)
         self._rate_ref_tc_s = params.rate_reference_time_constant_s(vehicle)
         # the rate loop's reference (rad/s, FRD): the rate setpoint through a first-order lag
@@ -388,7 +391,8 @@ class Autopilot:
             self._target = None
             return
         if self.mode == OFFBOARD and self._att_sp is not None:
-            q_cmd, rate_cmd, thrust_norm = self._offboard_attitude(x, self._att_sp)
+            sp = self._delayed_attitude(self._att_sp, t_s)
+            q_cmd, rate_cmd, thrust_norm = self._offboard_attitude(x, sp)
         elif self._on_ground_idle(x):
             self._idle_speed_rad_s = self.vehicle.rotor_speed_min_rad_s
             self._target = None
@@ -402,6 +406,20 @@ class Autopilot:
         if on_ground(x):
             self._reset_integrators()
         self._target = (rate_cmd, thrust_norm, q_cmd)
+
+    def _delayed_attitude(self, sp: AttitudeSetpoint, t_s: float) -> AttitudeSetpoint:
+        """The quaternion setpoint PX4's attitude loop flies at ``t_s``: the one that arrived
+        ``attitude_setpoint_extra_delay_s`` ago (the first one at once). Body rates pass."""
+        extra_s = self.params.attitude_setpoint_extra_delay_s
+        line = self._attitude_line
+        if extra_s <= 0.0 or sp.type_mask & IGNORE_ATTITUDE:
+            line.clear()
+            return sp
+        if not line or line[-1][1] is not sp:
+            line.append((t_s, sp))
+        while len(line) > 1 and line[1][0] <= t_s - extra_s + 1e-9:
+            line.popleft()
+        return line[0][1]
 
     def update_inner(self, x: FloatArray, dt_s: float) -> ActuatorCommand:
         """The rate loop (physics rate): rotor speed commands for state ``x`` (17,)."""

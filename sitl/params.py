@@ -197,6 +197,12 @@ class AutopilotParams:
     # the rate loop is as stiff as its gains make it.
     rate_dead_time_s: float = 0.045
     rate_time_constant_s: float = 0.1
+    # A quaternion setpoint (with its thrust) waits this much longer than a body-rate one
+    # before PX4's attitude loop flies it: PX4 main + SIH answered the service's quaternion
+    # setpoints with 0.14-0.15 s of dead time and a 0.13-0.15 s lag (0.28-0.30 s together;
+    # commanded against ground-truth roll and pitch over circles and figure-8s), this
+    # personality without it with 0.05 s and 0.13 s
+    attitude_setpoint_extra_delay_s: float = 0.1
     # PX4 delivers ATTITUDE_QUATERNION at about 123 Hz however high SET_MESSAGE_INTERVAL
     # asks (and acknowledges the request as accepted); 0: as fast as asked
     attitude_quaternion_max_hz: float = 123.0
@@ -218,7 +224,10 @@ class AutopilotParams:
             rate_dead_time_s=self.rate_dead_time_s,
             rate_time_constant_s=self.rate_time_constant_s,
             attitude_quaternion_max_hz=self.attitude_quaternion_max_hz,
+            attitude_setpoint_extra_delay_s=self.attitude_setpoint_extra_delay_s,
         )
+        if self.attitude_setpoint_extra_delay_s > 0.5:
+            raise ValueError("attitude_setpoint_extra_delay_s must be <= 0.5")
         if self.rate_dead_time_s > 0.5 or self.rate_time_constant_s > 1.0:
             raise ValueError(
                 "rate_dead_time_s must be <= 0.5 and rate_time_constant_s <= 1.0 "

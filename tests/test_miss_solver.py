@@ -49,6 +49,32 @@ def test_a_miss_is_solved_off_the_loop_then_hits_exactly(solver_and_ctrl):
     assert [e.active_set for e in ctrl.pop_new_entries()] != []
 
 
+def test_a_worker_started_without_waiting_outlives_the_start_and_solves():
+    """start(wait=False) spawns the worker from a thread; the worker dies with the THREAD
+    that spawned it (PR_SET_PDEATHSIG), so a thread that ended after the start killed it
+    (a lockstep flight's service failed with BrokenProcessPool)."""
+    ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl})
+    solver.start(wait=False)
+    try:
+        solver.wait_ready()
+        # the spawning thread lives as long as the worker (a short-lived thread's end
+        # signals the worker when the kernel reparents it to the thread that dies next)
+        assert solver._spawning is not None
+        assert solver._spawning.is_alive()
+        time.sleep(1.0)
+        pid = solver.worker_pid()
+        assert pid is not None
+        os.kill(pid, 0)  # still there
+        x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+        _, refs = miss(ctrl, x0, [4.0, -3.0, 1.0])
+        assert solver.pump() == 0  # submitted
+        assert solver.pump(wait=True) == 1
+        assert ctrl.step(x0, refs).source == "hit"
+    finally:
+        solver.close()
+
+
 def test_misses_of_one_region_are_solved_once(solver_and_ctrl):
     solver, ctrl = solver_and_ctrl
     x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
@@ -167,3 +193,39 @@ def test_fleet_candidates_are_screened_in_the_worker_and_survive_its_death(solve
         (taught.active_set, "shared:v2")
     ]
     assert len(ctrl.candidates) == 10  # the junk waits, bounded; it is no library entry
+
+
+class SlowToUnpickle:
+    """Unpickling it takes ``UNPICKLE_S`` (a worker's imports on a loaded computer)."""
+
+    def __init__(self) -> None:
+        self.slow = True  # a state, or unpickling never calls __setstate__
+
+    def __setstate__(self, state: dict) -> None:
+        time.sleep(UNPICKLE_S)
+        self.__dict__.update(state)
+
+
+UNPICKLE_S = 4.0
+
+
+def test_a_start_without_waiting_returns_before_the_worker_has_read_its_problems():
+    """start(wait=False) returned only once the worker had unpickled its problems (1.2 MB,
+    the pipe's write blocks until the worker has imported what they need): a second idle
+    on a quiet machine, 7 s at load 15 beside a real PX4, before the link could open."""
+    from types import SimpleNamespace
+
+    fake = SimpleNamespace(
+        # then more than a pipe's buffer: the write waits for the worker to read it
+        problem=[SlowToUnpickle(), bytes(1 << 20)], tol=1e-9, model_epoch=0, pending=[],
+        candidates=SimpleNamespace(max_size=1, max_per_origin=1),
+    )  # fmt: skip
+    solver = MissSolver({"position": fake})  # type: ignore[dict-item]
+    t0 = time.monotonic()
+    try:
+        solver.start(wait=False)
+        assert time.monotonic() - t0 < UNPICKLE_S / 2
+        assert solver.pump() == 0  # the loop's pump does not wait for it either
+        assert time.monotonic() - t0 < UNPICKLE_S / 2
+    finally:
+        solver.close()

@@ -3,7 +3,8 @@ numba's on-disk cache already holds them.
 
 Every compiled kernel has a numpy twin (its test oracle), so a process can fly on the
 twins: ``EPC_OFFBOARD_JIT=0`` in its environment, read once when the kernel modules load
-(``control.kernels``, ``control.lwpr_kernels``, ``control.trajectories``), makes them
+(``control.kernels``, ``control.lwpr_kernels``, ``control.trajectories``,
+``control.rate_response``), makes them
 behave exactly as without numba. A cold start (empty cache) compiles for 10-30 s on a
 companion computer; the service then flies on the twins and compiles into the cache in a
 background process (``service.coldstart``), which marks the cache warm when it is done.
@@ -22,7 +23,12 @@ from pathlib import Path
 ENV = "EPC_OFFBOARD_JIT"  # "0": the numpy twins; anything else or unset: numba
 
 # the sources whose kernels the marker vouches for: an edited kernel is a cold cache
-_KERNEL_SOURCES = ("control/kernels.py", "control/lwpr_kernels.py", "control/trajectories.py")
+_KERNEL_SOURCES = (
+    "control/kernels.py",
+    "control/lwpr_kernels.py",
+    "control/trajectories.py",
+    "control/rate_response.py",
+)
 
 
 def enabled() -> bool:

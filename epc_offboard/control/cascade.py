@@ -135,7 +135,7 @@ def compiled_signatures() -> int:
     """How many compiled signatures the kernels' numba dispatchers hold (0 on the numpy
     twins). A count that grows after ``Cascade.warm_up`` is a compile on the control loop."""
     count = 0
-    for module in (kernels, lwpr_kernels, trajectories):
+    for module in (kernels, lwpr_kernels, trajectories, rate_response):
         for value in vars(module).values():
             if hasattr(value, "py_func") and hasattr(value, "signatures"):
                 count += len(value.signatures)

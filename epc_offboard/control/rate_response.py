@@ -36,6 +36,7 @@ from typing import cast
 
 import numpy as np
 
+from epc_offboard.common import jit
 from epc_offboard.common.frames import FloatArray
 
 # Physical ranges every estimate and configured value is bounded to (what an autopilot's rate
@@ -344,7 +345,12 @@ def _rls_bank_update_loops(
 
 
 def _compile_rls() -> RlsBankUpdate | None:
-    """The compiled bank update (numba, cached on disk as kernels.py's), or None."""
+    """The compiled bank update (numba, cached on disk as kernels.py's), or None: on the
+    numpy twins (a cold start, ``common.jit``) numba is not even imported, or the service's
+    own warm-up imported it (0.2 s) and compiled this kernel (0.5 s of CPU, several seconds
+    of a cold start on a loaded computer) on the way to its first tick."""
+    if not jit.enabled():
+        return None
     try:
         import numba
     except ImportError:

@@ -48,6 +48,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import threading
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
@@ -216,11 +217,19 @@ class MissSolver:
         self.counters: Counter[str] = Counter()
         self._pool: ProcessPoolExecutor | None = None
         self._ready: Future[Any] | None = None
+        # start(wait=False): the thread that spawned the worker, parked until close() (the
+        # worker's PR_SET_PDEATHSIG fires when the spawning THREAD ends), and whether it has
+        # handed the worker its problems
+        self._spawning: threading.Thread | None = None
+        self._handed = threading.Event()
+        self._release = threading.Event()
+        self._spawn_error: BaseException | None = None
 
     def start(self, timeout_s: float = 30.0, *, wait: bool = True) -> None:
         """Start the worker and wait until it has imported and built its learners (before
         READY: a worker that cannot start is an error now, not mid-flight). ``wait`` False:
-        return at once and :meth:`wait_ready` later (its start overlaps other work)."""
+        return at once and :meth:`wait_ready` later (its start overlaps other work; until
+        it is up, :meth:`pump` keeps the misses waiting)."""
         problems = {
             name: (lane.ctrl.problem, lane.ctrl.tol, lane.ctrl.candidates.max_size,
                    lane.ctrl.candidates.max_per_origin)
@@ -234,12 +243,44 @@ class MissSolver:
             initializer=_init_worker,
             initargs=(problems, os.getpid()),
         )
-        self._ready = self._pool.submit(_ping)
+        self._spawn_error = None
         if wait:
+            self._ready = self._pool.submit(_ping)
             self.wait_ready(timeout_s)
+            return
+        # The first submit spawns the worker and writes it its problems (1.2 MB through a
+        # pipe): the write returns only once the worker has imported all that unpickling
+        # them needs, a second of this process idle on a quiet machine, 7 s at load 15 beside
+        # a real PX4, all of it before the link opened. A thread waits for it instead, and
+        # stays (parked) as long as the worker: the worker dies with the thread that
+        # spawned it (PR_SET_PDEATHSIG is per thread), as it does with the process.
+        self._handed.clear()
+        self._spawning = threading.Thread(
+            target=self._spawn, args=(self._pool,), name="miss-worker-start", daemon=True
+        )
+        self._spawning.start()
+
+    def _spawn(self, pool: ProcessPoolExecutor) -> None:
+        try:
+            self._ready = pool.submit(_ping)
+        except BaseException as exc:  # said by wait_ready
+            self._spawn_error = exc
+        self._handed.set()
+        self._release.wait()
+
+    def _spawned(self) -> bool:
+        """Whether the pool may be used: a start(wait=False) has handed the worker its
+        problems (until then a submit would wait on the pool's lock for that write)."""
+        if self._spawning is not None and not self._handed.is_set():
+            return False
+        return self._spawn_error is None
 
     def wait_ready(self, timeout_s: float = 30.0) -> None:
         """Wait until a worker started with ``start(wait=False)`` is up."""
+        if self._spawning is not None and not self._handed.wait(timeout_s):
+            raise TimeoutError(f"EPC miss worker not started in {timeout_s:g} s")
+        if self._spawn_error is not None:
+            raise RuntimeError(f"EPC miss worker did not start: {self._spawn_error}")
         if self._ready is not None:
             self._ready.result(timeout=timeout_s)
             self._ready = None
@@ -248,6 +289,7 @@ class MissSolver:
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
+        self._release.set()  # the spawning thread ends, and with it the worker
 
     def pump(self, *, wait: bool = False) -> int:
         """Collect returned solves into the libraries, queue new misses, submit the next.
@@ -256,15 +298,18 @@ class MissSolver:
         has returned first (lockstep).
         """
         added = 0
+        spawned = self._spawned()  # else the misses wait for the worker's start
         for name, lane in self._lanes.items():
-            added += self._collect(name, lane, wait)
+            if spawned:
+                added += self._collect(name, lane, wait)
             ctrl = lane.ctrl
             while ctrl.pending:
                 if len(lane.waiting) == lane.waiting.maxlen:
                     self.counters["misses_dropped"] += 1  # the oldest gives way
                 lane.waiting.append(ctrl.pending.pop(0))
-            self._offer_next(name, lane, wait)  # first: the worker takes tasks in order
-            self._submit_next(name, lane)
+            if spawned:
+                self._offer_next(name, lane, wait)  # first: the worker takes tasks in order
+                self._submit_next(name, lane)
         return added
 
     def _offer_next(self, name: str, lane: _Lane, wait: bool) -> None:

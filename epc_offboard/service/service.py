@@ -67,6 +67,7 @@ from epc_offboard.service.loop import Loops, Stop, Tick
 from epc_offboard.service.miss_solver import MissSolver
 from epc_offboard.service.reference_selector import ReferenceSelector
 from epc_offboard.service.setpoints import SetpointSender
+from epc_offboard.service.startup import TIMELINE
 from epc_offboard.service.supervisor import Supervisor
 from epc_offboard.service.systemd import Systemd
 from epc_offboard.service.timing import LoopTiming
@@ -264,9 +265,11 @@ class Service:
                         "compiling them in the background for the next start); warmed in "
                         "%.2f s", self.cascade.warm_up())  # fmt: skip
         self._signatures_warm = compiled_signatures()
-        self.misses.wait_ready()
-        log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
+        TIMELINE.mark("kernels_warm")
+        if self.clock.vehicle_time:  # lockstep: every run's first miss meets a worker up
+            self._miss_worker_up(t0)
         self.library.open()
+        TIMELINE.mark("library_open")
         if self.logs is not None:
             self.logs.start()
         if self.sharing is not None:  # what it held before a restart: only the new is asked
@@ -279,7 +282,9 @@ class Service:
         loops_cfg = self.cfg.loops
         realtime.prepare(loops_cfg.realtime_priority, self.gc_monitor, self.counters,
                          loops_cfg.cpu_affinity)  # fmt: skip
+        TIMELINE.mark("gc_frozen")
         await self.link.open()
+        TIMELINE.mark("link_open")
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)
         loop.add_signal_handler(signal.SIGINT, self.request_stop)
@@ -301,6 +306,9 @@ class Service:
                     loops.periodic("attitude", self.attitude_timing, self._attitude_step),
                     name="attitude-loop",
                 )
+                if not self.clock.vehicle_time:  # the worker's start overlaps the flight's
+                    tg.create_task(asyncio.to_thread(self._miss_worker_up, t0),
+                                   name="miss-worker-start")  # fmt: skip
                 tg.create_task(self.library.run(), name="library-saver")
                 if self.sharing is not None:
                     tg.create_task(self.sharing.run(), name="library-sharing")
@@ -312,6 +320,21 @@ class Service:
         finally:
             self._shutdown()
         return 0
+
+    def _miss_worker_up(self, t0: float) -> None:
+        """Wait for the miss worker's start. In real time the link does not: the worker's
+        imports (seconds on a loaded computer) overlap the arming and the takeoff, during
+        which no miss is solved; its misses wait for it (``MissSolver.pump``)."""
+        try:
+            self.misses.wait_ready()
+        except Exception as exc:  # the loops fly on: misses stay intermediate
+            if self.clock.vehicle_time:
+                raise
+            self.counters["miss_worker_start_failed"] += 1
+            log.error("EPC miss worker: %s; misses stay with the intermediate controller", exc)
+            return
+        TIMELINE.mark("miss_worker_up")
+        log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
 
     def _shutdown(self) -> None:
         self.systemd.notify("STOPPING=1")
@@ -335,6 +358,7 @@ class Service:
         return {
             "phase": self.outputs.phase.value,
             "phase_events": list(self.supervisor.phase_events),
+            "startup": TIMELINE.report(),  # where the start went, from the process's start
             **self.autopilot.stats(),  # autopilot, attitude_mode, params
             "takeoffs_sent": self.supervisor.sm.takeoffs_sent,
             "rates_hz": {k: round(v, 1) for k, v in self.autopilot.rates.rates_hz.items()},
@@ -387,11 +411,13 @@ def run_service_command(args: argparse.Namespace) -> int:
         cfg = load_service_config(args.config)
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
+    TIMELINE.mark("config")
     setup_logging(cfg.log)
     try:
         service = Service(cfg, args.config)
     except (ConfigError, OSError) as exc:
         raise UsageError(str(exc)) from exc
+    TIMELINE.mark("service_built")
     try:
         return asyncio.run(service.run())
     except OSError as exc:

@@ -22,6 +22,7 @@ from epc_offboard.control.types import VehicleState
 from epc_offboard.service.autopilot import Autopilot
 from epc_offboard.service.clock import Clock
 from epc_offboard.service.config import ServiceConfig
+from epc_offboard.service.startup import TIMELINE
 from epc_offboard.service.systemd import Systemd
 from epc_offboard.vehicle.offboard import Inputs, OffboardStateMachine, Outputs, Phase
 from epc_offboard.vehicle.state import StateTracker
@@ -121,6 +122,7 @@ class Supervisor:
         if not self._ready_sent and age <= self.cfg.offboard.max_state_age_s:
             self._ready_sent = True
             self.systemd.notify("READY=1")
+            TIMELINE.mark("ready")
             log.info("link up and state flowing: ready")
         if out.phase == Phase.DONE and self.cfg.mission.duration_s > 0:
             self._mission_over()
@@ -133,6 +135,12 @@ class Supervisor:
         self.systemd.notify(f"STATUS={out.phase.value}: {out.reason}")
         if out.phase == Phase.FAILSAFE:
             self.counters["failsafes"] += 1
+        first = TIMELINE.since_start_s(out.phase.value) is None
+        TIMELINE.mark(out.phase.value)
+        if first and out.phase == Phase.OFFBOARD:
+            log.info("offboard %.1f s after the process started (link open at %.1f s; "
+                     "stats.json startup has each step)", TIMELINE.since_start_s("offboard"),
+                     TIMELINE.since_start_s("link_open") or 0.0)  # fmt: skip
         self.phase_events.append(
             {"t_s": round(now, 4), "phase": out.phase.value, "reason": out.reason}
         )

@@ -1,0 +1,87 @@
+"""A cold start's own cost, judged on what load does not change: what the service process
+imports and compiles, its CPU seconds, and the scheduling class of its background compile
+(the flight itself: tests/test_coldstart_e2e.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from epc_offboard.common import jit
+from epc_offboard.service import coldstart
+from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
+
+pytestmark = pytest.mark.timeout(120)
+
+SCHED_IDLE = 5  # Linux's SCHED_IDLE, /proc/<pid>/stat's policy field
+
+# What a cold start's service process does up to its first tick, as a probe prints it:
+# choose the kernels, build the service's cascade and warm it up
+_PROBE = """
+import json, sys, time
+from epc_offboard.service import coldstart
+mode = coldstart.choose()
+from epc_offboard.control.cascade import Cascade, compiled_signatures
+from epc_offboard.service.config import load_service_config
+cfg = load_service_config(sys.argv[1])
+cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01, learn_on_miss=False,
+                  airframe=cfg.vehicle)
+cpu_before_warm_s = time.process_time()
+cascade.warm_up()
+print(json.dumps({"mode": mode, "numba_imported": "numba" in sys.modules,
+                  "signatures": compiled_signatures(),
+                  "warm_up_cpu_s": time.process_time() - cpu_before_warm_s}))
+"""
+
+
+def _cold_env(cache: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != jit.ENV}
+    env["NUMBA_CACHE_DIR"] = str(cache)
+    return env
+
+
+def test_a_cold_start_neither_imports_nor_compiles_numba(tmp_path: Path):
+    """On a cold cache the service flies the numpy twins and must not even import numba.
+    The body-rate identifier's kernel ignored the choice: every cold start imported numba
+    (0.2 s) and compiled that kernel inside the warm-up (0.5 s of CPU, more than half the
+    service's own start-up), several seconds of wall clock on a loaded companion computer."""
+    out = subprocess.run(
+        [sys.executable, "-c", _PROBE, str(SITL_SERVICE_CONFIG)],
+        env=_cold_env(tmp_path / "numba-cache"), capture_output=True, text=True, timeout=100,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    probe = json.loads(out.stdout.splitlines()[-1])
+    assert probe["mode"] == "numpy-cold"
+    assert not probe["numba_imported"], probe
+    assert probe["signatures"] == 0, probe
+
+
+def test_the_background_compile_runs_at_idle_priority(tmp_path: Path):
+    """The cold start's compile (10-30 s of CPU) takes only CPU nobody else wants: at nice 10
+    it still took a share of the service's start-up and first ticks."""
+    env_before = dict(os.environ)
+    os.environ.update(_cold_env(tmp_path / "numba-cache"))
+    try:
+        child = coldstart.start_background_compile(str(SITL_SERVICE_CONFIG))
+    finally:
+        os.environ.clear()
+        os.environ.update(env_before)
+    try:
+        deadline = time.monotonic() + 10.0
+        policy = None
+        while policy is None and time.monotonic() < deadline:
+            text = Path(f"/proc/{child.pid}/stat").read_text()
+            fields = text[text.rindex(")") + 2 :].split()
+            # field 41 of stat (policy) is fields[38] after "pid (comm)"; read once the child
+            # has exec'd (its preexec set it before)
+            policy = int(fields[38])
+        assert policy == SCHED_IDLE, f"policy {policy}"
+    finally:
+        child.kill()
+        child.wait()
