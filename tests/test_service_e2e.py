@@ -99,6 +99,10 @@ def test_second_run_starts_from_the_saved_library(tmp_path):
     second, _, _ = sim(tmp_path, *args)  # same --out: library-1.sqlite is the prior
     # every output of the first run is replaced, the tlog too (it was appended to)
     assert tlog.stat().st_size < 1.5 * first_tlog_bytes
+    # the bound holds on the first flight too: the heavier position weights without the
+    # jerk bound (position.max_jerk_m_s3) rode it in a limit cycle, 30 violations, 3.11 m/s
+    assert first["vehicles"][0]["constraint_violations"] == 0
+    assert first["vehicles"][0]["max_abs_vel_m_s"][1] <= 3.0
     m1 = first["vehicles"][0]["library"]["misses"]
     m2 = second["vehicles"][0]["library"]["misses"]
     assert m1 >= 50
