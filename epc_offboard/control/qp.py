@@ -114,6 +114,7 @@ class MpcProblem:
         u_max: npt.ArrayLike | None = None,
         u_poly: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
         lead: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
+        lead_stages: int | None = None,
     ) -> None:
         if not isinstance(horizon, int) or horizon < 1:
             raise ProblemError(f"horizon must be an integer >= 1, got {horizon!r}")
@@ -154,6 +155,9 @@ class MpcProblem:
             if np.any(bs <= 0.0):
                 raise ProblemError("lead bounds must be > 0")
             self.lead_state, self.lead_max = js, bs
+        self.lead_stages = N if lead_stages is None else min(lead_stages, N)
+        if self.lead_stages < 1:
+            raise ProblemError(f"lead_stages must be >= 1, got {lead_stages}")
         self.n_u = N * nu
         self.n_theta = nx + N * nx + nx + N * nu
         self.i_up = nx + N * nx + nx  # where U_p starts inside theta
@@ -220,7 +224,7 @@ class MpcProblem:
         add_input_rows(self.u_max, 1.0, True)
         add_input_rows(self.u_min, -1.0, False)
         for sign, upper in ((1.0, True), (-1.0, False)):
-            for k in range(N):
+            for k in range(self.lead_stages):
                 for i in range(nu):
                     if not math.isfinite(self.lead_max[i]):
                         continue
@@ -278,6 +282,7 @@ class MpcProblem:
             u_max=self.u_max,
             u_poly=(self.u_poly_P, self.u_poly_p) if len(self.u_poly_p) else None,
             lead=(self.lead_state, self.lead_max) if np.isfinite(self.lead_max).any() else None,
+            lead_stages=self.lead_stages,
         )
 
     # -- per tick -------------------------------------------------------------------------
@@ -398,6 +403,7 @@ class MpcProblem:
             h.update(b"lead")
             h.update(self.lead_state.astype("<i8").tobytes())
             h.update(np.isfinite(self.lead_max).astype("u1").tobytes())
+            h.update(f"K={self.lead_stages};".encode())
         if len(self.u_poly_p):  # only problems with a polytope: old signatures stay valid
             h.update(b"up")
             h.update(np.round(self.u_poly_P, 12).astype("<f8").tobytes())

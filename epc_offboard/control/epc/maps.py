@@ -126,8 +126,8 @@ class ProblemGeometry:
         # bounded X rows as affine maps of theta_aug (through x0 and c~) and of U; then the
         # lead rows u_k,i - x_k,j (x_0 = theta's x0, x_k a prediction), bounded by +-b_i
         c0 = nx + N * nx
-        lead = [(k, i, int(problem.lead_state[i])) for k in range(N) for i in range(problem.nu)
-                if np.isfinite(problem.lead_max[i])]
+        lead = [(k, i, int(problem.lead_state[i])) for k in range(problem.lead_stages)
+                for i in range(problem.nu) if np.isfinite(problem.lead_max[i])]
         xt = np.zeros((len(rows) + len(lead), problem.n_theta + 1))
         xt[: len(rows), :nx] = problem.Phi[rows]
         xt[: len(rows), c0 : c0 + nx] = problem.Psi[rows]
