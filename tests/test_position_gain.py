@@ -50,7 +50,8 @@ def _steady_offset_m(residual_m_s2: np.ndarray, seconds: float = 5.0) -> np.ndar
         )
         pos, vel = pos + vel * _DT_S + 0.5 * acc * _DT_S**2, vel + acc * _DT_S
         q = out.q_target
-    return pos - hold
+    offset: np.ndarray = pos - hold
+    return offset
 
 
 def test_a_disturbance_residual_leaves_a_small_steady_offset():
