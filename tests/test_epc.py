@@ -15,7 +15,12 @@ import epc_offboard.control.epc.maps as maps_module
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.kernels import apply_map_numpy
 from epc_offboard.control.library_types import LibraryEntry
-from epc_offboard.control.models import LinearModel, attitude_model, position_model
+from epc_offboard.control.models import (
+    LinearModel,
+    attitude_model,
+    position_model,
+    position_model_lagged,
+)
 from epc_offboard.control.qp import MpcProblem
 from tests.mpc_cases import A_MAX, V_MAX, exact_solution, hover_refs, position_problem
 
@@ -604,3 +609,69 @@ def test_the_query_budget_in_us_becomes_a_count():
     assert ctrl.checks_within(0.1 * cost) == 1  # at least the last controller
     with pytest.raises(ValueError, match="max_checks"):
         ExperienceController(p, max_checks=0)
+
+
+def lead_problem(horizon: int, lead_m_s2: float, stages: int | None = None) -> MpcProblem:
+    """The position problem with the inner loop's lag (x = p, v, a; u = the commanded a):
+    the velocity and input bounds, and the lead rows |u_k - a_k| <= lead_m_s2 (a jerk bound)
+    horizontally."""
+    inf = math.inf
+    return MpcProblem(
+        position_model_lagged(0.05, (0.12, 0.12, 0.03)), horizon=horizon,
+        Q=[80, 80, 120, 6, 6, 6, 0, 0, 0], R=[0.3] * 3,
+        x_min=[-inf] * 3 + [-V_MAX] * 3 + [-inf] * 3, x_max=[inf] * 3 + [V_MAX] * 3 + [inf] * 3,
+        u_min=[-A_MAX] * 3, u_max=[A_MAX] * 3,
+        lead=((6, 7, 8), [lead_m_s2, lead_m_s2, inf]), lead_stages=stages,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("stages", [None, 4])
+def test_lead_rows_bound_the_plan_and_hits_stay_exact(stages):
+    """The lead rows bound |u_k - a_k| (a_0 measured, a_k predicted) on their stages (all, or
+    the first 4); a plan without them swings the command across the input box; a hit
+    equals the exact solve. On the first stages only, a plan counts on a jerk it will not
+    have later and can run into the velocity bound where no input keeps it (the full QP
+    infeasible): those ticks fly the intermediate QP; on every stage, none does."""
+    lead_m_s2 = 1.5
+    p = lead_problem(10, lead_m_s2, stages)
+    k_lead = p.lead_stages
+    free = lead_problem(10, 1e3)
+    ctrl = ExperienceController(p)
+    x = np.zeros(9)
+    lead_active = swing_free = 0
+    for k in range(160):
+        tgt = [3.0, -2.0, 1.0] if (k // 40) % 2 == 0 else [0.0, 0.0, 0.0]
+        refs = hover_refs(p, tgt)
+        d = ctrl.step(x, refs)
+        x_next = p.model.step(x, d.u)
+        if d.source == "intermediate" and stages is not None:
+            x = x_next
+            continue
+        theta = p.theta(x, refs)
+        U = exact_solution(p, theta)
+        assert d.source in ("hit", "solved")
+        assert np.allclose(d.u, U[:3], atol=1e-8, rtol=0)
+        a = np.vstack([x[6:9], p.predict(theta, U)[:-1, 6:9]])
+        lead = np.abs(U.reshape(-1, 3) - a)[:k_lead, :2]
+        assert lead.max() <= lead_m_s2 + 1e-7
+        lead_active += bool(lead.max() > lead_m_s2 - 1e-7)
+        U_free = exact_solution(free, free.theta(x, refs))
+        a_free = np.vstack([x[6:9], free.predict(free.theta(x, refs), U_free)[:-1, 6:9]])
+        swing_free += bool(np.abs(U_free.reshape(-1, 3) - a_free)[:, :2].max() > 2 * lead_m_s2)
+        x = x_next
+    assert ctrl.stats.hits > 30
+    assert lead_active > 20
+    assert swing_free > 10
+
+
+def test_lead_rows_from_an_acceleration_beyond_them_are_soft_in_the_intermediate():
+    """A measured acceleration the inputs cannot lead within the bound (beyond the input box
+    by more than it): the full QP is infeasible, the intermediate takes the lead rows with
+    slack and steers towards it instead of falling back to hover."""
+    p = lead_problem(6, 1.0)
+    ctrl = ExperienceController(p)
+    x = np.zeros(9)
+    x[6] = A_MAX + 3.0
+    d = ctrl.step(x, hover_refs(p, [0.0, 0.0, 0.0]))
+    assert d.source == "intermediate"
+    assert d.u[0] == pytest.approx(A_MAX, abs=1e-3)  # as close to a_0 as the box allows

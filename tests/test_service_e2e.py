@@ -99,12 +99,18 @@ def test_second_run_starts_from_the_saved_library(tmp_path):
     second, _, _ = sim(tmp_path, *args)  # same --out: library-1.sqlite is the prior
     # every output of the first run is replaced, the tlog too (it was appended to)
     assert tlog.stat().st_size < 1.5 * first_tlog_bytes
+    # the bound holds on the first flight too: the heavier position weights without the
+    # jerk bound (position.max_jerk_m_s3) rode it in a limit cycle, 30 violations, 3.11 m/s
+    assert first["vehicles"][0]["constraint_violations"] == 0
+    assert first["vehicles"][0]["max_abs_vel_m_s"][1] <= 3.0
     m1 = first["vehicles"][0]["library"]["misses"]
     m2 = second["vehicles"][0]["library"]["misses"]
     assert m1 >= 50
-    # measured: 165 -> 48. Not ~0: the vehicle never flies exactly the same states twice, and
-    # the bound's regions the first flight missed are new to the second
-    assert m2 <= 0.5 * m1, (m1, m2)
+    # measured: 253 -> 119, 259 -> 125, 264 -> 147 (the position weights of issue 24 with
+    # their jerk bound; 165 -> 48 with the old weights, whose flight never reached the bound
+    # in these 8 s: 2.79 m/s). Not ~0: the vehicle never flies exactly the same states twice,
+    # and the bound's regions the first flight missed are new to the second
+    assert m2 <= 0.6 * m1, (m1, m2)
     assert second["vehicles"][0]["constraint_violations"] == 0
 
 

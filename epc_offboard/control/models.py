@@ -28,6 +28,7 @@ POS_NU = 3  # a(3)
 # Position loop with the inner loop's lag: x = [p_ned_m(3), v_ned_m_s(3), a_ned_m_s2(3)], where
 # a is the acceleration the attitude and thrust actually produce; u = the commanded acceleration.
 POS_LAG_NX = 9  # p(3), v(3), a(3)
+LAG_ACC_STATES = (6, 7, 8)  # where a(3) sits in the lagged model's state
 # Attitude loop: x = [roll, pitch, yaw (rad), p, q, r (rad/s, body FRD)], u = body-rate command.
 ATT_NX = 6  # roll, pitch, yaw, p, q, r
 ATT_NU = 3  # p_cmd, q_cmd, r_cmd

@@ -113,6 +113,8 @@ class MpcProblem:
         u_min: npt.ArrayLike | None = None,
         u_max: npt.ArrayLike | None = None,
         u_poly: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
+        lead: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
+        lead_stages: int | None = None,
     ) -> None:
         if not isinstance(horizon, int) or horizon < 1:
             raise ProblemError(f"horizon must be an integer >= 1, got {horizon!r}")
@@ -142,6 +144,20 @@ class MpcProblem:
             if not (np.all(np.isfinite(P)) and np.all(np.isfinite(pv))):
                 raise ProblemError("u_poly must be finite")
             self.u_poly_P, self.u_poly_p = P, pv
+        # lead = (j (nu,) state indices, b (nu,)): |u_k,i - x_k,j_i| <= b_i, k = 0..N-1
+        self.lead_state = np.full(nu, -1, dtype=np.intp)
+        self.lead_max = np.full(nu, math.inf)
+        if lead is not None:
+            js = np.array(lead[0], dtype=np.intp).reshape(-1)
+            bs = _bound("lead bound", lead[1], nu, math.inf)
+            if js.shape != (nu,) or np.any((js < 0) | (js >= nx)):
+                raise ProblemError(f"lead's state indices must be ({nu},) in 0..{nx - 1}")
+            if np.any(bs <= 0.0):
+                raise ProblemError("lead bounds must be > 0")
+            self.lead_state, self.lead_max = js, bs
+        self.lead_stages = N if lead_stages is None else min(lead_stages, N)
+        if self.lead_stages < 1:
+            raise ProblemError(f"lead_stages must be >= 1, got {lead_stages}")
         self.n_u = N * nu
         self.n_theta = nx + N * nx + nx + N * nu
         self.i_up = nx + N * nx + nx  # where U_p starts inside theta
@@ -207,6 +223,26 @@ class MpcProblem:
         add_state_rows(self.x_min, -1.0, False)
         add_input_rows(self.u_max, 1.0, True)
         add_input_rows(self.u_min, -1.0, False)
+        for sign, upper in ((1.0, True), (-1.0, False)):
+            for k in range(self.lead_stages):
+                for i in range(nu):
+                    if not math.isfinite(self.lead_max[i]):
+                        continue
+                    j = int(self.lead_state[i])
+                    g = np.zeros(N * nu)
+                    g[k * nu + i] = sign
+                    s = np.zeros(self.n_theta)
+                    if k == 0:
+                        s[i_x0 + j] = sign
+                    else:
+                        r = (k - 1) * nx + j
+                        g -= sign * Bbar[r]
+                        s[i_x0 : i_x0 + nx] = sign * self.Phi[r]
+                        s[i_c : i_c + nx] = sign * self.Psi[r]
+                    rows_g.append(g)
+                    rows_s.append(s)
+                    g0.append(float(self.lead_max[i]))
+                    labels.append(ConstraintRow("lead", k, i, upper))
         for k in range(N):
             for j, (row, bound) in enumerate(zip(self.u_poly_P, self.u_poly_p, strict=True)):
                 g = np.zeros(N * nu)
@@ -245,6 +281,8 @@ class MpcProblem:
             u_min=self.u_min,
             u_max=self.u_max,
             u_poly=(self.u_poly_P, self.u_poly_p) if len(self.u_poly_p) else None,
+            lead=(self.lead_state, self.lead_max) if np.isfinite(self.lead_max).any() else None,
+            lead_stages=self.lead_stages,
         )
 
     # -- per tick -------------------------------------------------------------------------
@@ -361,6 +399,11 @@ class MpcProblem:
                         ("uu", self.u_max)):
             h.update(name.encode())
             h.update(np.isfinite(b).astype("u1").tobytes())
+        if np.isfinite(self.lead_max).any():
+            h.update(b"lead")
+            h.update(self.lead_state.astype("<i8").tobytes())
+            h.update(np.isfinite(self.lead_max).astype("u1").tobytes())
+            h.update(f"K={self.lead_stages};".encode())
         if len(self.u_poly_p):  # only problems with a polytope: old signatures stay valid
             h.update(b"up")
             h.update(np.round(self.u_poly_P, 12).astype("<f8").tobytes())

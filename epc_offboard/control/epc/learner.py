@@ -134,7 +134,9 @@ class IntermediateQp:
         self.full = full
         self.problem = full.with_horizon(horizon)
         p = self.problem
-        is_x = np.array([r.kind == "x" for r in p.rows], dtype=bool)
+        # soft: the state rows and the lead rows (both depend on x0, which may lie where
+        # no input meets them); hard: the input box and polytope, which inputs always meet
+        is_x = np.array([r.kind in ("x", "lead") for r in p.rows], dtype=bool)
         self._is_x = is_x
         n_s = int(is_x.sum())
         n_u = p.n_u

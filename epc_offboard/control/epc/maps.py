@@ -123,21 +123,36 @@ class ProblemGeometry:
         bounded = np.isfinite(problem.x_min) | np.isfinite(problem.x_max)
         rows = np.array([k * nx + i for k in range(N) for i in range(nx) if bounded[i]],
                         dtype=np.intp)
-        # bounded X rows as affine maps of theta_aug (through x0 and c~) and of U
-        xt = np.zeros((len(rows), problem.n_theta + 1))
-        xt[:, :nx] = problem.Phi[rows]
+        # bounded X rows as affine maps of theta_aug (through x0 and c~) and of U; then the
+        # lead rows u_k,i - x_k,j (x_0 = theta's x0, x_k a prediction), bounded by +-b_i
         c0 = nx + N * nx
-        xt[:, c0 : c0 + nx] = problem.Psi[rows]
+        lead = [(k, i, int(problem.lead_state[i])) for k in range(problem.lead_stages)
+                for i in range(problem.nu) if np.isfinite(problem.lead_max[i])]
+        xt = np.zeros((len(rows) + len(lead), problem.n_theta + 1))
+        xt[: len(rows), :nx] = problem.Phi[rows]
+        xt[: len(rows), c0 : c0 + nx] = problem.Psi[rows]
+        xu = np.zeros((len(rows) + len(lead), problem.n_u))
+        xu[: len(rows)] = problem.Bbar[rows]
+        for n, (k, i, j) in enumerate(lead, start=len(rows)):
+            xu[n, k * problem.nu + i] = 1.0
+            if k == 0:
+                xt[n, j] = -1.0
+            else:
+                r = (k - 1) * nx + j
+                xt[n, :nx] = -problem.Phi[r]
+                xt[n, c0 : c0 + nx] = -problem.Psi[r]
+                xu[n] -= problem.Bbar[r]
         self.xb_aug = xt
-        self.xb_bbar = problem.Bbar[rows]
+        self.xb_bbar = xu
+        lead_max = np.array([problem.lead_max[i] for _, i, _ in lead])
         # the input polytope's rows per stage, P u_k <= p: bounded above only
         self.poly = np.kron(np.eye(N), problem.u_poly_P)
         self._poly_stage = np.ascontiguousarray(problem.u_poly_P)
         n_poly = self.poly.shape[0]
         lo = np.concatenate([np.tile(problem.u_min, N), np.tile(problem.x_min[bounded], N),
-                             np.full(n_poly, -np.inf)])
+                             -lead_max, np.full(n_poly, -np.inf)])
         hi = np.concatenate([np.tile(problem.u_max, N), np.tile(problem.x_max[bounded], N),
-                             np.tile(problem.u_poly_p, N)])
+                             lead_max, np.tile(problem.u_poly_p, N)])
         lo_f, hi_f = np.isfinite(lo), np.isfinite(hi)
         self.chk_rows = np.flatnonzero(lo_f | hi_f)
         lo, hi, lo_f = lo[self.chk_rows], hi[self.chk_rows], lo_f[self.chk_rows]
