@@ -31,7 +31,9 @@ control (observed on ArduCopter 4.7 / 4.8-dev SITL, see docs/DESIGN.md):
 * GUID_TIMEOUT (3 s) without setpoints: ArduCopter's guided angle control levels the vehicle
   (yaw kept) and holds altitude (climb rate 0), still in GUIDED — it does not hold position:
   in wind it drifts. New setpoints take control again;
-* LOITER and BRAKE hold, LAND lands, RTL (simplified) lands where it is.
+* LOITER and BRAKE hold position; LOITER's altitude follows the pilot's throttle stick
+  (``rc_throttle_norm``: SITL's simulated RC at the bottom descends at 2.5 m/s), BRAKE's
+  does not; LAND lands, RTL (simplified) lands where it is.
 """
 
 from __future__ import annotations
@@ -301,8 +303,23 @@ class ArduCopter(Autopilot):
 
     # ---- the periodic update ------------------------------------------------------------------
 
+    def pilot_climb_rate_m_s(self) -> float:
+        """The climb rate the pilot's throttle stick asks of LOITER (m/s, up positive):
+        none within the deadzone about mid stick, full PILOT_SPD_UP / _DN at the ends."""
+        ap = self.ardupilot
+        edge = 0.5 - ap.throttle_deadzone_norm
+        if ap.rc_throttle_norm < edge:
+            down = ap.pilot_speed_dn_m_s or ap.pilot_speed_up_m_s
+            return -down * (edge - ap.rc_throttle_norm) / edge
+        if ap.rc_throttle_norm > 1.0 - edge:
+            return ap.pilot_speed_up_m_s * (ap.rc_throttle_norm - (1.0 - edge)) / edge
+        return 0.0
+
     def update_outer(self, x: FloatArray, t_s: float, dt_s: float) -> None:
         self._outer_dt_s = dt_s
+        if self.number == LOITER and self.mode == HOLD and self.armed and not on_ground(x):
+            # ModeLoiter: the pilot's stick sets the climb rate (no pilot: the stick SITL has)
+            self._hold_pos_ned_m[2] -= self.pilot_climb_rate_m_s() * dt_s
         super().update_outer(x, t_s, dt_s)
         if self.mode != OFFBOARD:
             self._att_target = None  # shaping starts again from the attitude flown

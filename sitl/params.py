@@ -261,6 +261,14 @@ class ArduPilotParams:
     wp_speed_up_m_s: float = 2.5  # WP_SPD_UP (WPNAV_SPEED_UP before 4.7): climb at thrust 1
     wp_speed_dn_m_s: float = 1.5  # WP_SPD_DN: descent rate at thrust 0 (climb-rate mode)
     disarm_delay_s: float = 10.0  # DISARM_DELAY: armed on the ground, not flying
+    # The pilot's throttle stick (0..1; ArduCopter SITL's simulated RC sits at the bottom).
+    # LOITER's climb rate follows it (outside THR_DZ of mid stick) up to PILOT_SPD_UP /
+    # PILOT_SPD_DN (0: PILOT_SPD_UP's): at the bottom LOITER descends at 2.5 m/s, as the
+    # real SITL did (it hit the ground at 2.49 m/s). BRAKE ignores the sticks.
+    rc_throttle_norm: float = 0.0
+    throttle_deadzone_norm: float = 0.1  # THR_DZ (100 of 1000)
+    pilot_speed_up_m_s: float = 2.5  # PILOT_SPD_UP
+    pilot_speed_dn_m_s: float = 0.0  # PILOT_SPD_DN
     # No LOCAL_POSITION_NED until the EKF has an origin: ArduCopter 4.8-dev SITL took about
     # 36 s after boot (lockstep: vehicle time, so it costs a few seconds of wall clock)
     ekf_origin_after_boot_s: float = 36.0
@@ -302,7 +310,9 @@ class ArduPilotParams:
             loop_rate_hz=self.loop_rate_hz,
             disarm_delay_s=self.disarm_delay_s,
         )
+        _positive(pilot_speed_up_m_s=self.pilot_speed_up_m_s)
         _non_negative(
+            pilot_speed_dn_m_s=self.pilot_speed_dn_m_s,
             ekf_origin_after_boot_s=self.ekf_origin_after_boot_s,
             setpoint_delay_s=self.setpoint_delay_s,
             rate_input_delay_s=self.rate_input_delay_s,
@@ -322,6 +332,8 @@ class ArduPilotParams:
         for name in ("setpoint_delay_s", "rate_input_delay_s"):
             if getattr(self, name) > 0.5:
                 raise ValueError(f"{name} must be <= 0.5, got {getattr(self, name)}")
+        if not (0.0 <= self.rc_throttle_norm <= 1.0 and 0.0 <= self.throttle_deadzone_norm < 0.5):
+            raise ValueError("rc_throttle_norm must be in 0..1, throttle_deadzone_norm in 0..0.5")
         if not 0 <= self.guid_options < 2**16:
             raise ValueError(f"guid_options must be in 0..65535, got {self.guid_options}")
 

@@ -524,3 +524,21 @@ def test_climb_rate_scale_is_wp_spd_up_and_dn():
     names = dict(ap.parameters())
     assert (names["WP_SPD_UP"], names["WP_SPD_DN"]) == (2.5, 1.5)
     assert "PILOT_SPEED_UP" not in names
+
+
+def test_loiter_follows_the_pilots_stick_and_brake_holds_altitude():
+    """ModeLoiter's climb rate is the pilot's throttle stick's: ArduCopter SITL's simulated
+    RC sits at the bottom, and a real ArduCopter 4.8-dev SITL put in LOITER by the service's
+    hold descended at full PILOT_SPD_UP and hit the ground at 2.49 m/s 1.9 s later. BRAKE
+    holds position and altitude whatever the sticks say; mid stick, LOITER holds too."""
+    for number, stick, expect_m in ((LOITER, 0.0, -0.5), (BRAKE, 0.0, 0.0), (LOITER, 0.5, 0.0)):
+        sim, ap = airborne(altitude_m=3.0)
+        ap.ardupilot = dataclasses.replace(ap.ardupilot, rc_throttle_norm=stick)
+        z0_m = -float(sim.state[2])
+        assert ap.set_number(number, sim.time_s) == Result.ACCEPTED
+        fly(sim, 1.0)
+        change_m = -float(sim.state[2]) - z0_m
+        if expect_m < 0.0:
+            assert change_m < expect_m, (number, stick, change_m)  # descending
+        else:
+            assert abs(change_m) < 0.1, (number, stick, change_m)
