@@ -13,13 +13,17 @@ control (observed on ArduCopter 4.7 / 4.8-dev SITL, see docs/DESIGN.md):
   home in param7: a NaN is DENIED (the real SITL crashed on it);
 * SET_ATTITUDE_TARGET is obeyed only in GUIDED / GUIDED_NOGPS (and overrides a takeoff in
   progress, as ArduCopter's guided angle control does); body rates all three or none;
-* thrust: a CLIMB RATE by default (0.5 holds altitude; PILOT_SPEED_UP / _DN at 1 / 0), or
+* thrust: a CLIMB RATE by default (0.5 holds altitude; WP_SPD_UP / _DN at 1 / 0), or
   with GUID_OPTIONS bit 3 throttle, divided by the current tilt's cosine (angle boost);
-* every setpoint waits ``setpoint_delay_s`` (the link, the scheduler), then passes
-  ArduCopter's input shaping: body rates through a first-order filter (``rate_input_tc_s``)
-  with ATC_ACCEL_*_MAX limits, integrated into an attitude target; quaternions approached
-  with ATC_INPUT_TC. The achieved rate matches a body-rate command best about 200 ms later
-  at about 0.35 gain, as on ArduCopter 4.8-dev SITL;
+* every setpoint waits ``setpoint_delay_s`` (the main loop reads it), then passes
+  ArduCopter's input shaping: quaternions by its command model (AC_AttitudeControl's
+  input_quaternion: critically damped with ATC_INPUT_TC, acceleration and jerk bounded by
+  ATC_ACC_*_MAX, the shaped rate fed forward); body rates, as fitted to ArduCopter 4.8-dev
+  SITL's answer, a further ``rate_input_delay_s`` and a first-order filter
+  (``rate_input_tc_s``) with the ATC_ACC_*_MAX limits, integrated into an attitude target:
+  the achieved rate matches a body-rate command best about 200 ms later at about 0.35 gain;
+* arming in GUIDED refused until the EKF has a position ("PreArm: Need Position
+  Estimate"); armed, GUIDED, LOITER, BRAKE and RTL refused without one;
 * an extra HEARTBEAT the moment the mode changes; no LOCAL_POSITION_NED until the EKF has
   an origin (``ekf_origin_after_boot_s`` after boot);
 * GUIDED position targets flown by AC_PosControl: P on position, PID on velocity with
@@ -27,7 +31,9 @@ control (observed on ArduCopter 4.7 / 4.8-dev SITL, see docs/DESIGN.md):
 * GUID_TIMEOUT (3 s) without setpoints: ArduCopter's guided angle control levels the vehicle
   (yaw kept) and holds altitude (climb rate 0), still in GUIDED — it does not hold position:
   in wind it drifts. New setpoints take control again;
-* LOITER and BRAKE hold, LAND lands, RTL (simplified) lands where it is.
+* LOITER and BRAKE hold position; LOITER's altitude follows the pilot's throttle stick
+  (``rc_throttle_norm``: SITL's simulated RC at the bottom descends at 2.5 m/s), BRAKE's
+  does not; LAND lands, RTL (simplified) lands where it is.
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ import numpy as np
 from epc_offboard.common.arducopter import (  # the mode numbers the dialect reads too
     BRAKE,
     GUID_OPTIONS_THRUST_AS_THROTTLE,
+    GUIDED,
     GUIDED_MODES,
     LAND,
     LOITER,
@@ -64,6 +71,7 @@ from sitl.autopilot import (
     AttitudeSetpoint,
     Autopilot,
     LandedState,
+    PositionSetpoint,
     Result,
 )
 from sitl.params import ArduPilotParams, AutopilotParams, VehicleParams
@@ -71,6 +79,59 @@ from sitl.physics import POS, QUAT, VEL, on_ground
 
 _RATES = IGNORE_ROLL_RATE | IGNORE_PITCH_RATE | IGNORE_YAW_RATE
 _IMAX_M_S2 = 10.0  # PSC_VELXY_IMAX (1000 cm/s^2): the velocity integral's share, bounded
+_NEEDS_POSITION = frozenset({GUIDED, LOITER, BRAKE, RTL})  # Mode::requires_position()
+
+
+def shaped_rate(error: float, gain_1_s: float, accel_max: float, dt_s: float) -> float:
+    """The rate that closes ``error``: ``gain`` x error near zero and, past the error where
+    that rate needs more than ``accel_max`` to stop in time, the rate that brakes to the
+    target at ``accel_max`` (the two meet with equal value and slope); never more than
+    closes the error in one step. ArduPilot's square-root controller."""
+    linear_m = accel_max / (gain_1_s * gain_1_s)
+    size = abs(error)
+    if size > linear_m:
+        rate = math.sqrt(2.0 * accel_max * (size - 0.5 * linear_m))
+    else:
+        rate = gain_1_s * size
+    return math.copysign(min(rate, size / dt_s), error)
+
+
+def command_model(
+    error: float,
+    rate_in: float,
+    state: tuple[float, float],
+    accel_max: float,
+    tc_s: float,
+    dt_s: float,
+) -> tuple[float, float]:
+    """One axis of ArduCopter's attitude input shaping (AC_AttitudeControl's command model):
+    the target's angular rate and acceleration ``state`` (rad/s, rad/s^2) move to close the
+    angle ``error`` (rad, target to desired) and follow ``rate_in`` (rad/s) with time
+    constant ``tc_s``: the rate asked is the shaped error rate less the rate already closing
+    it (a critically damped approach, both poles at -1/tc), the acceleration towards it
+    bounded by ``accel_max`` and its change by accel_max / tc. Returns the new state."""
+    rate, accel = state
+    gain_1_s = 1.0 / tc_s
+    closing = shaped_rate(error, gain_1_s, accel_max, dt_s)
+    moving = rate - rate_in
+    if closing * moving > 0.0:  # already moving towards the target: brake in time
+        linear = abs(error) <= accel_max * tc_s * tc_s
+        closing -= moving if linear else accel_max * tc_s * moving / abs(closing)
+    accel_target = min(max((rate_in + closing - rate) * gain_1_s, -accel_max), accel_max)
+    jerk = accel_max * gain_1_s * dt_s
+    accel += min(max(accel_target - accel, -jerk), jerk)
+    return rate + accel * dt_s, accel
+
+
+def rotation_vector(q_wxyz: FloatArray) -> FloatArray:
+    """The rotation of a unit quaternion (4,) as axis x angle (3,) rad, the short way."""
+    w, v = float(q_wxyz[0]), np.asarray(q_wxyz[1:], dtype=np.float64)
+    if w < 0.0:
+        w, v = -w, -v
+    norm = float(np.linalg.norm(v))
+    if norm < 1e-12:
+        return 2.0 * v
+    return (2.0 * math.atan2(norm, w) / norm) * v
 
 
 class ArduCopter(Autopilot):
@@ -101,7 +162,6 @@ class ArduCopter(Autopilot):
             ),
         )
         self.ardupilot = ardupilot
-        self._setpoint_delay_s = ardupilot.setpoint_delay_s
         self.number = STABILIZE  # the mode number the heartbeat shows
         self.rtl_count = 0  # RTLs entered: a client that meant something else
         self.ignored_setpoints = 0  # outside GUIDED, or rates neither all nor none
@@ -109,7 +169,8 @@ class ArduCopter(Autopilot):
         self._hover_throttle = vehicle.hover_thrust_norm  # MOT_THST_HOVER
         self._outer_dt_s = 0.005
         self._att_target: FloatArray | None = None  # the shaped attitude target
-        self._shaped_rate = np.zeros(3)
+        self._shaped_rate = np.zeros(3)  # its angular rate (FRD, rad/s)
+        self._shaped_accel = [0.0, 0.0, 0.0]  # and acceleration (rad/s^2), quaternion shaping
         self._climb_integral = 0.0  # m: the climb-rate loop's integral (GUID_OPTIONS 0)
         self._acc_target = np.zeros(3)  # the jerk-limited acceleration target, m/s^2
         self._vel_err_prev: FloatArray | None = None
@@ -146,8 +207,10 @@ class ArduCopter(Autopilot):
             ("GUID_OPTIONS", float(ap.guid_options)),
             ("GUID_TIMEOUT", ap.guid_timeout_s),
             ("MOT_THST_HOVER", self._hover_throttle),
-            ("PILOT_SPEED_DN", ap.pilot_speed_dn_m_s * 100.0),  # cm/s, as ArduPilot's
-            ("PILOT_SPEED_UP", ap.pilot_speed_up_m_s * 100.0),
+            ("PILOT_Y_RATE_TC", ap.yaw_rate_tc_s),
+            ("SCHED_LOOP_RATE", ap.loop_rate_hz),
+            ("WP_SPD_DN", ap.wp_speed_dn_m_s),  # m/s (4.8; WPNAV_SPEED_DN in cm/s before)
+            ("WP_SPD_UP", ap.wp_speed_up_m_s),
         ]
 
     def set_parameter(self, name: str, value: float) -> bool:
@@ -174,8 +237,17 @@ class ArduCopter(Autopilot):
     # ---- modes and commands -------------------------------------------------------------------
 
     def set_number(self, number: int, t_s: float) -> Result:
-        """Select ArduCopter mode ``number``."""
+        """Select ArduCopter mode ``number``. Armed, a mode that needs a position (GUIDED,
+        LOITER, BRAKE, RTL) is refused until the EKF has one; disarmed, any mode is set (the
+        arming checks judge it then), as Copter::set_mode does."""
         airborne = self.landed_state != LandedState.ON_GROUND
+        if (
+            self.armed
+            and number in _NEEDS_POSITION
+            and number != self.number
+            and not self.has_position(t_s)
+        ):
+            return self._refuse(f"Mode change to {number} failed: requires position")
         if number in GUIDED_MODES:
             if self.number not in GUIDED_MODES:
                 self._capture_hold()
@@ -207,10 +279,19 @@ class ArduCopter(Autopilot):
     def arm(self, arm: bool, t_s: float, force: bool = False) -> Result:
         if arm and not self.armed and self.number not in GUIDED_MODES:
             return self._refuse("Arm: select GUIDED first (no takeoff from this mode)")
+        if arm and not self.armed and self.number in _NEEDS_POSITION and not self.has_position(t_s):
+            # AP_Arming_Copter's mandatory position check, for a mode that needs a position
+            return self._refuse("PreArm: Need Position Estimate")
         result = super().arm(arm, t_s, force)
         if arm and result == Result.ACCEPTED and self.number in GUIDED_MODES:
             self.mode, self.intended_mode = HOLD, OFFBOARD
         return result
+
+    def _delay_of(self, sp: AttitudeSetpoint | PositionSetpoint) -> float:
+        """Every setpoint waits for the main loop to read it; body rates longer (the fit)."""
+        ap = self.ardupilot
+        body_rates = isinstance(sp, AttitudeSetpoint) and sp.type_mask & IGNORE_ATTITUDE
+        return ap.setpoint_delay_s + (ap.rate_input_delay_s if body_rates else 0.0)
 
     def on_attitude_setpoint(self, sp: AttitudeSetpoint, t_s: float) -> None:
         rates_ignored = sp.type_mask & _RATES
@@ -223,12 +304,28 @@ class ArduCopter(Autopilot):
 
     # ---- the periodic update ------------------------------------------------------------------
 
+    def pilot_climb_rate_m_s(self) -> float:
+        """The climb rate the pilot's throttle stick asks of LOITER (m/s, up positive):
+        none within the deadzone about mid stick, full PILOT_SPD_UP / _DN at the ends."""
+        ap = self.ardupilot
+        edge = 0.5 - ap.throttle_deadzone_norm
+        if ap.rc_throttle_norm < edge:
+            down = ap.pilot_speed_dn_m_s or ap.pilot_speed_up_m_s
+            return -down * (edge - ap.rc_throttle_norm) / edge
+        if ap.rc_throttle_norm > 1.0 - edge:
+            return ap.pilot_speed_up_m_s * (ap.rc_throttle_norm - (1.0 - edge)) / edge
+        return 0.0
+
     def update_outer(self, x: FloatArray, t_s: float, dt_s: float) -> None:
         self._outer_dt_s = dt_s
+        if self.number == LOITER and self.mode == HOLD and self.armed and not on_ground(x):
+            # ModeLoiter: the pilot's stick sets the climb rate (no pilot: the stick SITL has)
+            self._hold_pos_ned_m[2] -= self.pilot_climb_rate_m_s() * dt_s
         super().update_outer(x, t_s, dt_s)
         if self.mode != OFFBOARD:
             self._att_target = None  # shaping starts again from the attitude flown
             self._shaped_rate[:] = 0.0
+            self._shaped_accel = [0.0, 0.0, 0.0]
             self._climb_integral = 0.0
 
     def _supervise(self, x: FloatArray, t_s: float) -> None:
@@ -254,7 +351,6 @@ class ArduCopter(Autopilot):
     ) -> tuple[FloatArray, FloatArray, float]:
         """ArduCopter's input shaping, then its attitude controller; thrust as it reads it."""
         q = x[QUAT]
-        alpha = min(1.0, self._outer_dt_s / self.ardupilot.input_tc_s)
         target = q.copy() if self._att_target is None else self._att_target
         if sp.type_mask & IGNORE_ATTITUDE:
             # body rates: filtered, their change limited to ATC_ACCEL_*_MAX, integrated into
@@ -263,23 +359,43 @@ class ArduCopter(Autopilot):
             step = alpha_rate * (np.asarray(sp.rate_frd_rad_s) - self._shaped_rate)
             limit = self._outer_dt_s * np.asarray(self.ardupilot.accel_max_frd_rad_s2)
             self._shaped_rate += np.clip(step, -limit, limit)
-            half = 0.5 * self._outer_dt_s * self._shaped_rate
-            target = quat_normalize(quat_multiply(target, np.array([1.0, *half])))
+            target = self._turned(target, self._shaped_rate)
             rate = self._shaped_rate + self._attitude_control(q, target)
         else:
-            # a quaternion: the target approaches it with time constant ATC_INPUT_TC, and its
-            # rotation rate is fed forward (ATC_RATE_FF_ENAB, on by default) to the rate loop
-            q_sp = np.asarray(sp.q_wxyz)
-            if float(target @ q_sp) < 0.0:
-                q_sp = -q_sp
-            previous = target
-            target = quat_normalize(previous + alpha * (q_sp - previous))
-            step = quat_multiply(quat_conjugate(previous), target)
-            feedforward = (2.0 / self._outer_dt_s) * (step[1:] if step[0] >= 0.0 else -step[1:])
-            rate = feedforward + self._attitude_control(q, target)
+            # a quaternion (AC_AttitudeControl::input_quaternion): the target turns on at its
+            # shaped rate, which the command model moves to close the error to the quaternion
+            # asked (ATC_INPUT_TC on roll and pitch, PILOT_Y_RATE_TC on yaw: a critically
+            # damped approach, not a first-order one), and that rate is fed forward
+            # (ATC_RATE_FF_ENAB, on by default) to the rate loop
+            target = self._turned(target, self._shaped_rate)
+            error = rotation_vector(quat_multiply(quat_conjugate(target), np.asarray(sp.q_wxyz)))
+            self._shape_towards(error)
+            rate = self._shaped_rate + self._attitude_control(q, target)
         self._att_target = target
         lim = np.asarray(self.params.rate_max_rad_s)
         return target, np.clip(rate, -lim, lim), self._thrust(x, sp.thrust_norm)
+
+    def _turned(self, target: FloatArray, rate_frd_rad_s: FloatArray) -> FloatArray:
+        """The attitude target (4,) turned on by a body rate (3,) over one tick."""
+        half = 0.5 * self._outer_dt_s * rate_frd_rad_s
+        return quat_normalize(quat_multiply(target, np.array([1.0, *half])))
+
+    def _shape_towards(self, error_frd_rad: FloatArray) -> None:
+        """The command model on each axis, the target's rate and acceleration updated."""
+        ap = self.ardupilot
+        loop_tc_s = 10.0 / ap.loop_rate_hz  # a time constant of 0: ten main-loop periods
+        yaw_tc_s = ap.yaw_rate_tc_s if ap.yaw_rate_tc_s > 0.0 else loop_tc_s
+        for axis, tc_s in enumerate((ap.input_tc_s, ap.input_tc_s, yaw_tc_s)):
+            wrapped = math.remainder(float(error_frd_rad[axis]), math.tau)
+            rate, self._shaped_accel[axis] = command_model(
+                wrapped,
+                0.0,
+                (float(self._shaped_rate[axis]), self._shaped_accel[axis]),
+                ap.accel_max_frd_rad_s2[axis],
+                tc_s,
+                self._outer_dt_s,
+            )
+            self._shaped_rate[axis] = rate
 
     def _acceleration_command(
         self,
@@ -326,9 +442,9 @@ class ArduCopter(Autopilot):
         if as_throttle and not self._timed_out:
             # throttle plus ArduCopter's angle boost (1 / cos of the tilt, floored at 0.1)
             return min(1.0, thrust / min(max(cos_tilt, 0.1), 1.0))
-        # a climb rate: 0.5 holds altitude, 1 climbs at PILOT_SPEED_UP, 0 sinks at _DN
+        # a climb rate: 0.5 holds altitude, 1 climbs at WP_SPD_UP, 0 sinks at WP_SPD_DN
         ap = self.ardupilot
-        speed = ap.pilot_speed_up_m_s if thrust >= 0.5 else ap.pilot_speed_dn_m_s
+        speed = ap.wp_speed_up_m_s if thrust >= 0.5 else ap.wp_speed_dn_m_s
         climb_m_s = (thrust - 0.5) * 2.0 * speed
         if on_ground(x) and climb_m_s <= 0.0:
             return 0.0

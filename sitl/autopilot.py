@@ -338,10 +338,18 @@ class Autopilot:
         """A setpoint arrived: the stream counts at once (PX4's commander sees the offboard
         signal on receipt), the controllers see its value ``_setpoint_delay_s`` later."""
         self._setpoint_times_s.append(t_s)
-        if self._setpoint_delay_s <= 0.0:
+        delay_s = self._delay_of(sp)
+        if delay_s <= 0.0 and not self._in_transit:
             self._apply_setpoint(sp)
         else:
-            self._in_transit.append((t_s + self._setpoint_delay_s, sp))
+            # in arrival order: a setpoint never overtakes one that waits longer
+            due_s = t_s + delay_s
+            self._in_transit.append((max(due_s, self._in_transit[-1][0]) if self._in_transit
+                                     else due_s, sp))  # fmt: skip
+
+    def _delay_of(self, sp: AttitudeSetpoint | PositionSetpoint) -> float:
+        """How long ``sp`` waits before the controllers see it (PX4: every setpoint alike)."""
+        return self._setpoint_delay_s
 
     def _deliver_setpoints(self, t_s: float) -> None:
         """Hand the controllers every setpoint whose delay has passed, in arrival order."""

@@ -90,7 +90,7 @@ def test_ardupilot_every_intent():
     assert apm.ARDUPILOT.encode(Action.TAKEOFF, TARGET).params[6] == 2.5  # no position needed
     for action, number in (
         (Action.REQUEST_OFFBOARD, 4),  # GUIDED — never PX4's (1, 6, 0), which is RTL here
-        (Action.REQUEST_HOLD, 5),  # LOITER
+        (Action.REQUEST_HOLD, 17),  # BRAKE: LOITER's altitude is the pilot's stick
         (Action.LAND, 9),
     ):
         cmd = apm.ARDUPILOT.encode(action)
@@ -182,12 +182,12 @@ def test_ardupilot_ritual_guided_before_arming_then_one_takeoff():
     out = _step(sm, 4.0, ap_hb(4.0, armed=True, mode=arducopter.RTL), alt=2.5)
     assert out.phase == Phase.PILOT
     assert out.actions == ()
-    # stale state in GUIDED: hold is LOITER
+    # stale state in GUIDED: hold is BRAKE (LOITER's altitude follows the pilot's stick)
     _step(sm, 5.0, ap_hb(5.0, armed=True, mode=arducopter.GUIDED), alt=2.5)
     out = _step(sm, 5.1, ap_hb(5.0, armed=True, mode=arducopter.GUIDED), alt=2.5, age=1.0)
     assert out.phase == Phase.FAILSAFE
     assert out.actions == (Action.REQUEST_HOLD,)
-    assert apm.ARDUPILOT.encode(out.actions[0]).params[1] == arducopter.LOITER
+    assert apm.ARDUPILOT.encode(out.actions[0]).params[1] == arducopter.BRAKE
     assert sm.takeoffs_sent == 1
 
 

@@ -9,7 +9,7 @@ What ArduCopter does (4.7 / 4.8-dev SITL, default copter parameters; see docs/DE
   parameter 0. A takeoff of NaNs crashed the SITL (floating point exception), so nothing here
   ever sends a NaN: every parameter is finite or the intent is not encoded;
 * offboard = GUIDED (SET_ATTITUDE_TARGET is obeyed only in GUIDED / GUIDED_NOGPS),
-  hold = LOITER (BRAKE also reads as a hold), land = LAND;
+  hold = BRAKE (LOITER also reads as a hold: its altitude is the pilot's stick), land = LAND;
 * thrust: with GUID_OPTIONS bit 3 (8) SET_ATTITUDE_TARGET's thrust is throttle, to which
   ArduCopter adds its own angle boost (it divides by the cosine of the tilt); without it the
   thrust is a CLIMB RATE (0.5 holds altitude). The service divides by the tilt's cosine
@@ -86,7 +86,11 @@ def encode(
     if action == Action.REQUEST_OFFBOARD:
         return set_custom_mode(GUIDED)
     if action == Action.REQUEST_HOLD:
-        return set_custom_mode(LOITER)
+        # BRAKE, not LOITER: LOITER's altitude follows the pilot's throttle stick, and with
+        # none (ArduCopter SITL's simulated RC sits at the bottom) it descended at 2.5 m/s
+        # and hit the ground 2 s after a hold; BRAKE holds position and altitude whatever
+        # the sticks say. A pilot still takes over with the mode switch.
+        return set_custom_mode(BRAKE)
     if action == Action.LAND:
         return set_custom_mode(LAND)
     raise EncodeError(f"no ArduPilot command for {action}")

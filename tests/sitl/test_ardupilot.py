@@ -10,9 +10,17 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.common.arducopter import BRAKE, GUIDED, LAND, LOITER, RTL, STABILIZE
+from epc_offboard.common.arducopter import (
+    BRAKE,
+    GUIDED,
+    GUIDED_NOGPS,
+    LAND,
+    LOITER,
+    RTL,
+    STABILIZE,
+)
 from epc_offboard.common.frames import quat_to_euler
-from sitl.ardupilot import ArduCopter
+from sitl.ardupilot import ArduCopter, command_model
 from sitl.autopilot import (
     HOLD,
     IGNORE_ATTITUDE,
@@ -31,11 +39,14 @@ LEVEL = (1.0, 0.0, 0.0, 0.0)
 PX4_CFG = load_sim_config()
 
 
-def config(guid_options: int = 0):
+def config(guid_options: int = 0, ekf_origin_s: float = 0.0):
+    """The personality, its EKF origin at ``ekf_origin_s`` (at boot by default: arming in
+    GUIDED needs it)."""
     cfg = load_sim_config(None, {"sitl": {"autopilot": "ardupilot"}})
-    return dataclasses.replace(
-        cfg, ardupilot=dataclasses.replace(cfg.ardupilot, guid_options=guid_options)
+    ardupilot = dataclasses.replace(
+        cfg.ardupilot, guid_options=guid_options, ekf_origin_after_boot_s=ekf_origin_s
     )
+    return dataclasses.replace(cfg, ardupilot=ardupilot)
 
 
 def sim_ap(guid_options: int = 0) -> tuple[Simulation, ArduCopter]:
@@ -171,13 +182,8 @@ def test_land_loiter_and_disarm_on_touchdown():
 # -- the endpoint with the ArduCopter personality -------------------------------------------
 
 
-def make(guid_options: int = 0, ekf_origin_s: float | None = None):
-    cfg = config(guid_options)
-    if ekf_origin_s is not None:
-        cfg = dataclasses.replace(
-            cfg, ardupilot=dataclasses.replace(cfg.ardupilot, ekf_origin_after_boot_s=ekf_origin_s)
-        )
-    sim = Simulation(cfg, seed=0)
+def make(guid_options: int = 0, ekf_origin_s: float = 0.0):
+    sim = Simulation(config(guid_options, ekf_origin_s), seed=0)
     ep = SitlEndpoint(sim, 1, [TELEMETRY], Counters())
     transport = RecordingTransport()
     ep.connection_made(transport)  # type: ignore[arg-type]
@@ -258,7 +264,7 @@ def test_px4_sends_no_extra_heartbeat_on_a_mode_change():
 
 
 def test_no_local_position_until_the_ekf_has_an_origin():
-    assert config().ardupilot.ekf_origin_after_boot_s == 36.0  # ArduCopter 4.8-dev SITL
+    assert load_sim_config().ardupilot.ekf_origin_after_boot_s == 36.0  # ArduCopter 4.8-dev
     sim, ep, transport = make(ekf_origin_s=1.0)
     peer = Peer()
     ask(ep, peer, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
@@ -446,3 +452,93 @@ def test_guided_position_control_flies_the_circle_as_accurately_as_arducopter():
             errors_m.append(float(np.linalg.norm(sim.state[0:3] - pos)))
     rmse_m = math.sqrt(float(np.mean(np.square(errors_m))))
     assert rmse_m < 0.14
+
+
+def test_a_quaternion_is_approached_critically_damped_as_input_quaternion_shapes_it():
+    """AC_AttitudeControl::input_quaternion shapes the error to the quaternion asked with its
+    command model: the rate asked is the error over ATC_INPUT_TC less the rate already
+    closing it, the acceleration towards it jerk-limited. Both poles at -1/tc: half of a
+    small step after 1.68 tc (0.25 s at 0.15 s), not a first-order lag's 0.69 tc (0.10 s; the
+    personality was one). Setpoints wait only for the main loop (not body rates' 55 ms)."""
+    sim, ap = airborne()
+    hover = sim.config.vehicle.hover_thrust_norm
+    fly(sim, 1.0, sp(thrust=hover))
+    step_rad = 0.1
+    q = (math.cos(step_rad / 2), math.sin(step_rad / 2), 0.0, 0.0)
+    t0_s = sim.time_s
+    rolls = []
+    for _ in range(200):  # 1 s at 200 Hz
+        ap.on_attitude_setpoint(sp(thrust=hover, q=q), sim.time_s)
+        sim.advance_tick()
+        rolls.append((sim.time_s - t0_s, quat_to_euler(sim.last_command.q_cmd_wxyz)[0]))
+    half_s = next(t for t, roll in rolls if roll >= step_rad / 2)
+    assert 0.22 <= half_s <= 0.30
+    assert max(roll for _, roll in rolls) <= step_rad * 1.01  # critically damped: no overshoot
+    assert rolls[-1][1] == pytest.approx(step_rad, abs=0.01)
+
+
+def test_the_command_model_is_critically_damped_and_bounded():
+    """The shaping alone: a 0.1 rad step closes as 1 - (1 + t/tc) e^(-t/tc) while linear; a
+    large one is bounded by ATC_ACC_R_MAX, its acceleration's change by that over tc."""
+    dt_s, tc_s, accel_max = 0.0025, 0.15, 19.2
+    target, state = 0.0, (0.0, 0.0)
+    for _ in range(round(0.3 / dt_s)):
+        state = command_model(0.1 - target, 0.0, state, accel_max, tc_s, dt_s)
+        target += state[0] * dt_s
+    ideal = 1.0 - (1.0 + 0.3 / tc_s) * math.exp(-0.3 / tc_s)  # 0.594
+    assert target / 0.1 == pytest.approx(ideal, abs=0.06)
+    state, jerks, accels = (0.0, 0.0), [], []
+    for _ in range(40):
+        before = state[1]
+        state = command_model(1.5, 0.0, state, accel_max, tc_s, dt_s)
+        jerks.append(abs(state[1] - before) / dt_s)
+        accels.append(abs(state[1]))
+    assert max(accels) <= accel_max + 1e-9
+    assert max(jerks) <= accel_max / tc_s + 1e-6
+
+
+def test_arming_in_guided_and_armed_position_modes_wait_for_the_ekf_origin():
+    """AP_Arming_Copter's mandatory position check: GUIDED needs a position, so arming is
+    refused until the EKF has an origin (GUIDED_NOGPS does not need one); armed, GUIDED,
+    LOITER, BRAKE and RTL are refused without a position, LAND is not."""
+    sim = Simulation(config(ekf_origin_s=2.0), seed=0)
+    ap = sim.autopilot
+    assert isinstance(ap, ArduCopter)
+    assert ap.set_number(GUIDED, 0.0) == Result.ACCEPTED  # disarmed: any mode
+    assert ap.arm(True, 0.0) == Result.DENIED
+    assert ap.status_text == "PreArm: Need Position Estimate"
+    assert ap.set_number(GUIDED_NOGPS, 0.0) == Result.ACCEPTED
+    assert ap.arm(True, 0.0) == Result.ACCEPTED
+    for number in (GUIDED, LOITER, BRAKE, RTL):
+        assert ap.set_number(number, 1.0) == Result.DENIED
+        assert ap.number == GUIDED_NOGPS
+    assert ap.set_number(GUIDED, 2.0) == Result.ACCEPTED  # the origin: a position
+    assert ap.arm(False, 2.0) == Result.ACCEPTED
+    assert ap.arm(True, 2.0) == Result.ACCEPTED
+
+
+def test_climb_rate_scale_is_wp_spd_up_and_dn():
+    """SET_ATTITUDE_TARGET's thrust as a climb rate is scaled by WP_SPD_UP / WP_SPD_DN (the
+    waypoint navigator's default speeds), which the personality names and lets be set."""
+    _sim, ap = sim_ap()
+    names = dict(ap.parameters())
+    assert (names["WP_SPD_UP"], names["WP_SPD_DN"]) == (2.5, 1.5)
+    assert "PILOT_SPEED_UP" not in names
+
+
+def test_loiter_follows_the_pilots_stick_and_brake_holds_altitude():
+    """ModeLoiter's climb rate is the pilot's throttle stick's: ArduCopter SITL's simulated
+    RC sits at the bottom, and a real ArduCopter 4.8-dev SITL put in LOITER by the service's
+    hold descended at full PILOT_SPD_UP and hit the ground at 2.49 m/s 1.9 s later. BRAKE
+    holds position and altitude whatever the sticks say; mid stick, LOITER holds too."""
+    for number, stick, expect_m in ((LOITER, 0.0, -0.5), (BRAKE, 0.0, 0.0), (LOITER, 0.5, 0.0)):
+        sim, ap = airborne(altitude_m=3.0)
+        ap.ardupilot = dataclasses.replace(ap.ardupilot, rc_throttle_norm=stick)
+        z0_m = -float(sim.state[2])
+        assert ap.set_number(number, sim.time_s) == Result.ACCEPTED
+        fly(sim, 1.0)
+        change_m = -float(sim.state[2]) - z0_m
+        if expect_m < 0.0:
+            assert change_m < expect_m, (number, stick, change_m)  # descending
+        else:
+            assert abs(change_m) < 0.1, (number, stick, change_m)

@@ -151,7 +151,9 @@ def test_ardupilot_body_rates_match_best_200_ms_later_at_a_third_of_the_command(
     """ArduCopter 4.8-dev SITL: the achieved rate matched the command best 190-210 ms later,
     at about 0.35 gain (input shaping). Measured on a 0.6-2.9 Hz multi-sine of roll rate,
     the band a body-rate loop works in, sent every 5 ms tick."""
-    config = load_sim_config(None, {"sitl": {"autopilot": "ardupilot"}})
+    config = load_sim_config(
+        None, {"sitl": {"autopilot": "ardupilot"}, "ardupilot": {"ekf_origin_after_boot_s": 0.0}}
+    )
     sim = Simulation(config, seed=0)
     ap = sim.autopilot
     assert isinstance(ap, ArduCopter)
