@@ -103,21 +103,43 @@ def _lock(name: str) -> Iterator[None]:
         yield
 
 
-# The longest modules first: on two xdist workers (--dist loadfile, modules handed out in
-# collection order) a long module collected last ran alone at the end while the other worker
-# idled (the scenarios' compare flights: a minute). Measured on the suite's own durations.
+# The order the two xdist workers take the modules in: --dist loadfile hands them out in
+# collection order (pyproject's addopts pass --no-loadscope-reorder: by default xdist re-sorts
+# them by their number of tests, which undid this order and put the one-test real-time
+# flights last, strewn among the long lockstep modules).
+# 1. The modules of the ALONE groups, back to back. While one worker flies one alone, the
+#    other waits for the lock holding nothing. Strewn among the lockstep modules, each of
+#    them first waited for the other worker's current test to end (a lockstep flight of up
+#    to 40 s) with its own core idle: replayed through xdist's hand-out and this lock, the
+#    suite's measured test times gave the workers 86 s less idle time this way.
+# 2. A module of many short tests (AFTER_ALONE): the worker that leaves the alone block first
+#    then holds nothing long while the other flies the block's last test.
+# 3. The longest modules first, so that neither worker ends on one while the other idles
+#    (the scenarios' compare flights, collected last, once took a minute alone); the light
+#    unit modules fill in at the end. Ranked by the suite's own module times (issue 22).
+AFTER_ALONE = ("test_layers",)
 SLOW_FIRST = (
-    "test_entry_e2e", "test_scenarios", "test_sim_truth_e2e", "test_service_e2e",
-    "test_ardupilot_e2e", "test_neuralfly_e2e", "test_wheel_install", "test_daemon",
-    "test_sharing_e2e", "test_bench", "test_soak", "test_attack_e2e", "test_fuzz_e2e",
-    "test_flood_e2e", "test_px4_faults_e2e", "test_lockstep_determinism",
+    "test_entry_e2e", "test_scenarios", "test_sim_truth_e2e", "test_service_e2e", "test_bench",
+    "test_wheel_install", "test_fleet_trust", "test_sharing_e2e", "test_ardupilot_e2e",
+    "test_flight_logs_e2e", "test_sharing", "test_fleet_rejoin", "test_miss_solver",
+    "test_cascade", "test_attitude_delay_e2e", "test_neuralfly_e2e", "test_lwpr", "test_daemon",
 )
 
 
+def _alone(item: pytest.Item) -> bool:
+    mark = item.get_closest_marker("one_at_a_time")
+    return mark is not None and mark.args[0] in ALONE
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    alone = {item.path for item in items if _alone(item)}
     rank = {name: k for k, name in enumerate(SLOW_FIRST)}
 
-    def key(item: pytest.Item) -> int:
-        return rank.get(item.path.stem, len(rank))
+    def key(item: pytest.Item) -> tuple[int, int]:
+        if item.path in alone:
+            return (0, 0)
+        if item.path.stem in AFTER_ALONE:
+            return (1, 0)
+        return (2, rank.get(item.path.stem, len(rank)))
 
     items.sort(key=key)  # stable: a module's tests keep their order

@@ -165,18 +165,24 @@ def _check_tlog(path: Path, service_sysid: int, truth: dict[str, list[float]], r
 
 
 def run_soak(
-    out: Path, duration_s: float, seed: int = 0, attitude_mode: str = "autopilot"
+    out: Path,
+    duration_s: float,
+    seed: int = 0,
+    attitude_mode: str = "autopilot",
+    land_at_end: bool = True,
 ) -> SoakResult:
     """Fly a circle for ``duration_s`` of faults (plus recovery and landing) in real time.
 
     ``attitude_mode``: as config/default.toml flies a real vehicle ("autopilot": quaternion
     + thrust), or "epc" (body rates), which no companion that can stall for longer than a
-    few ticks should fly: PX4 holds the last body-rate setpoint until COM_OF_LOSS_T."""
+    few ticks should fly: PX4 holds the last body-rate setpoint until COM_OF_LOSS_T.
+    ``land_at_end`` False: the mission ends holding and the service exits (the autopilot's
+    landing, 9 s of real time, judges none of the invariants)."""
     rng = random.Random(seed)
     result = SoakResult(duration_s, seed, faults=dict.fromkeys(FAULTS, 0))
     overrides = {
         # the mission outlasts the faults by _MARGIN_S: offboard must be regained by then
-        "mission": {"duration_s": duration_s + _MARGIN_S, "land_at_end": True},
+        "mission": {"duration_s": duration_s + _MARGIN_S, "land_at_end": land_at_end},
         "trajectory": {"shape": "circle", "radius_m": 1.5, "period_s": 8.0},
         "log": {"tlog_path": str(out / "session.tlog")},
         "attitude": {"mode": attitude_mode},

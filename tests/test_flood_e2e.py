@@ -64,9 +64,11 @@ def flood(
 
 
 def hover_overrides(port: int, fleet: str, mission_s: float) -> dict[str, Any]:
-    """A hover of ``mission_s`` in offboard, then a landing; sharing on ``port``."""
+    """A hover of ``mission_s`` in offboard, then a hold, and the service exits (the
+    autopilot's landing judged nothing in these tests and cost 9 s of real time each);
+    sharing on ``port``."""
     return {
-        "mission": {"duration_s": mission_s, "land_at_end": True},
+        "mission": {"duration_s": mission_s, "land_at_end": False},
         "trajectory": {"shape": "hover"},
         "sharing": {
             "enabled": True, "fleet": fleet, "vehicle_id": "victim",

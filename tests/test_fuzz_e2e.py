@@ -52,7 +52,9 @@ def _fuzz(port: int) -> dict[str, float]:
 
 def test_a_mavlink_fuzz_neither_stalls_the_loops_nor_costs_offboard(tmp_path):
     overrides = {
-        "mission": {"duration_s": SETTLE_S + FUZZ_S + 4.0, "land_at_end": True},
+        # the mission ends holding, and the service exits: the autopilot's landing after
+        # the fuzz judged nothing here and cost the suite 9 s of real time
+        "mission": {"duration_s": SETTLE_S + FUZZ_S + 4.0, "land_at_end": False},
         "trajectory": {"shape": "hover"},
     }
     with Rig(tmp_path, lockstep=False, speedup=1.0, service_overrides=overrides) as rig:

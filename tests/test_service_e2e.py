@@ -27,6 +27,7 @@ from epc_offboard.vehicle.dialect_px4 import (
     px4_custom_mode,
 )
 from tests.rig import Rig
+from tests.test_coldstart_e2e import HOVER
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -259,3 +260,14 @@ def test_sigterm_to_sim_stops_every_process_it_started(tmp_path, sig):
             proc.kill()
         for pid in children():
             os.kill(pid, signal.SIGKILL)
+
+
+def test_compiled_kernels_never_compile_on_the_control_loop(tmp_path):
+    """With compiled kernels (warmed before READY) a flight adds no compiled signature: the
+    first use of every kernel on the loop found it compiled. (Lockstep: it runs beside other
+    tests; its cold twin, in real time, is tests/test_coldstart_e2e.py.)"""
+    with Rig(tmp_path, service_overrides=HOVER, service_env={"EPC_OFFBOARD_JIT": "1"}) as rig:
+        assert rig.wait_exit(timeout_s=180) == 0, rig.log()
+    kernels = rig.stats()["kernels"]
+    assert kernels["mode"] == "compiled"
+    assert kernels["signatures"] == kernels["signatures_after_warm_up"] > 0

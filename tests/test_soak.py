@@ -16,7 +16,9 @@ pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("cpu-hogs")]
 
 
 def test_random_faults_never_cause_a_takeoff_in_the_air_a_nan_or_a_lockout(tmp_path):
-    result = run_soak(tmp_path, duration_s=16.0, seed=3)
+    # ends holding: the autopilot's landing (9 s of real time with the machine's lock held)
+    # judges none of the invariants; the full form lands
+    result = run_soak(tmp_path, duration_s=16.0, seed=3, land_at_end=False)
     assert sum(result.faults.values()) >= 3, result.faults
     assert len([f for f in FAULTS if result.faults[f]]) >= 2, result.faults
     assert result.setpoints > 500
