@@ -78,9 +78,9 @@ def test_the_window_starts_at_the_dead_time():
 
 
 def test_defaults_per_autopilot_and_mode():
-    assert default_command_dead_time_s("px4", "autopilot") == pytest.approx(0.15)
+    assert default_command_dead_time_s("px4", "autopilot") == pytest.approx(0.25)
     assert default_command_dead_time_s("px4", "epc") == 0.0
-    assert default_command_dead_time_s("auto", "autopilot") == pytest.approx(0.15)
+    assert default_command_dead_time_s("auto", "autopilot") == pytest.approx(0.25)
 
 
 @pytest.mark.parametrize("bad", [-0.01, 0.6, math.nan])
@@ -93,6 +93,7 @@ def test_the_reference_carries_the_window_past_the_dead_time():
     assert PositionControlConfig(command_dead_time_s=0.0).reference_steps == 20
     assert PositionControlConfig(command_dead_time_s=0.15).reference_steps == 23
     assert PositionControlConfig(command_dead_time_s=0.12).reference_steps == 23
+    assert PositionControlConfig().reference_steps == 25  # the longest default: 0.25 s
 
 
 def _state(t_s, vel):
@@ -119,3 +120,17 @@ def test_a_moving_vehicle_is_braked_from_where_it_will_be():
     a0 = without.position_tick(_state(0.0, [1.0, 0.0, 0.0]), ref).acc_cmd_ned_m_s2
     a1 = with_dead.position_tick(_state(0.0, [1.0, 0.0, 0.0]), ref).acc_cmd_ned_m_s2
     assert a1[0] < a0[0] < 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(400)
+def test_the_quaternion_circle_on_px4_flies_within_its_target(tmp_path):
+    """Lockstep (deterministic), the PX4 personality that answers a quaternion setpoint
+    0.275 s later as PX4 main + SIH did: issue 20's circle target (<= 5 cm RMSE). Without
+    the command dead time the position EPC flew it at 6.32 cm (seed 0)."""
+    from epc_offboard.tools.bench_modes import SPECS, fly
+
+    result = fly(SPECS["circle"], "autopilot", "lockstep", "px4", tmp_path, seed=0)
+    assert result["exit_code"] == 0, result
+    assert result["flips"] == 0
+    assert result["rmse_m"] <= 0.05

@@ -16,25 +16,27 @@ Pure numerics (no I/O).
 from __future__ import annotations
 
 import math
-from collections import deque
 
 import numpy as np
 
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.models import position_model_lagged, velocity_disturbance_input
 
-# the longest command dead time configurable (s): PX4's quaternion answer is 0.15 s
+# the longest command dead time configurable (s): PX4's quaternion answer is 0.275 s in all
 MAX_COMMAND_DEAD_TIME_S = 0.5
 
 # The dead time from a position command to the acceleration it starts to produce, per
-# (autopilot, attitude mode), as measured (README "The position loop's command dead time"):
-# - PX4 quaternion: 0.14-0.15 s of dead time before the lag on PX4 main + SIH (the bundled
-#   PX4 personality answers 0.275 s in all, 0.155 s beyond the model's 0.12 s lag);
-# - body rates ("epc"): the attitude EPC already predicts over the rate loop's dead time, and
-#   its attitude answer fits the model's lag without more;
-# - ArduPilot quaternion: the bundled personality's answer measured like PX4's.
+# (autopilot, attitude mode), as flown (README "The position loop's command dead time"):
+# - PX4 quaternion: PX4 main + SIH answered the attitude with 0.14-0.15 s of dead time before
+#   a 0.13-0.15 s lag, and the bundled PX4 personality as it (0.275 s in all). The position
+#   model's lag is 0.12 s, and what the QP starts from is the estimate, not the ground
+#   truth: on that personality (lockstep, seed 0) the quaternion circle flew 6.32 / 5.35 /
+#   4.89 / 4.57 / 4.66 cm with 0 / 0.15 / 0.2 / 0.25 / 0.3 s, the windy figure-8 8.68 /
+#   7.10 / 6.17 cm with 0 / 0.15 / 0.25 s: 0.25 s;
+# - body rates ("epc"): the attitude EPC already predicts over the rate loop's dead time;
+# - ArduPilot quaternion: its personality adds no dead time of its own to a quaternion.
 DEFAULT_COMMAND_DEAD_TIME_S: dict[tuple[str, str], float] = {
-    ("px4", "autopilot"): 0.15,
+    ("px4", "autopilot"): 0.25,
     ("px4", "epc"): 0.0,
     ("ardupilot", "autopilot"): 0.0,
     ("ardupilot", "epc"): 0.0,
@@ -75,34 +77,39 @@ class DeadTimePredictor:
             w[:, 3 * j : 3 * j + 3] = powers[n - 1 - j] @ B
         self._w = w
         self._wd = sum(powers[:n], np.zeros((9, 9))) @ velocity_disturbance_input(model)
-        self._sent: deque[tuple[float, FloatArray]] = deque(maxlen=max(n, 1))
-        self._u = np.empty(3 * n)
+        # the commands of the last n ticks, oldest first (one row a tick); the newest
+        # _in_flight of them were sent without a gap
+        self._sent = np.zeros((n, 3))
+        self._in_flight = 0
+        self._last_sent_s = -math.inf
 
     def sent(self, t_s: float, acc_cmd_ned_m_s2: FloatArray) -> None:
         """The command sent at tick ``t_s`` (it acts ``dead_time_s`` later)."""
-        if self.steps:
-            self._sent.append((t_s, np.array(acc_cmd_ned_m_s2, dtype=np.float64)))
+        if not self.steps:
+            return
+        if t_s - self._last_sent_s > 3.0 * self.period_s:
+            self._in_flight = 0
+        buf = self._sent
+        buf[:-1] = buf[1:]
+        buf[-1] = acc_cmd_ned_m_s2
+        self._in_flight = min(self._in_flight + 1, self.steps)
+        self._last_sent_s = t_s
 
     def ahead(self, x0: FloatArray, d_ned_m_s2: FloatArray, t_s: float) -> FloatArray:
         """The state (9,) ``dead_time_s`` after ``x0`` measured at ``t_s``, driven by the
-        commands in flight. Commands older than the dead time, or sent before a gap of
-        more than three ticks (an entry, a re-entry after a failsafe: nothing of ours was
-        flown), are not in flight; the ticks without one keep the acceleration flown now."""
+        commands in flight (one a tick). Commands sent before a gap of more than three ticks
+        (an entry, a re-entry after a failsafe: nothing of ours was flown) are not in
+        flight; the ticks without one keep the acceleration flown now."""
         n = self.steps
         if n == 0:
             return x0
-        sent = self._sent
-        if sent and t_s - sent[-1][0] > 3.0 * self.period_s:
-            sent.clear()
-        horizon_s = t_s - self.dead_time_s - 0.5 * self.period_s
-        u = self._u
-        known = [cmd for ts, cmd in sent if ts > horizon_s]
-        missing = n - len(known)
-        for j in range(missing):
-            u[3 * j : 3 * j + 3] = x0[6:9]
-        for j, cmd in enumerate(known, start=missing):
-            u[3 * j : 3 * j + 3] = cmd
-        out: FloatArray = self._phi @ x0 + self._w @ u + self._wd @ d_ned_m_s2
+        if t_s - self._last_sent_s > 3.0 * self.period_s:
+            self._in_flight = 0
+        buf = self._sent
+        missing = n - self._in_flight
+        if missing:
+            buf[:missing] = x0[6:9]
+        out: FloatArray = self._phi @ x0 + self._w @ buf.reshape(-1) + self._wd @ d_ned_m_s2
         return out
 
 
