@@ -33,12 +33,18 @@ MAX_COMMAND_DEAD_TIME_S = 0.5
 #   truth: on that personality (lockstep, seed 0) the quaternion circle flew 6.32 / 5.35 /
 #   4.89 / 4.57 / 4.66 cm with 0 / 0.15 / 0.2 / 0.25 / 0.3 s, the windy figure-8 8.68 /
 #   7.10 / 6.17 cm with 0 / 0.15 / 0.25 s: 0.25 s;
-# - body rates ("epc"): the attitude EPC already predicts over the rate loop's dead time;
-# - ArduPilot quaternion: its personality adds no dead time of its own to a quaternion.
+# - body rates ("epc") on PX4: the attitude EPC predicts over the rate loop's own dead time,
+#   but the attitude it reaches still answers the position loop late: circle 4.57 / 4.07 /
+#   3.57 / 3.27 / 3.36 / 4.48 cm with 0 / 0.05 / 0.1 / 0.15 / 0.2 / 0.25 s, windy figure-8
+#   6.00 / 4.65 / 4.44 cm with 0 / 0.1 / 0.15 s: 0.15 s;
+# - ArduPilot quaternion (its personality, lockstep, seed 0): circle 5.26 / 4.40 / 3.78 /
+#   4.16 / 5.24 cm with 0 / 0.1 / 0.2 / 0.25 / 0.3 s: 0.2 s;
+# - ArduPilot body rates: not flown by default ("auto" flies quaternion there), not
+#   measured: 0.
 DEFAULT_COMMAND_DEAD_TIME_S: dict[tuple[str, str], float] = {
     ("px4", "autopilot"): 0.25,
-    ("px4", "epc"): 0.0,
-    ("ardupilot", "autopilot"): 0.0,
+    ("px4", "epc"): 0.15,
+    ("ardupilot", "autopilot"): 0.2,
     ("ardupilot", "epc"): 0.0,
 }
 

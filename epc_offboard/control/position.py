@@ -19,7 +19,9 @@ Pure numerics (no asyncio, no MAVLink). :meth:`PositionLoop.position_tick`:
    per stage ``u_p[k]``: the command that makes the lagged acceleration follow
    ``a_ref - d_k`` — the reference's feedforward plus the input that cancels the disturbance
    expected at that stage — so the input penalty fights neither;
-4. control: EPC (or PD / MPC-every-tick) over the reference horizon -> ``a_cmd``;
+4. control: EPC (or PD / MPC-every-tick) over the reference horizon -> ``a_cmd``, from the
+   state predicted over the command dead time with the commands in flight, on the reference
+   window that starts there (:mod:`~epc_offboard.control.dead_time`);
 5. map: ``a_cmd`` -> roll, pitch, yaw, thrust (thesis eq. 3.13, exact inverse, NED).
 """
 
