@@ -19,7 +19,9 @@ Pure numerics (no asyncio, no MAVLink). :meth:`PositionLoop.position_tick`:
    per stage ``u_p[k]``: the command that makes the lagged acceleration follow
    ``a_ref - d_k`` — the reference's feedforward plus the input that cancels the disturbance
    expected at that stage — so the input penalty fights neither;
-4. control: EPC (or PD / MPC-every-tick) over the reference horizon -> ``a_cmd``;
+4. control: EPC (or PD / MPC-every-tick) over the reference horizon -> ``a_cmd``, from the
+   state predicted over the command dead time with the commands in flight, on the reference
+   window that starts there (:mod:`~epc_offboard.control.dead_time`);
 5. map: ``a_cmd`` -> roll, pitch, yaw, thrust (thesis eq. 3.13, exact inverse, NED).
 """
 
@@ -37,6 +39,13 @@ from epc_offboard.common import frames
 from epc_offboard.common.airframe import Airframe
 from epc_offboard.common.frames import GRAVITY_M_S2, FloatArray
 from epc_offboard.control.baselines import MpcController, PdController
+from epc_offboard.control.dead_time import (
+    DEFAULT_COMMAND_DEAD_TIME_S,
+    MAX_COMMAND_DEAD_TIME_S,
+    DeadTimePredictor,
+    default_command_dead_time_s,
+    shifted_stages,
+)
 from epc_offboard.control.decision import Controller, Decision
 from epc_offboard.control.epc import budgeted_controller
 from epc_offboard.control.models import (
@@ -112,6 +121,12 @@ class PositionControlConfig:
     # horizontally the attitude loop's response (identified on the bundled SITL from
     # commanded vs ground-truth acceleration), vertically the motors' (thrust is direct)
     tau_acc_s: Vec3 = (0.12, 0.12, 0.03)
+    # dead time (s) before that lag, from a command sent to the acceleration it starts to
+    # produce, on every axis (a quaternion setpoint carries its thrust): the QP starts from
+    # the state predicted over it with the commands in flight, on the reference as it will
+    # be then (control/dead_time.py). Unset: the measured one of the autopilot and attitude
+    # mode flown (PX4 quaternion 0.25 s, body rates 0; DEFAULT_COMMAND_DEAD_TIME_S)
+    command_dead_time_s: float | None = None
     r_acc: Vec3 = (0.3, 0.3, 0.3)
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     # The QP bounds the predicted velocity by max_vel_m_s less this (constraint tightening,
@@ -179,6 +194,13 @@ class PositionControlConfig:
             raise ValueError(f"jerk_stages must be >= 1, got {self.jerk_stages}")
         if any(not t > 0.0 for t in self.tau_acc_s):
             raise ValueError(f"tau_acc_s must be > 0, got {self.tau_acc_s}")
+        dead = self.command_dead_time_s
+        if dead is not None and not (
+            math.isfinite(dead) and 0.0 <= dead <= MAX_COMMAND_DEAD_TIME_S
+        ):
+            raise ValueError(
+                f"command_dead_time_s must be in [0, {MAX_COMMAND_DEAD_TIME_S}], got {dead}"
+            )
         if any(q < 0.0 for q in (*self.q_pos, *self.q_vel, *self.q_acc)):
             raise ValueError("q_pos, q_vel and q_acc must be >= 0")
         if not (math.isfinite(self.entry_ramp_s) and self.entry_ramp_s >= 0.0):
@@ -194,6 +216,15 @@ class PositionControlConfig:
             raise ValueError(
                 f"entry_max_vertical_acc_m_s2 must be > 0, got {self.entry_max_vertical_acc_m_s2}"
             )
+
+    @property
+    def reference_steps(self) -> int:
+        """The stages ahead a reference horizon must carry: the QP's horizon past the
+        longest command dead time this configuration may fly (the window starts there)."""
+        dead = self.command_dead_time_s
+        if dead is None:
+            dead = max(DEFAULT_COMMAND_DEAD_TIME_S.values())
+        return self.horizon + math.ceil(dead / self.dt_s - 1e-9)
 
     @property
     def yaw_rad(self) -> float:
@@ -361,10 +392,32 @@ class PositionLoop:
         self._z_stages = np.empty((cfg.horizon + 1, 3))  # estimator query: v of x_0..x_N
         self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
         self._a_stages = np.empty((cfg.horizon + 1, 3))  # feedforward: a of x_0..x_N
+        # the command dead time flown (use_attitude_path sets the measured default once the
+        # autopilot and the attitude mode are known; until then the configured one, or 0)
+        self._path: tuple[str, str] | None = None
+        self.dead_time = DeadTimePredictor(
+            cfg.tau_acc_s, loop_period_s, cfg.command_dead_time_s or 0.0
+        )
+
+    def use_attitude_path(self, autopilot: str, attitude_mode: str) -> None:
+        """Fly the command dead time of ``autopilot`` ("px4", "ardupilot") in
+        ``attitude_mode`` ("epc": body rates, "autopilot": quaternion), unless the config
+        sets one. Cheap when unchanged (the service calls it every tick)."""
+        path = (autopilot, attitude_mode)
+        if path == self._path:
+            return
+        self._path = path
+        dead = self.config.command_dead_time_s
+        if dead is None:
+            dead = default_command_dead_time_s(autopilot, attitude_mode)
+        if round(dead / self.loop_period_s) != self.dead_time.steps:
+            self.dead_time = DeadTimePredictor(self.config.tau_acc_s, self.loop_period_s, dead)
 
     def hold(self, pos_ned_m: FloatArray) -> ReferenceHorizon:
-        """At rest at ``pos_ned_m`` (3,) m, at the configured heading, over this horizon."""
-        return ReferenceHorizon.hold(pos_ned_m, self.config.yaw_rad, self.config.horizon)
+        """At rest at ``pos_ned_m`` (3,) m, at the configured heading, over the stages a
+        reference carries (:attr:`PositionControlConfig.reference_steps`)."""
+        cfg = self.config
+        return ReferenceHorizon.hold(pos_ned_m, cfg.yaw_rad, cfg.reference_steps)
 
     def set_hover_thrust(self, autopilot_hover_norm: float) -> None:
         """The autopilot's own hover thrust (e.g. ArduCopter's MOT_THST_HOVER): a vehicle
@@ -618,7 +671,11 @@ class PositionLoop:
         if controller is None:
             return self.hover(state)
         t0 = time.perf_counter()
-        refs = reference.ahead
+        dead_time = self.dead_time
+        # the QP's window starts where the command chosen now starts to act
+        refs = shifted_stages(
+            reference.stages, dead_time.dead_time_s / self.config.dt_s, self.config.horizon
+        )
         axis = attitude_to_axis_xyz(*state.euler_rad)  # once: three steps below read it
         axis_down = axis[2]
         self._advance_thrust(learn, self._balance_thrust_norm(axis_down))
@@ -648,10 +705,13 @@ class PositionLoop:
         x0[0:3] = state.pos_ned_m
         x0[3:6] = state.vel_ned_m_s
         x0[6:9] = achieved
+        if dead_time.steps:
+            x0[:] = dead_time.ahead(x0, d_hat, state.time_s)
         decision: Decision = controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = limit_tilt(np.asarray(decision.u, dtype=np.float64), self.acc_limits)
         acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
         acc = limit_tilt(acc, self.acc_limits)
+        dead_time.sent(state.time_s, acc)
         out = self._attitude_target(
             acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0, axis_down
         )

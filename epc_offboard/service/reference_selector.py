@@ -136,7 +136,7 @@ class ReferenceSelector:
             # where the vehicle is now, at rest, not where it was when streaming started
             # (0.45 m below it after a takeoff overshoot: the vehicle dropped to it).
             self.hold_at(state.pos_ned_m)
-        return self.now(state, t_s, steps=self.position.horizon)
+        return self.now(state, t_s, steps=self.position.reference_steps)
 
     def now(self, state: VehicleState, t_s: float, *, steps: int = 0) -> ReferenceHorizon:
         """The trajectory (rejoin included) or the hold, over stages 0..``steps`` from ``t_s``
@@ -182,5 +182,5 @@ class ReferenceSelector:
             yaw_rad=self.position.yaw_rad if msg.yaw_rad is None else msg.yaw_rad,
             age_s=time.monotonic() - ref.received_s,
             dt_s=self.position.dt_s,
-            steps=self.position.horizon,
+            steps=self.position.reference_steps,
         )

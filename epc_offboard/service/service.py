@@ -189,6 +189,11 @@ class Service:
         (with the px4 baseline nothing to compute: the log keeps the reference)."""
         reference: ReferenceHorizon | None = None  # what the flight log shows
         offboard = self.outputs.phase == Phase.OFFBOARD
+        autopilot = self.autopilot
+        self.cascade.position.use_attitude_path(  # its command dead time
+            self.cfg.link.autopilot if autopilot.dialect is None else autopilot.dialect.name,
+            autopilot.attitude_mode,
+        )  # fmt: skip
         try:
             if self.cascade.flies_reference:  # the autopilot takes the reference now only
                 reference = self.references.now(state, t_s)

@@ -1,0 +1,137 @@
+"""The position loop's command dead time: where the vehicle will be when the command sent now
+starts to act.
+
+A quaternion setpoint is not flown at once: PX4 main + SIH answered the service's with
+0.14-0.15 s of dead time before a 0.13-0.15 s lag (README, "PX4's answer to a quaternion
+setpoint"). The position model (``models.position_model_lagged``) keeps only the lag; the
+dead time is handled as the attitude loop handles its own (``control/rate_response.py``):
+the commands still in flight are known, so the measured state is carried forward over the
+dead time with them, and the QP starts from there, on the reference as it will be then
+(the equivalent of augmenting the state with the commands in flight, but the QP keeps its 9
+states and the EPC library its parameter vector: a hit is still the QP's optimum).
+
+Pure numerics (no I/O).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from epc_offboard.common.frames import FloatArray
+from epc_offboard.control.models import position_model_lagged, velocity_disturbance_input
+
+# the longest command dead time configurable (s): PX4's quaternion answer is 0.275 s in all
+MAX_COMMAND_DEAD_TIME_S = 0.5
+
+# The dead time from a position command to the acceleration it starts to produce, per
+# (autopilot, attitude mode), as flown (README "The position loop's command dead time"):
+# - PX4 quaternion: PX4 main + SIH answered the attitude with 0.14-0.15 s of dead time before
+#   a 0.13-0.15 s lag, and the bundled PX4 personality as it (0.275 s in all). The position
+#   model's lag is 0.12 s, and what the QP starts from is the estimate, not the ground
+#   truth: on that personality (lockstep, seed 0) the quaternion circle flew 6.32 / 5.35 /
+#   4.89 / 4.57 / 4.66 cm with 0 / 0.15 / 0.2 / 0.25 / 0.3 s, the windy figure-8 8.68 /
+#   7.10 / 6.17 cm with 0 / 0.15 / 0.25 s: 0.25 s;
+# - body rates ("epc") on PX4: the attitude EPC predicts over the rate loop's own dead time,
+#   but the attitude it reaches still answers the position loop late: circle 4.57 / 4.07 /
+#   3.57 / 3.27 / 3.36 / 4.48 cm with 0 / 0.05 / 0.1 / 0.15 / 0.2 / 0.25 s, windy figure-8
+#   6.00 / 4.65 / 4.44 cm with 0 / 0.1 / 0.15 s: 0.15 s;
+# - ArduPilot quaternion (its personality, lockstep, seed 0): circle 5.26 / 4.40 / 3.78 /
+#   4.16 / 5.24 cm with 0 / 0.1 / 0.2 / 0.25 / 0.3 s: 0.2 s;
+# - ArduPilot body rates: not flown by default ("auto" flies quaternion there), not
+#   measured: 0.
+DEFAULT_COMMAND_DEAD_TIME_S: dict[tuple[str, str], float] = {
+    ("px4", "autopilot"): 0.25,
+    ("px4", "epc"): 0.15,
+    ("ardupilot", "autopilot"): 0.2,
+    ("ardupilot", "epc"): 0.0,
+}
+
+
+def default_command_dead_time_s(autopilot: str, attitude_mode: str) -> float:
+    """The measured dead time for ``autopilot`` ("px4", "ardupilot"; another: PX4's) flown
+    in ``attitude_mode`` ("epc": body rates, "autopilot": quaternion)."""
+    name = autopilot if autopilot in ("px4", "ardupilot") else "px4"
+    return DEFAULT_COMMAND_DEAD_TIME_S.get((name, attitude_mode), 0.0)
+
+
+class DeadTimePredictor:
+    """The lagged position model ``x = [p, v, a]`` on the loop's tick grid, carried over
+    ``dead_time_s`` (rounded to ticks of ``period_s``) with the commands sent in the last
+    dead time, and a disturbance ``d`` held constant (it enters v as in the QP's model)."""
+
+    def __init__(
+        self, tau_acc_s: tuple[float, float, float], period_s: float, dead_time_s: float
+    ) -> None:
+        if not (math.isfinite(dead_time_s) and 0.0 <= dead_time_s <= MAX_COMMAND_DEAD_TIME_S):
+            raise ValueError(
+                f"dead_time_s must be in [0, {MAX_COMMAND_DEAD_TIME_S}], got {dead_time_s}"
+            )
+        self.period_s = period_s
+        n = self.steps = round(dead_time_s / period_s)
+        self.dead_time_s = n * period_s  # as flown: whole ticks
+        model = position_model_lagged(period_s, tau_acc_s)
+        A, B = model.A, model.B
+        powers = [np.eye(9)]
+        for _ in range(n):
+            powers.append(A @ powers[-1])
+        self._phi = powers[n]
+        # x_n = A^n x_0 + sum_j A^(n-1-j) B u_j + sum_j A^j E d; u_0 the oldest in flight
+        w = np.zeros((9, 3 * n))
+        for j in range(n):
+            w[:, 3 * j : 3 * j + 3] = powers[n - 1 - j] @ B
+        self._w = w
+        self._wd = sum(powers[:n], np.zeros((9, 9))) @ velocity_disturbance_input(model)
+        # the commands of the last n ticks, oldest first (one row a tick); the newest
+        # _in_flight of them were sent without a gap
+        self._sent = np.zeros((n, 3))
+        self._in_flight = 0
+        self._last_sent_s = -math.inf
+
+    def sent(self, t_s: float, acc_cmd_ned_m_s2: FloatArray) -> None:
+        """The command sent at tick ``t_s`` (it acts ``dead_time_s`` later)."""
+        if not self.steps:
+            return
+        if t_s - self._last_sent_s > 3.0 * self.period_s:
+            self._in_flight = 0
+        buf = self._sent
+        buf[:-1] = buf[1:]
+        buf[-1] = acc_cmd_ned_m_s2
+        self._in_flight = min(self._in_flight + 1, self.steps)
+        self._last_sent_s = t_s
+
+    def ahead(self, x0: FloatArray, d_ned_m_s2: FloatArray, t_s: float) -> FloatArray:
+        """The state (9,) ``dead_time_s`` after ``x0`` measured at ``t_s``, driven by the
+        commands in flight (one a tick). Commands sent before a gap of more than three ticks
+        (an entry, a re-entry after a failsafe: nothing of ours was flown) are not in
+        flight; the ticks without one keep the acceleration flown now."""
+        n = self.steps
+        if n == 0:
+            return x0
+        if t_s - self._last_sent_s > 3.0 * self.period_s:
+            self._in_flight = 0
+        buf = self._sent
+        missing = n - self._in_flight
+        if missing:
+            buf[:missing] = x0[6:9]
+        out: FloatArray = self._phi @ x0 + self._w @ buf.reshape(-1) + self._wd @ d_ned_m_s2
+        return out
+
+
+def shifted_stages(stages: FloatArray, lead_stages: float, steps: int) -> FloatArray:
+    """(steps, 9) rows of ``stages`` (M + 1, 9), one prediction step apart from stage 0, at
+    stages ``lead_stages + 1 .. lead_stages + steps``: linear between two stages, the last
+    stage held beyond the end (a horizon shorter than the lead needs)."""
+    if lead_stages <= 0.0:
+        return stages[1 : steps + 1]
+    base = math.floor(lead_stages)
+    frac = lead_stages - base
+    last = stages.shape[0] - 1
+    idx = np.minimum(np.arange(base + 1, base + 1 + steps), last)
+    lo: FloatArray = stages[idx]
+    if frac < 1e-9:
+        return lo
+    hi = stages[np.minimum(idx + 1, last)]
+    out: FloatArray = lo + frac * (hi - lo)
+    return out
