@@ -78,10 +78,10 @@ def test_the_window_starts_at_the_dead_time():
 
 
 def test_defaults_per_autopilot_and_mode():
-    assert default_command_dead_time_s("px4", "autopilot") == pytest.approx(0.25)
+    assert default_command_dead_time_s("px4", "autopilot") == pytest.approx(0.15)
     assert default_command_dead_time_s("px4", "epc") == pytest.approx(0.15)
     assert default_command_dead_time_s("ardupilot", "autopilot") == pytest.approx(0.2)
-    assert default_command_dead_time_s("auto", "autopilot") == pytest.approx(0.25)
+    assert default_command_dead_time_s("auto", "autopilot") == pytest.approx(0.15)
 
 
 @pytest.mark.parametrize("bad", [-0.01, 0.6, math.nan])
@@ -94,7 +94,7 @@ def test_the_reference_carries_the_window_past_the_dead_time():
     assert PositionControlConfig(command_dead_time_s=0.0).reference_steps == 20
     assert PositionControlConfig(command_dead_time_s=0.15).reference_steps == 23
     assert PositionControlConfig(command_dead_time_s=0.12).reference_steps == 23
-    assert PositionControlConfig().reference_steps == 25  # the longest default: 0.25 s
+    assert PositionControlConfig().reference_steps == 24  # the longest default: 0.2 s
 
 
 def _state(t_s, vel):
@@ -108,7 +108,8 @@ def _state(t_s, vel):
 def test_a_moving_vehicle_is_braked_from_where_it_will_be():
     """The vehicle moves at 1 m/s towards a hold: with the dead time the QP starts 0.15 s
     further on, so it commands harder braking than one that believes the vehicle is here."""
-    free = {"controller": "mpc", "entry_jerk_m_s3": 1e6, "entry_max_acc_m_s2": 100.0}
+    free = {"controller": "mpc", "entry_jerk_m_s3": 1e6, "entry_max_acc_m_s2": 100.0,
+            "max_jerk_m_s3": 0.0}  # no bound that would clip both commands alike
     cfg = PositionControlConfig(**free, command_dead_time_s=0.15)  # type: ignore[arg-type]
     est = EstimatorConfig(kind="none")
     without = PositionLoop(
