@@ -75,7 +75,7 @@ def test_before_offboard_the_reference_holds_where_the_vehicle_is_now_not_where_
     # every stage holds the newest position, at rest (a stale hold dropped the vehicle)
     np.testing.assert_allclose(ref.pos_ned_m, np.tile([0.1, 0.2, -2.45], (len(ref.pos_ned_m), 1)))
     np.testing.assert_allclose(ref.vel_ned_m_s, 0.0)
-    assert len(ref.pos_ned_m) == CFG.position.horizon + 1
+    assert len(ref.pos_ned_m) == CFG.position.reference_steps + 1  # the horizon past the dead time
 
 
 def test_once_offboard_the_trajectory_is_flown_and_its_anchor_kept():

@@ -40,14 +40,17 @@ MAX_COMMAND_DEAD_TIME_S = 0.5
 # - body rates ("epc") on PX4: the attitude EPC predicts over the rate loop's own dead time,
 #   but the attitude it reaches still answers the position loop late: circle 4.57 / 4.07 /
 #   3.57 / 3.27 / 3.36 / 4.48 cm with 0 / 0.05 / 0.1 / 0.15 / 0.2 / 0.25 s, windy figure-8
-#   6.00 / 4.65 / 4.44 cm with 0 / 0.1 / 0.15 s: 0.15 s;
+#   6.00 / 4.65 / 4.44 cm with 0 / 0.1 / 0.15 s. With the heavier position weights (issue
+#   24) it gains nothing (circle 1.96 cm with 0 and 0.15 s, windy figure-8 2.67 / 2.92 cm),
+#   and it cost the bounded zig-zag's saved library its use (a second flight's misses
+#   119 -> 271 of 319): 0;
 # - ArduPilot quaternion (its personality, lockstep, seed 0): circle 5.26 / 4.40 / 3.78 /
 #   4.16 / 5.24 cm with 0 / 0.1 / 0.2 / 0.25 / 0.3 s: 0.2 s;
 # - ArduPilot body rates: not flown by default ("auto" flies quaternion there), not
 #   measured: 0.
 DEFAULT_COMMAND_DEAD_TIME_S: dict[tuple[str, str], float] = {
     ("px4", "autopilot"): 0.15,
-    ("px4", "epc"): 0.15,
+    ("px4", "epc"): 0.0,
     ("ardupilot", "autopilot"): 0.2,
     ("ardupilot", "epc"): 0.0,
 }
