@@ -103,8 +103,9 @@ STAT_NAMES = (
     "peer_joins", "peer_leaves",  # liveliness changes (a flapping token: each counted)
     "queries_skipped",  # arrivals never queried: more were waiting than kept
     # payload bytes (+ attachments) this vehicle put, took in and answered queries with; a
-    # query from a vehicle that holds everything is answered with nothing (up to date)
+    # query from a vehicle that holds everything is answered with an empty reply (up to date)
     "bytes_published", "bytes_received", "bytes_answered", "queries_up_to_date",
     "queries_repeated",  # library queries asked again: no reply came back (see session)
+    "replies_up_to_date",  # empty replies taken: the peer had nothing this vehicle lacks
 )  # fmt: skip
 STAT_INDEX = {name: i for i, name in enumerate(STAT_NAMES)}

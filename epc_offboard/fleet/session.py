@@ -98,7 +98,7 @@ class HighWater:
     As a querier: per (problem, peer), the ``(epoch, number)`` up to which it holds that
     peer's controllers: set by a snapshot reply, advanced by a publication that follows on
     (its ``p`` is what is held). A library query carries ``{"h": {peer: [epoch, number]}}``;
-    the peer answers only its controllers numbered above it, and nothing when there are
+    the peer answers only its controllers numbered above it, and an empty reply when there are
     none. A vehicle that rejoins (a router restarted, a network blip: the peers' liveliness
     tokens come back and each is queried) is answered with what it missed, not with every
     library again. Both tables are saved to a shared buffer that outlives the helper, so a
@@ -539,6 +539,9 @@ class FleetSession:
             self.counters.add("query_errors")
             return
         replied[0] = True
+        if len(sample.payload) == 0:  # the peer holds nothing we lack (:meth:`_on_query`)
+            self.counters.add("replies_up_to_date")
+            return
         sender = self.exchange.receive(p.index, p.spec, str(sample.key_expr), sample.payload,
                                        MessageKind.SNAPSHOT)  # fmt: skip
         if sender:
@@ -549,7 +552,7 @@ class FleetSession:
         ``_REQUERY_ATTEMPTS`` times ``_REQUERY_S`` apart while it is still here: a query sent
         as a restarted router brings the fleet back can reach the peer's liveliness token
         before its queryable and be lost (test_fleet_rejoin lost 2 of 3). A peer that holds
-        nothing new does not reply either; asking it again costs a query, no payload."""
+        nothing new replies, empty."""
         if replied[0] or attempt + 1 >= _REQUERY_ATTEMPTS:
             return
         with self._lock:
@@ -570,7 +573,11 @@ class FleetSession:
         if since:
             newer = hw.newer(p.index, entries, since)
             if not newer:  # (numbered <= since)
+                # an empty reply, not silence: silence is a lost query, asked again
+                # (:meth:`_query_done`), and a repeat racing a publication pulled that
+                # publication twice (test_fleet_rejoin, CI)
                 self.counters.add("queries_up_to_date")
+                self._reply(query, p, b"", hw.reply(numbered))
                 return
             keep = {id(e) for e in newer}
             index = {id(e): i for i, e in enumerate(newer)}
@@ -581,7 +588,9 @@ class FleetSession:
                                        self.cfg.max_payload_bytes)  # fmt: skip
         # the mark the querier holds after this: the snapshot's highest number (one that is
         # newer went out in a publication, or comes with the next snapshot)
-        attachment = hw.reply(numbered)
+        self._reply(query, p, payload, hw.reply(numbered))
+
+    def _reply(self, query: zenoh.Query, p: _Problem, payload: bytes, attachment: bytes) -> None:
         self.counters.add("bytes_answered", len(payload) + len(attachment))
         try:
             query.reply(p.key(keys.LIBRARY, self.vehicle_id), payload, attachment=attachment)
