@@ -18,10 +18,12 @@ control (observed on ArduCopter 4.7 / 4.8-dev SITL, see docs/DESIGN.md):
 * every setpoint waits ``setpoint_delay_s`` (the main loop reads it), then passes
   ArduCopter's input shaping: quaternions by its command model (AC_AttitudeControl's
   input_quaternion: critically damped with ATC_INPUT_TC, acceleration and jerk bounded by
-  ATC_ACC_*_MAX, the shaped rate fed forward); body rates, as fitted to ArduCopter 4.8-dev
-  SITL's answer, a further ``rate_input_delay_s`` and a first-order filter
-  (``rate_input_tc_s``) with the ATC_ACC_*_MAX limits, integrated into an attitude target:
-  the achieved rate matches a body-rate command best about 200 ms later at about 0.35 gain;
+  ATC_ACC_*_MAX, the shaped rate fed forward); body rates as input_rate_bf_roll_pitch_yaw
+  does: the same command model towards the rate asked (ACRO_RP_RATE_TC, 0: ten loop
+  periods), the shaped rate turning an attitude target and fed forward, P (ATC_ANG_*_P) on
+  the error to that target. The real ArduCopter (4.8-dev SITL, 531699d) answered body-rate
+  doublets after 25-35 ms of dead time with a 40 ms lag at gain 1.03; this personality
+  after 40-50 ms, 25-30 ms, gain 1.1 (its cascade and motors are a little slower);
 * arming in GUIDED refused until the EKF has a position ("PreArm: Need Position
   Estimate"); armed, GUIDED, LOITER, BRAKE and RTL refused without one;
 * an extra HEARTBEAT the moment the mode changes; no LOCAL_POSITION_NED until the EKF has
@@ -353,14 +355,16 @@ class ArduCopter(Autopilot):
         q = x[QUAT]
         target = q.copy() if self._att_target is None else self._att_target
         if sp.type_mask & IGNORE_ATTITUDE:
-            # body rates: filtered, their change limited to ATC_ACCEL_*_MAX, integrated into
-            # the attitude target it tracks (AC_AttitudeControl's input_shaping_ang_vel)
-            alpha_rate = min(1.0, self._outer_dt_s / self.ardupilot.rate_input_tc_s)
-            step = alpha_rate * (np.asarray(sp.rate_frd_rad_s) - self._shaped_rate)
-            limit = self._outer_dt_s * np.asarray(self.ardupilot.accel_max_frd_rad_s2)
-            self._shaped_rate += np.clip(step, -limit, limit)
+            # body rates (AC_AttitudeControl::input_rate_bf_roll_pitch_yaw_rads): the target
+            # turns on at its shaped rate, which the command model moves towards the rate
+            # asked (ACRO_RP_RATE_TC / PILOT_Y_RATE_TC, ATC_ACC_*_MAX), and that rate is fed
+            # forward; the attitude error to the target adds P. The vehicle so follows the
+            # command's integral: its rate overshoots the command after a lag to catch up
+            # (the real ArduCopter's "gain 1.39" of a first-order fit), not a slow filter
             target = self._turned(target, self._shaped_rate)
-            rate = self._shaped_rate + self._attitude_control(q, target)
+            self._shape_rates(np.asarray(sp.rate_frd_rad_s))
+            angle_p = np.asarray(self.ardupilot.rate_angle_p_1_s)
+            rate = self._shaped_rate + self._attitude_control(q, target, angle_p)
         else:
             # a quaternion (AC_AttitudeControl::input_quaternion): the target turns on at its
             # shaped rate, which the command model moves to close the error to the quaternion
@@ -379,6 +383,23 @@ class ArduCopter(Autopilot):
         """The attitude target (4,) turned on by a body rate (3,) over one tick."""
         half = 0.5 * self._outer_dt_s * rate_frd_rad_s
         return quat_normalize(quat_multiply(target, np.array([1.0, *half])))
+
+    def _shape_rates(self, rate_frd_rad_s: FloatArray) -> None:
+        """The command model on each axis towards a body rate (no angle error)."""
+        ap = self.ardupilot
+        loop_tc_s = 10.0 / ap.loop_rate_hz  # a time constant of 0: ten main-loop periods
+        rp_tc_s = ap.rate_input_tc_s if ap.rate_input_tc_s > 0.0 else loop_tc_s
+        yaw_tc_s = ap.yaw_rate_tc_s if ap.yaw_rate_tc_s > 0.0 else loop_tc_s
+        for axis, tc_s in enumerate((rp_tc_s, rp_tc_s, yaw_tc_s)):
+            rate, self._shaped_accel[axis] = command_model(
+                0.0,
+                float(rate_frd_rad_s[axis]),
+                (float(self._shaped_rate[axis]), self._shaped_accel[axis]),
+                ap.accel_max_frd_rad_s2[axis],
+                tc_s,
+                self._outer_dt_s,
+            )
+            self._shaped_rate[axis] = rate
 
     def _shape_towards(self, error_frd_rad: FloatArray) -> None:
         """The command model on each axis, the target's rate and acceleration updated."""

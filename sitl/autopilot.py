@@ -630,12 +630,16 @@ class Autopilot:
         collective_n = self.vehicle.mass_kg * max(0.0, float(f @ body_up))
         return q_cmd, collective_n / self.vehicle.max_total_thrust_n
 
-    def _attitude_control(self, q: FloatArray, q_cmd: FloatArray) -> FloatArray:
-        """Quaternion-error P controller -> body rate command (FRD), clamped."""
+    def _attitude_control(
+        self, q: FloatArray, q_cmd: FloatArray, p_1_s: FloatArray | None = None
+    ) -> FloatArray:
+        """Quaternion-error P controller (``p_1_s``, default attitude_p_1_s) -> body rate
+        command (FRD), clamped."""
         q_err = quat_multiply(quat_conjugate(q), q_cmd)
         if q_err[0] < 0.0:
             q_err = -q_err
-        rate = 2.0 * np.asarray(self.params.attitude_p_1_s) * q_err[1:]
+        gain = np.asarray(self.params.attitude_p_1_s if p_1_s is None else p_1_s)
+        rate = 2.0 * gain * q_err[1:]
         lim = np.asarray(self.params.rate_max_rad_s)
         return np.clip(rate, -lim, lim)
 

@@ -285,17 +285,24 @@ class ArduPilotParams:
     # before 4.7): the input shaping's limit on the target's angular acceleration, its jerk
     # limited to that over the axis's time constant
     accel_max_frd_rad_s2: tuple[float, float, float] = (19.2, 19.2, 4.7)
+    # ATC_ANG_RLL_P, _PIT_P, _YAW_P (4.5 1/s): P on the error to the attitude target that
+    # body-rate commands turn (the quaternion path keeps the cascade's attitude_p_1_s, which
+    # its fit to the real ArduCopter's quaternion answer was made with)
+    rate_angle_p_1_s: tuple[float, float, float] = (4.5, 4.5, 4.5)
     # Every setpoint waits for ArduCopter's main loop to read it (its GCS input runs at the
     # loop rate): about a loop period, SCHED_LOOP_RATE's 2.5 ms
     setpoint_delay_s: float = 0.0025
-    # Body-rate targets as ArduCopter 4.8-dev SITL answered them: the achieved rate matched
-    # the command best 190-210 ms later at about 0.35 gain. Lumped here as the time constant
-    # body-rate targets are shaped with and a further delay, fitted to that figure on a
-    # 0.6-2.9 Hz multi-sine. (ArduCopter's source shapes them with ACRO_RP_RATE_TC, 0 by
-    # default: ten loop periods, 25 ms, and ATC_ACC_*_MAX; the slower answer observed is
-    # not in that shaping, so this fit stands until it is measured again.)
-    rate_input_tc_s: float = 0.4
-    rate_input_delay_s: float = 0.0525
+    # ACRO_RP_RATE_TC: the time constant body-rate targets are shaped with (the command
+    # model, ATC_ACC_*_MAX bounding the acceleration); 0, ArduCopter's default: ten main-loop
+    # periods (25 ms). With it the personality answers body-rate doublets as ArduCopter
+    # 4.8-dev SITL did within 15 ms (real: 25-35 ms dead time, 40 ms lag, gain 1.03; this:
+    # 40-50 ms, 25-30 ms, 1.1). The old fit (a 0.4 s filter and 52.5 ms more delay, "best
+    # match 200 ms later at 0.35 gain") is not what the real one does with commands inside
+    # ATC_ACC_R_MAX; commands beyond it (the old service model's body-rate circle chattered
+    # at 3-8 Hz, 65 rad/s^2 RMS) are slowed by that limit, which a linear fit reads as lag.
+    rate_input_tc_s: float = 0.0
+    # A further delay of body-rate setpoints (none measured beyond the main loop's read)
+    rate_input_delay_s: float = 0.0
     # AC_PosControl (GUIDED's position control) and its defaults: P on position (PSC_POSXY_P,
     # PSC_POSZ_P), PID on velocity (PSC_VELXY_P/_I/_D; z: PSC_VELZ_P and the integral its
     # PSC_ACCZ_I gives), the target's acceleration fed forward, jerk-limited (PSC_JERK_XY/_Z)
@@ -327,9 +334,8 @@ class ArduPilotParams:
             rate_input_delay_s=self.rate_input_delay_s,
             yaw_rate_tc_s=self.yaw_rate_tc_s,
         )
-        _positive(
-            rate_input_tc_s=self.rate_input_tc_s, psc_vel_d_filter_hz=self.psc_vel_d_filter_hz
-        )
+        _non_negative(rate_input_tc_s=self.rate_input_tc_s)
+        _positive(psc_vel_d_filter_hz=self.psc_vel_d_filter_hz)
         for name in ("psc_pos_p_1_s", "psc_vel_p_1_s", "psc_jerk_m_s3"):
             for i, v in enumerate(getattr(self, name)):
                 _positive(**{f"{name}[{i}]": v})
@@ -338,6 +344,8 @@ class ArduPilotParams:
                 _non_negative(**{f"{name}[{i}]": v})
         for i, v in enumerate(self.accel_max_frd_rad_s2):
             _positive(**{f"accel_max_frd_rad_s2[{i}]": v})
+        for i, v in enumerate(self.rate_angle_p_1_s):
+            _non_negative(**{f"rate_angle_p_1_s[{i}]": v})
         for name in ("setpoint_delay_s", "rate_input_delay_s"):
             if getattr(self, name) > 0.5:
                 raise ValueError(f"{name} must be <= 0.5, got {getattr(self, name)}")
