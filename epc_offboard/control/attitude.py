@@ -39,6 +39,7 @@ from epc_offboard.control.rate_response import (
     RateModelGate,
     RatePredictor,
     RateResponse,
+    default_model_error_max_rad_s,
     default_rate_response,
 )
 from epc_offboard.control.types import AttitudeCommand, PositionOutput, VehicleState
@@ -49,8 +50,7 @@ Vec3 = tuple[float, float, float]
 @dataclass(frozen=True)
 class AttitudeControlConfig:
     # epc: body rates from the attitude EPC; autopilot: quaternion + thrust to its own loop;
-    # auto: epc on PX4, autopilot on ArduPilot (ArduCopter shapes body-rate targets with
-    # ATC_INPUT_TC, so its rate response is not the identified first-order rate model)
+    # auto: epc on PX4, autopilot on ArduPilot (README "Attitude mode" has both modes' figures)
     mode: Literal["auto", "epc", "autopilot"] = "auto"
     # The QP predicts over horizon * dt_s from where the command sent now starts to act: it
     # must see the rate loop's lag play out (2.5 lags), which 10 steps of the old 10 ms did
@@ -61,7 +61,7 @@ class AttitudeControlConfig:
     dt_s: float | None = None
     # The autopilot's rate response (rate_response.py): unset, the measured one of the
     # autopilot flown (link.autopilot; PX4's when "auto"): PX4 45 ms, 100 ms, gain 1;
-    # ArduPilot 100 ms, 300 ms, gain 0.9 (rate_response.py says why not 0.35).
+    # ArduPilot 40 ms, 45 ms, gain 1 (rate_response.py has the measurements).
     rate_dead_time_s: float | None = None
     rate_time_constant_s: float | None = None  # first-order lag
     rate_gain: float | None = None  # achieved / commanded rate
@@ -70,11 +70,12 @@ class AttitudeControlConfig:
     identify: bool = True
     identify_max_dead_time_s: float = 0.25
     # Body rates only while the model predicts the measured rates (over its dead time and
-    # lag) within max(model_error_max_rad_s, model_error_ratio * the rates' RMS); else
+    # lag) within max(model_error_max_rad_s, model_error_ratio * the rates' RMS) (unset:
+    # PX4 0.4 rad/s, ArduPilot 0.6: its acceleration limit, rate_response.py); else
     # quaternion for model_fallback_hold_s (doubling after each failed try), then body rates
     # again on probation until good for model_probation_s.
     model_check: bool = True
-    model_error_max_rad_s: float = 0.4
+    model_error_max_rad_s: float | None = None
     model_error_ratio: float = 0.6
     model_fallback_hold_s: float = 2.0
     model_probation_s: float = 1.0
@@ -110,7 +111,7 @@ class AttitudeControlConfig:
             )
         for name in ("model_error_max_rad_s", "model_error_ratio", "model_fallback_hold_s",
                      "model_probation_s"):  # fmt: skip
-            if not getattr(self, name) > 0.0:
+            if getattr(self, name) is not None and not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not self.query_budget_us > 0.0:
             raise ValueError(f"query_budget_us must be > 0, got {self.query_budget_us}")
@@ -194,7 +195,9 @@ class AttitudeLoop:
         )
         self.identified: IdentifiedResponse | None = None
         self.gate = RateModelGate(
-            error_max_rad_s=config.model_error_max_rad_s,
+            error_max_rad_s=_or(
+                config.model_error_max_rad_s, default_model_error_max_rad_s(autopilot)
+            ),
             error_ratio=config.model_error_ratio,
             hold_s=config.model_fallback_hold_s,
             probation_s=config.model_probation_s,

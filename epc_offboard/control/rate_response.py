@@ -3,8 +3,8 @@ its online identification, and whether the model can be trusted.
 
 Pure numerics (no I/O). A body-rate command (SET_ATTITUDE_TARGET rates + thrust) shows in
 the measured rates after a dead time Td, then follows a first-order lag tau with a static
-gain K (PX4 main + SIH: 40-50 ms, 80-120 ms, 1; ArduCopter's input shaping: best match about
-200 ms later at about 0.35)::
+gain K (PX4 main + SIH: 40-50 ms, 80-120 ms, 1; ArduCopter 4.8-dev SITL: 25-35 ms, 40-46 ms,
+1.0-1.04)::
 
     w'(t) = (K w_cmd(t - Td) - w(t)) / tau            (per body axis)
 
@@ -40,7 +40,7 @@ from epc_offboard.common import jit
 from epc_offboard.common.frames import FloatArray
 
 # Physical ranges every estimate and configured value is bounded to (what an autopilot's rate
-# response can be: PX4 measured 40-50 ms + 80-120 ms, ArduCopter about 200 ms at 0.35).
+# response can be: PX4 measured 40-50 ms + 80-120 ms, ArduCopter 25-35 ms + 40-46 ms).
 MAX_DEAD_TIME_S = 0.3
 MIN_TIME_CONSTANT_S = 0.005
 MAX_TIME_CONSTANT_S = 1.0
@@ -72,18 +72,37 @@ class RateResponse:
 
 
 # What each autopilot was measured to do (docs/DESIGN.md, Real autopilots): the defaults when the
-# configuration does not say. ArduCopter's "the achieved rate matches the command best
-# 190-210 ms later at about 0.35 gain" is a cross-correlation figure, not this model's gain:
-# fitted with this model (RateIdentifier) on the bundled ArduCopter personality, whose input
-# shaping (ATC_INPUT_TC, acceleration limits) reproduces those figures, the same response is
-# 90-100 ms of dead time, then a 0.28-0.30 s lag at 0.87-0.91 gain.
+# configuration does not say. ArduCopter 4.8-dev SITL (531699d) answered body-rate doublets
+# inside ATC_ACC_R_MAX after 25-35 ms of dead time with a 40 ms lag at gain 1.03, and this
+# identifier found 25 ms, 40-46 ms, 0.99-1.04 in its body-rate flights (circle, figure-8 in
+# wind); on the bundled ArduCopter personality 40 ms, 47 ms, 1.02. Its input shaping is the
+# command model towards the rate asked (25 ms by default) and an attitude target the shaped
+# rate turns, fed forward: no slow filter. The old default (100 ms, 0.3 s, 0.9: a fit to a
+# personality that filtered body rates with 0.4 s) made the attitude EPC command 3-8 Hz
+# chatter beyond ATC_ACC_R_MAX on the real one (a circle flew off by 12 m, 48 deg of tilt);
+# a fit to that chatter read "40 ms, 0.136 s, gain 1.39". The dead time here is the
+# personality's (15 ms more than the real one's: the identifier adopts the shorter in
+# flight, and an overestimate by 15 ms costs less than an underestimate).
 PX4_RATE_RESPONSE = RateResponse(dead_time_s=0.045, time_constant_s=0.1, gain=1.0)
-ARDUPILOT_RATE_RESPONSE = RateResponse(dead_time_s=0.1, time_constant_s=0.3, gain=0.9)
+ARDUPILOT_RATE_RESPONSE = RateResponse(dead_time_s=0.04, time_constant_s=0.045, gain=1.0)
+
+# The model error tolerated before body rates are suspended (RateModelGate), per autopilot:
+# ArduCopter bounds the shaped rate's change by ATC_ACC_R/P_MAX (19.2 rad/s^2), which a linear
+# model does not hold, so a large step (entry into a 3 m/s wind: 29 deg asked at once) is
+# mispredicted by up to 0.4-0.5 rad/s for a moment. At PX4's 0.4 the personality's windy
+# figure-8 suspended body rates on entry, and the quaternion loop it fell back to (with the
+# position loop set for body rates) left the envelope (76 deg); at 0.6 it flew 2.6 cm, 29 deg.
+DEFAULT_MODEL_ERROR_MAX_RAD_S = {"px4": 0.4, "ardupilot": 0.6}
 
 
 def default_rate_response(autopilot: str) -> RateResponse:
     """The measured response of ``autopilot`` ("ardupilot"; anything else is PX4's)."""
     return ARDUPILOT_RATE_RESPONSE if autopilot == "ardupilot" else PX4_RATE_RESPONSE
+
+
+def default_model_error_max_rad_s(autopilot: str) -> float:
+    """The model error ``autopilot`` ("ardupilot"; anything else: PX4's) is allowed."""
+    return DEFAULT_MODEL_ERROR_MAX_RAD_S.get(autopilot, DEFAULT_MODEL_ERROR_MAX_RAD_S["px4"])
 
 
 @dataclass(frozen=True)
