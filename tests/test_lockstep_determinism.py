@@ -17,7 +17,8 @@ import pytest
 
 from tests.rig import cpu_hog
 
-# its two CPU hogs: never beside another test's (test_suite_ports.py)
+# its two CPU hogs: never beside another test's (test_suite_ports.py); not alone: lockstep
+# judges no timing, and the other worker's lockstep flights beside it only run slower
 pytestmark = [pytest.mark.timeout(300), pytest.mark.one_at_a_time("cpu-hogs")]
 
 # measured on the wall clock: may differ between runs by design; the logged lines' kinds
