@@ -137,7 +137,8 @@ SLOW_FIRST = (
     "test_entry_e2e", "test_scenarios", "test_sim_truth_e2e", "test_service_e2e", "test_bench",
     "test_wheel_install", "test_fleet_trust", "test_sharing_e2e", "test_ardupilot_e2e",
     "test_flight_logs_e2e", "test_sharing", "test_fleet_rejoin", "test_miss_solver",
-    "test_cascade", "test_attitude_delay_e2e", "test_neuralfly_e2e", "test_lwpr", "test_daemon",
+    "test_cascade", "test_attitude_delay_e2e", "test_neuralfly_e2e", "test_lockstep_determinism",
+    "test_lwpr", "test_daemon",
 )
 
 
