@@ -17,18 +17,17 @@ from typing import Any
 
 import pytest
 
-from epc_offboard.tools.sim.scenario import SCENARIO_DIR, load_scenario
+from epc_offboard.tools.sim.scenario import load_scenario
+from tests.rig import holding_scenario
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
 
 def compare(tmp: Path, scenario: str, duration_s: float, methods: str) -> dict[str, Any]:
     out = tmp / scenario
-    # the scenario as shipped, ending holding: the autopilot's landing after each method's
-    # flight (8.5 s of vehicle time, 8 landings in this module) judges no target
-    holding = tmp / f"{scenario}.toml"
-    shipped = (SCENARIO_DIR / f"{scenario}.toml").read_text()
-    holding.write_text(shipped + "\n[service.mission]\nland_at_end = false\n")
+    # ending holding: the autopilot's landing after each method's flight (8 landings in
+    # this module) judges no target
+    holding = holding_scenario(tmp, scenario)
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--scenario", str(holding),
          "--duration", str(duration_s), "--compare", methods, "--gcs-port", "0",
