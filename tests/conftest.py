@@ -49,26 +49,41 @@ def warm_kernel_cache() -> None:
     print(f"\nkernel cache warmed in {time.monotonic() - t0:.1f} s", file=sys.stderr)
 
 
-# a group whose tests run with nothing else at all beside them, in any worker: the real-time
-# flights (and the CPU hogs' tests) judge the loops' timing, which the other worker's flight
-# would load; every other test runs beside any test but these
-ALONE = ("alone", "cpu-hogs")
+# the group whose tests run with nothing else at all beside them, in any worker: the real-time
+# flights judge the loops' timing, which the other worker's flight would load; every other
+# test runs beside any test but these. A test may name several groups (the real-time flights
+# beside CPU hogs: one_at_a_time("alone", "cpu-hogs")); the lockstep determinism flight
+# beside its hogs is "cpu-hogs" only: lockstep judges no timing, so the other worker's
+# lockstep flights run on beside it (slower), where the alone lock idled a core for 29 s
+ALONE = ("alone",)
 
 
 @pytest.fixture(autouse=True)
 def one_at_a_time(request: pytest.FixtureRequest) -> Iterator[None]:
-    """A test marked ``one_at_a_time(name)`` holds that name's lock while it runs: tests that
-    bind the fixed Zenoh ports never run beside another of their kind in the other xdist
+    """A test marked ``one_at_a_time(name, ...)`` holds each name's lock while it runs: tests
+    that bind the fixed Zenoh ports never run beside another of their kind in the other xdist
     worker (nor in another checkout's suite on this machine: the ports and the cores are the
-    machine's). The :data:`ALONE` groups hold the machine's lock exclusively; every other
+    machine's). The :data:`ALONE` group holds the machine's lock exclusively; every other
     test holds it shared, so a real-time flight runs with no other test beside it."""
-    mark = request.node.get_closest_marker("one_at_a_time")
-    group = mark.args[0] if mark is not None else None
+    with holding(_groups(request.node)):
+        yield
+
+
+@contextlib.contextmanager
+def holding(groups: set[str]) -> Iterator[None]:
+    """The locks of ``groups`` (see :func:`one_at_a_time`), for a module fixture that flies
+    a flight its tests share: module fixtures are set up before the tests' own locks."""
     with contextlib.ExitStack() as stack:
-        stack.enter_context(_machine_lock(exclusive=group in ALONE))
-        if group is not None:
+        stack.enter_context(_machine_lock(exclusive=bool(groups & set(ALONE))))
+        for group in sorted(groups):  # one order everywhere: no two tests wait on each other
             stack.enter_context(_lock(f"epc-offboard-tests-{group}.lock"))
         yield
+
+
+def _groups(item: pytest.Item) -> set[str]:
+    """The names a test's ``one_at_a_time`` mark gives (none: an empty set)."""
+    mark = item.get_closest_marker("one_at_a_time")
+    return set(mark.args) if mark is not None else set()
 
 
 @contextlib.contextmanager
@@ -107,7 +122,7 @@ def _lock(name: str) -> Iterator[None]:
 # collection order (pyproject's addopts pass --no-loadscope-reorder: by default xdist re-sorts
 # them by their number of tests, which undid this order and put the one-test real-time
 # flights last, strewn among the long lockstep modules).
-# 1. The modules of the ALONE groups, back to back. While one worker flies one alone, the
+# 1. The modules of the ALONE group, back to back. While one worker flies one alone, the
 #    other waits for the lock holding nothing. Strewn among the lockstep modules, each of
 #    them first waited for the other worker's current test to end (a lockstep flight of up
 #    to 40 s) with its own core idle: replayed through xdist's hand-out and this lock, the
@@ -122,13 +137,13 @@ SLOW_FIRST = (
     "test_entry_e2e", "test_scenarios", "test_sim_truth_e2e", "test_service_e2e", "test_bench",
     "test_wheel_install", "test_fleet_trust", "test_sharing_e2e", "test_ardupilot_e2e",
     "test_flight_logs_e2e", "test_sharing", "test_fleet_rejoin", "test_miss_solver",
-    "test_cascade", "test_attitude_delay_e2e", "test_neuralfly_e2e", "test_lwpr", "test_daemon",
+    "test_cascade", "test_attitude_delay_e2e", "test_neuralfly_e2e", "test_lockstep_determinism",
+    "test_lwpr", "test_daemon",
 )
 
 
 def _alone(item: pytest.Item) -> bool:
-    mark = item.get_closest_marker("one_at_a_time")
-    return mark is not None and mark.args[0] in ALONE
+    return bool(_groups(item) & set(ALONE))
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -279,7 +279,7 @@ def _script(gcs: _GroundStation, flight: Flight, stop: threading.Event) -> None:
             t0 = gcs.freeze(duration, stop)
             flight.freezes_done.append((t0, duration))
             gcs.wait_vehicle(gcs.vehicle_s + REENTRY_S, stop)
-        # nothing more to do: the sim lands and exits (a dead TCP link must not be read:
+        # nothing more to do: the sim ends holding and exits (a dead TCP link must not be read:
         # pymavlink prints a line per read at its EOF)
     except Exception as exc:  # the judge reports a flight without its freezes
         print(f"ground station: {exc!r}", file=sys.stderr)
@@ -303,6 +303,8 @@ def fly(
         f"duration_s = {duration}\nsettle_s = 1.0\naltitude_m = 2.5\n"
         '[trajectory]\nshape = "hover"\n'
         f'[service.attitude]\nmode = "{flight.mode}"\n'
+        # ends holding: the autopilot's landing (8.5 s of vehicle time) judges no entry
+        "[service.mission]\nland_at_end = false\n"
     )
     port = free_port()
     cmd = [

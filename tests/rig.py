@@ -22,7 +22,7 @@ from typing import Any
 from pymavlink import mavutil
 
 from epc_offboard.common.configio import dump_toml, merge_dicts
-from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
+from epc_offboard.tools.sim.scenario import SCENARIO_DIR, SITL_SERVICE_CONFIG
 from epc_offboard.vehicle.dialect_px4 import px4_modes
 
 # What a CI test may assert about real-time figures: safety bounds that hold on a busy 2-core
@@ -52,6 +52,16 @@ DEPLOYED_NICE = -5
 def deployed_priority() -> None:
     with contextlib.suppress(PermissionError):
         os.nice(DEPLOYED_NICE)
+
+
+def holding_scenario(folder: Path, name: str) -> Path:
+    """A copy of the shipped scenario ``name`` in ``folder`` whose flights end holding (the
+    service exits; ``sim`` flies no landing): for the suite's lockstep flights that judge
+    nothing of the autopilot's landing, 8.5 s of vehicle time each."""
+    path = folder / f"{name}.toml"
+    shipped = (SCENARIO_DIR / f"{name}.toml").read_text()
+    path.write_text(shipped + "\n[service.mission]\nland_at_end = false\n")
+    return path
 
 
 def free_port() -> int:

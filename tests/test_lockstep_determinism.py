@@ -15,9 +15,10 @@ from typing import Any
 
 import pytest
 
-from tests.rig import cpu_hog
+from tests.rig import cpu_hog, holding_scenario
 
-# its two CPU hogs: never beside another test's (test_suite_ports.py)
+# its two CPU hogs: never beside another test's (test_suite_ports.py); not alone: lockstep
+# judges no timing, and the other worker's lockstep flights beside it only run slower
 pytestmark = [pytest.mark.timeout(300), pytest.mark.one_at_a_time("cpu-hogs")]
 
 # measured on the wall clock: may differ between runs by design; the logged lines' kinds
@@ -30,8 +31,10 @@ WALL_CLOCK_WARNINGS = ("loop clock waits timed out", "SITL lockstep timeouts")
 
 
 def fly(out: Path) -> dict[str, Any]:
+    # ends holding: the landing judged nothing here, and the hogs run as long as the flight
+    scenario = holding_scenario(out.parent, "circle")
     proc = subprocess.run(
-        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "circle",
+        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", str(scenario),
          "--duration", "8", "--wind", "2,30", "--gcs-port", "0", "--out", str(out)],
         capture_output=True, text=True, timeout=240, check=False,
     )  # fmt: skip

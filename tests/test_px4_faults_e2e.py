@@ -21,7 +21,7 @@ pytestmark = pytest.mark.timeout(360)
 # both were the same real-time cold hover.
 
 
-@pytest.mark.one_at_a_time("cpu-hogs")  # never beside other hogs (test_suite_ports.py)
+@pytest.mark.one_at_a_time("alone", "cpu-hogs")  # real time; never beside other hogs
 def test_windy_flight_under_cpu_load_keeps_the_tilt_limit(tmp_path):
     """Body-rate mode flipped the vehicle in 3 m/s wind when inline QP solves starved the
     attitude loop. Now misses are solved in a worker, late attitude ticks send the attitude

@@ -18,14 +18,18 @@ from typing import Any
 import pytest
 
 from epc_offboard.tools.sim.scenario import load_scenario
+from tests.rig import holding_scenario
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
 
 def compare(tmp: Path, scenario: str, duration_s: float, methods: str) -> dict[str, Any]:
     out = tmp / scenario
+    # ending holding: the autopilot's landing after each method's flight (8 landings in
+    # this module) judges no target
+    holding = holding_scenario(tmp, scenario)
     proc = subprocess.run(
-        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", scenario,
+        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", str(holding),
          "--duration", str(duration_s), "--compare", methods, "--gcs-port", "0",
          "--out", str(out)],
         capture_output=True, text=True, timeout=400, check=False,

@@ -26,7 +26,7 @@ from epc_offboard.vehicle.dialect_px4 import (
     PX4_MAIN_MODE_OFFBOARD,
     px4_custom_mode,
 )
-from tests.rig import Rig
+from tests.rig import Rig, holding_scenario
 from tests.test_coldstart_e2e import HOVER
 
 pytestmark = pytest.mark.timeout(240)
@@ -92,7 +92,9 @@ def test_sim_hover_holds_within_5_cm_and_fails_with_the_targets_it_missed_named(
 def test_second_run_starts_from_the_saved_library(tmp_path):
     # the velocity bound is below the reference speed: active on every sweep, so the library
     # must learn many active sets — what makes a saved library worth loading
-    args = ("--scenario", "zigzag_bounded", "--duration", "8", "--adaptation", "none")
+    # (both end holding: the landings judged nothing here)
+    scenario = holding_scenario(tmp_path, "zigzag_bounded")
+    args = ("--scenario", str(scenario), "--duration", "8", "--adaptation", "none")
     first, out, proc = sim(tmp_path, *args)
     tlog = out / "vehicle1" / "session.tlog"
     first_tlog_bytes = tlog.stat().st_size

@@ -30,7 +30,7 @@ from epc_offboard.tools.sim.envelope import (
 from epc_offboard.tools.sim.logscan import log_kinds
 from epc_offboard.tools.sim.options import SimOptions, sim_options
 from epc_offboard.tools.sim.report import flight_failures
-from epc_offboard.tools.sim.scenario import ScenarioConfig, load_scenario
+from epc_offboard.tools.sim.scenario import SCENARIO_DIR, ScenarioConfig, load_scenario
 
 # A flight logged at 1 Hz: streaming at t = 9 s, offboard from 10 s to 14 s, hovering at
 # 2 m up (NED d = -2). Scenario: settle 1.5 s (the metrics start at 11.5 s), first lap 2 s.
@@ -364,3 +364,25 @@ def test_realtime_priority_reaches_the_services_loops_and_the_sitl(tmp_path) -> 
             assert policy == os.SCHED_FIFO
     finally:
         child.wait()
+
+
+def test_a_scenario_may_end_its_flights_holding(tmp_path) -> None:
+    """A flight lands unless its scenario's [service.mission] says land_at_end = false (the
+    suite's entry and compare flights: the landing judged nothing there); --stagger always
+    lands: its vehicles start on the landing before them."""
+    from epc_offboard.tools.sim.orchestrate import service_config_for
+
+    def land_at_end(*argv: str) -> bool:
+        cfg = service_config_for(_options(*argv), 1, 14999, tmp_path, tmp_path / "l.sqlite")
+        return bool(cfg["mission"]["land_at_end"])
+
+    holding = tmp_path / "holding.toml"
+    shipped = load_scenario("hover")
+    holding.write_text(
+        (SCENARIO_DIR / "hover.toml").read_text() + "\n[service.mission]\nland_at_end = false\n"
+    )
+    assert load_scenario(str(holding)).service["mission"] == {"land_at_end": False}
+    assert shipped.service.get("mission") is None
+    assert land_at_end("--scenario", "hover")
+    assert not land_at_end("--scenario", str(holding))
+    assert land_at_end("--scenario", str(holding), "--vehicles", "2", "--stagger")

@@ -11,8 +11,9 @@ import pytest
 
 from tests.soak import FAULTS, run_soak
 
-# its two CPU hogs: never beside another test's (test_suite_ports.py)
-pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("cpu-hogs")]
+# a real-time flight (alone) with two CPU hogs: never beside another test's
+# (test_suite_ports.py)
+pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone", "cpu-hogs")]
 
 
 def test_random_faults_never_cause_a_takeoff_in_the_air_a_nan_or_a_lockout(tmp_path):

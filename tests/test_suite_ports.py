@@ -39,16 +39,16 @@ def test_every_sim_a_test_starts_streams_to_no_ground_station_port() -> None:
 
 
 def _groups(decorators: list[ast.expr]) -> set[str]:
-    """The names of the ``pytest.mark.one_at_a_time("name")`` marks among ``decorators``."""
+    """The names of the ``pytest.mark.one_at_a_time("name", ...)`` marks among ``decorators``."""
     return {
-        str(node.args[0].value)
+        str(arg.value)
         for deco in decorators
         for node in ast.walk(deco)
         if isinstance(node, ast.Call)
         and isinstance(node.func, ast.Attribute)
         and node.func.attr == "one_at_a_time"
-        and node.args
-        and isinstance(node.args[0], ast.Constant)
+        for arg in node.args
+        if isinstance(arg, ast.Constant)
     }
 
 

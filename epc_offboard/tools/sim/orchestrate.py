@@ -126,7 +126,12 @@ def service_config_for(
         "estimator": {"kind": options.adaptation},
         "trajectory": traj,
         "trajectory_altitude_m": scenario.altitude_m,
-        "mission": {"duration_s": scenario.duration_s, "land_at_end": True},
+        # a flight lands, unless its scenario's [service.mission] says it ends holding (the
+        # suite's entry flights: the landing judged nothing there); --stagger's vehicles
+        # start on the landing before them
+        "mission": {"duration_s": scenario.duration_s,
+                    "land_at_end": options.stagger
+                    or bool(scenario.service.get("mission", {}).get("land_at_end", True))},
         "store": {"path": str(library_path)},
         "log": {
             "flight_log_path": str(run_dir / "flight.csv"),
