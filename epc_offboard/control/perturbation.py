@@ -427,7 +427,10 @@ class LwprPerturbation:
             and zs.shape[1] == self.n_z and zs.flags.c_contiguous
         ):  # fmt: skip
             # the position tick's query: every model in one compiled call, the same numbers
-            raw_fast = self._model_group().predict_many(zs)
+            group = self._group
+            if group is None or group.models is not self.models:
+                group = self._model_group()
+            raw_fast = group.predict_many(zs)
             if raw_fast is not None:
                 return raw_fast
         zv = _check_rows(zs, self.n_z, "zs")
