@@ -22,7 +22,7 @@ import numpy as np
 
 from epc_offboard.common import frames
 from epc_offboard.common.logsetup import LogConfig
-from epc_offboard.control.cascade import Cascade
+from epc_offboard.control.cascade import Cascade, compiled_signatures
 from epc_offboard.control.trajectories import Trajectory, TrajectoryConfig
 from epc_offboard.control.types import VehicleState
 from epc_offboard.service.config import load_service_config
@@ -82,6 +82,7 @@ def test_a_position_tick_makes_few_python_calls():
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, _DT_S,
                       learn_on_miss=True, airframe=cfg.vehicle)  # fmt: skip
     cascade.warm_up()
+    warm_signatures = compiled_signatures()
     loop = cascade.position
     traj = Trajectory(TrajectoryConfig(shape="figure8", ramp_s=1.0, period_s=8.0),
                       np.array([0.0, 0.0, -2.5]))  # fmt: skip
@@ -98,6 +99,9 @@ def test_a_position_tick_makes_few_python_calls():
         tick(k)
     python_calls, c_calls = _count_calls(lambda k: tick(400 + k), 200)
     assert cascade.library_stats()["position"]["hits"] > 0
+    # the warm-up compiled every kernel the ticks call (the estimator's learning step in
+    # one call too): nothing compiles on the loop
+    assert compiled_signatures() == warm_signatures
     assert python_calls <= MAX_PYTHON_CALLS, f"{python_calls} Python-level calls a tick"
     assert c_calls <= MAX_C_CALLS, f"{c_calls} C calls a tick"
 
