@@ -271,3 +271,41 @@ def test_reset_forgets_what_was_learned():
     est.reset()
     assert np.all(est.predict_raw(z) == 0.0)
     assert np.all(est.estimate(z) == 0.0)
+
+
+@pytest.mark.parametrize(("inputs", "diag_only"), [
+    ([[3], [4], [5]], True),  # the position loop's: one 1-D learner per velocity
+    ([[3, 4], [4, 5], [3, 5]], False),  # 2-D subspaces, full metrics
+    ([3, 4, 5], True),  # one learner of every output
+])  # fmt: skip
+def test_the_models_learn_and_predict_in_one_call_with_the_same_bits(inputs, diag_only):
+    """The compiled pass over all the models at once (the position tick's observation and
+    prediction along the horizon) is each model's own update and ``predict_many`` to the last
+    bit (the lockstep flights stay identical), through learning that adds and prunes fields
+    and reallocates their store."""
+    kwargs = dict(outputs=VEL, lowpass_cutoff_hz=2.0, dt_s=DT_S, norm_z=[3.0] * NZ,
+                  norm_p=[0.01] * NX, init_d=4.0, diag_only=diag_only)  # fmt: skip
+    grouped = LwprPerturbation(NX, NZ, inputs=inputs, **kwargs)
+    one_by_one = LwprPerturbation(NX, NZ, inputs=inputs, **kwargs)
+    if not grouped.models[0].compiled:
+        pytest.skip("numba's kernels are not in use (EPC_OFFBOARD_JIT=0)")
+    sim = DoubleIntegrator(seed=5)
+    rng = np.random.default_rng(5)
+    for k in range(1500):
+        z, p = sim.step(np.array([1.5, -1.0, 0.0]) * (k > 700))
+        grouped.observe(z, p)  # contiguous arrays: one call
+        for model, (ins, outs) in zip(one_by_one.models, one_by_one._index, strict=True):
+            model.update_finite(z[ins], p[outs])
+        if k % 50 == 0:
+            zs = z + rng.normal(scale=0.5, size=(21, NZ))
+            fast = grouped.predict_raw_many(zs)
+            slow = one_by_one.predict_raw_many(np.asfortranarray(zs))  # model by model
+            assert fast.tobytes() == slow.tobytes()
+    assert all(sum(m.num_rfs) >= 3 for m in grouped.models)
+    if len(grouped.models) == 1:  # 42 fields: the store grew twice (16 -> 64) on the way
+        assert grouped.models[0]._out.shape[0] > 16
+    for a, b in zip(grouped.models, one_by_one.models, strict=True):
+        assert a.to_bytes() == b.to_bytes()
+        assert a.n_updates == b.n_updates == 1500
+    with pytest.raises(ValueError, match="finite"):  # as before
+        grouped.predict_raw_many(np.full((2, NZ), np.nan))

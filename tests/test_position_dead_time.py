@@ -136,3 +136,26 @@ def test_the_quaternion_circle_on_px4_flies_within_its_target(tmp_path):
     assert result["exit_code"] == 0, result
     assert result["flips"] == 0
     assert result["rmse_m"] <= 0.05
+
+
+def test_a_prediction_leaves_the_commands_in_flight_as_they_were_sent():
+    """``ahead`` fills the ticks without a command in flight with the acceleration flown now
+    in a copy: the ring keeps what was sent (a prediction is no write)."""
+    predictor = DeadTimePredictor((0.12, 0.12, 0.03), 0.01, 0.05)
+    predictor.sent(1.0, np.array([1.0, 2.0, 3.0]))
+    ring = predictor._sent.copy()
+    x0 = np.arange(9.0)
+    first = predictor.ahead(x0, np.zeros(3), 1.01)
+    assert predictor._sent.tobytes() == ring.tobytes()
+    np.testing.assert_array_equal(predictor.ahead(x0, np.zeros(3), 1.01), first)
+
+
+def test_the_window_is_shifted_stages_to_the_last_bit():
+    rng = np.random.default_rng(3)
+    stages = rng.normal(size=(25, 9))
+    for dead_s in (0.0, 0.1, 0.15, 0.2, 0.25, 0.33):
+        predictor = DeadTimePredictor((0.12, 0.12, 0.03), 0.01, dead_s)
+        for _ in range(2):  # the indices computed, then reused
+            window = predictor.window(stages, 0.05, 20)
+            want = shifted_stages(stages, predictor.dead_time_s / 0.05, 20)
+            assert window.tobytes() == want.tobytes()

@@ -397,3 +397,25 @@ def test_a_link_gone_silent_is_a_lost_heartbeat_and_nothing_is_commanded(
     assert sup.sm.takeoffs_sent == 0  # (stream rates were asked for: not a flight command)
     assert "READY=1" not in _told(notify_socket)
     assert not stopping.is_set()
+
+
+def test_the_command_dead_time_is_decided_when_the_dialect_is_adopted_not_each_tick():
+    """link.autopilot and attitude.mode "auto": until a heartbeat names the autopilot, PX4's
+    body rates (no command dead time); ArduPilot's heartbeat makes it quaternion mode, whose
+    0.2 s the position loop flies from then on, without a position tick asking again."""
+    from epc_offboard.service.service import Service
+
+    cfg = dataclasses.replace(
+        CFG, link=dataclasses.replace(CFG.link, autopilot="auto"),
+        attitude=dataclasses.replace(CFG.attitude, mode="auto"),
+        log=dataclasses.replace(CFG.log, flight_log_path="", tlog_path=""),
+    )  # fmt: skip
+    service = Service(cfg)
+    position = service.cascade.position
+    assert position.dead_time.steps == 0
+    codec = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    frame = codec.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                   0, 4, mavlink.MAV_STATE_STANDBY).pack(codec)  # fmt: skip
+    service.autopilot.on_message(codec.decode(bytearray(frame)))
+    assert position.dead_time.dead_time_s == pytest.approx(0.2)
+    assert service.autopilot.attitude_path == ("ardupilot", "autopilot")

@@ -17,8 +17,12 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
+from typing import Any, TypeVar, cast
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 ENV = "EPC_OFFBOARD_JIT"  # "0": the numpy twins; anything else or unset: numba
 
@@ -85,3 +89,16 @@ def mark_cache_warm() -> bool:
     except OSError:
         return False
     return True
+
+
+def entry_point(kernel: F, *args: Any) -> F:
+    """``kernel``'s compiled function for the types of ``args`` (compiled, or loaded from
+    numba's cache, now, as a call with them would be): called directly it skips numba's
+    dispatch, the type of every argument looked up and matched on every call (1-2 us a
+    call, a tick makes several). Only for a call site whose arguments always have exactly
+    these types (the same dtypes, dimensions and layouts, tuples of the same length): the
+    compiled function does not check them. A numpy twin (no numba) is returned as it is."""
+    typeof = getattr(kernel, "typeof_pyval", None)
+    if typeof is None:
+        return kernel
+    return cast(F, kernel.compile(tuple(typeof(a) for a in args)))  # type: ignore[attr-defined]

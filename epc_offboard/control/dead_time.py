@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.models import position_model_lagged, velocity_disturbance_input
@@ -97,6 +98,10 @@ class DeadTimePredictor:
         self._sent = np.zeros((n, 3))
         self._in_flight = 0
         self._last_sent_s = -math.inf
+        self._carried = np.zeros((n, 3))  # ahead()'s commands, the ring left untouched
+        # window(): the stage indices of the last (lead, steps, stages) asked for
+        self._window_key: tuple[float, int, int] | None = None
+        self._window_idx: tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]] | None = None
 
     def sent(self, t_s: float, acc_cmd_ned_m_s2: FloatArray) -> None:
         """The command sent at tick ``t_s`` (it acts ``dead_time_s`` later)."""
@@ -123,8 +128,37 @@ class DeadTimePredictor:
         buf = self._sent
         missing = n - self._in_flight
         if missing:
-            buf[:missing] = x0[6:9]
+            # (a copy: the ring keeps what was sent, a later call sees it as it was)
+            carried = self._carried
+            carried[:] = buf
+            carried[:missing] = x0[6:9]
+            buf = carried
         out: FloatArray = self._phi @ x0 + self._w @ buf.reshape(-1) + self._wd @ d_ned_m_s2
+        return out
+
+    def window(self, stages: FloatArray, step_s: float, steps: int) -> FloatArray:
+        """:func:`shifted_stages` of ``stages`` (M + 1, 9), ``step_s`` apart, over this
+        dead time: the reference window the QP plans on, the same numbers, the stage
+        indices computed once (they change only with the horizon)."""
+        lead_stages = self.dead_time_s / step_s
+        if lead_stages <= 0.0:
+            return stages[1 : steps + 1]
+        key = (lead_stages, steps, stages.shape[0])
+        if key != self._window_key or self._window_idx is None:
+            last = stages.shape[0] - 1
+            idx = np.minimum(np.arange(math.floor(lead_stages) + 1,
+                                       math.floor(lead_stages) + 1 + steps), last)  # fmt: skip
+            self._window_idx = (idx, np.minimum(idx + 1, last))
+            self._window_key = key
+        frac = lead_stages - math.floor(lead_stages)
+        lo: FloatArray = stages[self._window_idx[0]]
+        if frac < 1e-9:
+            return lo
+        # lo + frac (hi - lo), in that order, in place
+        out: FloatArray = stages[self._window_idx[1]]
+        out -= lo
+        out *= frac
+        out += lo
         return out
 
 

@@ -44,6 +44,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from epc_offboard.common import jit
 from epc_offboard.common.errors import EpcError
 from epc_offboard.control import lwpr_kernels as kernels
 
@@ -55,6 +56,8 @@ FORMAT_VERSION = 1
 
 _W_UPDATE_MIN = kernels.W_UPDATE_MIN  # a field takes part in an update only above this
 _INITIAL_CAPACITY = 16
+# how many times any model's field store was reallocated (ModelGroup's cache key)
+_reallocations = 0
 
 
 class LwprError(EpcError, ValueError):
@@ -331,9 +334,7 @@ class LWPR:
             status = kernels.update(
                 xn, yn, self._n, self._cfg, self._w_buf, self._y_buf, *self._update_args
             )
-            y_before = self._y_buf * self.norm_out
-            overflow = bool(status & kernels.STATUS_NOT_FINITE)
-            crowded = bool(status & kernels.STATUS_ADD_OR_PRUNE)
+            return self._after_update(int(status), w, xn, yn)
         else:
             v = self._active_views()
             w = self._activations(v, xn)
@@ -349,6 +350,19 @@ class LWPR:
         if overflow and self._drop_overflowed():
             return y_before
         if crowded:
+            self._add_or_prune(w, xn, yn)
+        return y_before
+
+    def _after_update(self, status: int, w: FloatArray, xn: FloatArray,
+                      yn: FloatArray) -> FloatArray:
+        """What Python does after the compiled update of the sample (xn, yn) (normalised),
+        whose ``status`` (STATUS_* bits) it returned, with the activations ``w`` (n,) it
+        wrote: the prediction before it (n_out,), and the fields dropped, added or pruned."""
+        y_before = self._y_buf * self.norm_out
+        self.n_updates += 1
+        if status & kernels.STATUS_NOT_FINITE and self._drop_overflowed():
+            return y_before
+        if status & kernels.STATUS_ADD_OR_PRUNE:
             self._add_or_prune(w, xn, yn)
         return y_before
 
@@ -1010,6 +1024,8 @@ class LWPR:
         self._out, self._nreg = grown(self._out), grown(self._nreg)
         self._trusted, self._nuse = grown(self._trusted), grown(self._nuse)
         self._views_n = -1
+        global _reallocations
+        _reallocations += 1  # a ModelGroup holding the old arrays rebuilds its arguments
 
     def _append_field(
         self, o: int, xn: FloatArray, yn: float, template: dict[str, FloatArray] | None, nreg: int
@@ -1043,6 +1059,97 @@ class LWPR:
         self._trusted[i] = False
         self._n = i + 1
         self._views_n = -1
+
+
+class ModelGroup:
+    """Several compiled models predicted in one compiled call: model ``g`` reads the columns
+    ``ins[g]`` of the points and writes its outputs into the columns ``outs[g]`` of the
+    result (an estimator's models, each on its own subspace). The same numbers as each
+    model's :meth:`LWPR.predict_many` on its columns; one call instead of a few dozen
+    Python-level calls a model (checks, normalisation, dispatch), which a position tick
+    paid three times.
+
+    ``predict_many`` answers None where it cannot promise that (a model without the
+    compiled kernels, a point that is not finite or too large for a model's ``norm_in``):
+    the caller then asks the models one by one, as before.
+    """
+
+    def __init__(
+        self,
+        models: list[LWPR],
+        ins: list[tuple[int, ...]],
+        outs: list[tuple[int, ...]],
+        n_z: int,
+        n_y: int,
+    ) -> None:
+        self.models = models
+        self.n_z, self.n_y = n_z, n_y
+        self.compiled = all(type(m).compiled for m in models) and len(models) > 0
+        self._ins = tuple(np.array(i, dtype=np.int64) for i in ins)
+        self._outs = tuple(np.array(o, dtype=np.int64) for o in outs)
+        self._static = (
+            tuple(m._cfg for m in models), self._ins, tuple(m.norm_in for m in models),
+            self._outs, tuple(m.norm_out for m in models),
+        )  # fmt: skip
+        self._epoch = -1
+        # the models' field arrays, rebuilt only after a store was reallocated: for the
+        # predictions by argument (a tuple of every model's c, then D, ...); for the update,
+        # each model's activations and prediction buffers and its store
+        self._fields: tuple[tuple[npt.NDArray[Any], ...], ...] = ()
+        self._update_fields: tuple[Any, ...] = ()
+        self._status = np.zeros(len(models), dtype=np.int64)  # update_groups' results
+        self._kernel: Any = None  # predict_groups for these argument types
+        self._update_kernel: Any = None  # update_groups for these argument types
+
+    def _field_args(self) -> tuple[tuple[npt.NDArray[Any], ...], ...]:
+        if self._epoch != _reallocations:
+            self._epoch = _reallocations
+            models = self.models
+            for m in models:
+                m._kernel_args()
+            self._fields = tuple(zip(*(m._predict_args for m in models), strict=True))
+            self._update_fields = (
+                tuple(m._w_buf for m in models), tuple(m._y_buf for m in models),
+                tuple(m._update_args for m in models),
+            )  # fmt: skip
+        return self._fields
+
+    def update(self, z: FloatArray, p: FloatArray) -> bool:
+        """Each model learns its columns of the sample ``z`` (n_z,) -> ``p`` (n_y,), float64
+        arrays, finite: the same as each model's :meth:`LWPR.update_finite` on its columns.
+        False (nothing learnt): not compiled, or an array not contiguous; ask the models one
+        by one."""
+        if not (self.compiled and z.flags.c_contiguous and p.flags.c_contiguous):
+            return False
+        models = self.models
+        self._field_args()
+        ns = tuple([m._n for m in models])
+        args = (z, p, ns, *self._static, *self._update_fields, self._status)
+        kernel = self._update_kernel
+        if kernel is None:  # (the types are fixed: z and p are checked by the caller)
+            kernel = self._update_kernel = jit.entry_point(kernels.update_groups, *args)
+        kernel(*args)
+        for g, status in enumerate(self._status.tolist()):
+            model = models[g]
+            if status:  # the rare work in Python (a field to add, prune or drop)
+                xn = z[self._ins[g]] / model.norm_in
+                yn = p[self._outs[g]] / model.norm_out
+                model._after_update(status, model._w_buf[: ns[g]], xn, yn)
+            else:
+                model.n_updates += 1
+        return True
+
+    def predict_many(self, zs: FloatArray) -> FloatArray | None:
+        """(m, n_y) predictions at the rows of ``zs`` (m, n_z) float64, C-contiguous; the
+        columns no model writes are 0. None: ask the models one by one."""
+        if not self.compiled:
+            return None
+        raw = np.zeros((zs.shape[0], self.n_y))
+        args = (zs, raw, tuple([m._n for m in self.models]), *self._static, *self._field_args())
+        kernel = self._kernel
+        if kernel is None:  # (the types are fixed: zs is checked by the caller)
+            kernel = self._kernel = jit.entry_point(kernels.predict_groups, *args)
+        return raw if kernel(*args) else None
 
 
 class LwprReference(LWPR):

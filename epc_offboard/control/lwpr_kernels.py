@@ -155,6 +155,110 @@ def predict_many(
 
 
 @_jit
+def predict_groups(
+    zs: FloatArray,
+    raw: FloatArray,
+    ns: Any,
+    cfgs: Any,
+    ins: Any,
+    norm_ins: Any,
+    outs: Any,
+    norm_outs: Any,
+    cs: Any,
+    Ds: Any,
+    beta0s: Any,
+    mean_xs: Any,
+    slopes: Any,
+    trusteds: Any,
+    field_outs: Any,
+) -> bool:
+    """Several models' :func:`predict_many` in one call (an estimator's models, each on its
+    own columns of the same points): for model g, the predictions at ``zs[:, ins[g]] /
+    norm_ins[g]`` times ``norm_outs[g]`` into ``raw[:, outs[g]]``; a model without fields
+    leaves its columns of ``raw`` as they are. The per-model arguments are tuples, one
+    element a model (``ns``: its field count; the rest as :func:`predict_many`'s).
+
+    The same numbers as a call of :func:`predict_many` per model: the normalisation and
+    the scaling are the divisions and products the Python side did, and every activation
+    and sum is :func:`activations` and :func:`predict_from`'s, in their order. Only what
+    cannot reach a prediction is skipped: a field that is not trusted, and the exponential
+    of a field whose activation is far below ``cutoff`` (its exponent more than 1 below
+    log(cutoff): exp is monotone and correct to an ulp). False if a value of zs, or a
+    normalised input, is not finite (then nothing is promised of ``raw``)."""
+    m = zs.shape[0]
+    for row in range(m):
+        for i in range(zs.shape[1]):
+            if not math.isfinite(zs[row, i]):
+                return False
+    for g in range(len(ns)):
+        n = ns[g]
+        if n == 0:
+            continue
+        cols = ins[g]
+        norm_in = norm_ins[g]
+        d = cols.shape[0]
+        xn = np.empty((m, d))
+        for row in range(m):
+            for i in range(d):
+                v = zs[row, cols[i]] / norm_in[i]
+                if not math.isfinite(v):
+                    return False
+                xn[row, i] = v
+        cfg = cfgs[g]
+        cutoff = cfg[CFG_CUTOFF]
+        diag_only = cfg[CFG_DIAG_ONLY] != 0.0
+        # below this exponent exp() is below cutoff whatever its last ulp
+        far = math.log(cutoff) - 1.0 if cutoff > 0.0 else -math.inf
+        c, D, beta0, mean_x, slope = cs[g], Ds[g], beta0s[g], mean_xs[g], slopes[g]
+        trusted, out = trusteds[g], field_outs[g]
+        out_cols = outs[g]
+        norm_out = norm_outs[g]
+        n_out = out_cols.shape[0]
+        y = np.empty(n_out)
+        sw = np.empty(n_out)
+        # activations() and predict_from() written out here, not called: each call per
+        # field passes every array as a struct, and as helpers (numba's inline="always"
+        # too) they doubled this kernel's cost (6.6 -> 12-14 us, the position tick's 21
+        # stages); the same operations in their order, so the same bits
+        for row in range(m):
+            x = xn[row]
+            for o in range(n_out):
+                y[o] = 0.0
+                sw[o] = 0.0
+            for j in range(n):
+                if not trusted[j]:
+                    continue
+                q = 0.0  # activations()'s exponent, in its order
+                if diag_only:
+                    for i in range(d):
+                        dx = x[i] - c[j, i]
+                        q += dx * dx * D[j, i, i]
+                else:
+                    for i in range(d):
+                        dxi = x[i] - c[j, i]
+                        acc = 0.0
+                        for k in range(d):
+                            acc += D[j, i, k] * (x[k] - c[j, k])
+                        q += dxi * acc
+                e = -0.5 * q
+                if e < far:
+                    continue
+                wj = math.exp(e)
+                if wj > cutoff:  # predict_from()'s sums, in its order
+                    acc = 0.0
+                    for i in range(d):
+                        acc += (x[i] - mean_x[j, i]) * slope[j, i]
+                    o = out[j]
+                    sw[o] += wj
+                    y[o] += wj * (beta0[j] + acc)
+            for o in range(n_out):
+                if sw[o] > 0.0:
+                    y[o] /= sw[o]
+                raw[row, out_cols[o]] = y[o] * norm_out[o]
+    return True
+
+
+@_jit
 def _meta_step(
     meta_b: FloatArray,
     meta_h: FloatArray,
@@ -525,3 +629,38 @@ def update(
     if n_over >= 2:
         status |= STATUS_ADD_OR_PRUNE
     return status
+
+
+@_jit
+def update_groups(
+    z: FloatArray,
+    p: FloatArray,
+    ns: Any,
+    cfgs: Any,
+    ins: Any,
+    norm_ins: Any,
+    outs: Any,
+    norm_outs: Any,
+    w_bufs: Any,
+    y_bufs: Any,
+    fields: Any,
+    status: Any,
+) -> None:
+    """Several models' :func:`update` in one call (an estimator's models, each learning its
+    columns of one sample): model g learns ``z[ins[g]] / norm_ins[g]`` ->
+    ``p[outs[g]] / norm_outs[g]`` (the divisions the Python side did) with its field store
+    ``fields[g]`` (:func:`update`'s arguments after ``y_before``, as a tuple) and writes
+    :func:`update`'s result into ``status[g]``. The work left to Python (``STATUS_*`` bits)
+    is done by the caller, model by model, as after :func:`update`."""
+    for g in range(len(ns)):
+        cols = ins[g]
+        norm_in = norm_ins[g]
+        xn = np.empty(cols.shape[0])
+        for i in range(cols.shape[0]):
+            xn[i] = z[cols[i]] / norm_in[i]
+        out_cols = outs[g]
+        norm_out = norm_outs[g]
+        yn = np.empty(out_cols.shape[0])
+        for o in range(out_cols.shape[0]):
+            yn[o] = p[out_cols[o]] / norm_out[o]
+        status[g] = update(xn, yn, ns[g], cfgs[g], w_bufs[g], y_bufs[g], *fields[g])

@@ -420,7 +420,8 @@ def limit_tilt(acc_ned_m_s2: FloatArray, limits: AccelLimits) -> FloatArray:
     a = np.minimum(np.maximum(acc_ned_m_s2, limits.u_min), limits.u_max)
     slack = limits.p - limits.P[:, 2] * a[2]  # the polygon's reach at this a_z (> 0)
     reach = limits.P[:, :2] @ a[:2]
-    worst = float((reach / slack).max())
+    # (maximum.reduce: ndarray.max's value and NaN, without its Python-level wrapper)
+    worst = float(np.maximum.reduce(reach / slack))
     if worst > 1.0:
         a[:2] /= worst
     return a

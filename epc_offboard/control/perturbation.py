@@ -35,7 +35,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from epc_offboard.control.lwpr import LWPR, LwprError, check_vector
+from epc_offboard.control.lwpr import LWPR, LwprError, ModelGroup, check_vector
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -375,6 +375,7 @@ class LwprPerturbation:
         self.lwpr_kwargs = dict(lwpr_kwargs)
         self._index = [(_selector(ins), _selector(outs)) for ins, outs in self.groups]
         self.models = self._new_models()  # raises on bad LWPR settings, before anything else
+        self._group: ModelGroup | None = None  # self.models in one compiled call
         self.filter = LowPassFilter(nx, lowpass_cutoff_hz, dt_s)
 
     @classmethod
@@ -396,8 +397,20 @@ class LwprPerturbation:
     def observe(self, z: npt.ArrayLike, p_measured: npt.ArrayLike) -> None:
         zv = check_vector(z, self.n_z, "z")
         pv = check_vector(p_measured, self.nx, "p_measured")
+        if self._model_group().update(zv, pv):  # every model in one compiled call
+            return
         for model, (ins, outs) in zip(self.models, self._index, strict=True):
             model.update_finite(zv[ins], pv[outs])  # (checked above, as a whole)
+
+    def _model_group(self) -> ModelGroup:
+        """self.models, in one compiled call (rebuilt when they are replaced)."""
+        group = self._group
+        if group is None or group.models is not self.models:
+            group = self._group = ModelGroup(
+                self.models, [ins for ins, _ in self.groups],
+                [outs for _, outs in self.groups], self.n_z, self.nx,
+            )  # fmt: skip
+        return group
 
     def predict_raw(self, z: npt.ArrayLike) -> FloatArray:
         """The unfiltered LWPR prediction of p at z, shape (nx,)."""
@@ -409,6 +422,17 @@ class LwprPerturbation:
 
     def predict_raw_many(self, zs: npt.ArrayLike) -> FloatArray:
         """The unfiltered LWPR predictions at the rows of zs (m, n_z): shape (m, nx)."""
+        if (
+            type(zs) is np.ndarray and zs.dtype == np.float64 and zs.ndim == 2
+            and zs.shape[1] == self.n_z and zs.flags.c_contiguous
+        ):  # fmt: skip
+            # the position tick's query: every model in one compiled call, the same numbers
+            group = self._group
+            if group is None or group.models is not self.models:
+                group = self._model_group()
+            raw_fast = group.predict_many(zs)
+            if raw_fast is not None:
+                return raw_fast
         zv = _check_rows(zs, self.n_z, "zs")
         raw = np.zeros((len(zv), self.nx))
         for model, (ins, outs) in zip(self.models, self._index, strict=True):

@@ -44,7 +44,6 @@ from epc_offboard.control.dead_time import (
     MAX_COMMAND_DEAD_TIME_S,
     DeadTimePredictor,
     default_command_dead_time_s,
-    shifted_stages,
 )
 from epc_offboard.control.decision import Controller, Decision
 from epc_offboard.control.epc import budgeted_controller
@@ -402,7 +401,8 @@ class PositionLoop:
     def use_attitude_path(self, autopilot: str, attitude_mode: str) -> None:
         """Fly the command dead time of ``autopilot`` ("px4", "ardupilot") in
         ``attitude_mode`` ("epc": body rates, "autopilot": quaternion), unless the config
-        sets one. Cheap when unchanged (the service calls it every tick)."""
+        sets one (the service calls it at start and when the autopilot's dialect is
+        adopted)."""
         path = (autopilot, attitude_mode)
         if path == self._path:
             return
@@ -673,9 +673,7 @@ class PositionLoop:
         t0 = time.perf_counter()
         dead_time = self.dead_time
         # the QP's window starts where the command chosen now starts to act
-        refs = shifted_stages(
-            reference.stages, dead_time.dead_time_s / self.config.dt_s, self.config.horizon
-        )
+        refs = dead_time.window(reference.stages, self.config.dt_s, self.config.horizon)
         axis = attitude_to_axis_xyz(*state.euler_rad)  # once: three steps below read it
         axis_down = axis[2]
         self._advance_thrust(learn, self._balance_thrust_norm(axis_down))

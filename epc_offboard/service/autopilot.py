@@ -79,6 +79,9 @@ class Autopilot:
         self._log_gate = log_gate
         # told the autopilot's own hover thrust (the position loop's vertical prior)
         self.on_hover_thrust: Callable[[float], None] = lambda hover_norm: None
+        # told the autopilot and attitude mode flown when the dialect is adopted (the
+        # position loop's command dead time; see attitude_path)
+        self.on_attitude_path: Callable[[str, AttitudeMode], None] = lambda name, mode: None
         self.target = commands.Target(cfg.link.target_system, cfg.link.target_component)
         # the autopilot's dialect: forced by link.autopilot, else from its first heartbeat
         # (until then the state machine sees no heartbeat: nothing is commanded)
@@ -176,6 +179,7 @@ class Autopilot:
                 "autopilot dialect %s (HEARTBEAT.autopilot %d), attitude mode %s",
                 dialect.name, autopilot, self.attitude_mode,
             )  # fmt: skip
+            self.on_attitude_path(*self.attitude_path)
             if self.cfg.attitude.mode == "epc" and dialect.default_attitude_mode != "epc":
                 log.warning(
                     "attitude.mode = \"epc\" (body rates) on %s: its shaped rate response is "
@@ -199,6 +203,13 @@ class Autopilot:
                     "link.autopilot = %s but HEARTBEAT.autopilot is %d: speaking %s anyway",
                     self.cfg.link.autopilot, autopilot, self.dialect.name,
                 )  # fmt: skip
+
+    @property
+    def attitude_path(self) -> tuple[str, AttitudeMode]:
+        """(the autopilot: the dialect's name, link.autopilot until one is adopted; the
+        attitude mode). It changes only when the dialect is adopted (on_attitude_path)."""
+        name = self.cfg.link.autopilot if self.dialect is None else self.dialect.name
+        return name, self.attitude_mode
 
     @property
     def attitude_mode(self) -> AttitudeMode:

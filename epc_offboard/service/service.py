@@ -105,6 +105,9 @@ class Service:
         self.autopilot = Autopilot(cfg, self.clock, self.tracker, self.counters, log_gate,
                                    tlog=self.logs.tlog if self.logs else None)  # fmt: skip
         self.autopilot.on_hover_thrust = self.cascade.position.set_hover_thrust
+        # the position loop's command dead time: decided now and when the dialect is adopted
+        self.autopilot.on_attitude_path = self.cascade.position.use_attitude_path
+        self.cascade.position.use_attitude_path(*self.autopilot.attitude_path)
         self.link = self.autopilot.link
         self.systemd = Systemd(cfg.loops.watchdog_period_s)
         self.supervisor = Supervisor(
@@ -189,11 +192,6 @@ class Service:
         (with the px4 baseline nothing to compute: the log keeps the reference)."""
         reference: ReferenceHorizon | None = None  # what the flight log shows
         offboard = self.outputs.phase == Phase.OFFBOARD
-        autopilot = self.autopilot
-        self.cascade.position.use_attitude_path(  # its command dead time
-            self.cfg.link.autopilot if autopilot.dialect is None else autopilot.dialect.name,
-            autopilot.attitude_mode,
-        )  # fmt: skip
         try:
             if self.cascade.flies_reference:  # the autopilot takes the reference now only
                 reference = self.references.now(state, t_s)
