@@ -392,6 +392,8 @@ class PositionLoop:
         self._z_stages = np.empty((cfg.horizon + 1, 3))  # estimator query: v of x_0..x_N
         self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
         self._a_stages = np.empty((cfg.horizon + 1, 3))  # feedforward: a of x_0..x_N
+        # the varying disturbance's drift of x_1..x_N (disturbance_drift); a stays 0
+        self._drift = np.zeros((cfg.horizon, 9))
         # the command dead time flown (use_attitude_path sets the measured default once the
         # autopilot and the attitude mode are known; until then the configured one, or 0)
         self._path: tuple[str, str] | None = None
@@ -551,6 +553,31 @@ class PositionLoop:
         a[1:] = a_ref
         return self.lag_inverse(a)
 
+    def disturbance_drift(self, d_var: FloatArray) -> FloatArray:
+        """(N, 9): the state x_1..x_N the disturbance's variation ``d_var`` (N + 1, 3) along
+        the horizon (its value at x_0..x_N less the estimate now) adds to the model's, from
+        x_0 with no input: ``s[k+1] = A s[k] + E d_var[k]``, ``s[0] = 0``; p and v only.
+
+        The QP's model carries the disturbance estimate now as a constant (``c~``), while
+        ``u_p`` cancels the disturbance expected at each stage. The model with the varying
+        disturbance is the constant one's state plus ``s`` (linear), so its cost on
+        ``x - r`` is the constant model's on ``x - (r - s)``: the QP held to ``r - s`` is
+        exact, and with it ``u_p`` tracks the reference at no cost. Held to ``r``, the plan
+        counted on ``u_p``'s compensation moving the state off the reference and fought it:
+        a steady 1.8 cm outside the circle (the drag turning with the velocity), and the
+        vertical sag in wind (the inflow loss changing with the climb rate).
+        """
+        h = self.config.dt_s
+        drift = self._drift
+        n = drift.shape[0]
+        d = d_var[:n]  # d over step k: the one at x_k (k = 0..N-1)
+        # v: h * sum_{j<=k} d_j; p: sum_{j<=k} (h v_j + h^2/2 d_j), v_j before step j
+        np.cumsum(d, axis=0, out=drift[:, 3:6])
+        drift[:, 3:6] *= h
+        v_before = drift[:, 3:6] - h * d
+        np.cumsum(h * v_before + (0.5 * h * h) * d, axis=0, out=drift[:, 0:3])
+        return drift
+
     def lag_inverse(self, a: FloatArray) -> FloatArray:
         """(N, 3) commands that make the lagged acceleration follow ``a`` (N+1, 3), the
         values at x_0..x_N: ``u_k = (a_{k+1} - alpha a_k) / (1 - alpha)``."""
@@ -701,6 +728,10 @@ class PositionLoop:
             d_hat = np.minimum(np.maximum(p_hat, -d_max), d_max)
             d_var = np.minimum(np.maximum(d_hat + d_var, -d_max), d_max) - d_hat
             u_p = self.feedforward(refs) - d_hat - self.lag_inverse(d_var)
+            # the model carries d_hat alone (a constant c~: the library's parameter vector);
+            # what the disturbance does beyond it along the horizon is exact as a shift of
+            # the references the model's state is held to (see disturbance_drift)
+            refs = refs - self.disturbance_drift(d_var)
         x0 = self._x0
         x0[0:3] = state.pos_ned_m
         x0[3:6] = state.vel_ned_m_s
