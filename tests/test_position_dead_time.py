@@ -13,7 +13,6 @@ from epc_offboard.control.dead_time import (
     DeadTimePredictor,
     default_command_dead_time_s,
     shifted_stages,
-    stage_at,
 )
 from epc_offboard.control.perturbation import EstimatorConfig
 from epc_offboard.control.position import PositionControlConfig, PositionLoop
@@ -138,12 +137,3 @@ def test_the_quaternion_circle_on_px4_flies_within_its_target(tmp_path):
     assert result["flips"] == 0
     assert result["rmse_m"] <= 0.05
 
-
-def test_stage_at_is_the_row_before_the_shifted_window():
-    """The reference at x_0 (the estimator's variation starts there) is the row before the
-    shifted window's first, on the same interpolation, for whole and fractional leads."""
-    stages = np.arange(12 * 9, dtype=np.float64).reshape(12, 9) ** 1.5
-    for lead in (0.0, 1.0, 2.4, 3.0):
-        np.testing.assert_allclose(shifted_stages(stages, lead, 4)[0], stage_at(stages, lead + 1.0))
-    np.testing.assert_allclose(stage_at(stages, 0.0), stages[0])
-    np.testing.assert_allclose(stage_at(stages, 40.0), stages[-1])

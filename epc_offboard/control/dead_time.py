@@ -143,18 +143,3 @@ def shifted_stages(stages: FloatArray, lead_stages: float, steps: int) -> FloatA
     out: FloatArray = lo + frac * (hi - lo)
     return out
 
-
-def stage_at(stages: FloatArray, lead_stages: float) -> FloatArray:
-    """(9,) the row of ``stages`` (M + 1, 9) at stage ``lead_stages`` (>= 0): linear
-    between two stages, the last held beyond the end."""
-    if lead_stages <= 0.0:
-        first: FloatArray = stages[0]
-        return first
-    last = stages.shape[0] - 1
-    base = min(math.floor(lead_stages), last)
-    frac = lead_stages - math.floor(lead_stages)
-    lo: FloatArray = stages[base]
-    if frac < 1e-9 or base == last:
-        return lo
-    out: FloatArray = lo + frac * (stages[base + 1] - lo)
-    return out

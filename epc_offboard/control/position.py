@@ -45,7 +45,6 @@ from epc_offboard.control.dead_time import (
     DeadTimePredictor,
     default_command_dead_time_s,
     shifted_stages,
-    stage_at,
 )
 from epc_offboard.control.decision import Controller, Decision
 from epc_offboard.control.epc import budgeted_controller
@@ -390,7 +389,7 @@ class PositionLoop:
         # inner-loop lag
         self._ramp_lead_m_s2 = cfg.entry_jerk_m_s3 * 2.0 * max(cfg.tau_acc_s)
         # the tick's scratch arrays (not kept by anything the tick returns)
-        # estimator query: v now, then the reference's v at x_0..x_N
+        # estimator query: v now, the variation's origin, the reference's v at x_1..x_N
         self._z_stages = np.empty((cfg.horizon + 2, 3))
         self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
         self._a_stages = np.empty((cfg.horizon + 1, 3))  # feedforward: a of x_0..x_N
@@ -721,14 +720,18 @@ class PositionLoop:
             # (LWPR's d(v); zero change for the KF observer): the nominal input that keeps the
             # lagged acceleration on a_ref - d along the horizon, not only on a_ref - d_hat.
             # One prediction pass gives both the estimate at v (row 0) and its variation.
-            # The variation is the reference's own, from its velocity at x_0 on: taken from
-            # the measured velocity, it carried the estimate's velocity error (EKF2-like: 3
-            # cm/s) times LWPR's slope into u_p and, through the drift, into the plan
-            # (Neural-Fly 0 m/s, seed 1: 2.72 -> 2.63 cm; 8.5 m/s: 3.16 -> 3.08)
+            # The variation's origin (its row 0, the disturbance at x_0 is the estimate):
+            # without a command dead time, the reference's velocity now. From the measured
+            # velocity it carried the estimate's velocity error (EKF2-like: 3 cm/s) times
+            # LWPR's slope into u_p and, through the drift, into the plan (Neural-Fly, seed
+            # 1: 0 m/s 2.72 -> 2.63 cm, 8.5 m/s 3.16 -> 3.08). With one, x_0 is predicted
+            # from the measured state over the dead time and the measured velocity stays the
+            # origin: the reference's there lost the drag's turn over ArduPilot's 0.2 s
+            # (circle max 0.90 -> 2.0-4.4 cm)
             z_stages = self._z_stages
             z_stages[0] = state.vel_ned_m_s
-            z_stages[1] = stage_at(reference.stages, lead_stages)[3:6]
-            z_stages[2:] = refs[:, 3:6]  # v of the reference at x_0..x_N
+            z_stages[1] = reference.stages[0, 3:6] if lead_stages <= 0.0 else z_stages[0]
+            z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
             p_hat, d_var = self.estimator.estimate_along(z_stages)
             d_var = d_var[1:] - d_var[1]
             # (minimum(maximum()): np.clip's values, at a third of its cost on these sizes)
