@@ -159,3 +159,4 @@ def test_the_window_is_shifted_stages_to_the_last_bit():
             window = predictor.window(stages, 0.05, 20)
             want = shifted_stages(stages, predictor.dead_time_s / 0.05, 20)
             assert window.tobytes() == want.tobytes()
+

@@ -88,8 +88,9 @@ def test_sim_circle_tracks(circle: dict[str, Any]) -> None:
 def test_circle_meets_its_targets(circle: dict[str, Any]) -> None:
     assert_targets(circle, "circle")
     epc = by_method(circle)["epc:lwpr"]
-    # thesis fig. 3.5: below 2 cm with little drag; 4.1 cm measured with SIH's drag
-    assert epc["tracking"]["max_error_m"] < 0.05
+    # thesis fig. 3.5: below 2 cm, now with SIH's drag too (this shortened flight: main
+    # 2.06 cm, with the disturbance along the horizon in the model 0.77)
+    assert epc["tracking"]["max_error_m"] < 0.02
     assert epc["library"]["hit_rate"] > 0.9
 
 

@@ -178,3 +178,4 @@ def shifted_stages(stages: FloatArray, lead_stages: float, steps: int) -> FloatA
     hi = stages[np.minimum(idx + 1, last)]
     out: FloatArray = lo + frac * (hi - lo)
     return out
+

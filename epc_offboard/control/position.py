@@ -388,9 +388,12 @@ class PositionLoop:
         # inner-loop lag
         self._ramp_lead_m_s2 = cfg.entry_jerk_m_s3 * 2.0 * max(cfg.tau_acc_s)
         # the tick's scratch arrays (not kept by anything the tick returns)
-        self._z_stages = np.empty((cfg.horizon + 1, 3))  # estimator query: v of x_0..x_N
+        # estimator query: v now, the variation's origin, the reference's v at x_1..x_N
+        self._z_stages = np.empty((cfg.horizon + 2, 3))
         self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
         self._a_stages = np.empty((cfg.horizon + 1, 3))  # feedforward: a of x_0..x_N
+        # the varying disturbance's drift of x_1..x_N (disturbance_drift); a stays 0
+        self._drift = np.zeros((cfg.horizon, 9))
         # the command dead time flown (use_attitude_path sets the measured default once the
         # autopilot and the attitude mode are known; until then the configured one, or 0)
         self._path: tuple[str, str] | None = None
@@ -551,6 +554,31 @@ class PositionLoop:
         a[1:] = a_ref
         return self.lag_inverse(a)
 
+    def disturbance_drift(self, d_var: FloatArray) -> FloatArray:
+        """(N, 9): the state x_1..x_N the disturbance's variation ``d_var`` (N + 1, 3) along
+        the horizon (its value at x_0..x_N less the estimate now) adds to the model's, from
+        x_0 with no input: ``s[k+1] = A s[k] + E d_var[k]``, ``s[0] = 0``; p and v only.
+
+        The QP's model carries the disturbance estimate now as a constant (``c~``), while
+        ``u_p`` cancels the disturbance expected at each stage. The model with the varying
+        disturbance is the constant one's state plus ``s`` (linear), so its cost on
+        ``x - r`` is the constant model's on ``x - (r - s)``: the QP held to ``r - s`` is
+        exact, and with it ``u_p`` tracks the reference at no cost. Held to ``r``, the plan
+        counted on ``u_p``'s compensation moving the state off the reference and fought it:
+        a steady 1.8 cm outside the circle (the drag turning with the velocity), and the
+        vertical sag in wind (the inflow loss changing with the climb rate).
+        """
+        h = self.config.dt_s
+        drift = self._drift
+        n = drift.shape[0]
+        d = d_var[:n]  # d over step k: the one at x_k (k = 0..N-1)
+        # v: h * sum_{j<=k} d_j; p: sum_{j<=k} (h v_j + h^2/2 d_j), v_j before step j
+        np.cumsum(d, axis=0, out=drift[:, 3:6])
+        drift[:, 3:6] *= h
+        v_before = drift[:, 3:6] - h * d
+        np.cumsum(h * v_before + (0.5 * h * h) * d, axis=0, out=drift[:, 0:3])
+        return drift
+
     def lag_inverse(self, a: FloatArray) -> FloatArray:
         """(N, 3) commands that make the lagged acceleration follow ``a`` (N+1, 3), the
         values at x_0..x_N: ``u_k = (a_{k+1} - alpha a_k) / (1 - alpha)``."""
@@ -691,14 +719,28 @@ class PositionLoop:
             # (LWPR's d(v); zero change for the KF observer): the nominal input that keeps the
             # lagged acceleration on a_ref - d along the horizon, not only on a_ref - d_hat.
             # One prediction pass gives both the estimate at v (row 0) and its variation.
+            # The variation's origin (its row 0, the disturbance at x_0 is the estimate):
+            # without a command dead time, the reference's velocity now. From the measured
+            # velocity it carried the estimate's velocity error (EKF2-like: 3 cm/s) times
+            # LWPR's slope into u_p and, through the drift, into the plan (Neural-Fly, seed
+            # 1: 0 m/s 2.72 -> 2.63 cm, 8.5 m/s 3.16 -> 3.08). With one, x_0 is predicted
+            # from the measured state over the dead time and the measured velocity stays the
+            # origin: the reference's there lost the drag's turn over ArduPilot's 0.2 s
+            # (circle max 0.90 -> 2.0-4.4 cm)
             z_stages = self._z_stages
             z_stages[0] = state.vel_ned_m_s
-            z_stages[1:] = refs[:, 3:6]  # v of x_0..x_N
+            z_stages[1] = reference.stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
+            z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
             p_hat, d_var = self.estimator.estimate_along(z_stages)
+            d_var = d_var[1:] - d_var[1]
             # (minimum(maximum()): np.clip's values, at a third of its cost on these sizes)
             d_hat = np.minimum(np.maximum(p_hat, -d_max), d_max)
             d_var = np.minimum(np.maximum(d_hat + d_var, -d_max), d_max) - d_hat
             u_p = self.feedforward(refs) - d_hat - self.lag_inverse(d_var)
+            # the model carries d_hat alone (a constant c~: the library's parameter vector);
+            # what the disturbance does beyond it along the horizon is exact as a shift of
+            # the references the model's state is held to (see disturbance_drift)
+            refs = refs - self.disturbance_drift(d_var)
         x0 = self._x0
         x0[0:3] = state.pos_ned_m
         x0[3:6] = state.vel_ned_m_s
