@@ -419,3 +419,37 @@ def test_the_command_dead_time_is_decided_when_the_dialect_is_adopted_not_each_t
     service.autopilot.on_message(codec.decode(bytearray(frame)))
     assert position.dead_time.dead_time_s == pytest.approx(0.2)
     assert service.autopilot.attitude_path == ("ardupilot", "autopilot")
+
+
+def test_while_the_rate_gate_suspends_body_rates_the_position_loop_flies_the_quaternion_dead_time():
+    """PX4 body rates: no command dead time. When the rate model's gate suspends body rates,
+    PX4's attitude loop answers the position loop's commands 0.275 s late: the position loop
+    flies quaternion mode's dead time (0.15 s) until body rates fly again (ardu-rates found
+    the fallback planned as body rates, tilted to 76 deg)."""
+    from epc_offboard.service.service import Service
+
+    cfg = dataclasses.replace(
+        CFG, link=dataclasses.replace(CFG.link, autopilot="px4"),
+        attitude=dataclasses.replace(CFG.attitude, mode="epc"),
+        position=dataclasses.replace(CFG.position, command_dead_time_s=None),
+        log=dataclasses.replace(CFG.log, flight_log_path="", tlog_path=""),
+    )  # fmt: skip
+    service = Service(cfg)
+    position = service.cascade.position
+    gate = service.cascade.attitude.gate
+    state = VehicleState(
+        time_s=10.0, pos_ned_m=np.array([0.0, 0.0, -2.5]), vel_ned_m_s=np.zeros(3),
+        q_ned_frd=np.array([1.0, 0.0, 0.0, 0.0]), rate_frd_rad_s=np.zeros(3),
+        position_age_s=0.0, attitude_age_s=0.0,
+    )  # fmt: skip
+    service._position_tick(state, 10.0)
+    assert position.dead_time.steps == 0
+    for k in range(gate.min_checks + 1):  # the rates measured far from the model's
+        gate.check(10.0 + 0.005 * k, np.full(3, 3.0), np.full(3, 0.1))
+    assert not gate.use_rates(10.1)
+    service._position_tick(dataclasses.replace(state, time_s=10.1), 10.1)
+    assert position.dead_time.dead_time_s == pytest.approx(0.15)
+    later = gate.until_s + 0.01  # the hold over: body rates on probation
+    service._position_tick(dataclasses.replace(state, time_s=later), later)
+    assert position.dead_time.steps == 0
+    assert service.counters["position_dead_time_switches"] == 2

@@ -53,7 +53,7 @@ from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
 from epc_offboard.common.procstats import process_report
-from epc_offboard.control.cascade import Cascade, compiled_signatures, late_tick
+from epc_offboard.control.cascade import AttitudeMode, Cascade, compiled_signatures, late_tick
 from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
 from epc_offboard.fleet.sharing import FleetSharing, open_or_fly_alone
 from epc_offboard.service import realtime
@@ -105,9 +105,12 @@ class Service:
         self.autopilot = Autopilot(cfg, self.clock, self.tracker, self.counters, log_gate,
                                    tlog=self.logs.tlog if self.logs else None)  # fmt: skip
         self.autopilot.on_hover_thrust = self.cascade.position.set_hover_thrust
-        # the position loop's command dead time: decided now and when the dialect is adopted
-        self.autopilot.on_attitude_path = self.cascade.position.use_attitude_path
-        self.cascade.position.use_attitude_path(*self.autopilot.attitude_path)
+        # the position loop's command dead time: decided now, when the dialect is adopted,
+        # and while body rates are suspended (_follow_rate_gate)
+        self._attitude_path = self.autopilot.attitude_path
+        self._rates_suspended = False
+        self.autopilot.on_attitude_path = self._use_attitude_path
+        self._use_attitude_path(*self._attitude_path)
         self.link = self.autopilot.link
         self.systemd = Systemd(cfg.loops.watchdog_period_s)
         self.supervisor = Supervisor(
@@ -187,11 +190,30 @@ class Service:
             self.systemd.control_ticked()
         return self.outputs.stream_setpoints  # ticks that control are timed, not idle ones
 
+    def _use_attitude_path(self, autopilot: str, mode: AttitudeMode) -> None:
+        self._attitude_path = (autopilot, mode)
+        self._rates_suspended = False
+        self.cascade.position.use_attitude_path(autopilot, mode)
+
+    def _follow_rate_gate(self, t_s: float) -> None:
+        """While the rate model's gate has suspended body rates, the autopilot's attitude
+        loop answers the position loop's commands: fly its command dead time (PX4's
+        quaternion answer is 0.275 s late; planned as body rates' 0 s, the heavier
+        position weights oscillated: circle 60 cm, 40 deg of tilt)."""
+        suspended = not self.cascade.attitude.rate_model_trusted(t_s)
+        if suspended != self._rates_suspended:
+            self._rates_suspended = suspended
+            self.counters["position_dead_time_switches"] += 1
+            autopilot, mode = self._attitude_path
+            self.cascade.position.use_attitude_path(autopilot, "autopilot" if suspended else mode)
+
     def _position_tick(self, state: VehicleState, t_s: float) -> PositionOutput:
         """One tick of the position loop: the reference horizon, then the cascade's tick
         (with the px4 baseline nothing to compute: the log keeps the reference)."""
         reference: ReferenceHorizon | None = None  # what the flight log shows
         offboard = self.outputs.phase == Phase.OFFBOARD
+        if self._attitude_path[1] == "epc":
+            self._follow_rate_gate(t_s)
         try:
             if self.cascade.flies_reference:  # the autopilot takes the reference now only
                 reference = self.references.now(state, t_s)
