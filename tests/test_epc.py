@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import epc_offboard.control.epc.library as library_module
@@ -338,11 +338,12 @@ def test_a_failed_solve_and_intermediate_degrade_to_bounded_hover(monkeypatch):
 
 def intermediate_reference(short: MpcProblem, theta: np.ndarray, w: float):
     """The intermediate QP (thesis 3.1.3) built from its definition and solved by OSQP at
-    eps 1e-10, polished (exact at the active set it identifies): ``(u0 (nu,), s (m_x,))``.
+    eps 1e-10, polished where it can (exact at the active set it identifies):
+    ``(u0 (nu,), s (m_x,))``.
 
     ``min 1/2 U'HU + h'U + w/2 |s|^2 + w 1's`` s.t. ``Gx U - s <= gamma_x``, ``s >= 0``,
     every input row of ``G U <= gamma`` hard."""
-    from epc_offboard.control.qp import OsqpSolver
+    from epc_offboard.control.qp import OsqpSolver, QpStatus
 
     h, gamma = short.vectors(theta)
     is_x = np.array([r.kind == "x" for r in short.rows])
@@ -354,7 +355,10 @@ def intermediate_reference(short: MpcProblem, theta: np.ndarray, w: float):
     solver = OsqpSolver(P, A, polish=True, eps_abs=1e-10, eps_rel=1e-10, max_iter=200000)
     res = solver.solve(np.concatenate([h, np.full(n_s, w)]), np.concatenate([gamma,
                                                                              np.zeros(n_s)]))
-    assert res.polished, res.status
+    # unpolished where the active set is degenerate (a row exactly at its bound: hypothesis
+    # found pos (-4, 0, 0), vel (1.1, 0, 0), horizon 5); the QP is strictly convex, so the
+    # unique optimum at eps 1e-10 is still well within the comparison's 1e-6
+    assert res.status == QpStatus.SOLVED, res.status
     return short.clip_input(res.x[: short.nu]), res.x[n_u:]
 
 
@@ -371,6 +375,9 @@ intermediate_case = st.fixed_dictionaries({
 
 @settings(max_examples=60, deadline=None)
 @given(case=intermediate_case)
+@example(case={"tilt": False, "pos_m": np.array([-4.0, 0.0, 0.0]),  # OSQP cannot polish it
+               "vel_m_s": np.array([1.1, 0.0, 0.0]), "tgt": np.zeros(3), "p_hat": np.zeros(3),
+               "horizon": 5})  # fmt: skip
 def test_intermediate_input_equals_an_exact_reference_solve(case):
     """DAQP's intermediate input (a miss tick's) equals the intermediate QP's optimum solved
     independently, also where the state bounds cannot all hold and slack takes them."""
