@@ -36,9 +36,10 @@ def library_of(n_targets: int) -> tuple[ExperienceController, list[tuple[int, ..
     return ctrl, [e.active_set for e in ctrl.export_library()]
 
 
-async def answered(v1: FleetSharing, v2: FleetSharing, what: str) -> None:
-    """v1 answered another query of v2's (a rejoin), and its reply has had time to arrive."""
-    before = v1.stats().get("queries_answered", 0)
+async def answered(v1: FleetSharing, v2: FleetSharing, what: str, before: int) -> None:
+    """v1 answered another query of v2's (a rejoin) than the ``before`` it had answered, and
+    its reply has had time to arrive. (``before`` is read before the rejoin: a router back
+    at once has the query answered, with one reply, before this could read it.)"""
     await until(lambda: v1.stats().get("queries_answered", 0) > before, what, 60)
     await asyncio.sleep(v2.cfg.query_timeout_s)  # the reply, if any, is in by then
 
@@ -58,11 +59,12 @@ def test_a_rejoining_vehicle_pulls_only_what_is_new(tmp_path):
                     assert fresh >= len(held)
                     # 1. the router restarts: every vehicle's token comes back, each queried
                     got = v2.stats()["entries_received"]
+                    queries = v1.stats().get("queries_answered", 0)
                     r.proc.send_signal(signal.SIGTERM)
                     r.proc.wait(timeout=10)
                     await asyncio.sleep(0.5)
                     with router(tmp_path, "router.json5", {}, tls=False, port=r.port):
-                        await answered(v1, v2, "v2's query after the router's restart")
+                        await answered(v1, v2, "v2's query after the router's restart", queries)
                         assert v2.stats()["entries_received"] == got, "re-pulled on rejoin"
                         # a controller learned now is new: it alone travels
                         s_new = learn_new(a, TARGETS[2])  # vertical: none of the library's
