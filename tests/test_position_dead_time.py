@@ -9,16 +9,34 @@ import math
 import numpy as np
 import pytest
 
-from epc_offboard.control.dead_time import (
-    DeadTimePredictor,
-    default_command_dead_time_s,
-    shifted_stages,
-)
+from epc_offboard.control.dead_time import DeadTimePredictor, default_command_dead_time_s
 from epc_offboard.control.perturbation import EstimatorConfig
 from epc_offboard.control.position import PositionControlConfig, PositionLoop
 from epc_offboard.control.types import ReferenceHorizon, VehicleState
 
 TAU = (0.12, 0.12, 0.03)
+
+
+def shifted_stages(stages, lead_stages, steps):
+    """The oracle for DeadTimePredictor.window: rows ``lead + 1 .. lead + steps`` of
+    ``stages``, linear between two stages, the last held, computed afresh each call."""
+    if lead_stages <= 0.0:
+        return stages[1 : steps + 1]
+    whole = round(lead_stages)
+    base = whole if abs(lead_stages - whole) < 1e-9 else math.floor(lead_stages)
+    frac = max(lead_stages - base, 0.0)
+    last = stages.shape[0] - 1
+    idx = np.minimum(np.arange(base + 1, base + 1 + steps), last)
+    lo = stages[idx]
+    if frac < 1e-9:
+        return lo
+    return lo + frac * (stages[np.minimum(idx + 1, last)] - lo)
+
+
+def window(stages, lead_stages, steps):
+    """DeadTimePredictor.window at a dead time of ``lead_stages`` steps of 0.05 s (on a
+    0.005 s tick, so that half steps are whole ticks)."""
+    return DeadTimePredictor(TAU, 0.005, lead_stages * 0.05).window(stages, 0.05, steps)
 
 
 def integrate(x0, commands, d, period_s, tau, substeps=2000):
@@ -69,10 +87,10 @@ def test_no_dead_time_is_the_state_itself():
 
 def test_the_window_starts_at_the_dead_time():
     stages = np.arange(24.0)[:, None] * np.ones((1, 9))  # stage k holds k
-    np.testing.assert_array_equal(shifted_stages(stages, 0.0, 20)[:, 0], np.arange(1.0, 21.0))
-    np.testing.assert_array_equal(shifted_stages(stages, 3.0, 20)[:, 0], np.arange(4.0, 24.0))
-    np.testing.assert_allclose(shifted_stages(stages, 2.5, 20)[:, 0], np.arange(3.5, 23.5))
-    short = shifted_stages(stages[:21], 3.0, 20)[:, 0]  # a horizon without the lead: held
+    np.testing.assert_array_equal(window(stages, 0.0, 20)[:, 0], np.arange(1.0, 21.0))
+    np.testing.assert_array_equal(window(stages, 3.0, 20)[:, 0], np.arange(4.0, 24.0))
+    np.testing.assert_allclose(window(stages, 2.5, 20)[:, 0], np.arange(3.5, 23.5))
+    short = window(stages[:21], 3.0, 20)[:, 0]  # a horizon without the lead: held
     assert short[-1] == 20.0
     assert short[0] == 4.0
 

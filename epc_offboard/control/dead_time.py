@@ -137,20 +137,23 @@ class DeadTimePredictor:
         return out
 
     def window(self, stages: FloatArray, step_s: float, steps: int) -> FloatArray:
-        """:func:`shifted_stages` of ``stages`` (M + 1, 9), ``step_s`` apart, over this
-        dead time: the reference window the QP plans on, the same numbers, the stage
-        indices computed once (they change only with the horizon)."""
+        """The reference window the QP plans on: (steps, 9) rows of ``stages`` (M + 1, 9),
+        ``step_s`` apart from stage 0, at stages ``lead + 1 .. lead + steps`` where ``lead``
+        is this dead time in steps; linear between two stages, the last stage held beyond
+        the end (a horizon shorter than the lead needs). The stage indices are computed once
+        (they change only with the horizon)."""
         lead_stages = self.dead_time_s / step_s
         if lead_stages <= 0.0:
             return stages[1 : steps + 1]
+        # a whole number of steps that rounding left a hair short (0.15 / 0.05) is whole
+        base = math.floor(lead_stages + 1e-9)
         key = (lead_stages, steps, stages.shape[0])
         if key != self._window_key or self._window_idx is None:
             last = stages.shape[0] - 1
-            idx = np.minimum(np.arange(math.floor(lead_stages) + 1,
-                                       math.floor(lead_stages) + 1 + steps), last)  # fmt: skip
+            idx = np.minimum(np.arange(base + 1, base + 1 + steps), last)
             self._window_idx = (idx, np.minimum(idx + 1, last))
             self._window_key = key
-        frac = lead_stages - math.floor(lead_stages)
+        frac = max(lead_stages - base, 0.0)
         lo: FloatArray = stages[self._window_idx[0]]
         if frac < 1e-9:
             return lo
@@ -160,22 +163,3 @@ class DeadTimePredictor:
         out *= frac
         out += lo
         return out
-
-
-def shifted_stages(stages: FloatArray, lead_stages: float, steps: int) -> FloatArray:
-    """(steps, 9) rows of ``stages`` (M + 1, 9), one prediction step apart from stage 0, at
-    stages ``lead_stages + 1 .. lead_stages + steps``: linear between two stages, the last
-    stage held beyond the end (a horizon shorter than the lead needs)."""
-    if lead_stages <= 0.0:
-        return stages[1 : steps + 1]
-    base = math.floor(lead_stages)
-    frac = lead_stages - base
-    last = stages.shape[0] - 1
-    idx = np.minimum(np.arange(base + 1, base + 1 + steps), last)
-    lo: FloatArray = stages[idx]
-    if frac < 1e-9:
-        return lo
-    hi = stages[np.minimum(idx + 1, last)]
-    out: FloatArray = lo + frac * (hi - lo)
-    return out
-
