@@ -479,7 +479,7 @@ class FleetSharing:
         # be large, and this runs on the loops' thread
         raw = bytes(self._high_water_raw.raw).rstrip(b"\0")
         at = raw.rfind(b',"settled":')
-        self._read_own(raw[:at] if at >= 0 else raw[:-1])
+        self._read_own(raw, at if at >= 0 else len(raw) - 1)
         try:
             state = json.loads(b"{" + raw[at + 1 :]) if at >= 0 else {}
         except (ValueError, UnicodeDecodeError):
@@ -492,14 +492,15 @@ class FleetSharing:
             self._marks = [[self.specs[i].signature, str(p), int(e), int(n)]
                            for i, p, e, n in settled]  # fmt: skip
 
-    def _read_own(self, head: bytes) -> None:
+    def _read_own(self, raw: bytes, end: int) -> None:
         """This vehicle's numbering of its library, cut out of the helper's buffer as text
-        (it ends it, before the settled marks): parsed only by a restart's :meth:`restore`,
-        and kept until a helper writes one (a restart keeps the one it restored)."""
-        at = head.rfind(b',"own":{')
+        (it ends at ``end``, before the settled marks): parsed only by a restart's
+        :meth:`restore`, and kept until a helper writes one (a restart keeps the one it
+        restored)."""
+        at = raw.rfind(b',"own":{', 0, end)
         if at < 0:
             return
-        own = head[at + 7 :]
+        own = raw[at + 7 : end]
         if own != self._own_raw:
             self._own_raw = own
             with contextlib.suppress(UnicodeDecodeError):
