@@ -121,10 +121,10 @@ def test_high_water_marks_follow_on_and_survive_in_the_shared_buffer():
     b.received(0, "a", {"e": a.epoch, "p": 4, "s": 5}, True)  # a gap: not advanced
     assert b.held[(0, "a")] == (a.epoch, 3)
     query = json.loads(b.query(0, "*"))
-    assert a.since(query, "a") == 3
+    assert a.since(query, "a") == (3, False)
     assert [e.active_set for e in a.newer(0, lib, 3)] == [(3,)]
-    assert a.since(query, "other") == 0
-    assert a.since({"h": {"a": [a.epoch + 1, 3]}}, "a") == 0
+    assert a.since(query, "other") == (0, False)
+    assert a.since({"h": {"a": [a.epoch + 1, 3]}}, "a") == (0, False)
     b.received(0, "a", {"e": a.epoch, "s": 4}, False)  # a snapshot reply sets it
     buf = (ctypes.c_char * 4096)()
     b.save(buf)
@@ -138,3 +138,37 @@ def test_high_water_marks_follow_on_and_survive_in_the_shared_buffer():
     a.forget(0, lib[:2], keep=10)  # the library's two and the newest ten others
     assert set(a.numbers[0]) == {(0,), (1,)} | {e.active_set for e in many[-10:]}
     assert a.number(0, [LibraryEntry((2,))]) == (104, 105)  # forgotten: numbered anew
+
+
+def test_a_new_process_answers_a_mark_of_its_former_epoch_with_what_it_does_not_cover():
+    """A restarted vehicle numbers under a new epoch; its library's numbers under the old
+    one (``own``, as the store kept them) come back as ``former``. A query with a mark of
+    the old epoch gets only what that numbering does not cover up to the mark, an
+    unnumbered one too (learned after the last save); a mark of neither epoch, everything."""
+    import ctypes
+
+    from epc_offboard.control.library_types import LibraryEntry
+    from epc_offboard.fleet.session import HighWater
+
+    old = HighWater(1)
+    lib = [LibraryEntry((i,)) for i in range(5)]
+    old.number(0, lib[:4])
+    old.of_library(0, lib[:3])  # the snapshot's library: (3,) was published, then evicted
+    buf = (ctypes.c_char * 4096)()
+    old.save(buf)
+    own = json.loads(bytes(buf.raw).rstrip(b"\0"))["own"]
+    assert own == {"epoch": old.epoch, "numbers": [[[0, 1], [1, 2], [2, 3]]]}
+    new = HighWater(1, json.dumps({"epoch": 7, "numbers": [[]], "held": [],
+                                   "former": own}).encode())  # fmt: skip
+    assert new.epoch == 7
+    assert new.former is not None
+    since, former = new.since({"h": {"a": [old.epoch, 2]}}, "a")
+    assert (since, former) == (2, True)
+    # (2,) above the mark; (3,) and (4,) not in the saved library's numbering: they go too
+    assert [e.active_set for e in new.newer(0, lib, since, former)] == [(2,), (3,), (4,)]
+    assert new.newer(0, lib[:2], since, former) == []
+    assert new.since({"h": {"a": [old.epoch + 1, 2]}}, "a") == (0, False)
+    new.save(buf)  # kept for a restarted helper
+    assert HighWater(1, bytes(buf.raw)).former == new.former
+    assert HighWater(1, json.dumps({"epoch": 7, "numbers": [[]], "held": [],
+                                    "former": {"epoch": "x"}}).encode()).former is None

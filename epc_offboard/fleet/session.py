@@ -87,6 +87,19 @@ def _read_attachment(raw: zenoh.ZBytes | None) -> dict[str, Any]:
     return obj if isinstance(obj, dict) else {}
 
 
+def numbering(obj: Any, problems: int) -> tuple[int, list[dict[tuple[int, ...], int]]] | None:
+    """``{"epoch": e, "numbers": [[[*active_set, number], ...] per problem]}`` read back
+    (None: absent, malformed or for another set of problems)."""
+    try:
+        numbers = [{tuple(int(a) for a in row[:-1]): int(row[-1]) for row in rows}
+                   for rows in obj["numbers"]]  # fmt: skip
+        if len(numbers) != problems:
+            return None
+        return int(obj["epoch"]), numbers
+    except (KeyError, TypeError, ValueError, IndexError):
+        return None
+
+
 class HighWater:
     """What makes a rejoin O(what is new) (issue 25).
 
@@ -104,6 +117,13 @@ class HighWater:
     library again. Both tables are saved to a shared buffer that outlives the helper, so a
     restarted helper keeps them too. Without an attachment (an older vehicle, another tool)
     the whole snapshot goes, as before. Thread-safe (Zenoh delivers on several threads).
+
+    A vehicle restarted as a new process numbers under a new epoch: numbers handed out after
+    its store's last save may have reached a peer, so the old epoch cannot go on. Its
+    library's numbers under the old epoch (``own``, kept by the store) come back as
+    ``former``: a peer whose query carries a mark of that epoch is answered only the
+    library's controllers the old numbering does not cover up to that mark (one it lacks a
+    number for goes too), not the whole library again.
     """
 
     def __init__(self, problems: int, saved: bytes = b"") -> None:
@@ -122,6 +142,10 @@ class HighWater:
             self.epoch = int.from_bytes(os.urandom(6), "little")
             self.numbers = [{} for _ in range(problems)]
             self.held = {}
+        self.former = numbering(state.get("former") if isinstance(state, dict) else None,
+                                problems)  # fmt: skip
+        # per problem, the active sets of the library the last snapshot held (``own``)
+        self.library: list[list[tuple[int, ...]]] = [[] for _ in range(problems)]
         self.last = [max(n.values(), default=0) for n in self.numbers]
         self._lock = threading.Lock()
         self.dirty = False
@@ -156,10 +180,25 @@ class HighWater:
             self.numbers[index] = {a: n for a, n in numbers.items() if a in live or n >= floor}
             self.dirty = True
 
-    def newer(self, index: int, entries: Sequence[LibraryEntry], since: int) -> list[LibraryEntry]:
+    def newer(self, index: int, entries: Sequence[LibraryEntry], since: int,
+              former: bool = False) -> list[LibraryEntry]:  # fmt: skip
+        """``entries`` numbered above ``since``; ``former``: in the former epoch's numbering,
+        where one it does not number is newer too (learned after the store's last save)."""
         with self._lock:
+            if former and self.former is not None:
+                old = self.former[1][index]
+                return [e for e in entries if old.get(e.active_set, since + 1) > since]
             numbers = self.numbers[index]
             return [e for e in entries if numbers.get(e.active_set, 0) > since]
+
+    def of_library(self, index: int, entries: Sequence[LibraryEntry]) -> None:
+        """The library's active sets as the last snapshot held them: their numbers are what
+        :meth:`save` writes as ``own``, for the store to keep."""
+        sets = [e.active_set for e in entries]
+        with self._lock:
+            if sets != self.library[index]:
+                self.library[index] = sets
+                self.dirty = True
 
     def query(self, index: int, peer: str) -> bytes:
         """The attachment of a query to ``peer`` (keys.ANY: every peer) for problem ``index``."""
@@ -168,12 +207,17 @@ class HighWater:
                     if i == index and (peer == keys.ANY or p == peer)}  # fmt: skip
         return _attachment({"h": held})
 
-    def since(self, query: dict[str, Any], me: str) -> int:
-        """The number above which a query's sender wants this vehicle's controllers (0: all)."""
+    def since(self, query: dict[str, Any], me: str) -> tuple[int, bool]:
+        """The number above which a query's sender wants this vehicle's controllers (0: all),
+        and whether it counts in the former epoch's numbering (:meth:`newer`)."""
         mine = query.get("h", {}).get(me) if isinstance(query.get("h"), dict) else None
-        if isinstance(mine, list) and len(mine) == 2 and mine[0] == self.epoch:
-            return int(mine[1]) if isinstance(mine[1], int) else 0
-        return 0
+        if not (isinstance(mine, list) and len(mine) == 2 and isinstance(mine[1], int)):
+            return 0, False
+        if mine[0] == self.epoch:
+            return mine[1], False
+        if self.former is not None and mine[0] == self.former[0]:
+            return mine[1], True
+        return 0, False
 
     def numbered(self, index: int, entries: Sequence[LibraryEntry]) -> int:
         """The highest number among ``entries`` (0: none numbered)."""
@@ -229,6 +273,15 @@ class HighWater:
                 "epoch": self.epoch,
                 "numbers": [[[*k, v] for k, v in n.items()] for n in self.numbers],
                 "held": [[i, p, e, n] for (i, p), (e, n) in self.held.items()],
+                **({"former": {"epoch": self.former[0],
+                               "numbers": [[[*a, n] for a, n in f.items()]
+                                           for f in self.former[1]]}}
+                   if self.former is not None else {}),
+                # this numbering of the library, for the store (FleetSharing.fleet_state
+                # cuts it out between its name and "settled": keep them in this order)
+                "own": {"epoch": self.epoch, "numbers": [
+                    [[*a, n[a]] for a in sets if a in n]
+                    for sets, n in zip(self.library, self.numbers, strict=True)]},
                 **({"settled": self.settled[0], "taken": self.settled[1], "pid": os.getpid()}
                    if self.settled is not None else {}),
             })  # fmt: skip
@@ -449,6 +502,7 @@ class FleetSession:
         self.high_water.number(index, entries)
         self.high_water.forget(index, entries, keep=p.spec.max_entries)
         numbered = self.high_water.numbered(index, entries)
+        self.high_water.of_library(index, entries)
         p.snapshot = snapshot_payload(p.spec.signature, self.vehicle_id, entries, transitions,
                                       self.cfg.max_payload_bytes)  # fmt: skip
         p.library = (entries, transitions, numbered)
@@ -567,11 +621,11 @@ class FleetSession:
         it holds everything, the controllers numbered above its mark, or the snapshot."""
         self.counters.add("queries_answered")
         hw = self.high_water
-        since = hw.since(_read_attachment(query.attachment), self.vehicle_id)
+        since, former = hw.since(_read_attachment(query.attachment), self.vehicle_id)
         entries, transitions, numbered = p.library
         payload = p.snapshot
         if since:
-            newer = hw.newer(p.index, entries, since)
+            newer = hw.newer(p.index, entries, since, former)
             if not newer:  # (numbered <= since)
                 # an empty reply, not silence: silence is a lost query, asked again
                 # (:meth:`_query_done`), and a repeat racing a publication pulled that

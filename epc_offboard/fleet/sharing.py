@@ -73,7 +73,7 @@ from epc_offboard.fleet.records import (
     Records,
     reference_of,
 )
-from epc_offboard.fleet.session import HelperArgs, helper_main
+from epc_offboard.fleet.session import HelperArgs, helper_main, numbering
 from epc_offboard.fleet.wire import ControllerMessage, ReferenceMessage
 
 __all__ = ["FleetSharing", "LiveReference", "SharingConfig", "open_or_fly_alone"]
@@ -86,7 +86,7 @@ _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is r
 _REFERENCES_PER_READ = 4  # the newest of these is kept
 _HIGH_WATER_BYTES = 1 << 20  # session.HighWater's saved tables (a larger one is not kept)
 _FRAME_ENTRIES = 512  # controllers in one publish frame: far below the outbox's bound
-_MARKS, _CANDIDATES = "marks", "candidates:"  # fleet_state's names
+_MARKS, _CANDIDATES, _OWN = "marks", "candidates:", "own"  # fleet_state's names
 
 
 @dataclass(frozen=True)
@@ -230,6 +230,9 @@ class FleetSharing:
         self._read = 0  # candidate records read from the running helper
         self._marks: list[list[Any]] = []  # [signature, peer, epoch, number]: fleet_state's
         self._received_text: dict[int, tuple[Any, str]] = {}  # per problem: (what, its text)
+        # fleet_state's: this vehicle's numbering of its library (HighWater's ``own``), as
+        # the store keeps it and as the helper's buffer last held it
+        self._own, self._own_raw = "", b""
 
     def _per_turn(self) -> int:
         return max(1, math.ceil(self.cfg.candidates_per_s * _TURN_S))
@@ -449,8 +452,9 @@ class FleetSharing:
         (yet) with its successors; and the high-water marks up to which they are held
         (``session.HighWater``). The marks are the helper's settled ones, taken only once
         this process has read every controller they cover (one still in the helper's inbox
-        or pipe would otherwise be lost by a kill), else the last such. {} when not sharing
-        a library."""
+        or pipe would otherwise be lost by a kill), else the last such. And this vehicle's
+        own numbering of its library, so that after a restart its peers are answered only
+        what they lack of it (``HighWater.former``). {} when not sharing a library."""
         if not self.share_library:
             return {}
         self._settle_marks()
@@ -465,6 +469,8 @@ class FleetSharing:
                      for e, s in received], separators=(",", ":")))  # fmt: skip
             out[_CANDIDATES + spec.signature] = self._received_text[i][1]
         out[_MARKS] = json.dumps({"held": self._marks}, separators=(",", ":"))
+        if self._own:
+            out[_OWN] = self._own
         return out
 
     def _settle_marks(self) -> None:
@@ -473,6 +479,7 @@ class FleetSharing:
         # be large, and this runs on the loops' thread
         raw = bytes(self._high_water_raw.raw).rstrip(b"\0")
         at = raw.rfind(b',"settled":')
+        self._read_own(raw, at if at >= 0 else len(raw) - 1)
         try:
             state = json.loads(b"{" + raw[at + 1 :]) if at >= 0 else {}
         except (ValueError, UnicodeDecodeError):
@@ -484,6 +491,21 @@ class FleetSharing:
         with contextlib.suppress(ValueError, TypeError, IndexError):
             self._marks = [[self.specs[i].signature, str(p), int(e), int(n)]
                            for i, p, e, n in settled]  # fmt: skip
+
+    def _read_own(self, raw: bytes, end: int) -> None:
+        """This vehicle's numbering of its library, cut out of the helper's buffer as text
+        (it ends at ``end``, before the settled marks): parsed only by a restart's
+        :meth:`restore`, and kept until a helper writes one (a restart keeps the one it
+        restored)."""
+        at = raw.rfind(b',"own":{', 0, end)
+        if at < 0:
+            return
+        own = raw[at + 7 : end]
+        if own != self._own_raw:
+            self._own_raw = own
+            with contextlib.suppress(UnicodeDecodeError):
+                sigs = json.dumps([spec.signature for spec in self.specs])
+                self._own = f'{own.decode()[:-1]},"signatures":{sigs}}}'
 
     def restore(self, saved: Mapping[str, str]) -> int:
         """Before :meth:`open`: offer the received controllers a previous process kept
@@ -515,11 +537,33 @@ class FleetSharing:
         self.counters["restored_candidates"] += offered
         self.counters["restored_marks"] += len(self._marks)
         held = [[index[sig], p, e, n] for sig, p, e, n in self._marks]
-        data = json.dumps({"epoch": int.from_bytes(os.urandom(6), "little"),
-                           "numbers": [{} for _ in self.specs], "held": held}).encode()
+        # a new epoch (numbers handed out after the last save may have reached a peer),
+        # the old one's numbering of the library beside it: HighWater.former
+        state: dict[str, Any] = {"epoch": int.from_bytes(os.urandom(6), "little"),
+                                 "numbers": [[] for _ in self.specs], "held": held}
+        former = self._former(saved.get(_OWN, ""))
+        if former is not None:
+            state["former"] = former
+            self._own = saved[_OWN]  # kept in the store until a helper numbers the library
+            self.counters["restored_numbers"] += sum(len(rows) for rows in former["numbers"])
+        data = json.dumps(state, separators=(",", ":")).encode()
         if len(data) < _HIGH_WATER_BYTES:  # the first helper starts from these marks
             self._high_water_raw[: len(data) + 1] = data + b"\0"
         return offered
+
+    def _former(self, text: str) -> dict[str, Any] | None:
+        """The saved ``own`` numbering (:meth:`fleet_state`) by this process's problem
+        order, or None (none, garbage, or no problem in common: the peers pull it whole)."""
+        try:
+            own = json.loads(text)
+            by_sig = dict(zip(own["signatures"], own["numbers"], strict=True))
+            numbers = [by_sig.get(spec.signature, []) for spec in self.specs]
+            if not any(numbers) or numbering({"epoch": own["epoch"], "numbers": numbers},
+                                             len(self.specs)) is None:  # fmt: skip
+                return None
+            return {"epoch": int(own["epoch"]), "numbers": numbers}
+        except (ValueError, TypeError, KeyError):
+            return None
 
     # -- for the service ------------------------------------------------------------------
 
