@@ -1,0 +1,57 @@
+"""An accepted arm or mode change is seen at once, not on the next 1 Hz heartbeat (lockstep).
+
+The state machine judges arming and the mode by the heartbeat, which PX4 (and the bundled
+SITL) sends once a second: the takeoff waited for the heartbeat after the arm's ACK, and
+offboard was confirmed on the heartbeat after the mode's ACK, each 0-1 s late (1.2 s of a
+12 s cold start on a real PX4). Now the service asks for a HEARTBEAT (MAV_CMD_REQUEST_MESSAGE)
+when such a command is accepted. Judged in vehicle time, which load does not stretch.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
+
+from tests.test_service_e2e import sim
+
+pytestmark = pytest.mark.timeout(240)
+
+# one supervisor period (20 Hz) and a tick of margin: the heartbeat asked for arrives within
+# the same vehicle tick as the ACK
+MAX_ACK_TO_SEEN_S = 0.12
+
+_STATE_MESSAGES = ("ATTITUDE", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED")
+
+
+def _command_vehicle_times_s(tlog: Path) -> dict[int, float]:
+    """Each command's first sending, in the vehicle time of the newest state before it."""
+    log = mavutil.mavlink_connection(str(tlog), dialect="common")
+    vehicle_s = 0.0
+    first: dict[int, float] = {}
+    while (msg := log.recv_match()) is not None:
+        mtype = msg.get_type()
+        if mtype in _STATE_MESSAGES:
+            vehicle_s = max(vehicle_s, msg.time_boot_ms * 1e-3)
+        elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
+            first.setdefault(int(msg.command), vehicle_s)
+    return first
+
+
+def test_takeoff_follows_the_arm_and_offboard_the_request_without_waiting_a_heartbeat(
+    tmp_path: Path,
+):
+    report, out, _ = sim(tmp_path, "--scenario", "hover", "--duration", "4")
+    vehicle = report["vehicles"][0]
+    stats = (out / "vehicle1" / "stats.json").read_text()
+    assert '"heartbeat_flaps"' not in stats  # the forgery guard saw nothing odd
+    sent = _command_vehicle_times_s(out / "vehicle1" / "session.tlog")
+    arm_s = sent[mavlink.MAV_CMD_COMPONENT_ARM_DISARM]
+    takeoff_s = sent[mavlink.MAV_CMD_NAV_TAKEOFF]
+    # main: the takeoff went with the next 1 Hz heartbeat after the arm
+    assert 0.0 <= takeoff_s - arm_s <= MAX_ACK_TO_SEEN_S, sent
+    events = {e["phase"]: e["t_s"] for e in vehicle["phase_events"]}
+    # main: 0.5 s here, the next heartbeat after the mode's ACK
+    assert events["offboard"] - events["offboard_requested"] <= MAX_ACK_TO_SEEN_S, events
