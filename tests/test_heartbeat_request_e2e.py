@@ -19,9 +19,10 @@ from tests.test_service_e2e import sim
 
 pytestmark = pytest.mark.timeout(240)
 
-# one supervisor period (20 Hz) and a tick of margin: the heartbeat asked for arrives within
-# the same vehicle tick as the ACK
-MAX_ACK_TO_SEEN_S = 0.12
+# the heartbeat is asked for at the arm's ACK and 0.1 s after a mode's (a real PX4 shows a
+# new mode a commander cycle later); a supervisor period (20 Hz) and a tick of margin
+MAX_ARM_TO_TAKEOFF_S = 0.07
+MAX_OFFBOARD_REQUEST_TO_SEEN_S = 0.17
 
 _STATE_MESSAGES = ("ATTITUDE", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED")
 
@@ -51,7 +52,8 @@ def test_takeoff_follows_the_arm_and_offboard_the_request_without_waiting_a_hear
     arm_s = sent[mavlink.MAV_CMD_COMPONENT_ARM_DISARM]
     takeoff_s = sent[mavlink.MAV_CMD_NAV_TAKEOFF]
     # main: the takeoff went with the next 1 Hz heartbeat after the arm
-    assert 0.0 <= takeoff_s - arm_s <= MAX_ACK_TO_SEEN_S, sent
+    assert 0.0 <= takeoff_s - arm_s <= MAX_ARM_TO_TAKEOFF_S, sent
     events = {e["phase"]: e["t_s"] for e in vehicle["phase_events"]}
     # main: 0.5 s here, the next heartbeat after the mode's ACK
-    assert events["offboard"] - events["offboard_requested"] <= MAX_ACK_TO_SEEN_S, events
+    gap_s = events["offboard"] - events["offboard_requested"]
+    assert gap_s <= MAX_OFFBOARD_REQUEST_TO_SEEN_S, events
