@@ -107,23 +107,27 @@ def run(args: argparse.Namespace) -> int:
 def _start_up_at_loop_priority(config: str) -> None:
     """The rest of the start-up (imports, the service's parts, the warm-up, the gc freeze,
     the first commands) at the loops' SCHED_FIFO priority (``loops.realtime_priority``),
-    which the loops' thread keeps: at normal priority, beside a real PX4 at load 15, its
-    0.6 s of CPU took 2.4 s of wall clock before the first command. Helpers started from
-    here run at normal priority (SCHED_RESET_ON_FORK); the background compile is started
-    before. Silent when the config does not load or the priority is refused: the service's
-    own load says the first, ``realtime.prepare`` logs the second."""
+    which the loops' thread keeps: at normal priority, beside a real PX4 at load 10-15, its
+    0.6-1.3 s of CPU took 2.4-5.6 s of wall clock before the first command. Read with the
+    TOML parser alone: the config's own loader imports numpy and the service's types (2.8 s
+    at load 10 before the priority applied). Helpers started from here run at normal
+    priority (SCHED_RESET_ON_FORK); the background compile is started before. Silent when
+    the file or the value is not usable or the priority is refused: the service's own load
+    names the first, ``realtime.prepare`` logs the last."""
+    import tomllib
+
     from epc_offboard.common.bundled import bundled_config
-    from epc_offboard.common.errors import EpcError
     from epc_offboard.service import realtime
-    from epc_offboard.service.config import load_service_config
     from epc_offboard.service.startup import TIMELINE
 
     try:
-        priority = load_service_config(str(bundled_config(config))).loops.realtime_priority
-        if priority > 0:
+        with bundled_config(config).open("rb") as fh:
+            loops = tomllib.load(fh).get("loops", {})
+        priority = loops.get("realtime_priority", 0) if isinstance(loops, dict) else 0
+        if isinstance(priority, int) and not isinstance(priority, bool) and 0 < priority < 100:
             realtime.apply_priority(priority)
             TIMELINE.mark("start_up_priority")
-    except (EpcError, OSError, ValueError):
+    except (OSError, ValueError):  # (tomllib.TOMLDecodeError, realtime.PriorityError)
         return
 
 
