@@ -16,6 +16,8 @@ import pytest
 from epc_offboard.common import jit
 from epc_offboard.service import coldstart
 from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
+from tests.rig import Rig
+from tests.test_coldstart_e2e import fifo_permitted
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -87,19 +89,12 @@ def test_the_background_compile_runs_at_idle_priority(tmp_path: Path):
         child.wait()
 
 
-def _fifo_permitted() -> bool:
-    probe = "import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))"
-    return subprocess.run([sys.executable, "-c", probe], check=False).returncode == 0
-
-
 def test_the_start_up_runs_at_the_loops_priority_from_before_the_heavy_imports(tmp_path: Path):
     """With loops.realtime_priority set, the start-up runs SCHED_FIFO from before the service's
     imports: at normal priority, beside a real PX4 at load 10-15, its 0.6-1.3 s of CPU took
     2.4-5 s of wall clock before the first command (offboard 12-15 s after a cold start)."""
-    if not _fifo_permitted():
+    if not fifo_permitted():
         pytest.skip("SCHED_FIFO not permitted here")
-    from tests.rig import Rig
-
     rig = Rig(tmp_path, lockstep=False, speedup=1.0,
               service_overrides={"loops": {"realtime_priority": 10}})  # fmt: skip
     try:
