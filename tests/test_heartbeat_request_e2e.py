@@ -5,6 +5,9 @@ SITL) sends once a second: the takeoff waited for the heartbeat after the arm's 
 offboard was confirmed on the heartbeat after the mode's ACK, each 0-1 s late (1.2 s of a
 12 s cold start on a real PX4). Now the service asks for a HEARTBEAT (MAV_CMD_REQUEST_MESSAGE)
 when such a command is accepted. Judged in vehicle time, which load does not stretch.
+
+And a takeoff the autopilot ends short of its target (a real PX4's, 0.8 m) is over when its
+heartbeat says so: the service no longer waits in preflight for an altitude never reached.
 """
 
 from __future__ import annotations
