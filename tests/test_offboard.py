@@ -501,3 +501,27 @@ def test_control_starts_only_once_the_takeoff_climb_has_settled():
     out = climbing(2.0, 2.6, -0.2)
     assert out.phase == Phase.STREAMING
     assert out.stream_setpoints
+
+
+def test_control_starts_when_the_autopilot_ends_its_takeoff_short_of_the_target():
+    """A real PX4 ends its takeoff within NAV_MC_ALT_RAD (0.8 m) of the target, switches to
+    LOITER and holds where it brakes: 2.3 m of 2.5 in one cold start, reached 1.2 s after
+    the hold began, the 0.3 m tolerance only just met. Once a heartbeat has shown our takeoff
+    and a later one shows it over, the takeoff is done at whatever height it held: a hold
+    below the tolerance streamed never at all."""
+    sm = OffboardStateMachine(AUTO)
+    step(sm, 0.0, hb(0.0))
+    step(sm, 0.1, hb(0.1))
+    assert step(sm, 0.2, hb(0.2, armed=True)).actions == (Action.TAKEOFF,)
+    # the heartbeat from before the takeoff (LOITER) says nothing about its end
+    out = step(sm, 0.5, hb(0.5, armed=True, main=4, sub=3), alt=0.6)
+    assert out.phase == Phase.PREFLIGHT
+    out = step(sm, 1.2, hb(1.2, armed=True, main=4, sub=2), alt=1.2)  # AUTO.TAKEOFF
+    assert out.phase == Phase.PREFLIGHT
+    out = step(sm, 2.2, hb(2.2, armed=True, main=4, sub=3), alt=1.95)  # LOITER: over
+    assert out.phase == Phase.STREAMING
+    assert out.stream_setpoints
+    assert sm.takeoffs_sent == 1
+    out = step(sm, 2.8, hb(2.2, armed=True, main=4, sub=3), alt=1.95)
+    assert out.phase == Phase.OFFBOARD_REQUESTED
+    assert out.actions == (Action.REQUEST_OFFBOARD,)

@@ -90,6 +90,9 @@ class OffboardConfig:
     auto_offboard: bool = False
     takeoff_altitude_m: float = 2.5  # above home, sent explicitly with the one takeoff
     takeoff_reached_tolerance_m: float = 0.3  # within this of the target: takeoff done
+    # or within this once the autopilot has ended its takeoff (PX4 ends it NAV_MC_ALT_RAD,
+    # 0.8 m, below the target and holds where it brakes)
+    takeoff_ended_tolerance_m: float = 0.8
     airborne_altitude_m: float = 0.5  # above home: the vehicle has left the ground
     heartbeat_timeout_s: float = 3.0
     max_state_age_s: float = 0.25
@@ -114,6 +117,11 @@ class OffboardConfig:
             raise ValueError(f"airborne_altitude_m must be > 0, got {self.airborne_altitude_m}")
         if self.takeoff_reached_tolerance_m < 0.0 or self.landed_confirm_s < 0.0:
             raise ValueError("takeoff_reached_tolerance_m and landed_confirm_s must be >= 0")
+        if self.takeoff_ended_tolerance_m < self.takeoff_reached_tolerance_m:
+            raise ValueError(
+                "takeoff_ended_tolerance_m must be >= takeoff_reached_tolerance_m, got "
+                f"{self.takeoff_ended_tolerance_m}"
+            )
         if self.takeoff_altitude_m - self.takeoff_reached_tolerance_m <= self.airborne_altitude_m:
             raise ValueError(
                 "takeoff_altitude_m - takeoff_reached_tolerance_m must exceed airborne_altitude_m"
@@ -150,7 +158,8 @@ class _Flight:
     left_ground: bool = False
     takeoff_sent: bool = False
     takeoff_target: TakeoffTarget | None = None
-    takeoff_done: bool = False  # the takeoff's target altitude was reached
+    takeoff_done: bool = False  # the takeoff's target altitude was reached, or it ended
+    takeoff_mode_seen: bool = False  # a heartbeat showed the autopilot's takeoff after ours
     landing: bool = False  # a landing was commanded or seen
     land_commanded: bool = False  # by us, at the mission's end
     land_seen: bool = False  # the heartbeat showed the autopilot landing
@@ -245,6 +254,15 @@ class OffboardStateMachine:
         target = flight.takeoff_target
         if target is not None and alt is not None:
             flight.takeoff_done |= alt >= target.above_home_m - cfg.takeoff_reached_tolerance_m
+        if target is not None and hb is not None and self._taking_off(hb):
+            flight.takeoff_mode_seen = True
+        elif target is not None and flight.takeoff_mode_seen and hb is not None and hb.armed:
+            # The autopilot says its takeoff is over (PX4: TAKEOFF -> LOITER). A real PX4
+            # ends it within NAV_MC_ALT_RAD (0.8 m) of the target and holds wherever it
+            # brakes: 2.3 m of 2.5 in one flight, reached 1.2 s after the hold began, and a
+            # hold below the tolerance would never have streamed at all.
+            ended_m = target.above_home_m - cfg.takeoff_ended_tolerance_m
+            flight.takeoff_done |= flight.left_ground and alt is not None and alt >= ended_m
         if hb is not None and hb.armed and self._landing(hb) and flight.left_ground:
             flight.landing = flight.land_seen = True
         on_ground = (alt is not None and alt < cfg.airborne_altitude_m) and not in_air_reported
