@@ -316,6 +316,9 @@ class Autopilot:
         else:
             # never a descent: PX4 says "Already higher than takeoff altitude" and stays
             self._takeoff_target_d_m = min(-altitude_above_home_m, float(pos[2]))
+        if self._takeoff_target_d_m < float(pos[2]):  # a climb ends where PX4's would hold
+            short_m = self.params.takeoff_hold_short_m
+            self._takeoff_target_d_m = min(self._takeoff_target_d_m + short_m, float(pos[2]))
         self._ref_pos_ned_m = pos.copy()
         self._hold_yaw_rad = self._current_yaw()
         self.mode = self.intended_mode = TAKEOFF

@@ -5,7 +5,9 @@ reported with its metric. A few seconds of vehicle time: its figures are no comp
 
 from __future__ import annotations
 
+import csv
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -39,6 +41,32 @@ def test_neuralfly_flies_its_plant_in_a_sine_wind_and_reports_its_metric(tmp_pat
     judged = [t for t in report["targets"] if t["metric"] == "mean_error_m"]
     assert [t["bound"] for t in judged] == [0.039]
     # the Neural-Fly plant, not the default: in up to 10.9 m/s of wind its drag takes under
-    # 30 deg of tilt (the default vehicle's SIH drag would take 48)
-    assert v["max_tilt_deg"] < 40.0
+    # 30 deg of tilt to hold (the default vehicle's SIH drag would take 48). Flying the
+    # figure's upwind stroke into the gust's peak takes it up to 41.5 deg: the figure and the
+    # sine share their period (2 pi s), so which stroke meets the peak is set by the time of
+    # the hand-over alone (34 deg handed over at 4.0 s, 32 at 4.15 and 10.45 s; 41.4-41.5 at
+    # 2.75 and 5.75 s, 40.0 at 6.0 s). 45: the configured limit, still short of the 48 the
+    # default plant takes just to hold.
+    assert v["max_tilt_deg"] < 45.0
     assert v["constraint_violations"] == 0
+    _assert_handed_over_settled(out / "vehicle1")
+
+
+def _assert_handed_over_settled(vehicle_dir: Path) -> None:
+    """The offboard request went only once the vehicle had settled, on the SITL's ground
+    truth over the 0.3 s before it (the service's bounds, 0.3 m/s horizontally and 0.4
+    vertically, and 0.1 m/s for its estimate's error), or at the settle timeout (counted).
+    px4-cold requested it 0.5 s into the stream, the vehicle swinging through zero at up to
+    0.51 m/s as PX4's hold flew it back from 2.4 m downwind."""
+    stats = json.loads((vehicle_dir / "stats.json").read_text())
+    events = {e["phase"]: e["t_s"] for e in reversed(stats["phase_events"])}  # the first
+    request_s, streaming_s = events["offboard_requested"], events["streaming"]
+    if stats["counters"].get("unsettled_entries", 0):
+        assert request_s - streaming_s >= 0.5 + 5.0 - 0.06, events  # min_stream + timeout
+        return
+    with (vehicle_dir / "groundtruth.csv").open() as fh:
+        window = [r for r in csv.DictReader(fh) if request_s - 0.3 <= float(r["t_s"]) <= request_s]
+    horizontal = max(math.hypot(float(r["vel_n_m_s"]), float(r["vel_e_m_s"])) for r in window)
+    vertical = max(abs(float(r["vel_d_m_s"])) for r in window)
+    assert horizontal <= 0.4, (horizontal, events)
+    assert vertical <= 0.5, (vertical, events)

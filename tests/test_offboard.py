@@ -501,3 +501,124 @@ def test_control_starts_only_once_the_takeoff_climb_has_settled():
     out = climbing(2.0, 2.6, -0.2)
     assert out.phase == Phase.STREAMING
     assert out.stream_setpoints
+
+
+def test_control_starts_when_the_autopilot_ends_its_takeoff_short_of_the_target():
+    """A real PX4 ends its takeoff within NAV_MC_ALT_RAD (0.8 m) of the target, switches to
+    LOITER and holds where it brakes: 2.3 m of 2.5 in one cold start, reached 1.2 s after
+    the hold began, the 0.3 m tolerance only just met. Once a heartbeat has shown our takeoff
+    and a later one shows it over, the takeoff is done at whatever height it held: a hold
+    below the tolerance streamed never at all."""
+    sm = OffboardStateMachine(AUTO)
+    step(sm, 0.0, hb(0.0))
+    step(sm, 0.1, hb(0.1))
+    assert step(sm, 0.2, hb(0.2, armed=True)).actions == (Action.TAKEOFF,)
+    # the heartbeat from before the takeoff (LOITER) says nothing about its end
+    out = step(sm, 0.5, hb(0.5, armed=True, main=4, sub=3), alt=0.6)
+    assert out.phase == Phase.PREFLIGHT
+    out = step(sm, 1.2, hb(1.2, armed=True, main=4, sub=2), alt=1.2)  # AUTO.TAKEOFF
+    assert out.phase == Phase.PREFLIGHT
+    out = step(sm, 2.2, hb(2.2, armed=True, main=4, sub=3), alt=1.95)  # LOITER: over
+    assert out.phase == Phase.STREAMING
+    assert out.stream_setpoints
+    assert sm.takeoffs_sent == 1
+    out = step(sm, 2.8, hb(2.2, armed=True, main=4, sub=3), alt=1.95)
+    assert out.phase == Phase.OFFBOARD_REQUESTED
+    assert out.actions == (Action.REQUEST_OFFBOARD,)
+
+
+def _airborne_px4(cfg: OffboardConfig = AUTO) -> OffboardStateMachine:
+    """A PX4 flight armed and taken off (the takeoff's target reached)."""
+    sm = OffboardStateMachine(cfg)
+    step(sm, 0.0, hb(0.0))
+    step(sm, 0.1, hb(0.1))
+    assert step(sm, 0.2, hb(0.2, armed=True)).actions == (Action.TAKEOFF,)
+    return sm
+
+
+def _holding(sm, t, speed_m_s, vel_down_m_s=0.0, *, main=4, sub=3, heartbeat=None):
+    """A step at the takeoff's height, moving horizontally at ``speed_m_s``."""
+    return sm.step(
+        Inputs(t, heartbeat or hb(t, armed=True, main=main, sub=sub), 0.01, pos_down_m=-2.5,
+               relative_alt_m=2.5, amsl_m=HOME_AMSL_M + 2.5, vel_down_m_s=vel_down_m_s,
+               speed_horizontal_m_s=speed_m_s)
+    )  # fmt: skip
+
+
+def test_offboard_is_requested_only_once_the_vehicle_has_settled():
+    """In 10 m/s wind PX4's takeoff ends 2.4 m downwind, brakes, and its hold flies the
+    vehicle back at up to 1.1 m/s: handed over while it still moved (px4-cold: 0.5 m/s, the
+    tilt being unwound) the loops started from a transient. The offboard request waits until
+    the speed has been under the bounds for settled_for_s, a swing through zero included."""
+    sm = _airborne_px4()
+    assert _holding(sm, 1.0, 0.8).phase == Phase.STREAMING  # control may stream: it waits
+    for t in (1.5, 1.6, 2.0):  # streamed min_stream_s: still drifting
+        out = _holding(sm, t, 0.8)
+        assert out.phase == Phase.STREAMING, out
+        assert "settle" in out.reason
+        assert out.stream_setpoints
+        assert out.actions == ()
+    assert _holding(sm, 2.1, 0.1).phase == Phase.STREAMING  # a swing through zero...
+    assert _holding(sm, 2.3, 0.2).phase == Phase.STREAMING
+    assert _holding(sm, 2.35, 0.5).phase == Phase.STREAMING  # ...and on: not settled
+    assert _holding(sm, 2.4, 0.2, vel_down_m_s=0.5).phase == Phase.STREAMING  # sinking
+    for t in (2.5, 2.6, 2.75):
+        assert _holding(sm, t, 0.25, vel_down_m_s=-0.3).phase == Phase.STREAMING
+    out = _holding(sm, 2.85, 0.25, vel_down_m_s=-0.3)  # over 0.3 s under both bounds
+    assert out.phase == Phase.OFFBOARD_REQUESTED
+    assert out.actions == (Action.REQUEST_OFFBOARD,)
+    assert out.reason == "requesting offboard"
+    assert sm.unsettled_entries == 0
+
+
+def test_an_unsettled_vehicle_is_handed_over_at_the_timeout_and_counted():
+    """A hold that never settles (gusts it will not stop) is handed over settle_timeout_s
+    after the hand-over first waited, said in the reason and counted once; a later entry
+    (after the pilot left offboard) is not held."""
+    sm = _airborne_px4()
+    _holding(sm, 1.0, 0.8)
+    t = 1.5
+    while t < 1.5 + AUTO.settle_timeout_s - 0.01:
+        assert _holding(sm, t, 0.6).phase == Phase.STREAMING, t
+        t += 0.05
+    out = _holding(sm, 1.5 + AUTO.settle_timeout_s, 0.6)
+    assert out.phase == Phase.OFFBOARD_REQUESTED
+    assert "not settled after 5.0 s" in out.reason, out.reason
+    assert sm.unsettled_entries == 1
+    t += 0.2
+    assert _holding(sm, t, 0.6, main=6, sub=0).phase == Phase.OFFBOARD
+    assert _holding(sm, t + 0.5, 0.6).phase == Phase.PILOT  # the pilot took it (LOITER)
+    assert _holding(sm, t + 1.0, 0.9, main=6, sub=0).phase == Phase.OFFBOARD  # gave it back
+    assert sm.unsettled_entries == 1
+
+
+def test_ardupilot_streams_in_guided_only_once_the_vehicle_has_settled():
+    """ArduCopter: GUIDED is on from before the takeoff, so streaming is the hand-over:
+    it waits for the settling there."""
+    from epc_offboard.vehicle.dialect_ardupilot import ARDUPILOT
+
+    sm = OffboardStateMachine(AUTO, dialect=ARDUPILOT)
+
+    def guided(t, armed=True):  # custom_mode 4: GUIDED
+        return Heartbeat(1, armed, 0, 0, t, custom_mode=4, autopilot=3)
+
+    step(sm, 0.0, guided(0.0, armed=False))
+    assert step(sm, 0.1, guided(0.1)).actions == (Action.TAKEOFF,)
+    assert _holding(sm, 1.0, 0.8, heartbeat=guided(1.0)).phase == Phase.PREFLIGHT
+    out = _holding(sm, 1.1, 0.1, heartbeat=guided(1.1))
+    assert out.phase == Phase.PREFLIGHT
+    assert "settle" in out.reason
+    assert not out.stream_setpoints
+    out = _holding(sm, 1.45, 0.1, heartbeat=guided(1.45))
+    assert out.phase == Phase.OFFBOARD, out  # streaming in GUIDED: offboard at once
+    assert out.stream_setpoints
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("settled_horizontal_speed_m_s", 0.0), ("settled_for_s", -0.1), ("settled_for_s", 6.0),
+     ("settle_timeout_s", 0.1)],
+)  # fmt: skip
+def test_the_settle_keys_are_validated(key, value):
+    with pytest.raises(ValueError, match=key.removesuffix("_s").removesuffix("_m")):
+        OffboardConfig(**{key: value})

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -28,6 +28,9 @@ from epc_offboard.vehicle import commands
 from epc_offboard.vehicle.autopilots import choose
 from epc_offboard.vehicle.dialect import (
     MAV_AUTOPILOT_INVALID,
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_NAV_TAKEOFF,
     Action,
     Command,
     Dialect,
@@ -45,6 +48,18 @@ log = logging.getLogger("epc_offboard.service")
 _RATE_WINDOW_S = 2.0  # received rates are measured over windows this long
 _GLOBAL_MAX_AGE_S = 1.0  # GLOBAL_POSITION_INT older than this is not used
 _MAX_TIMESYNC_PENDING = 8  # TIMESYNC requests awaiting an answer (older ones forgotten)
+# Commands whose acceptance changes what the heartbeat says (arming, the mode), and how long
+# after the accepted ACK a HEARTBEAT is asked for. The 1 Hz heartbeat showed each up to a
+# second late, and the state machine waits on it: arm -> takeoff -> offboard confirmed cost
+# 0-3 s of a start on a real PX4 (1.2 s in one cold start of 12 s). A real PX4 (main, SIH)
+# shows its arming in a heartbeat asked for at the ACK, but a mode a commander cycle later:
+# asked for at the ACK, the heartbeat still showed the old mode after DO_SET_MODE and LAND.
+_HEARTBEAT_AFTER_ACK_S = {
+    MAV_CMD_COMPONENT_ARM_DISARM: 0.0,
+    MAV_CMD_DO_SET_MODE: 0.1,
+    MAV_CMD_NAV_TAKEOFF: 0.1,
+    mavlink.MAV_CMD_NAV_LAND: 0.1,
+}
 
 
 @dataclass(frozen=True)
@@ -100,6 +115,10 @@ class Autopilot:
         self._withheld_logged: set[str] = set()  # streams whose absence was logged
         self._timesync_sent: dict[int, float] = {}  # ts1 (ns) -> local send time, bounded
         self._timesync_at = -math.inf
+        # heartbeats received (loop clock) and the last one asked for: see _ask_heartbeat
+        self._heartbeats_rx_s: deque[float] = deque(maxlen=4)
+        self._heartbeat_asked_s = -math.inf
+        self._heartbeat_due_s = math.inf  # a heartbeat to ask for then (an accepted command)
         key = load_signing_key(cfg.link.signing_key_file) if cfg.link.signing_key_file else None
         self.link = MavlinkLink(
             cfg.link.url,
@@ -128,6 +147,8 @@ class Autopilot:
         mtype = msg.get_type()
         self.rates.record(mtype)
         hb = self.tracker.heartbeat
+        if mtype == "HEARTBEAT":
+            self._heartbeats_rx_s.append(now)  # every one the link passed: as the flood guard
         if mtype == "HEARTBEAT" and hb is not None and hb is not held:
             # only a heartbeat the tracker accepted (the autopilot's component and kind)
             self._adopt_dialect(hb.autopilot)
@@ -145,11 +166,41 @@ class Autopilot:
             # two counters, whatever the wire says: a fuzzing peer cannot grow the dict
             accepted = msg.result in (mavlink.MAV_RESULT_ACCEPTED, 5)  # 5: in progress
             self.counters["acks_accepted" if accepted else "acks_refused"] += 1
+            delay_s = _HEARTBEAT_AFTER_ACK_S.get(msg.command)
+            if msg.result == mavlink.MAV_RESULT_ACCEPTED and delay_s is not None:
+                self._heartbeat_due_s = min(self._heartbeat_due_s, now + delay_s)
+                self._heartbeat_due()
             if not accepted and self._log_gate.open("ack", 1.0):
                 log.info(
                     "command %d answered with result %d (%d refusals so far)",
                     msg.command, msg.result, self.counters["acks_refused"],
                 )  # fmt: skip
+
+    def _heartbeat_due(self) -> None:
+        """Ask for the heartbeat an accepted command made due, once it is due."""
+        now = self.clock.now_s()
+        if now >= self._heartbeat_due_s:
+            self._heartbeat_due_s = math.inf
+            self._ask_heartbeat(now)
+
+    def _ask_heartbeat(self, now: float) -> None:
+        """Ask for a HEARTBEAT now (MAV_CMD_REQUEST_MESSAGE; PX4 and ArduPilot answer it with
+        their current one), unless one asked for is still unanswered or that could look like
+        a flood to the state tracker's forgery guard (four heartbeats within a period less
+        the jitter): asked only while at most one heartbeat falls within that window. A
+        window then holds at most two answered requests and one regular heartbeat: never
+        four on PX4 (ArduPilot adds its own on a mode change, counted here as heard)."""
+        limits = self.cfg.state_limits
+        window_s = limits.heartbeat_period_s - limits.heartbeat_jitter_s
+        newest_s = self._heartbeats_rx_s[-1] if self._heartbeats_rx_s else -math.inf
+        if self._heartbeat_asked_s > newest_s and now - self._heartbeat_asked_s < window_s:
+            return  # asked, not yet answered
+        if sum(1 for t in self._heartbeats_rx_s if now - t < window_s) > 1:
+            self.counters["heartbeat_requests_withheld"] += 1
+            return
+        self._heartbeat_asked_s = now
+        self.counters["heartbeat_requests"] += 1
+        self.link.send(commands.command_message(self.target, commands.heartbeat_request()))
 
     def _on_timesync(self, msg: Any, now: float) -> None:
         """An answer to one of our TIMESYNC requests (tc1 != 0, ts1 one we sent) maps the
@@ -303,7 +354,13 @@ class Autopilot:
         self.send_command(cmd)
 
     def manage(self, now: float, link_up: bool) -> None:
-        """Each supervisor step: the message rates, the parameters, the clock."""
+        """Each supervisor step: the first heartbeat, the message rates, the parameters, the
+        clock."""
+        if self.tracker.heartbeat is None and self.last_rx_wall_s > -math.inf:
+            # the autopilot streams (its address is known) but its 1 Hz heartbeat, which
+            # names the dialect and starts the state machine, may be a second away
+            self._ask_heartbeat(now)
+        self._heartbeat_due()
         self._manage_rates(now, link_up)
         self._manage_params(now, link_up)
         self._manage_timesync(now, link_up)

@@ -10,6 +10,8 @@ wall-clock figures several times over, the CPU ones hardly at all, so tests judg
 The milestones, in order (those a flight does not reach are absent):
 
 * ``entry``: ``epc-offboard run`` reached (the interpreter and the command line are up);
+* ``start_up_priority``: the rest of the start-up runs at the loops' SCHED_FIFO priority
+  (with ``loops.realtime_priority`` > 0, where permitted);
 * ``kernels_chosen``: compiled kernels or their numpy twins (``service/coldstart.py``);
 * ``config``: the config file loaded; ``service_built``: the service's parts constructed;
 * ``kernels_warm``, ``miss_worker_up``, ``library_open``, ``gc_frozen``, ``link_open``:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -99,6 +100,7 @@ class Supervisor:
         age = self.tracker.age_s(now, vehicle_clock=lockstep)
         state = self.tracker.snapshot(self.tracker.vehicle_time_at(now, vehicle_clock=lockstep))
         fix = autopilot.fresh_global()
+        vel = None if state is None else state.vel_ned_m_s.tolist()
         out = self.sm.step(
             Inputs(
                 now,
@@ -109,9 +111,13 @@ class Supervisor:
                 amsl_m=None if fix is None else fix.amsl_m,
                 landed_state=autopilot.landed_state,
                 mission_complete=mission_complete,
-                vel_down_m_s=None if state is None else float(state.vel_ned_m_s[2]),
+                vel_down_m_s=None if vel is None else float(vel[2]),
+                speed_horizontal_m_s=None if vel is None else math.hypot(vel[0], vel[1]),
             )
         )
+        if self.sm.unsettled_entries > self.counters["unsettled_entries"]:
+            self.counters["unsettled_entries"] = self.sm.unsettled_entries
+            log.warning("handing over before the vehicle settled: %s", out.reason)
         for action in out.actions:
             autopilot.do_action(action, out.takeoff, state)
         changed = out.phase != self.outputs.phase

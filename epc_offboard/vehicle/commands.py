@@ -9,7 +9,8 @@ messages out (pymavlink's generated message classes; the link sends them).
   setpoint is replaced by the caller's level hover and reported);
 * :func:`position_target` — SET_POSITION_TARGET_LOCAL_NED, only ever finite;
 * :func:`system_time` — the lockstep answer of a tick that sends no setpoint;
-* :func:`timesync_request` — TIMESYNC asking the autopilot for its clock.
+* :func:`timesync_request` — TIMESYNC asking the autopilot for its clock;
+* :func:`heartbeat_request` — MAV_CMD_REQUEST_MESSAGE for the autopilot's HEARTBEAT now.
 
 Every message is stamped with :func:`stamp_ms`, the vehicle time of the state it answers.
 """
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from epc_offboard.vehicle.dialect import Command, message_interval
+from epc_offboard.vehicle.dialect import Command, command, message_interval
 
 # SET_ATTITUDE_TARGET type_mask bits (MAVLink ATTITUDE_TARGET_TYPEMASK)
 IGNORE_RATES = 1 | 2 | 4
@@ -172,3 +173,8 @@ def timesync_request(sent_s: float) -> mavlink.MAVLink_message:
     """TIMESYNC request (tc1 = 0) carrying our send time in ns as ts1, which the autopilot
     echoes beside its own time (tc1, ns since its boot: the time_boot_ms clock)."""
     return mavlink.MAVLink_timesync_message(0, round(sent_s * 1e9))
+
+
+def heartbeat_request() -> Command:
+    """MAV_CMD_REQUEST_MESSAGE for a HEARTBEAT (sent at once, off the 1 Hz schedule)."""
+    return command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HEARTBEAT)

@@ -10,7 +10,8 @@ vehicle.
     PREFLIGHT: arm (opt-in) and take off (opt-in, ONE takeoff per flight, explicit altitude),
                or wait for the pilot to do it
     PREFLIGHT --altitude reached--> STREAMING: setpoints stream, offboard not yet requested
-    STREAMING --streamed >= min_stream_s (and opt-in)--> OFFBOARD_REQUESTED
+    STREAMING --streamed >= min_stream_s (and opt-in), the vehicle settled (the flight's
+               first entry; or settle_timeout_s waited, counted)--> OFFBOARD_REQUESTED
     OFFBOARD_REQUESTED --heartbeat says offboard--> OFFBOARD
     OFFBOARD --heartbeat says another mode--> PILOT (pilot or autopilot took over: never
              fight it; keep streaming so the pilot can switch back)
@@ -90,6 +91,9 @@ class OffboardConfig:
     auto_offboard: bool = False
     takeoff_altitude_m: float = 2.5  # above home, sent explicitly with the one takeoff
     takeoff_reached_tolerance_m: float = 0.3  # within this of the target: takeoff done
+    # or within this once the autopilot has ended its takeoff (PX4 ends it NAV_MC_ALT_RAD,
+    # 0.8 m, below the target and holds where it brakes)
+    takeoff_ended_tolerance_m: float = 0.8
     airborne_altitude_m: float = 0.5  # above home: the vehicle has left the ground
     heartbeat_timeout_s: float = 3.0
     max_state_age_s: float = 0.25
@@ -101,19 +105,47 @@ class OffboardConfig:
     # over 0.3 m below the takeoff's target still climbing 1.5 m/s, and no controller stops
     # that within 0.2 m (airborne itself is still judged on altitude alone)
     settled_vertical_speed_m_s: float = 0.4
+    # The first hand-over of a flight (the offboard request; ArduCopter: the stream in
+    # GUIDED) waits until the vehicle has been settled this long: the vertical speed under
+    # the bound above and the horizontal under this one. Half of PX4's MPC_HOLD_MAX_XY
+    # (0.8 m/s: below it PX4 itself locks a hold), so that a swing through zero while the
+    # autopilot's hold still flies the vehicle back is not taken for a stop: in 10 m/s wind
+    # PX4's takeoff ends 2.4 m downwind, brakes, and flies back at 0.6 m/s; handed over as
+    # the speed crossed zero, the loops started from a 35 deg tilt being unwound (41 deg,
+    # 9.5 cm mean error; 2.7 once settled). 0.3 s under the bound: the drift under 0.1 m,
+    # and a swing through zero faster than 2 m/s^2 (a tilt changing ~12 deg) never passes.
+    settled_horizontal_speed_m_s: float = 0.3
+    settled_for_s: float = 0.3
+    # not settled this long after the hand-over first waited: hand over anyway (logged,
+    # counted as ``unsettled_entries``). PX4 holds meanwhile, so waiting costs time only. In
+    # calm air PX4's takeoff has braked before the stream's min_stream_s is over (real PX4,
+    # SIH: no wait at all); in 8.5 + 2.4 sin t m/s its hold flew the vehicle back the 2.4 m
+    # its takeoff drifted and settled 3.9 s after streaming began (3 s: handed over at 0.29
+    # m/s, still braking). A hold still moving after 5 s is being pushed by gusts it will
+    # not stop either.
+    settle_timeout_s: float = 5.0
 
     def __post_init__(self) -> None:
         for name in ("heartbeat_timeout_s", "max_state_age_s", "retry_period_s"):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if not self.settled_vertical_speed_m_s > 0.0:
+        for name in ("settled_vertical_speed_m_s", "settled_horizontal_speed_m_s"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.settled_for_s <= self.settle_timeout_s:
             raise ValueError(
-                f"settled_vertical_speed_m_s must be > 0, got {self.settled_vertical_speed_m_s}"
+                "settled_for_s must be >= 0 and <= settle_timeout_s, got "
+                f"{self.settled_for_s} and {self.settle_timeout_s}"
             )
         if self.airborne_altitude_m <= 0.0:
             raise ValueError(f"airborne_altitude_m must be > 0, got {self.airborne_altitude_m}")
         if self.takeoff_reached_tolerance_m < 0.0 or self.landed_confirm_s < 0.0:
             raise ValueError("takeoff_reached_tolerance_m and landed_confirm_s must be >= 0")
+        if self.takeoff_ended_tolerance_m < self.takeoff_reached_tolerance_m:
+            raise ValueError(
+                "takeoff_ended_tolerance_m must be >= takeoff_reached_tolerance_m, got "
+                f"{self.takeoff_ended_tolerance_m}"
+            )
         if self.takeoff_altitude_m - self.takeoff_reached_tolerance_m <= self.airborne_altitude_m:
             raise ValueError(
                 "takeoff_altitude_m - takeoff_reached_tolerance_m must exceed airborne_altitude_m"
@@ -131,6 +163,7 @@ class Inputs:
     landed_state: int | None = None  # MAV_LANDED_STATE from EXTENDED_SYS_STATE, if sent
     mission_complete: bool = False  # the service's trajectory has run its duration
     vel_down_m_s: float | None = None  # NED down velocity of the newest state, if known
+    speed_horizontal_m_s: float | None = None  # its horizontal speed (north, east), if known
 
 
 @dataclass(frozen=True)
@@ -150,11 +183,16 @@ class _Flight:
     left_ground: bool = False
     takeoff_sent: bool = False
     takeoff_target: TakeoffTarget | None = None
-    takeoff_done: bool = False  # the takeoff's target altitude was reached
+    takeoff_done: bool = False  # the takeoff's target altitude was reached, or it ended
+    takeoff_mode_seen: bool = False  # a heartbeat showed the autopilot's takeoff after ours
     landing: bool = False  # a landing was commanded or seen
     land_commanded: bool = False  # by us, at the mission's end
     land_seen: bool = False  # the heartbeat showed the autopilot landing
     disarmed_on_ground_since_s: float | None = None
+    offboard_entered: bool = False  # offboard was confirmed once (later entries: not gated)
+    settled_since_s: float | None = None  # under both settle bounds since then (None: moving)
+    settle_wait_since_s: float | None = None  # the hand-over first waited for settling then
+    settle_timed_out: bool = False  # it waited settle_timeout_s and went (counted once)
 
 
 @dataclass
@@ -164,6 +202,7 @@ class OffboardStateMachine:
     transitions: int = 0
     takeoffs_sent: int = 0  # over the machine's life (diagnostics, tests)
     flights: int = 0  # flights that ended on the ground
+    unsettled_entries: int = 0  # hand-overs made at settle_timeout_s, the vehicle still moving
     _phase_since_s: float = 0.0
     # Leaving a failsafe, offboard is confirmed only by a heartbeat received after: the 1 Hz
     # heartbeat that showed offboard may predate the autopilot's own setpoint-loss hold, and
@@ -174,6 +213,7 @@ class OffboardStateMachine:
     _reason: str = "no heartbeat yet"
     _home_down_m: float | None = None
     _flight: _Flight = field(default_factory=_Flight)
+    _settle_note: str = ""  # said with the hand-over that went unsettled, once
     _finished: bool = False  # a flight ended in a landing: automate nothing more
     land_at_end: bool = True  # mission.land_at_end: at the mission's end, land (else hold)
     # how the heartbeat's modes read and whether offboard comes before arming (ArduCopter)
@@ -198,6 +238,7 @@ class OffboardStateMachine:
                 self._confirm_after_s = now_s
             self.phase = phase
             self._phase_since_s = now_s
+            self._flight.offboard_entered |= phase == Phase.OFFBOARD
             self.transitions += 1
             self._last_request_s.clear()
         self._reason = reason
@@ -245,6 +286,24 @@ class OffboardStateMachine:
         target = flight.takeoff_target
         if target is not None and alt is not None:
             flight.takeoff_done |= alt >= target.above_home_m - cfg.takeoff_reached_tolerance_m
+        if target is not None and hb is not None and self._taking_off(hb):
+            flight.takeoff_mode_seen = True
+        elif target is not None and flight.takeoff_mode_seen and hb is not None and hb.armed:
+            # The autopilot says its takeoff is over (PX4: TAKEOFF -> LOITER). A real PX4
+            # ends it within NAV_MC_ALT_RAD (0.8 m) of the target and holds wherever it
+            # brakes: 2.3 m of 2.5 in one flight, reached 1.2 s after the hold began, and a
+            # hold below the tolerance would never have streamed at all.
+            ended_m = target.above_home_m - cfg.takeoff_ended_tolerance_m
+            flight.takeoff_done |= flight.left_ground and alt is not None and alt >= ended_m
+        vz, vh = inp.vel_down_m_s, inp.speed_horizontal_m_s
+        # unknown speeds hold nothing back (as the climb's check); a NaN is not still
+        still = (vz is None or abs(vz) <= cfg.settled_vertical_speed_m_s) and (
+            vh is None or vh <= cfg.settled_horizontal_speed_m_s
+        )
+        if not still:
+            flight.settled_since_s = None
+        elif flight.settled_since_s is None:
+            flight.settled_since_s = inp.now_s
         if hb is not None and hb.armed and self._landing(hb) and flight.left_ground:
             flight.landing = flight.land_seen = True
         on_ground = (alt is not None and alt < cfg.airborne_altitude_m) and not in_air_reported
@@ -330,7 +389,12 @@ class OffboardStateMachine:
             if self._offboard_now(hb):
                 self._enter(Phase.OFFBOARD, now, "offboard confirmed")
             elif cfg.auto_offboard and now - self._phase_since_s >= cfg.min_stream_s:
-                self._enter(Phase.OFFBOARD_REQUESTED, now, "requesting offboard")
+                unsettled = self._unsettled(inp)
+                if unsettled:
+                    self._reason = unsettled
+                else:
+                    reason = self._entry_reason("requesting offboard")
+                    self._enter(Phase.OFFBOARD_REQUESTED, now, reason)
         if self.phase == Phase.OFFBOARD_REQUESTED:
             if self._offboard_now(hb):
                 self._enter(Phase.OFFBOARD, now, "offboard confirmed")
@@ -388,7 +452,14 @@ class OffboardStateMachine:
             if vz is not None and abs(vz) > cfg.settled_vertical_speed_m_s:
                 self._reason = f"airborne: waiting for the climb to settle ({-vz:.1f} m/s)"
                 return None
-            self._enter(Phase.STREAMING, now, "airborne: streaming setpoints")
+            # ArduCopter in GUIDED: streaming IS the hand-over (STREAMING sees GUIDED as
+            # offboard at once), so it waits for the vehicle to settle here
+            unsettled = self._unsettled(inp) if self._offboard(hb) else ""
+            if unsettled:
+                self._reason = unsettled
+                return None
+            reason = self._entry_reason("airborne: streaming setpoints")
+            self._enter(Phase.STREAMING, now, reason)
             return None
         if not hb.armed:
             if self._finished:
@@ -425,6 +496,37 @@ class OffboardStateMachine:
         actions.append(Action.TAKEOFF)
         self._reason = f"taking off to {target.above_home_m:.1f} m"
         return target
+
+    def _unsettled(self, inp: Inputs) -> str:
+        """Why the flight's first hand-over must wait for the vehicle to settle ("" once it
+        has been under both speed bounds for ``settled_for_s``, or after ``settle_timeout_s``
+        of waiting: then counted in ``unsettled_entries``). Later entries (after a failsafe,
+        a pilot) are not held: the vehicle is already flying our setpoints or the pilot's.
+        """
+        cfg = self.config
+        flight = self._flight
+        now = inp.now_s
+        since = flight.settled_since_s
+        if flight.offboard_entered or flight.settle_timed_out:
+            return ""
+        if since is not None and now - since >= cfg.settled_for_s:
+            return ""
+        if flight.settle_wait_since_s is None:
+            flight.settle_wait_since_s = now
+        waited_s = now - flight.settle_wait_since_s
+        vh, vz = inp.speed_horizontal_m_s, inp.vel_down_m_s
+        speed = "unknown" if vh is None or vz is None else f"{vh:.2f} m/s, {-vz:.2f} up"
+        if waited_s >= cfg.settle_timeout_s:
+            flight.settle_timed_out = True  # counted once: nothing more to hold this flight
+            self.unsettled_entries += 1
+            self._settle_note = f" (not settled after {waited_s:.1f} s: {speed})"
+            return ""
+        return f"airborne: waiting for the vehicle to settle ({speed})"
+
+    def _entry_reason(self, what: str) -> str:
+        """The hand-over's reason, saying so when it went before the vehicle had settled."""
+        note, self._settle_note = self._settle_note, ""
+        return what + note
 
     def _takeoff_blocked(self, hb: Heartbeat, inp: Inputs, alt: float | None) -> str:
         """Why a takeoff must not be sent now ("" when it may)."""
