@@ -218,3 +218,19 @@ def test_the_fleet_state_a_save_takes_on_the_loops_thread_is_formatted_once(monk
     assert {tuple(e[0]) for e in again} == {
         e.active_set for e, _s in sharing._libraries[0][1].received()
     }
+
+
+def test_a_tick_walks_no_candidate_pool_while_no_origin_is_proven():
+    """The miss worker's pump asks the pool which maps to build every position tick; with
+    nobody's candidates proven (a flood's never are) none is wanted, and a full pool is not
+    walked to find that out (64 calls a tick under bench --attack's fleet traffic)."""
+    from epc_offboard.control.epc.candidates import CandidatePool
+
+    pool = CandidatePool(64, 16)
+    for k in range(200):
+        pool.offer((k, k + 1), f"peer{k % 20}")
+    assert len(pool) == 64
+    python_calls, _c_calls = _count_calls(lambda k: pool.wanted(8), 5)
+    assert python_calls <= 2, python_calls
+    pool.promoted(next(a for a, _o in pool.items()), "peer19")  # proven: now it walks
+    assert pool.wanted(8)

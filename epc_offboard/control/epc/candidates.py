@@ -334,6 +334,11 @@ class CandidatePool:
 
     def wanted(self, limit: int) -> list[tuple[int, ...]]:
         """Proven origins' pool candidates without a map, most likely needed first."""
+        if not self.promotions:
+            # no origin proven (a flood's never is): none wanted. The miss worker's pump
+            # asks every position tick: walking a full pool of 64 was 15 us warm, a few
+            # times that in flight (cold caches, see service/realtime.py)
+            return []
         far = len(self._rank)
         todo = [a for a, c in self._items.items() if c.map is None and self.proven(c.origin)]
         todo.sort(key=lambda a: self._rank.get(a, far))
