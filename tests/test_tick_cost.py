@@ -12,6 +12,7 @@ scalars and sent in two writes. These bounds fail if that cost comes back.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 from collections import Counter
@@ -164,3 +165,72 @@ def test_the_scalar_paths_are_numpys_to_the_last_bit():
     for _ in range(2000):
         v = rng.normal(size=int(rng.integers(3, 5))) * rng.choice([1e-3, 1.0, 1e3])
         assert frames.vector_norm(v) == float(np.linalg.norm(v))
+
+
+def test_the_fleet_state_a_save_takes_on_the_loops_thread_is_formatted_once(monkeypatch):
+    """Every library save (5 s) lists the fleet's received controllers on the loops' thread
+    (``FleetSharing.fleet_state``, for a restart). Rebuilt whole each time, the backlog's
+    2,048 controllers took 20-30 ms there: under a fleet's traffic a 20-30 ms position-loop
+    gap every 5 s (``bench --attack``'s figure-8, issue 21). Only what arrived since the
+    last save may cost calls now; what is saved stays the same."""
+    from epc_offboard.fleet.config import SharingConfig
+    from epc_offboard.fleet.sharing import FleetSharing
+
+    cfg = load_service_config(_CONFIG)
+    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, _DT_S)
+    sharing = FleetSharing(SharingConfig(enabled=True, vehicle_id="me"),
+                           cascade.experience_controllers())  # fmt: skip
+    sig = sharing.specs[0].signature
+    n_con = sharing.specs[0].n_con
+    pairs = [(i, j) for i in range(n_con) for j in range(i + 1, n_con)]
+
+    def received(first: int, n: int) -> str:
+        return json.dumps([[list(pairs[k]), f"peer{k % 64}", float(k), k % 7, [list(pairs[k + 1])]]
+                           for k in range(first, first + n)])  # fmt: skip
+
+    backlog = cfg.candidates.backlog_size
+    assert sharing.restore({f"candidates:{sig}": received(0, backlog)}) == backlog
+    # a saver prepares it in slices (the loops tick in between), 64 formatted at a time
+    slices = 1
+    while not sharing.prepare_fleet_state(64):
+        slices += 1
+    assert slices == backlog // 64
+    first = sharing.fleet_state()
+    # ten more arrive (the oldest leave the bounded backlog); the next save
+    sharing.restore({f"candidates:{sig}": received(backlog, 10)})
+    calls: Counter[str] = Counter()
+
+    def profile(frame: Any, event: str, arg: Any) -> None:
+        calls[event] += 1
+
+    sys.setprofile(profile)
+    try:
+        second = sharing.fleet_state()
+    finally:
+        sys.setprofile(None)
+    # before: 2,134 Python-level calls (an entry built per known controller), now ~100
+    # (the ten new ones formatted); C calls stay 1-3 per controller (dict look-ups)
+    assert calls["call"] <= 300, dict(calls)
+    # the same texts: a fresh list of what is known, formatted as before
+    again = json.loads(second[f"candidates:{sig}"])
+    assert len(again) == backlog
+    assert len(json.loads(first[f"candidates:{sig}"])) == backlog
+    assert {tuple(e[0]) for e in again} == {
+        e.active_set for e, _s in sharing._libraries[0][1].received()
+    }
+
+
+def test_a_tick_walks_no_candidate_pool_while_no_origin_is_proven():
+    """The miss worker's pump asks the pool which maps to build every position tick; with
+    nobody's candidates proven (a flood's never are) none is wanted, and a full pool is not
+    walked to find that out (64 calls a tick under bench --attack's fleet traffic)."""
+    from epc_offboard.control.epc.candidates import CandidatePool
+
+    pool = CandidatePool(64, 16)
+    for k in range(200):
+        pool.offer((k, k + 1), f"peer{k % 20}")
+    assert len(pool) == 64
+    python_calls, _c_calls = _count_calls(lambda k: pool.wanted(8), 5)
+    assert python_calls <= 2, python_calls
+    pool.promoted(next(a for a, _o in pool.items()), "peer19")  # proven: now it walks
+    assert pool.wanted(8)

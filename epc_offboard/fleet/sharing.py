@@ -85,6 +85,7 @@ _MAX_OUTBOX_BYTES = 4 << 20  # frames to the helper waiting in this process, at 
 _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is restarted
 _REFERENCES_PER_READ = 4  # the newest of these is kept
 _HIGH_WATER_BYTES = 1 << 20  # session.HighWater's saved tables (a larger one is not kept)
+_FORMATS_PER_SLICE = 64  # received controllers fleet_state's preparation formats at a time
 _FRAME_ENTRIES = 512  # controllers in one publish frame: far below the outbox's bound
 _MARKS, _CANDIDATES, _OWN = "marks", "candidates:", "own"  # fleet_state's names
 
@@ -229,7 +230,10 @@ class FleetSharing:
         self._backlog = PublishBacklog(cfg.publish_backlog_entries)
         self._read = 0  # candidate records read from the running helper
         self._marks: list[list[Any]] = []  # [signature, peer, epoch, number]: fleet_state's
-        self._received_text: dict[int, tuple[Any, str]] = {}  # per problem: (what, its text)
+        # per problem: each received controller's JSON text by the entry's id (fleet_state)
+        self._received_text: dict[int, dict[int, tuple[LibraryEntry, str]]] = {}
+        self._marks_text: tuple[object, str] = (None, "")  # (the marks, their JSON)
+        self._settled_seen: tuple[bytes, dict[str, Any]] = (b"", {})  # (its text, parsed)
         # fleet_state's: this vehicle's numbering of its library (HighWater's ``own``), as
         # the store keeps it and as the helper's buffer last held it
         self._own, self._own_raw = "", b""
@@ -461,36 +465,87 @@ class FleetSharing:
         out = {}
         for i, (spec, (_name, library)) in enumerate(zip(self.specs, self._libraries,
                                                          strict=True)):  # fmt: skip
-            received = library.received()
-            key = hash(tuple((e.active_set, e.origin) for e, _ in received))  # same: reused
-            if self._received_text.get(i, (None, ""))[0] != key:
-                self._received_text[i] = (key, json.dumps(
-                    [[list(e.active_set), e.origin, e.importance, e.uses, [list(a) for a in s]]
-                     for e, s in received], separators=(",", ":")))  # fmt: skip
-            out[_CANDIDATES + spec.signature] = self._received_text[i][1]
-        out[_MARKS] = json.dumps({"held": self._marks}, separators=(",", ":"))
+            out[_CANDIDATES + spec.signature] = self._received_json(i, library.received())
+        if self._marks_text[0] is not self._marks:
+            self._marks_text = (self._marks, json.dumps({"held": self._marks},
+                                                        separators=(",", ":")))  # fmt: skip
+        out[_MARKS] = self._marks_text[1]
         if self._own:
             out[_OWN] = self._own
         return out
+
+    def _received_json(
+        self, i: int, received: list[tuple[LibraryEntry, tuple[tuple[int, ...], ...]]]
+    ) -> str:
+        """``received`` as JSON, each controller formatted once: the list (up to the
+        backlog's 2,048) is rewritten every save, on the loops' thread, and formatting it
+        whole took 20-30 ms there (a position-loop gap every 5 s under a fleet's traffic).
+        Each entry is the same object while it stays known (``CandidatePool.known``), so its
+        text is found by identity (the entry kept beside it: an id is never reused while
+        the entry is alive)."""
+        texts, _left = self._format_received(i, received, len(received))
+        return "[" + ",".join([text for _e, text in texts.values()]) + "]"
+
+    def _format_received(
+        self, i: int, received: list[tuple[LibraryEntry, tuple[tuple[int, ...], ...]]],
+        budget: int,
+    ) -> tuple[dict[int, tuple[LibraryEntry, str]], int]:
+        """Problem ``i``'s texts of ``received``, at most ``budget`` of them formatted now
+        (the rest left out, for a later call); and the budget left."""
+        before = self._received_text.get(i, {})
+        texts: dict[int, tuple[LibraryEntry, str]] = {}
+        for e, succ in received:
+            held = before.get(id(e))
+            if held is None or held[0] is not e:
+                if budget <= 0:
+                    continue
+                budget -= 1
+                held = (e, json.dumps([list(e.active_set), e.origin, e.importance, e.uses,
+                                       [list(a) for a in succ]], separators=(",", ":")))
+            texts[id(e)] = held
+        self._received_text[i] = texts
+        return texts, budget
+
+    def prepare_fleet_state(self, budget: int = _FORMATS_PER_SLICE) -> bool:
+        """Format up to ``budget`` received controllers for the next :meth:`fleet_state`;
+        whether none is left. A saver calls it until it is, letting the loops tick in
+        between: beside a fleet's traffic 800 arrive between two saves, 5-10 ms of
+        formatting that, in one stretch, delayed the loops' ticks every 5 s."""
+        if not self.share_library:
+            return True
+        for i, (_name, library) in enumerate(self._libraries):
+            received = library.received()
+            texts, budget = self._format_received(i, received, budget)
+            if len(texts) < len(received):
+                return False
+        return True
 
     def _settle_marks(self) -> None:
         helper = self._helper
         # only the settled part (HighWater.save writes it last): the numbering before it can
         # be large, and this runs on the loops' thread
-        raw = bytes(self._high_water_raw.raw).rstrip(b"\0")
+        # up to the first NUL (HighWater.save ends its text with one): stripping the 1 MB
+        # buffer's trailing NULs took 1-3 ms of the loops' thread every save, and a shorter
+        # save leaves a longer one's end behind that NUL
+        raw = self._high_water_raw.value
         at = raw.rfind(b',"settled":')
         self._read_own(raw, at if at >= 0 else len(raw) - 1)
-        try:
-            state = json.loads(b"{" + raw[at + 1 :]) if at >= 0 else {}
-        except (ValueError, UnicodeDecodeError):
-            return
+        tail = raw[at + 1 :] if at >= 0 else b""
+        if tail != self._settled_seen[0]:  # parsed only when the helper saved new marks
+            try:
+                self._settled_seen = (tail, json.loads(b"{" + tail) if tail else {})
+            except (ValueError, UnicodeDecodeError):
+                return
+        state = self._settled_seen[1]
         settled, taken = state.get("settled") or [], state.get("taken")
         if (helper is None or state.get("pid") != helper.process.pid
                 or not isinstance(taken, int) or self._read < taken):  # fmt: skip
             return
         with contextlib.suppress(ValueError, TypeError, IndexError):
-            self._marks = [[self.specs[i].signature, str(p), int(e), int(n)]
-                           for i, p, e, n in settled]  # fmt: skip
+            marks = [[self.specs[i].signature, str(p), int(e), int(n)]
+                     for i, p, e, n in settled]  # fmt: skip
+            if marks != self._marks:  # the same list: fleet_state reuses its text
+                self._marks = marks
 
     def _read_own(self, raw: bytes, end: int) -> None:
         """This vehicle's numbering of its library, cut out of the helper's buffer as text

@@ -43,6 +43,7 @@ log = logging.getLogger("epc_offboard.service")
 
 _MAX_PENDING_BYTES = 64 << 20  # snapshots waiting for the store process, at most
 _CLOSE_TIMEOUT_S = 30.0
+_MAX_PREPARE_SLICES = 64  # the fleet state's slices before a save (a backlog: 32)
 
 
 class LibraryKeeper:
@@ -59,12 +60,15 @@ class LibraryKeeper:
         published: Callable[[], bool],
         log_cfg: LogConfig | None = None,
         fleet_state: Callable[[], Mapping[str, str]] | None = None,
+        prepare_fleet: Callable[[], bool] | None = None,
     ) -> None:
         self.cfg = cfg
         self.cascade = cascade
         self.counters = counters
         self._published = published
         self._fleet_state = fleet_state
+        # a slice of the fleet state's work before it is taken (whether it is all done)
+        self._prepare_fleet = prepare_fleet
         self.fleet_saved: dict[str, str] = {}
         self._log_cfg = log_cfg or LogConfig()
         self._ctx = multiprocessing.get_context("spawn")
@@ -111,17 +115,38 @@ class LibraryKeeper:
                 self.counters["store_restarts"] += 1
                 self._start()
             try:
-                snap = self._snapshot()
+                # in parts, the ticks due meanwhile run between them: the whole took the
+                # loops' thread for one stretch (5-30 ms beside a fleet: position gaps and
+                # late attitude ticks every 5 s, issue 21)
+                for _slice in range(_MAX_PREPARE_SLICES):  # what is left: in fleet_state
+                    if self._prepare_fleet is None or self._prepare_fleet():
+                        break
+                    await asyncio.sleep(0)
+                fleet = self._fleet_part()
+                await asyncio.sleep(0)
+                models = experience.estimator_models(self.cascade)
+                await asyncio.sleep(0)
+                snap = self._snapshot(fleet, models)
             except Exception as exc:  # never let saving take a loop down
                 self.counters["store_snapshot_errors"] += 1
                 log.error("snapshotting the library failed: %s", exc)
                 continue
+            await asyncio.sleep(0)
             self._hand_over(snap)
 
-    def _snapshot(self) -> LibrarySnapshot:
-        """The library and the fleet's state, taken together on the loops' thread."""
-        snap = experience.snapshot(self.cascade)
-        fleet = self._fleet_state() if self._fleet_state is not None else {}
+    def _fleet_part(self) -> dict[str, str]:
+        return dict(self._fleet_state()) if self._fleet_state is not None else {}
+
+    def _snapshot(
+        self, fleet: dict[str, str] | None = None, models: dict[str, bytes] | None = None
+    ) -> LibrarySnapshot:
+        """The library and the fleet's state (``fleet``: taken before, else now), on the
+        loops' thread. The fleet's first: a received controller promoted into the library
+        in between is then in both (offered again after a restart, known), never in
+        neither (lost)."""
+        if fleet is None:
+            fleet = self._fleet_part()
+        snap = experience.snapshot(self.cascade, models)
         return replace(snap, fleet=fleet) if fleet else snap
 
     def _hand_over(self, snap: LibrarySnapshot) -> bool:

@@ -26,6 +26,16 @@
   time, 0 preemptions under FIFO, see ``timing.py``), and a thread that wakes on whichever
   core is free finds caches another process left. Helpers started later (a restart) inherit
   the pin; the kernel spreads nothing else off those CPUs unless ``isolcpus=`` says so.
+* **Cold caches, not interference.** In ``bench --attack`` (FIFO, two hogs) a position
+  tick's thread CPU equals its wall time (0 preemptions) and is ~3x its lockstep cost: the
+  same ticks run back to back took 117-120 us of thread CPU, paced 10 ms apart (a sleep
+  between ticks, as in flight) 333-343 us, with or without two hogs (SCHED_FIFO, load
+  22-31). Between two ticks the machine's other work evicts the interpreter's code and
+  data from the caches; what shortens the real-time tick is touching less (fewer Python
+  calls and objects per tick), not more isolation.
+* **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
+  in slices of a few ms with the loops' due ticks between them: one stretch of it is a
+  late attitude tick and a position-loop gap (``library_keeper.py``).
 """
 
 from __future__ import annotations

@@ -144,6 +144,7 @@ class Service:
             published=lambda: self.sharing is not None and self.sharing.share_library,
             log_cfg=cfg.log,
             fleet_state=lambda: self.sharing.fleet_state() if self.sharing is not None else {},
+            prepare_fleet=lambda: self.sharing is None or self.sharing.prepare_fleet_state(),
         )  # fmt: skip
 
     @property
