@@ -293,7 +293,22 @@ class ArduPilotParams:
     # ATC_ANG_RLL_P, _PIT_P, _YAW_P (4.5 1/s): P on the error to the attitude target that
     # body-rate commands turn (the quaternion path keeps the cascade's attitude_p_1_s, which
     # its fit to the real ArduCopter's quaternion answer was made with)
-    rate_angle_p_1_s: tuple[float, float, float] = (4.5, 4.5, 4.5)
+    # Yaw's 1.5, not ATC_ANG_YAW_P's 4.5: the real ArduCopter's yaw (20 s multi-sine, 0.3-2.1
+    # Hz) fits best, 0.015 rad/s rms, as this chain (P 5, FLTE 2.5 Hz, 20-30 ms of delay)
+    # with 1.5 on the angle error; with 4.5 the best is 0.072 (a resonance at 0.7 Hz of gain
+    # 2.3 the real one, 1.24, does not have). What lowers it in ArduCopter is not found
+    rate_angle_p_1_s: tuple[float, float, float] = (4.5, 4.5, 1.5)
+    # The yaw rate loop, ArduCopter's (AC_AttitudeControl_Multi's yaw rate PID): why its yaw
+    # answers so much later than roll and pitch. ATC_RAT_YAW_P 0.3 and _I 0.02 (the SITL's
+    # copter.parm) are motor output per rad/s; the SITL quad (3 kg, 0.35 m) turns a unit of
+    # yaw output into about 13 rad/s^2 (SIM_Motor's yaw torque, 0.05 x diagonal x thrust x
+    # command, about Izz = m (d/2)^2 / 2): P about 4 1/s where roll's 0.135 gives this
+    # personality's 25. Fitted to the real one's yaw (below): P 5.0, I 0.26 (0.02 x 13)
+    rate_yaw_p_1_s: float = 5.0
+    rate_yaw_i_1_s2: float = 0.26
+    # ATC_RAT_RLL_FLTE, _PIT_FLTE, _YAW_FLTE (0, 0, 2.5 Hz): the rate PIDs' error filter (0:
+    # none). Yaw's P and I act on the error through 2.5 Hz: a 64 ms lag inside the loop
+    rate_error_filter_hz: tuple[float, float, float] = (0.0, 0.0, 2.5)
     # Every setpoint waits for ArduCopter's main loop to read it (its GCS input runs at the
     # loop rate): about a loop period, SCHED_LOOP_RATE's 2.5 ms
     setpoint_delay_s: float = 0.0025
@@ -351,6 +366,10 @@ class ArduPilotParams:
             _positive(**{f"accel_max_frd_rad_s2[{i}]": v})
         for i, v in enumerate(self.rate_angle_p_1_s):
             _non_negative(**{f"rate_angle_p_1_s[{i}]": v})
+        for i, v in enumerate(self.rate_error_filter_hz):
+            _non_negative(**{f"rate_error_filter_hz[{i}]": v})
+        _positive(rate_yaw_p_1_s=self.rate_yaw_p_1_s)
+        _non_negative(rate_yaw_i_1_s2=self.rate_yaw_i_1_s2)
         for name in ("setpoint_delay_s", "rate_input_delay_s"):
             if getattr(self, name) > 0.5:
                 raise ValueError(f"{name} must be <= 0.5, got {getattr(self, name)}")
