@@ -79,7 +79,7 @@ def test_the_window_starts_at_the_dead_time():
 
 def test_defaults_per_autopilot_and_mode():
     assert default_command_dead_time_s("px4", "autopilot") == pytest.approx(0.15)
-    assert default_command_dead_time_s("px4", "epc") == pytest.approx(0.0)
+    assert default_command_dead_time_s("px4", "epc") == pytest.approx(0.05)
     assert default_command_dead_time_s("ardupilot", "autopilot") == pytest.approx(0.2)
     assert default_command_dead_time_s("auto", "autopilot") == pytest.approx(0.15)
 

@@ -124,7 +124,7 @@ class PositionControlConfig:
     # produce, on every axis (a quaternion setpoint carries its thrust): the QP starts from
     # the state predicted over it with the commands in flight, on the reference as it will
     # be then (control/dead_time.py). Unset: the measured one of the autopilot and attitude
-    # mode flown (PX4 quaternion 0.25 s, body rates 0; DEFAULT_COMMAND_DEAD_TIME_S)
+    # mode flown (PX4 quaternion 0.15 s, body rates 0.05; DEFAULT_COMMAND_DEAD_TIME_S)
     command_dead_time_s: float | None = None
     r_acc: Vec3 = (0.3, 0.3, 0.3)
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
