@@ -76,21 +76,37 @@ def default_command_dead_time_s(autopilot: str, attitude_mode: str) -> float:
     return DEFAULT_COMMAND_DEAD_TIME_S.get((name, attitude_mode), 0.0)
 
 
+def _ticks(span_s: float, period_s: float) -> int:
+    """``span_s`` in whole ticks, halves up (15 ms of 10 ms ticks: 2, not round()'s even)."""
+    return math.floor(span_s / period_s + 0.5 + 1e-9)
+
+
 class DeadTimePredictor:
     """The lagged position model ``x = [p, v, a]`` on the loop's tick grid, carried over
-    ``dead_time_s`` (rounded to ticks of ``period_s``) with the commands sent in the last
-    dead time, and a disturbance ``d`` held constant (it enters v as in the QP's model)."""
+    ``dead_time_s`` plus ``latency_s`` (rounded to ticks of ``period_s``) with the commands
+    sent in that time, and a disturbance ``d`` held constant (it enters v as in the QP's
+    model)."""
 
     def __init__(
-        self, tau_acc_s: tuple[float, float, float], period_s: float, dead_time_s: float
+        self,
+        tau_acc_s: tuple[float, float, float],
+        period_s: float,
+        dead_time_s: float,
+        latency_s: float = 0.0,
     ) -> None:
-        if not (math.isfinite(dead_time_s) and 0.0 <= dead_time_s <= MAX_COMMAND_DEAD_TIME_S):
-            raise ValueError(
-                f"dead_time_s must be in [0, {MAX_COMMAND_DEAD_TIME_S}], got {dead_time_s}"
-            )
+        for name, value in (("dead_time_s", dead_time_s), ("latency_s", latency_s)):
+            if not (math.isfinite(value) and 0.0 <= value <= MAX_COMMAND_DEAD_TIME_S):
+                raise ValueError(f"{name} must be in [0, {MAX_COMMAND_DEAD_TIME_S}], got {value}")
         self.period_s = period_s
-        n = self.steps = round(dead_time_s / period_s)
-        self.dead_time_s = n * period_s  # as flown: whole ticks
+        # ``latency_s``: how old the measured state already is when it arrives, beyond what
+        # its time stamp shows (an estimator's output lag and the link). The commands that
+        # act from the state's true time to where the command sent now acts were sent over
+        # latency + dead time: x0 is carried over both, while the reference window starts
+        # at the dead time alone (the plan is for the vehicle as it will be, on the
+        # reference as it will be then; a dead time standing in for the latency shifted the
+        # reference as well, and the vehicle led it by the latency)
+        n = self.steps = _ticks(dead_time_s + latency_s, period_s)
+        self.dead_time_s = min(_ticks(dead_time_s, period_s), n) * period_s  # as flown: ticks
         model = position_model_lagged(period_s, tau_acc_s)
         A, B = model.A, model.B
         powers = [np.eye(9)]
