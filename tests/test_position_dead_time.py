@@ -50,18 +50,23 @@ def integrate(x0, commands, d, period_s, tau, substeps=2000):
     return np.concatenate([p, v, a])
 
 
+def ahead_and_integrated(pred, rng):
+    """(the prediction, a fine integration, x0) from a random x0 over ``pred.steps`` random
+    commands sent one a tick, under a constant disturbance."""
+    period, n = pred.period_s, pred.steps
+    commands = rng.normal(0.0, 2.0, (n, 3))
+    for k, u in enumerate(commands):
+        pred.sent(k * period, u)
+    x0 = rng.normal(0.0, 1.0, 9)
+    d = rng.normal(0.0, 0.3, 3)
+    return pred.ahead(x0, d, n * period), integrate(x0, commands, d, period, TAU), x0
+
+
 def test_the_prediction_is_the_model_driven_by_the_commands_in_flight():
     period = 0.01
     pred = DeadTimePredictor(TAU, period, 0.15)
     assert pred.steps == 15
-    rng = np.random.default_rng(3)
-    commands = rng.normal(0.0, 2.0, (15, 3))
-    for k, u in enumerate(commands):
-        pred.sent(k * period, u)
-    x0 = rng.normal(0.0, 1.0, 9)
-    d = np.array([0.4, -0.3, 0.2])
-    got = pred.ahead(x0, d, 15 * period)
-    want = integrate(x0, commands, d, period, TAU)
+    got, want, x0 = ahead_and_integrated(pred, np.random.default_rng(3))
     np.testing.assert_allclose(got, want, atol=2e-3)
     # without the commands in flight (a model with no dead time) it is far off
     assert np.max(np.abs(x0 - want)) > 0.1
@@ -95,9 +100,40 @@ def test_the_window_starts_at_the_dead_time():
     assert short[0] == 4.0
 
 
+def test_a_state_latency_carries_the_state_but_does_not_shift_the_reference():
+    """A state 20 ms old on arrival (its stamp says now) and a 30 ms command dead time: x0
+    is carried over both, 50 ms of commands, but the plan's window starts at the dead time
+    alone. A dead time of 50 ms in its place shifted the reference by the latency too, and
+    the vehicle led the reference by it (Neural-Fly's plant: 15 ms, 2 cm at 1.3 m/s)."""
+    period = 0.01
+    pred = DeadTimePredictor(TAU, period, 0.03, latency_s=0.02)
+    assert pred.steps == 5
+    assert pred.dead_time_s == pytest.approx(0.03)
+    got, want, _ = ahead_and_integrated(pred, np.random.default_rng(5))
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    stages = np.arange(24.0)[:, None] * np.ones((1, 9))
+    window = pred.window(stages.copy(), 0.05, 20)[:, 0]  # 30 ms of 50 ms stages: 0.6
+    np.testing.assert_allclose(window, np.arange(1.6, 21.6))
+    # latency alone: the window is the reference's own
+    only = DeadTimePredictor(TAU, period, 0.0, latency_s=0.015)
+    assert only.steps == 2
+    assert only.dead_time_s == 0.0
+    np.testing.assert_array_equal(only.window(stages, 0.05, 20)[:, 0], np.arange(1.0, 21.0))
+
+
+def test_the_loop_flies_the_configured_state_latency():
+    cfg = PositionControlConfig(command_dead_time_s=None, state_latency_s=0.015)
+    loop = PositionLoop(cfg, EstimatorConfig(kind="none"), 0.01)
+    loop.use_attitude_path("px4", "epc")
+    assert loop.dead_time.steps == 7
+    assert loop.dead_time.dead_time_s == pytest.approx(0.05)
+    with pytest.raises(ValueError, match="state_latency_s"):
+        PositionControlConfig(state_latency_s=-0.01)
+
+
 def test_defaults_per_autopilot_and_mode():
     assert default_command_dead_time_s("px4", "autopilot") == pytest.approx(0.15)
-    assert default_command_dead_time_s("px4", "epc") == pytest.approx(0.0)
+    assert default_command_dead_time_s("px4", "epc") == pytest.approx(0.05)
     assert default_command_dead_time_s("ardupilot", "autopilot") == pytest.approx(0.2)
     assert default_command_dead_time_s("auto", "autopilot") == pytest.approx(0.15)
 

@@ -401,7 +401,7 @@ def test_a_link_gone_silent_is_a_lost_heartbeat_and_nothing_is_commanded(
 
 def test_the_command_dead_time_is_decided_when_the_dialect_is_adopted_not_each_tick():
     """link.autopilot and attitude.mode "auto": until a heartbeat names the autopilot, PX4's
-    body rates (no command dead time); ArduPilot's heartbeat makes it quaternion mode, whose
+    body rates (0.05 s of command dead time); ArduPilot's heartbeat makes it quaternion mode, whose
     0.2 s the position loop flies from then on, without a position tick asking again."""
     from epc_offboard.service.service import Service
 
@@ -412,7 +412,7 @@ def test_the_command_dead_time_is_decided_when_the_dialect_is_adopted_not_each_t
     )  # fmt: skip
     service = Service(cfg)
     position = service.cascade.position
-    assert position.dead_time.steps == 0
+    assert position.dead_time.dead_time_s == pytest.approx(0.05)
     codec = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     frame = codec.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
                                    0, 4, mavlink.MAV_STATE_STANDBY).pack(codec)  # fmt: skip
@@ -422,7 +422,7 @@ def test_the_command_dead_time_is_decided_when_the_dialect_is_adopted_not_each_t
 
 
 def test_while_the_rate_gate_suspends_body_rates_the_position_loop_flies_the_quaternion_dead_time():
-    """PX4 body rates: no command dead time. When the rate model's gate suspends body rates,
+    """PX4 body rates: 0.05 s of command dead time. When the rate model's gate suspends body rates,
     PX4's attitude loop answers the position loop's commands 0.275 s late: the position loop
     flies quaternion mode's dead time (0.15 s) until body rates fly again (ardu-rates found
     the fallback planned as body rates, tilted to 76 deg)."""
@@ -443,7 +443,7 @@ def test_while_the_rate_gate_suspends_body_rates_the_position_loop_flies_the_qua
         position_age_s=0.0, attitude_age_s=0.0,
     )  # fmt: skip
     service._position_tick(state, 10.0)
-    assert position.dead_time.steps == 0
+    assert position.dead_time.dead_time_s == pytest.approx(0.05)
     for k in range(gate.min_checks + 1):  # the rates measured far from the model's
         gate.check(10.0 + 0.005 * k, np.full(3, 3.0), np.full(3, 0.1))
     assert not gate.use_rates(10.1)
@@ -451,5 +451,5 @@ def test_while_the_rate_gate_suspends_body_rates_the_position_loop_flies_the_qua
     assert position.dead_time.dead_time_s == pytest.approx(0.15)
     later = gate.until_s + 0.01  # the hold over: body rates on probation
     service._position_tick(dataclasses.replace(state, time_s=later), later)
-    assert position.dead_time.steps == 0
+    assert position.dead_time.dead_time_s == pytest.approx(0.05)
     assert service.counters["position_dead_time_switches"] == 2

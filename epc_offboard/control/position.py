@@ -124,8 +124,13 @@ class PositionControlConfig:
     # produce, on every axis (a quaternion setpoint carries its thrust): the QP starts from
     # the state predicted over it with the commands in flight, on the reference as it will
     # be then (control/dead_time.py). Unset: the measured one of the autopilot and attitude
-    # mode flown (PX4 quaternion 0.25 s, body rates 0; DEFAULT_COMMAND_DEAD_TIME_S)
+    # mode flown (PX4 quaternion 0.15 s, body rates 0.05; DEFAULT_COMMAND_DEAD_TIME_S)
     command_dead_time_s: float | None = None
+    # How old the state estimate already is when it arrives, beyond what its time stamp
+    # shows (s): an estimator's output lag and the link's delay, stamped as current (the
+    # Neural-Fly plant's 15 ms). x0 is carried over it with the commands flown meanwhile
+    # (with the command dead time), the reference window is not shifted by it
+    state_latency_s: float = 0.0
     r_acc: Vec3 = (0.3, 0.3, 0.3)
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     # The QP bounds the predicted velocity by max_vel_m_s less this (constraint tightening,
@@ -200,6 +205,10 @@ class PositionControlConfig:
             raise ValueError(
                 f"command_dead_time_s must be in [0, {MAX_COMMAND_DEAD_TIME_S}], got {dead}"
             )
+        if not (math.isfinite(self.state_latency_s)
+                and 0.0 <= self.state_latency_s <= MAX_COMMAND_DEAD_TIME_S):  # fmt: skip
+            raise ValueError(f"state_latency_s must be in [0, {MAX_COMMAND_DEAD_TIME_S}], "
+                             f"got {self.state_latency_s}")
         if any(q < 0.0 for q in (*self.q_pos, *self.q_vel, *self.q_acc)):
             raise ValueError("q_pos, q_vel and q_acc must be >= 0")
         if not (math.isfinite(self.entry_ramp_s) and self.entry_ramp_s >= 0.0):
@@ -400,9 +409,7 @@ class PositionLoop:
         # the command dead time flown (use_attitude_path sets the measured default once the
         # autopilot and the attitude mode are known; until then the configured one, or 0)
         self._path: tuple[str, str] | None = None
-        self.dead_time = DeadTimePredictor(
-            cfg.tau_acc_s, loop_period_s, cfg.command_dead_time_s or 0.0
-        )
+        self.dead_time = self._predictor(cfg.command_dead_time_s or 0.0)
 
     def use_attitude_path(self, autopilot: str, attitude_mode: str) -> None:
         """Fly the command dead time of ``autopilot`` ("px4", "ardupilot") in
@@ -416,8 +423,16 @@ class PositionLoop:
         dead = self.config.command_dead_time_s
         if dead is None:
             dead = default_command_dead_time_s(autopilot, attitude_mode)
-        if round(dead / self.loop_period_s) != self.dead_time.steps:
-            self.dead_time = DeadTimePredictor(self.config.tau_acc_s, self.loop_period_s, dead)
+        predictor = self._predictor(dead)
+        if (predictor.steps, predictor.dead_time_s) != (self.dead_time.steps,
+                                                        self.dead_time.dead_time_s):
+            self.dead_time = predictor
+
+    def _predictor(self, dead_time_s: float) -> DeadTimePredictor:
+        """The predictor over ``dead_time_s`` and the configured state latency."""
+        cfg = self.config
+        return DeadTimePredictor(cfg.tau_acc_s, self.loop_period_s, dead_time_s,
+                                 cfg.state_latency_s)  # fmt: skip
 
     def hold(self, pos_ned_m: FloatArray) -> ReferenceHorizon:
         """At rest at ``pos_ned_m`` (3,) m, at the configured heading, over the stages a
