@@ -204,6 +204,8 @@ def test_ardupilot_no_takeoff_outside_guided():
 def test_ardupilot_mission_end_lands_in_land_mode():
     sm = OffboardStateMachine(AUTO, dialect=apm.ARDUPILOT)
     _step(sm, 0.0, ap_hb(0.0, armed=True, mode=arducopter.GUIDED), alt=2.5)
+    # the first hand-over once the vehicle has been still for offboard.settled_for_s
+    _step(sm, 0.5, ap_hb(0.5, armed=True, mode=arducopter.GUIDED), alt=2.5)
     assert sm.phase == Phase.OFFBOARD
     out = _step(sm, 1.0, ap_hb(1.0, armed=True, mode=arducopter.GUIDED), alt=2.5, mission=True)
     assert out.phase == Phase.LANDING
