@@ -109,8 +109,8 @@ def test_the_entry_ramp_hands_back_without_a_step():
     asks for more. The old ramp handed the rest over in one tick (0.32 m/s^2 here; 3.1 m/s^2
     on ArduCopter entering its windy figure-8, where the body rates that chased it wound up
     its shaping, the rate model's gate suspended them at a bound of 0.4 rad/s, and the
-    vehicle rolled over). Now what the ramp held back is handed over at entry_jerk_m_s3:
-    the tilt's part moves by at most that per second across the hand-back too."""
+    vehicle rolled over). Now the tilt's part moves by at most entry_jerk_m_s3 per second
+    across the hand-back too, and the ramp ends where the two meet."""
     loop = _cascade().position
     _holding(loop, 0.5)
     cfg = loop.config
