@@ -657,22 +657,9 @@ class PositionLoop:
             return acc
         if ours and math.isinf(self._ramp_end_s):
             self._ramp_end_s = t_s + cfg.entry_ramp_s
-        max_step = cfg.entry_jerk_m_s3 * self.loop_period_s
         if t_s >= self._ramp_end_s:
-            # The hand-back: only where the controller's command meets the ramp (at most
-            # entry_ramp_s later). Ended at the time alone, the ramp's bounds (below) still
-            # held the command 3.1 m/s^2 short of it after an ArduCopter entry into 3 m/s of
-            # wind, and the rest came as one step (18 deg of tilt in a tick): the body rates
-            # that chased it saturated beyond ATC_ACC_R_MAX, the rate model's gate suspended
-            # them (bound 0.4 rad/s), and the autopilot's attitude loop, handed a wound-up
-            # input shaping, rolled the vehicle over (78-84 deg).
-            gap = acc - self._ramp_acc
-            gap[2] = 0.0
-            caught_up = float(np.linalg.norm(gap)) <= max_step
-            if caught_up or t_s >= self._ramp_end_s + cfg.entry_ramp_s:
-                self._ramp_acc = None
-                return acc
-            return self._ramp_towards(acc, max_step)
+            self._ramp_acc = None
+            return acc
         # horizontally only: a horizontal change is a tilt, which the attitude loop flies
         # with its lag (the jolt); the vertical is thrust alone, and braking a climb that is
         # still under way at entry (ArduCopter's takeoff hands over climbing) needs it whole
@@ -687,7 +674,15 @@ class PositionLoop:
             acc = hold + extra * (cfg.entry_max_acc_m_s2 / extra_norm)
         vmax = cfg.entry_max_vertical_acc_m_s2
         acc[2] = min(max(acc[2], hold[2] - vmax), hold[2] + vmax)
-        ramp = self._ramp_towards(acc, max_step)
+        step = acc - self._ramp_acc
+        vertical = step[2]
+        step[2] = 0.0
+        norm = float(np.linalg.norm(step))
+        max_step = cfg.entry_jerk_m_s3 * self.loop_period_s
+        if norm > max_step:
+            step *= max_step / norm
+        step[2] = vertical
+        ramp = self._ramp_acc + step
         if not ours:
             # Until offboard is confirmed the autopilot may still fly its own (PX4 takes
             # setpoints only once it switches, and shows the switch up to 1 s late): the
@@ -698,21 +693,6 @@ class PositionLoop:
             lead_norm = float(np.linalg.norm(lead))
             if lead_norm > self._ramp_lead_m_s2:
                 ramp[:2] = achieved[:2] + lead[:2] * (self._ramp_lead_m_s2 / lead_norm)
-        self._ramp_acc = ramp
-        return ramp.copy()
-
-    def _ramp_towards(self, acc: FloatArray, max_step: float) -> FloatArray:
-        """The ramp moved towards ``acc``: horizontally by at most ``max_step`` (its norm),
-        vertically all the way; kept as the ramp and returned (a copy)."""
-        assert self._ramp_acc is not None
-        step = acc - self._ramp_acc
-        vertical = step[2]
-        step[2] = 0.0
-        norm = float(np.linalg.norm(step))
-        if norm > max_step:
-            step *= max_step / norm
-        step[2] = vertical
-        ramp: FloatArray = self._ramp_acc + step
         self._ramp_acc = ramp
         return ramp.copy()
 
