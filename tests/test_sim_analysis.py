@@ -208,6 +208,12 @@ def test_every_logged_warning_and_error_is_counted_by_kind_with_its_first_line()
     assert kinds["service WARNING RuntimeWarning: overflow encountered in exp"].count == 1
     assert kinds["service ERROR traceback: ValueError: bad thing <n>"].count == 1
     assert len(kinds) == 5  # the INFO lines are not warnings
+    # a service whose teardown hung (bounded_exit): faulthandler's headline, one kind
+    hung = log_kinds('Timeout (0:00:10)!\nThread 0x00007f (most recent call first):\n'
+                     '  File "x.py", line 3 in wait\n', "service")  # fmt: skip
+    assert [k.key for k in hung] == ["service ERROR faulthandler: did not end within "
+                                     "<n>:<n>:<n> of stopping (every thread's stack follows "
+                                     "in the log)"]  # fmt: skip
     sitl = log_kinds("epc-sitl: instance 0\nepc-sitl: [Errno 98] in use\nepc-sitl: counters a=1\n",
                      "sitl")  # fmt: skip
     assert [k.key for k in sitl] == ["sitl ERROR epc-sitl: [Errno <n>] in use"]

@@ -392,9 +392,6 @@ class PositionLoop:
         # vehicle time the ramp ends (inf until the autopilot is confirmed to fly ours)
         self._last_tick_s = -math.inf
         self._ramp_acc: FloatArray | None = None
-        # after the ramp: what it still held back of the controller's command (horizontal),
-        # added to the command and shrunk at entry_jerk_m_s3 until gone (None: nothing)
-        self._handback: FloatArray | None = None
         self._ramp_end_s = math.inf
         # how far a vehicle flying the ramp lags behind it: the jerk over twice the slowest
         # inner-loop lag
@@ -655,26 +652,14 @@ class PositionLoop:
         if t_s - self._last_tick_s > 3.0 * self.loop_period_s:  # control (re)starts
             self._ramp_acc = limit_tilt(achieved.copy(), self.acc_limits)
             self._ramp_end_s = math.inf
-            self._handback = None
         self._last_tick_s = t_s
-        max_step = cfg.entry_jerk_m_s3 * self.loop_period_s
-        if self._ramp_acc is not None and t_s >= self._ramp_end_s:
-            # The hand-back. Ended in one tick, the ramp's bounds (below) still held the
-            # command 3.1 m/s^2 short of the controller's after an ArduCopter entry into
-            # 3 m/s of wind, and the rest came as one step (18 deg of tilt): the body rates
-            # that chased it saturated beyond ATC_ACC_R_MAX, the rate model's gate suspended
-            # them (bound 0.4 rad/s), and the autopilot's attitude loop, handed a wound-up
-            # input shaping, rolled the vehicle over (78-84 deg). What was held back is now
-            # handed over at the ramp's jerk; the controller's command passes meanwhile (a
-            # ramp chasing it instead lags the loop: it fell ever further behind).
-            held = self._ramp_acc - acc
-            held[2] = 0.0
-            self._handback = held
-            self._ramp_acc = None
         if self._ramp_acc is None:
-            return acc if self._handback is None else self._hand_back(acc, max_step)
+            return acc
         if ours and math.isinf(self._ramp_end_s):
             self._ramp_end_s = t_s + cfg.entry_ramp_s
+        if t_s >= self._ramp_end_s:
+            self._ramp_acc = None
+            return acc
         # horizontally only: a horizontal change is a tilt, which the attitude loop flies
         # with its lag (the jolt); the vertical is thrust alone, and braking a climb that is
         # still under way at entry (ArduCopter's takeoff hands over climbing) needs it whole
@@ -693,6 +678,7 @@ class PositionLoop:
         vertical = step[2]
         step[2] = 0.0
         norm = float(np.linalg.norm(step))
+        max_step = cfg.entry_jerk_m_s3 * self.loop_period_s
         if norm > max_step:
             step *= max_step / norm
         step[2] = vertical
@@ -709,18 +695,6 @@ class PositionLoop:
                 ramp[:2] = achieved[:2] + lead[:2] * (self._ramp_lead_m_s2 / lead_norm)
         self._ramp_acc = ramp
         return ramp.copy()
-
-    def _hand_back(self, acc: FloatArray, max_step: float) -> FloatArray:
-        """``acc`` plus what the ramp still holds back, that shrunk by ``max_step`` (its
-        norm) a tick; gone once it is within a step."""
-        assert self._handback is not None
-        norm = float(np.linalg.norm(self._handback))
-        if norm <= max_step:
-            self._handback = None
-            return acc
-        self._handback = self._handback * (1.0 - max_step / norm)
-        out: FloatArray = acc + self._handback
-        return out
 
     def position_tick(
         self, state: VehicleState, reference: ReferenceHorizon, *, learn: bool = True

@@ -73,6 +73,9 @@ if TYPE_CHECKING:  # the loop's side only: the worker never builds a controller
     from epc_offboard.control.epc.controller import ExperienceController
 
 log = logging.getLogger(__name__)
+# close(): the task in flight returns and the worker ends within this (a slice's solve is
+# tens of ms; at load 6 a few hundred), inside the unit's TimeoutStopSec (5 s) with the rest
+STOP_TIMEOUT_S = 2.0
 _T = TypeVar("_T")
 
 # an active set, its origin ("solved" or a peer's) and its map, built here: the loop only
@@ -285,10 +288,25 @@ class MissSolver:
             self._ready.result(timeout=timeout_s)
             self._ready = None
 
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = None
+    def close(self, timeout_s: float = STOP_TIMEOUT_S) -> None:
+        """Stop the worker: its queued tasks cancelled, the one in flight let return, then
+        the worker ends by itself; only then the spawning thread (the worker dies with it).
+        Killed mid-answer, the worker left the pool's manager thread reading half a message
+        for good (the pool's own end of the pipe keeps it open), and the process's exit,
+        which joins that thread, waiting on it: a finished `sim` flight's service hung for
+        minutes. A worker that does not end in ``timeout_s`` is killed all the same,
+        counted (``worker_stop_timeouts``); the service's bounded exit covers the rest."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            stopping = threading.Thread(
+                target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True},
+                name="miss-worker-stop", daemon=True,
+            )  # fmt: skip
+            stopping.start()
+            stopping.join(timeout_s)
+            if stopping.is_alive():
+                self.counters["worker_stop_timeouts"] += 1
+                log.warning("EPC miss worker not stopped in %.1f s: killed", timeout_s)
         self._release.set()  # the spawning thread ends, and with it the worker
 
     def pump(self, *, wait: bool = False) -> int:

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import faulthandler
 import json
 import logging
 import os
@@ -76,6 +77,21 @@ from epc_offboard.vehicle.offboard import Action, Outputs, Phase
 from epc_offboard.vehicle.state import StateTracker
 
 log = logging.getLogger("epc_offboard.service")
+
+# After "stopped", the process ends within this or says where it hangs: once, the
+# interpreter's teardown after a finished flight waited minutes (a helper's pipe; CPython
+# 3.11's ProcessPoolExecutor has known shutdown deadlocks, gh-125451 and gh-94777). The
+# flight's files are written by then. Beyond the unit's TimeoutStopSec (5 s), so under
+# systemd its SIGKILL comes first; `sim` and a shell get every thread's stack and exit 1.
+EXIT_GRACE_S = 10.0
+
+
+def bounded_exit(grace_s: float) -> None:
+    """From now, if the process has not ended within ``grace_s``: every thread's stack to
+    stderr (the service's log), then ``_exit(1)`` (faulthandler's own timer thread: it
+    fires whatever the interpreter's threads hold)."""
+    faulthandler.dump_traceback_later(grace_s, exit=True)
+
 
 
 class Service:
@@ -128,6 +144,8 @@ class Service:
         self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
         self.gc_monitor = realtime.GcMonitor()
+        # the `run` command's: the process ends within this after "stopped" (bounded_exit)
+        self.exit_grace_s: float | None = None
         self._position_out: PositionOutput | None = None
         self._processes_at_exit: dict[str, Any] | None = None
         self._signatures_warm = 0  # compiled kernel signatures once warmed (0: numpy twins)
@@ -379,6 +397,8 @@ class Service:
             self.logs.close()
         self.gc_monitor.uninstall()
         log.info("stopped: %s", dict(self.counters))
+        if self.exit_grace_s is not None:
+            bounded_exit(self.exit_grace_s)
 
     def stats(self) -> dict[str, Any]:
         return {
@@ -444,6 +464,7 @@ def run_service_command(args: argparse.Namespace) -> int:
     except (ConfigError, OSError) as exc:
         raise UsageError(str(exc)) from exc
     TIMELINE.mark("service_built")
+    service.exit_grace_s = EXIT_GRACE_S
     try:
         return asyncio.run(service.run())
     except OSError as exc:

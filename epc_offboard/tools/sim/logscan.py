@@ -26,6 +26,9 @@ _EXCEPTION = re.compile(
 )
 # the SITL prints, not logs: its start line and closing counters are not warnings, any other
 # "epc-sitl: ..." line is a failure it reports before exiting
+# faulthandler's: the service did not end within its grace after "stopped" (bounded_exit), or
+# a fatal error; the stacks that follow are in the log, the kind is the headline
+_FAULT = re.compile(r"^(?:Timeout \((?P<after>[\d:.]+)\)!|Fatal Python error: (?P<fatal>.*))$")
 _SITL_LINE = re.compile(r"^epc-sitl: (?!instance |counters )(?P<msg>.+)$")
 # variable parts of a message, masked in this order: the key of a kind must not change with a
 # path, an address, a port or a count
@@ -100,6 +103,12 @@ def _entries(text: str) -> list[tuple[str, str, str, str]]:
         warning = _PY_WARNING.match(line)
         if warning:
             out.append(("WARNING", warning["category"], warning["msg"], line))
+            continue
+        fault = _FAULT.match(line)
+        if fault:
+            what = (f"did not end within {fault['after']} of stopping (every thread's stack "
+                    "follows in the log)" if fault["after"] else fault["fatal"])  # fmt: skip
+            out.append(("ERROR", "faulthandler", what, line))
             continue
         sitl = _SITL_LINE.match(line)
         if sitl:
