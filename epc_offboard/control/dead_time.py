@@ -76,6 +76,12 @@ def default_command_dead_time_s(autopilot: str, attitude_mode: str) -> float:
     return DEFAULT_COMMAND_DEAD_TIME_S.get((name, attitude_mode), 0.0)
 
 
+def check_span_s(name: str, value: float) -> None:
+    """A command dead time or a state latency: finite, in [0, MAX_COMMAND_DEAD_TIME_S]."""
+    if not (math.isfinite(value) and 0.0 <= value <= MAX_COMMAND_DEAD_TIME_S):
+        raise ValueError(f"{name} must be in [0, {MAX_COMMAND_DEAD_TIME_S}], got {value}")
+
+
 def _ticks(span_s: float, period_s: float) -> int:
     """``span_s`` in whole ticks, halves up (15 ms of 10 ms ticks: 2, not round()'s even)."""
     return math.floor(span_s / period_s + 0.5 + 1e-9)
@@ -94,9 +100,8 @@ class DeadTimePredictor:
         dead_time_s: float,
         latency_s: float = 0.0,
     ) -> None:
-        for name, value in (("dead_time_s", dead_time_s), ("latency_s", latency_s)):
-            if not (math.isfinite(value) and 0.0 <= value <= MAX_COMMAND_DEAD_TIME_S):
-                raise ValueError(f"{name} must be in [0, {MAX_COMMAND_DEAD_TIME_S}], got {value}")
+        check_span_s("dead_time_s", dead_time_s)
+        check_span_s("latency_s", latency_s)
         self.period_s = period_s
         # ``latency_s``: how old the measured state already is when it arrives, beyond what
         # its time stamp shows (an estimator's output lag and the link). The commands that
