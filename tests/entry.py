@@ -36,9 +36,9 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common.frames import GRAVITY_M_S2
+from epc_offboard.common.ports import free_port
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD, px4_modes
 from sitl.params import load_sim_config
-from tests.rig import free_port
 
 ARDUPILOT_GUIDED = 4
 _POSITION_STREAMS = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ODOMETRY)

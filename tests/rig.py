@@ -11,7 +11,6 @@ import contextlib
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -22,6 +21,7 @@ from typing import Any
 from pymavlink import mavutil
 
 from epc_offboard.common.configio import dump_toml, merge_dicts
+from epc_offboard.common.ports import free_port
 from epc_offboard.tools.sim.scenario import SCENARIO_DIR, SITL_SERVICE_CONFIG
 from epc_offboard.vehicle.dialect_px4 import px4_modes
 
@@ -62,12 +62,6 @@ def holding_scenario(folder: Path, name: str) -> Path:
     shipped = (SCENARIO_DIR / f"{name}.toml").read_text()
     path.write_text(shipped + "\n[service.mission]\nland_at_end = false\n")
     return path
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Rig:

@@ -36,6 +36,7 @@ from typing import Any
 import pytest
 import zenoh
 
+from epc_offboard.common.ports import free_port
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
@@ -45,7 +46,6 @@ from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.conftest import holding
 from tests.rig import Rig, deployed_priority
 from tests.test_flood_e2e import hover_overrides
-from tests.test_sharing import free_tcp_port
 
 # (a module's first test also waits for its shared flight: up to 70 s of real time, longer
 # on a loaded machine)
@@ -150,7 +150,7 @@ def fuzz_then_zenoh_flood(tmp_path_factory: pytest.TempPathFactory) -> SharedFli
     second). In this order: rotating ids leave the candidate pool full, which costs every
     tick after them more compute, and the fuzz was judged on a service without that."""
     tmp = tmp_path_factory.mktemp("fuzz_then_zenoh_flood")
-    port = free_tcp_port()
+    port = free_port()
     # a long mission: ended by SIGTERM once the last window is over (the service commands
     # Hold and writes its stats)
     overrides = hover_overrides(port, FLEET, 120.0)
@@ -328,7 +328,7 @@ def _attacker(kind: str, port: int, config_path: Path) -> subprocess.Popen[str]:
 def replay_then_flap(tmp_path_factory: pytest.TempPathFactory) -> SharedFlight:
     """One hover at the deployed priorities for the two peer-process attacks, in turn."""
     tmp = tmp_path_factory.mktemp("replay_then_flap")
-    port = free_tcp_port()
+    port = free_port()
     # a long mission: the fixture ends the flight itself once the attacks are over (SIGTERM:
     # the service commands Hold and writes its stats), however long they took to prepare
     overrides = hover_overrides(port, FLEET, 120.0)

@@ -11,9 +11,9 @@ import time
 import pytest
 
 from epc_offboard.common.children import descendants
+from epc_offboard.common.ports import free_port
 from tests.rig import Rig
 from tests.test_daemon import wait_log
-from tests.test_sharing import free_tcp_port
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -45,7 +45,7 @@ def _cmdlines(pids: set[int]) -> list[str]:
 
 
 def test_a_sigkilled_service_leaves_no_process_behind(tmp_path):
-    port = free_tcp_port()
+    port = free_port()
     overrides = {
         "sharing": {
             "enabled": True, "fleet": "orphans", "vehicle_id": "v1",

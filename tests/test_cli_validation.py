@@ -14,8 +14,8 @@ import pytest
 
 from epc_offboard.cli import main
 from epc_offboard.common.cliargs import join_negative_values
+from epc_offboard.common.ports import free_port
 from sitl.main import main as sitl_main
-from tests.rig import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 

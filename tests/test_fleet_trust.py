@@ -31,10 +31,11 @@ import pytest
 import trustme
 import zenoh
 
+from epc_offboard.common.ports import free_port
 from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
 from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
-from tests.test_sharing import TARGETS, controller, free_tcp_port, learn_new, until
+from tests.test_sharing import TARGETS, controller, learn_new, until
 from tests.test_sharing import peer as vehicle
 
 pytestmark = pytest.mark.timeout(180)
@@ -99,7 +100,7 @@ class Router:
 def router(
     tmp_path: Path, config: str, cfg: dict[str, Any], tls: bool, port: int = 0
 ) -> Iterator[Router]:
-    port = port or free_tcp_port()
+    port = port or free_port()
     endpoint = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
     args = [sys.executable, "-m", "epc_offboard", "fleet", "router", "--listen", endpoint,
             "--config", str(ZENOH_DIR / config), "--stats-every", "0.3"]  # fmt: skip

@@ -19,13 +19,13 @@ from typing import Any
 import pytest
 import zenoh
 
+from epc_offboard.common.ports import free_port
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.wire import ControllerMessage, MessageKind, encode_controllers
 from epc_offboard.service.config import load_service_config
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import MIN_RATE_FRACTION, Rig
-from tests.test_sharing import free_tcp_port
 
 # waits below: safety bounds for a loaded machine
 pytestmark = [pytest.mark.timeout(360), pytest.mark.one_at_a_time("alone")]
@@ -78,7 +78,7 @@ def hover_overrides(port: int, fleet: str, mission_s: float) -> dict[str, Any]:
 
 
 def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path):
-    port = free_tcp_port()
+    port = free_port()
     overrides = hover_overrides(port, FLEET, FLOOD_S + 6.0)
     with Rig(tmp_path, lockstep=False, speedup=1.0, service_overrides=overrides) as rig:
         cfg = load_service_config(rig.config_path)

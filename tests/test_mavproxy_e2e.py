@@ -25,8 +25,8 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from epc_offboard.common.ports import free_port
 from epc_offboard.tools.sim.orchestrate import stop_process
-from tests.rig import free_port
 
 MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent))
 

@@ -25,6 +25,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common import frames
 from epc_offboard.common.logsetup import LogGate
+from epc_offboard.common.ports import free_port
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.trajectories import TrajectoryConfig
 from epc_offboard.control.types import PositionOutput, VehicleState
@@ -41,7 +42,7 @@ from epc_offboard.service.systemd import Systemd
 from epc_offboard.vehicle.commands import IGNORE_ATTITUDE, IGNORE_RATES
 from epc_offboard.vehicle.offboard import Outputs, Phase
 from epc_offboard.vehicle.state import StateTracker
-from tests.test_sharing import FLEET, endpoint, free_tcp_port
+from tests.test_sharing import FLEET, endpoint
 from tests.test_sharing import config as sharing_config
 
 SITL_CONFIG = Path(__file__).resolve().parent.parent / "config" / "sitl.toml"
@@ -145,7 +146,7 @@ def test_a_fresh_live_reference_is_flown_in_offboard_only_and_a_stale_one_hands_
     hand-back is counted."""
 
     async def main() -> None:
-        port, planner_port = free_tcp_port(), free_tcp_port()
+        port, planner_port = free_port(), free_port()
         planner = zenoh.Config()
         planner.insert_json5("connect/endpoints", json.dumps([endpoint(port)]))
         planner.insert_json5("listen/endpoints", json.dumps([endpoint(planner_port)]))

@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import socket
 import time
 from collections.abc import AsyncIterator, Callable
 
@@ -18,6 +17,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from epc_offboard.common.ports import free_port
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
@@ -36,12 +36,6 @@ pytestmark = pytest.mark.timeout(60)
 FLEET = "test"
 # targets far enough that input and velocity bounds are active: distinct active sets
 TARGETS = ([10.0, 0.0, 0.0], [0.0, -10.0, 0.0], [0.0, 0.0, 10.0], [-10.0, 10.0, 0.0])
-
-
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def endpoint(port: int) -> str:
@@ -113,7 +107,7 @@ async def peer(cfg: SharingConfig, ctrl: ExperienceController) -> AsyncIterator[
 
 def test_a_controller_learned_by_one_peer_is_a_hit_for_the_others():
     async def main() -> None:
-        ports = [free_tcp_port() for _ in range(3)]
+        ports = [free_port() for _ in range(3)]
         ctrls = [controller() for _ in range(3)]
         async with contextlib.AsyncExitStack() as stack:
             peers = []
@@ -147,7 +141,7 @@ def test_a_controller_learned_by_one_peer_is_a_hit_for_the_others():
 
 def test_a_late_joiner_gets_the_snapshot():
     async def main() -> None:
-        pa, pc = free_tcp_port(), free_tcp_port()
+        pa, pc = free_port(), free_port()
         a, c = controller(), controller()
         sets = [learn(a, t) for t in TARGETS[:3]]
         async with peer(config("early", pa, [pc]), a) as sa:
@@ -165,7 +159,7 @@ def test_a_late_joiner_gets_the_snapshot():
 
 def test_a_peer_with_another_problem_signature_is_ignored():
     async def main() -> None:
-        pa, pb, pd = free_tcp_port(), free_tcp_port(), free_tcp_port()
+        pa, pb, pd = free_port(), free_port(), free_port()
         a, b, d = controller(), controller(), controller(horizon=6)
         assert d.problem.signature() != a.problem.signature()
         async with (
@@ -192,7 +186,7 @@ def test_a_peer_with_another_problem_signature_is_ignored():
 
 def test_malformed_truncated_and_oversized_payloads_are_rejected_and_counted():
     async def main() -> None:
-        pb, praw = free_tcp_port(), free_tcp_port()
+        pb, praw = free_port(), free_port()
         b = controller()
         sig = b.problem.signature()
         cfg = config("b", pb, [], max_payload_bytes=512, burst_messages=1000)
@@ -247,7 +241,7 @@ def test_malformed_truncated_and_oversized_payloads_are_rejected_and_counted():
 
 def test_a_flooding_peer_is_rate_limited():
     async def main() -> None:
-        pb, praw = free_tcp_port(), free_tcp_port()
+        pb, praw = free_port(), free_port()
         b = controller()
         sig = b.problem.signature()
         cfg = config("b", pb, [], burst_messages=3, max_messages_per_s=0.01)
@@ -283,7 +277,7 @@ def test_a_flooding_peer_is_rate_limited():
 
 def test_sharing_survives_a_peer_restart():
     async def main() -> None:
-        pa, pb = free_tcp_port(), free_tcp_port()
+        pa, pb = free_port(), free_port()
         a = controller()
         async with peer(config("a", pa, [pb]), a) as sa:
             b1 = controller()
@@ -305,7 +299,7 @@ def test_sharing_survives_a_peer_restart():
 
 def test_live_reference_is_received_fresh_then_stale():
     async def main() -> None:
-        pa, praw = free_tcp_port(), free_tcp_port()
+        pa, praw = free_port(), free_port()
         cfg = config("a", pa, [], enabled=False)
         raw_cfg = zenoh.Config()
         raw_cfg.insert_json5("connect/endpoints", json.dumps([endpoint(pa)]))
@@ -434,7 +428,7 @@ def test_a_flood_from_rotating_ids_takes_no_library_slot_no_loop_time_and_locks_
     pool and the rate-limit state stay bounded, and the new peer is heard."""
 
     async def main() -> None:
-        pb, praw, plegit = free_tcp_port(), free_tcp_port(), free_tcp_port()
+        pb, praw, plegit = free_port(), free_port(), free_port()
         b = ExperienceController(position_problem(8), max_size=50, learn_on_miss=False)
         sig = b.problem.signature()
         legit = controller()
@@ -471,7 +465,7 @@ def test_a_received_controller_joins_the_library_only_when_optimal_for_a_tick_he
     from epc_offboard.service.miss_solver import MissSolver
 
     async def main() -> None:
-        pb, praw, plegit = free_tcp_port(), free_tcp_port(), free_tcp_port()
+        pb, praw, plegit = free_port(), free_port(), free_port()
         b = ExperienceController(position_problem(8), max_size=50, learn_on_miss=False)
         p = b.problem
         sig = p.signature()
@@ -568,7 +562,7 @@ def test_origin_is_kept_through_the_store_and_db_info(tmp_path, capsys):
     pupil_pos = dict(pupil.experience_controllers())["position"]
 
     async def receive() -> None:  # from vehicle v7, over Zenoh, as in flight
-        pp, praw = free_tcp_port(), free_tcp_port()
+        pp, praw = free_port(), free_port()
         sig = pupil.position.problem.signature()
         async with peer(config("pupil", pp, []), pupil_pos) as sp:
             with zenoh.open(raw_config(praw, pp)) as raw:
@@ -606,7 +600,7 @@ def test_the_control_process_takes_at_most_its_budget_of_candidates_a_second():
     whatever the peer sends, and all of it (within the inbox's bounds) in time."""
 
     async def main() -> None:
-        pb, praw = free_tcp_port(), free_tcp_port()
+        pb, praw = free_port(), free_port()
         b = controller()
         sig = b.problem.signature()
         cfg = config("b", pb, [], candidates_per_s=40.0, burst_messages=1000)
@@ -647,7 +641,7 @@ def test_a_wedged_or_killed_fleet_helper_is_restarted_and_sharing_resumes():
     import signal
 
     async def main() -> None:
-        pa, pb = free_tcp_port(), free_tcp_port()
+        pa, pb = free_port(), free_port()
         a, b = controller(), controller()
         cfg_b = config("b", pb, [pa], helper_timeout_s=1.0)
         async with peer(config("a", pa, [pb]), a), peer(cfg_b, b) as sb:
@@ -689,7 +683,7 @@ def test_controllers_handed_while_no_helper_has_its_session_are_published_once_o
     import signal
 
     async def main() -> None:
-        pa, praw = free_tcp_port(), free_tcp_port()
+        pa, praw = free_port(), free_port()
         a = controller()
         sig = a.problem.signature()
         heard: set[tuple[int, ...]] = set()

@@ -21,10 +21,10 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from epc_offboard.common.ports import free_port
 from epc_offboard.service import realtime
 from epc_offboard.service.config import load_service_config
 from epc_offboard.service.service import Service
-from tests.rig import free_port
 
 pytestmark = pytest.mark.timeout(180)
 

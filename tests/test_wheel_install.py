@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.rig import free_port
+from epc_offboard.common.ports import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 SOURCES = ("pyproject.toml", "README.md", "config", "epc_offboard", "sitl")

@@ -39,7 +39,6 @@ import contextlib
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -53,6 +52,7 @@ import numpy as np
 
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.errors import EpcError
+from epc_offboard.common.ports import free_port
 from epc_offboard.tools import attack_analysis as analysis
 from epc_offboard.tools.bench_modes import start_hogs, stop_hogs
 from epc_offboard.tools.sim.analysis import read_csv_columns
@@ -79,12 +79,6 @@ SAMPLE_S = 0.25
 
 class AttackBenchError(EpcError, RuntimeError):
     pass
-
-
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _deployed_priority() -> None:
@@ -285,8 +279,8 @@ def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 10.0) -> int 
 
 def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> dict[str, Any]:
     """The flight and its windows; returns the raw record (windows, samples, ports)."""
-    port, sitl_port = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_DGRAM)
-    zenoh_port = _free_port(socket.SOCK_STREAM)
+    port, sitl_port = free_port(), free_port()
+    zenoh_port = free_port()
     cfg = service_config(run_dir, port, zenoh_port, mode, loops_cpu)
     config_path = run_dir / "service.toml"
     config_path.write_text(dump_toml(cfg))

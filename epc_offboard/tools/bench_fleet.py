@@ -31,7 +31,6 @@ import multiprocessing
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -43,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.common.errors import UsageError
+from epc_offboard.common.ports import free_port
 
 _SLOT_S = 0.5  # one vehicle learns in each slot: publications do not overlap
 _SETTLE_S = 3.0  # from the last session open to slot 0: discovery has its time
@@ -260,12 +260,6 @@ def _cpu_s(pid: int | None) -> float:
     return float(process_report(pid if pid is not None else os.getpid()).get("cpu_s", 0.0))
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _pct(values: list[float], q: float) -> float | None:
     return round(float(np.percentile(values, q)), 4) if values else None
 
@@ -279,7 +273,7 @@ def run_fleet_bench(
     ``during``: called with the router's endpoint once the vehicles share (slot 0); the
     vehicles run on (with ``replay_period_s``, learning on) until it returns, and what it
     returns joins the report."""
-    port = _free_port()
+    port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     router = subprocess.Popen(
         [sys.executable, "-m", "epc_offboard", "fleet", "router", "--listen", endpoint,

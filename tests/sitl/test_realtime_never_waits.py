@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from tests.rig import free_port
+from epc_offboard.common.ports import free_port
 from tests.sitl.mavclient import REPO, MavClient, counters_from, start_sitl, stop_sitl
 
 pytestmark = pytest.mark.timeout(60)

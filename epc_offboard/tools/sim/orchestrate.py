@@ -13,7 +13,6 @@ import contextlib
 import csv
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -30,6 +29,7 @@ from epc_offboard.common.children import launched_env
 from epc_offboard.common.cliargs import WindProfile, check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.common.ports import free_port
 from epc_offboard.service.airframe_file import airframe_path, load_airframe
 from epc_offboard.service.config import AirframeConfig
 from epc_offboard.tools.figures import flight_title, write_figure
@@ -98,12 +98,6 @@ class VehicleRun:
             self.stopped = why
         stop_process(self.service)
         stop_process(self.sitl)
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def service_config_for(
@@ -416,8 +410,8 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
         # appends to its tlog (a restarted daemon keeps its earlier sessions), so it goes too
         for stale in (run.flight_log, run.groundtruth, run.tlog):  # the bar reads the first two
             stale.unlink(missing_ok=True)
-        offboard_port = _free_udp_port()
-        listen_port = _free_udp_port()
+        offboard_port = free_port()
+        listen_port = free_port()
         run.aside_before = run.moved_aside()
         cfg = service_config_for(options, k, offboard_port, run.out_dir, run.library)
         run.service_config.write_text(dump_toml(cfg))
