@@ -85,3 +85,47 @@ def test_the_background_compile_runs_at_idle_priority(tmp_path: Path):
     finally:
         child.kill()
         child.wait()
+
+
+_MARK = """
+import os, sys
+from epc_offboard.common import jit
+if sys.argv[1] == "mark":
+    jit.mark_cache_warm()
+elif sys.argv[1] == "touch":
+    kernels = os.path.join(os.path.dirname(jit.__file__), "..", "control", "kernels.py")
+    stat = os.stat(kernels)
+    os.utime(kernels, (stat.st_atime, stat.st_mtime + 10.0))
+print(jit.cache_warm())
+"""
+
+
+def _package_copy(folder: Path) -> Path:
+    import shutil
+
+    import epc_offboard
+
+    source = Path(epc_offboard.__file__).resolve().parent
+    shutil.copytree(source, folder / "epc_offboard", ignore=shutil.ignore_patterns("__pycache__"))
+    return folder  # copytree's copy2 keeps the sources' modification times
+
+
+def _cache_warm_in(copy: Path, cache: Path, action: str) -> bool:
+    env = _cold_env(cache) | {"PYTHONPATH": str(copy)}
+    out = subprocess.run([sys.executable, "-c", _MARK, action], env=env, cwd=copy,
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    return out.stdout.split()[-1] == "True"
+
+
+def test_the_warm_mark_vouches_only_for_the_sources_numba_cached(tmp_path: Path):
+    """numba's cache is keyed by each kernel source's path, modification time and size; the
+    mark was keyed by their contents alone, so an upgraded or re-cloned package with the same
+    kernels was called warm and compiled every kernel before its link opened (12.7 s on a
+    real PX4 beside two CPU hogs)."""
+    cache = tmp_path / "numba-cache"
+    first = _package_copy(tmp_path / "first")
+    assert _cache_warm_in(first, cache, "mark")
+    assert not _cache_warm_in(_package_copy(tmp_path / "second"), cache, "check")  # moved
+    assert _cache_warm_in(first, cache, "check")
+    assert not _cache_warm_in(first, cache, "touch")  # the same path, a newer kernels.py
