@@ -89,3 +89,13 @@ def test_a_gap_restarts_from_the_measurement() -> None:
 def test_the_config_is_checked(key: str) -> None:
     with pytest.raises(ValueError, match=key):
         StateFilterConfig(**{key: -1.0})
+
+
+def test_the_neuralfly_scenario_flies_it_and_a_misspelt_key_is_named() -> None:
+    from epc_offboard.common.configio import from_dict
+
+    cfg = from_dict(PositionControlConfig, {"state_filter": {"position_noise_m": 0.005,
+                                                             "velocity_noise_m_s": 0.03}})
+    assert cfg.state_filter.enabled
+    with pytest.raises(Exception, match="velocity_noise"):
+        from_dict(PositionControlConfig, {"state_filter": {"velocity_noise": 0.03}})
