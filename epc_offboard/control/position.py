@@ -59,6 +59,7 @@ from epc_offboard.control.models import (
 )
 from epc_offboard.control.perturbation import EstimatorConfig, PerturbationConfig, make_estimator
 from epc_offboard.control.qp import MpcProblem
+from epc_offboard.control.state_filter import StateFilter, StateFilterConfig
 from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
 
 Vec3 = tuple[float, float, float]
@@ -131,6 +132,9 @@ class PositionControlConfig:
     # Neural-Fly plant's 15 ms). x0 is carried over it with the commands flown meanwhile
     # (with the command dead time), the reference window is not shifted by it
     state_latency_s: float = 0.0
+    # [position.state_filter]: the state estimate's error the QP's initial state is fused
+    # against (control/state_filter.py); unset, the measured state as is
+    state_filter: StateFilterConfig = field(default_factory=StateFilterConfig)
     r_acc: Vec3 = (0.3, 0.3, 0.3)
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     # The QP bounds the predicted velocity by max_vel_m_s less this (constraint tightening,
@@ -399,6 +403,9 @@ class PositionLoop:
         # autopilot and the attitude mode are known; until then the configured one, or 0)
         self._path: tuple[str, str] | None = None
         self.dead_time = self._predictor(cfg.command_dead_time_s or 0.0)
+        self._state_filter = StateFilter(cfg.state_filter, loop_period_s)
+        # the disturbance estimate of the last tick: the state filter's model acceleration
+        self._d_hat_last = np.zeros(3)
 
     def use_attitude_path(self, autopilot: str, attitude_mode: str) -> None:
         """Fly the command dead time of ``autopilot`` ("px4", "ardupilot") in
@@ -713,6 +720,14 @@ class PositionLoop:
         axis_down = axis[2]
         self._advance_thrust(learn, self._balance_thrust_norm(axis_down))
         achieved = self.achieved_acceleration(state, ours=learn, thrust_axis_ned=axis)
+        # the QP starts from the state fused with the model (control/state_filter.py): its
+        # answer to the estimate's smooth error was most of the Neural-Fly rows' error. The
+        # disturbance is learnt and looked up from the measured velocity: learnt from the
+        # fused one, LWPR would learn back its own estimate the filter was predicted with
+        pos_x0, vel_x0 = self._state_filter.update(
+            state.time_s - state.position_age_s, state.pos_ned_m, state.vel_ned_m_s,
+            achieved + self._d_hat_last,
+        )
         self.observe(state, ours=learn, thrust_axis_ned=axis)
         d_max = self._d_max
         if not self._nominal_feedforward:
@@ -749,9 +764,10 @@ class PositionLoop:
             # the references the model's state is held to (see disturbance_drift)
             refs = refs - self.disturbance_drift(d_var)
         x0 = self._x0
-        x0[0:3] = state.pos_ned_m
-        x0[3:6] = state.vel_ned_m_s
+        x0[0:3] = pos_x0
+        x0[3:6] = vel_x0
         x0[6:9] = achieved
+        self._d_hat_last = d_hat
         if dead_time.steps:
             x0[:] = dead_time.ahead(x0, d_hat, state.time_s)
         decision: Decision = controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
