@@ -42,11 +42,12 @@ def test_neuralfly_flies_its_plant_in_a_sine_wind_and_reports_its_metric(tmp_pat
     assert [t["bound"] for t in judged] == [0.039]
     # the Neural-Fly plant, not the default: in up to 10.9 m/s of wind its drag takes under
     # 30 deg of tilt to hold (the default vehicle's SIH drag would take 48). Flying the
-    # figure's upwind stroke into the gust's peak takes it up to 41.5 deg: the figure and the
-    # sine share their period (2 pi s), so which stroke meets the peak is set by the time of
-    # the hand-over alone (34 deg handed over at 4.0 s, 32 at 4.15 and 10.45 s; 41.4-41.5 at
-    # 2.75 and 5.75 s, 40.0 at 6.0 s). 45: the configured limit, still short of the 48 the
-    # default plant takes just to hold.
+    # figure's upwind stroke into the gust's peak took it up to 41.5 deg when the sine ran on
+    # SITL time: the figure and the sine share their period (2 pi s), so the hand-over time
+    # alone set which stroke met the peak (34 deg handed over at 4.0 s, 32 at 4.15 and
+    # 10.45 s; 41.4-41.5 at 2.75 and 5.75 s, 40.0 at 6.0 s). The sine now starts at offboard
+    # entry (checked below), so the stroke is fixed. 45: the configured limit, still short
+    # of the 48 the default plant takes just to hold.
     assert v["max_tilt_deg"] < 45.0
     assert v["constraint_violations"] == 0
     _assert_handed_over_settled(out / "vehicle1")

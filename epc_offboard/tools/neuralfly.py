@@ -236,7 +236,7 @@ def fly_table(out_dir: Path, results_dir: Path, seed: int, jobs: int) -> dict[st
     scenario = load_scenario(SCENARIO)
     product = str(product_lwpr_scenario(out_dir))
     plan = [(row, m, out_dir / row.key / m.key) for row in ROWS for m in METHODS]
-    load_before, wall_start = _load(), time.monotonic()
+    load_before, wall_start, commit = _load(), time.monotonic(), _commit()
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     print(f"epc-offboard figures neuralfly: {len(plan)} lockstep flights, {jobs} at once, "
           f"seed {seed}, into {out_dir} (about {len(plan) * 0.6 / jobs:.0f}-"
@@ -275,7 +275,7 @@ def fly_table(out_dir: Path, results_dir: Path, seed: int, jobs: int) -> dict[st
         "seed": seed,
         "jobs": jobs,
         "lockstep": True,
-        "commit": _commit(),
+        "commit": commit,  # the code flown
         "date_utc": datetime.now(UTC).strftime("%Y-%m-%d %H:%M"),
         "load_before": load_before,
         "load_after": _load(),
