@@ -142,6 +142,9 @@ class EnvironmentParams:
     # vehicle time since the autopilot first entered offboard control (PX4: OFFBOARD;
     # ArduPilot: the first setpoint obeyed in GUIDED after its takeoff), when the service
     # starts its trajectory; before that t = 0 (a steady wind_speed + amplitude sin(phase)).
+    # The service starts it when it sees the mode: on ArduPilot the same tick, on PX4 at the
+    # heartbeat that confirms it, 0.05-0.15 s later (lockstep neuralfly rows; the same for
+    # every method in a row), against up to a whole period (2 pi s) on SITL time.
     # So the gust meets the same stroke of the trajectory however long the takeoff and the
     # hand-over took (on SITL time it did not: max tilt 32-41.5 deg, error 1.9-9.5 cm on
     # the neuralfly figure-8, set by the hand-over instant alone). 0: steady.
