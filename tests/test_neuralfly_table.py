@@ -105,6 +105,10 @@ def test_the_figure_is_drawn_from_the_json(tmp_path: Path) -> None:
     neuralfly.write_figure(json.loads((results / "neuralfly.json").read_text()),
                            tmp_path / "nf.png")  # fmt: skip
     assert (tmp_path / "nf.png").stat().st_size > 10_000
+    data = json.loads((results / "neuralfly.json").read_text())
+    text = neuralfly.dumps(data)
+    assert json.loads(text) == data
+    assert '"error_cm": [1.0,2.0]' in text  # a series on one line
 
 
 def test_the_readme_carries_the_table_its_command_and_figure() -> None:

@@ -200,6 +200,12 @@ def _flight_entry(out: Path, code: int, wall_s: float, scenario: ScenarioConfig)
     }
 
 
+def dumps(data: dict[str, Any]) -> str:
+    """The table's JSON, indented, each list of numbers (the error series) on one line."""
+    text = json.dumps(data, indent=1)
+    return re.sub(r"\[[-0-9.,\se]+\]", lambda m: re.sub(r"\s+", "", m[0]), text) + "\n"
+
+
 def _commit() -> str:
     try:
         out = subprocess.run(["git", "-C", str(Path(__file__).parent), "describe", "--always",
@@ -289,7 +295,7 @@ def fly_table(out_dir: Path, results_dir: Path, seed: int, jobs: int) -> dict[st
         "gain": _gain(flights),
     }
     results_dir.mkdir(parents=True, exist_ok=True)
-    (results_dir / f"{RESULT_NAME}.json").write_text(json.dumps(data, indent=1) + "\n")
+    (results_dir / f"{RESULT_NAME}.json").write_text(dumps(data))
     write_figure(data, results_dir / f"{RESULT_NAME}.png")
     return data
 
