@@ -309,7 +309,11 @@ def _add_figures(sub: _Subparsers) -> None:
         "quotes from those reports.",
         formatter_class=_HelpFormatter,
     )
-    figures.add_argument("what", choices=["readme"], help="the document to regenerate")
+    figures.add_argument(
+        "what", choices=["readme", "neuralfly"],
+        help="readme: the recipes' figures and numbers; neuralfly: issue 24's Neural-Fly "
+        "table, every wind by every method (30 lockstep flights, 10-25 min on 2 shared cores)",
+    )  # fmt: skip
     figures.add_argument("names", nargs="*", metavar="NAME",
                          help=f"recipes to fly (default: all): {', '.join(RECIPES)}")  # fmt: skip
     figures.add_argument("--numbers-only", action="store_true",
@@ -318,8 +322,12 @@ def _add_figures(sub: _Subparsers) -> None:
                          help="where the figures and reports go")  # fmt: skip
     figures.add_argument("--readme", default=str(README), metavar="FILE",
                          help="the README to rewrite")  # fmt: skip
-    figures.add_argument("--work", default="out/readme", metavar="DIR",
+    figures.add_argument("--work", "--out", default="out/readme", metavar="DIR",
                          help="where the flights write their full output")  # fmt: skip
+    figures.add_argument("--seed", type=bounded_int(0), default=0,
+                         help="neuralfly: the flights' noise seed")  # fmt: skip
+    figures.add_argument("--jobs", type=bounded_int(1), default=2, metavar="N",
+                         help="neuralfly: flights at once (at most 2)")  # fmt: skip
 
 
 def _sizes(text: str) -> list[int]:

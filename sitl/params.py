@@ -139,7 +139,15 @@ class EnvironmentParams:
     gust_time_constant_s: float = 2.0
     # A wind whose speed swings as a sinusoid along its direction (Neural-Fly's fan array:
     # 8.5 + 2.4 sin t m/s): speed(t) = wind_speed_m_s + amplitude sin(rate t + phase), t the
-    # vehicle time since the SITL started. 0: steady.
+    # vehicle time since the autopilot first entered offboard control (PX4: OFFBOARD;
+    # ArduPilot: the first setpoint obeyed in GUIDED after its takeoff), when the service
+    # starts its trajectory; before that t = 0 (a steady wind_speed + amplitude sin(phase)).
+    # The service starts it when it sees the mode: on ArduPilot the same tick, on PX4 at the
+    # heartbeat that confirms it, 0.05-0.15 s later (lockstep neuralfly rows; the same for
+    # every method in a row), against up to a whole period (2 pi s) on SITL time.
+    # So the gust meets the same stroke of the trajectory however long the takeoff and the
+    # hand-over took (on SITL time it did not: max tilt 32-41.5 deg, error 1.9-9.5 cm on
+    # the neuralfly figure-8, set by the hand-over instant alone). 0: steady.
     wind_sine_amplitude_m_s: float = 0.0
     wind_sine_rate_rad_s: float = 1.0
     wind_sine_phase_rad: float = 0.0

@@ -249,12 +249,15 @@ class Environment:
             self.params.wind_speed_m_s, self.params.wind_dir_deg
         )
         self.gust_ned_m_s = np.zeros(3)
-        # the sinusoid's swing along the wind's direction, and the time it is evaluated at
+        # the sinusoid's swing along the wind's direction, and the time it is evaluated at:
+        # 0 until start_profile_clock() (the vehicle's offboard entry, sitl.simulation), so
+        # the gust's phase against the trajectory is set, not the hand-over instant's
         self._sine_ned_m_s = wind_vector_ned_m_s(
             self.params.wind_sine_amplitude_m_s, self.params.wind_dir_deg
         )
         self._sine_on = self.params.wind_sine_amplitude_m_s > 0.0
         self._steps = 0
+        self._origin_steps: int | None = None  # the step the profile's clock started at
         self._time_s = 0.0
         s = self.params.surface
         self._surface_point = np.asarray(s.point_ned_m, dtype=np.float64)
@@ -268,11 +271,23 @@ class Environment:
             return self.mean_wind_ned_m_s + swing * self._sine_ned_m_s + self.gust_ned_m_s
         return self.mean_wind_ned_m_s + self.gust_ned_m_s
 
+    @property
+    def profile_time_s(self) -> float:
+        """The time the sine profile is evaluated at: seconds since
+        :meth:`start_profile_clock`, 0 before it."""
+        return self._time_s
+
+    def start_profile_clock(self) -> None:
+        """Start the sine profile's time here (once: later calls keep the first origin)."""
+        if self._origin_steps is None:
+            self._origin_steps = self._steps
+
     def advance(self, dt_s: float) -> None:
-        """Time for the sinusoid (steps x dt, no summed rounding); exact discretisation of
-        the first-order Gauss-Markov gust process."""
+        """Time for the sinusoid (steps since its origin x dt, no summed rounding); exact
+        discretisation of the first-order Gauss-Markov gust process."""
         self._steps += 1
-        self._time_s = self._steps * dt_s
+        if self._origin_steps is not None:
+            self._time_s = (self._steps - self._origin_steps) * dt_s
         std = self.params.gust_std_m_s
         if std == 0.0:
             return

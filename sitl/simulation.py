@@ -17,7 +17,7 @@ import numpy as np
 
 from epc_offboard.common.frames import FloatArray, euler_to_quat, quat_multiply, quat_normalize
 from sitl.ardupilot import ArduCopter
-from sitl.autopilot import Autopilot
+from sitl.autopilot import OFFBOARD, Autopilot
 from sitl.params import SimConfig
 from sitl.physics import POS, QUAT, RATE, VEL, Environment, QuadrotorModel, initial_state
 
@@ -80,6 +80,10 @@ class Simulation:
         the autopilot's outer loops, the telemetry and the ground truth read it."""
         ap, env, model, dt_s = self.autopilot, self.environment, self.model, self._dt_s
         ap.update_outer(self.state, self.time_s, self.config.sitl.lockstep_period_s)
+        if ap.mode == OFFBOARD:
+            # the wind profile's time origin: the first tick flown under offboard control,
+            # when the service's trajectory starts (sitl.params.EnvironmentParams)
+            env.start_profile_clock()
         x = self.state.tolist()
         x_before = x
         speeds = self.last_command.rotor_speed_rad_s.tolist()

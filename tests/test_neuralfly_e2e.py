@@ -42,14 +42,30 @@ def test_neuralfly_flies_its_plant_in_a_sine_wind_and_reports_its_metric(tmp_pat
     assert [t["bound"] for t in judged] == [0.039]
     # the Neural-Fly plant, not the default: in up to 10.9 m/s of wind its drag takes under
     # 30 deg of tilt to hold (the default vehicle's SIH drag would take 48). Flying the
-    # figure's upwind stroke into the gust's peak takes it up to 41.5 deg: the figure and the
-    # sine share their period (2 pi s), so which stroke meets the peak is set by the time of
-    # the hand-over alone (34 deg handed over at 4.0 s, 32 at 4.15 and 10.45 s; 41.4-41.5 at
-    # 2.75 and 5.75 s, 40.0 at 6.0 s). 45: the configured limit, still short of the 48 the
-    # default plant takes just to hold.
+    # figure's upwind stroke into the gust's peak took it up to 41.5 deg when the sine ran on
+    # SITL time: the figure and the sine share their period (2 pi s), so the hand-over time
+    # alone set which stroke met the peak (34 deg handed over at 4.0 s, 32 at 4.15 and
+    # 10.45 s; 41.4-41.5 at 2.75 and 5.75 s, 40.0 at 6.0 s). The sine now starts at offboard
+    # entry (checked below), so the stroke is fixed. 45: the configured limit, still short
+    # of the 48 the default plant takes just to hold.
     assert v["max_tilt_deg"] < 45.0
     assert v["constraint_violations"] == 0
     _assert_handed_over_settled(out / "vehicle1")
+    _assert_the_sine_starts_at_offboard_entry(out / "vehicle1")
+
+
+def _assert_the_sine_starts_at_offboard_entry(vehicle_dir: Path) -> None:
+    """The sine wind's time starts when the SITL enters offboard (PX4 main mode 6), so the
+    figure-8 meets the same gust whenever the hand-over came (issue 24): steady 8.5 m/s
+    towards south before it, 8.5 + 2.4 sin(t - entry) after it, on ground truth."""
+    with (vehicle_dir / "groundtruth.csv").open() as fh:
+        rows = [(float(r["t_s"]), float(r["wind_n_m_s"]), int(r["main_mode"]))
+                for r in csv.DictReader(fh)]  # fmt: skip
+    entry = next(i for i, (_t, _w, mode) in enumerate(rows) if mode == 6)
+    assert all(w == pytest.approx(-8.5, abs=1e-6) for _t, w, _m in rows[:entry])
+    t0_s = rows[entry - 1][0]  # the tick flown under offboard ends at rows[entry]'s time
+    for t_s, wind_n, _mode in rows[entry:]:
+        assert wind_n == pytest.approx(-(8.5 + 2.4 * math.sin(t_s - t0_s)), abs=1e-6), t_s
 
 
 def _assert_handed_over_settled(vehicle_dir: Path) -> None:

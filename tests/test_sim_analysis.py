@@ -101,6 +101,8 @@ def test_library_use_first_lap_misses_and_times_since_offboard() -> None:
     assert lib["hit_rate"] == pytest.approx(0.75)
     # the first lap is 10 s to 12 s: one miss ("solved"); the whole flight has two
     assert lib["first_lap_misses"] == 1
+    # after it (12, 13, 14 s): hit, fallback, hit
+    assert lib["hit_rate_after_first_lap"] == pytest.approx(2 / 3)
     assert [e["t_s"] for e in r.report["phase_events"]] == [-1.5, 0.0]
     assert r.report["warnings"] == {"SITL lockstep timeouts": 2}
     np.testing.assert_allclose(r.t_s, LOG_T_S - 10.0)

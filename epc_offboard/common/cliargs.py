@@ -41,7 +41,8 @@ def parse_wind(text: str) -> tuple[float, float]:
 class WindProfile:
     """How the wind varies about ``--wind`` (its speed and direction): a sinusoid on the
     speed, ``amplitude sin(rate t + phase)`` (Neural-Fly's 8.5 + 2.4 sin t: amplitude 2.4,
-    rate 1), and Gauss-Markov gusts (standard deviation per horizontal axis, time constant).
+    rate 1; t from the vehicle's offboard entry, sitl.params.EnvironmentParams), and
+    Gauss-Markov gusts (standard deviation per horizontal axis, time constant).
     The default is steady wind."""
 
     sine_amplitude_m_s: float = 0.0
@@ -74,7 +75,9 @@ class WindProfile:
 
 WIND_PROFILE_HELP = (
     "how the wind varies about --wind: 'sine:AMP_M_S,RATE_RAD_S[,PHASE_RAD]' (the speed "
-    "swings by AMP sin(RATE t + PHASE) along the wind's direction), 'gusts:STD_M_S,TAU_S' "
+    "swings by AMP sin(RATE t + PHASE) along the wind's direction, t from the vehicle's "
+    "offboard entry, when the trajectory starts; steady at t = 0 before it), "
+    "'gusts:STD_M_S,TAU_S' "
     "(Gauss-Markov gusts), both joined by '+', or 'steady'; e.g. --wind 8.5,-90 "
     "--wind-profile sine:2.4,1 is Neural-Fly's 8.5 + 2.4 sin t m/s"
 )

@@ -112,6 +112,8 @@ def values_from(results_dir: Path) -> dict[str, str]:
     out: dict[str, str] = {}
     for path in sorted(results_dir.glob("*.json")):
         data = json.loads(path.read_text())
+        if data.get("kind") == "neuralfly_table":
+            continue  # no sim report: its table renders it (tools.neuralfly)
         name = path.stem
         reports = data.get("reports", [data])
         if "all_pass" in data:  # a --compare: its declared targets' verdict
@@ -176,7 +178,16 @@ def _results_table(values: dict[str, str], results_dir: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-TABLES: dict[str, Callable[[dict[str, str], Path], str]] = {"results": _results_table}
+def _neuralfly_table(_values: dict[str, str], results_dir: Path) -> str:
+    from epc_offboard.tools.neuralfly import render_table
+
+    return render_table(results_dir)
+
+
+TABLES: dict[str, Callable[[dict[str, str], Path], str]] = {
+    "results": _results_table,
+    "neuralfly": _neuralfly_table,  # `epc-offboard figures neuralfly`
+}
 
 
 def rewrite(text: str, results_dir: Path) -> str:
@@ -233,7 +244,12 @@ def fly(recipe: Recipe, work_dir: Path, results_dir: Path) -> int:
 
 
 def run_figures_command(args: argparse.Namespace) -> int:
-    """``epc-offboard figures readme [NAME ...] [--numbers-only]``."""
+    """``epc-offboard figures readme [NAME ...] [--numbers-only]``, or ``figures neuralfly``
+    (:mod:`epc_offboard.tools.neuralfly`)."""
+    if args.what == "neuralfly":
+        from epc_offboard.tools.neuralfly import run
+
+        return run(args)
     results_dir = Path(args.results)
     readme = Path(args.readme)
     names = args.names or ([] if args.numbers_only else list(RECIPES))

@@ -14,9 +14,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import fsolve
 
+from epc_offboard.common.arducopter import GUIDED
 from epc_offboard.common.bundled import bundled_dir
 from epc_offboard.common.cliargs import WindProfile, parse_wind_profile
 from epc_offboard.common.frames import GRAVITY_M_S2, euler_to_quat, quat_to_rotation
+from sitl.ardupilot import ArduCopter
+from sitl.autopilot import OFFBOARD, AttitudeSetpoint, Result
 from sitl.params import EnvironmentParams, SimConfig, load_sim_config
 from sitl.physics import POS, QUAT, ROTOR, VEL, Environment, QuadrotorModel, initial_state
 from sitl.simulation import Simulation
@@ -181,6 +184,7 @@ def test_sine_wind_is_neural_flys_8_5_plus_2_4_sin_t() -> None:
         wind_sine_rate_rad_s=1.0,
     )  # fmt: skip
     env = Environment(params, np.random.default_rng(0))
+    env.start_profile_clock()  # (a Simulation starts it at offboard entry)
     dt_s = 0.001
     for k in range(1, 5001):
         env.advance(dt_s)
@@ -189,6 +193,62 @@ def test_sine_wind_is_neural_flys_8_5_plus_2_4_sin_t() -> None:
             # towards -90 deg (CCW from east): towards south, -north
             assert wind[0] == pytest.approx(-(8.5 + 2.4 * math.sin(k * dt_s)), abs=1e-12)
             assert wind[1] == pytest.approx(0.0, abs=1e-12)
+
+
+SINE_WIND = EnvironmentParams(
+    wind_speed_m_s=8.5, wind_dir_deg=-90.0, wind_sine_amplitude_m_s=2.4, wind_sine_rate_rad_s=1.0,
+    wind_sine_phase_rad=0.5,
+)  # fmt: skip
+
+
+def _winds_after_hand_over(personality: str, hand_over_s: float) -> tuple[list[float], float]:
+    """North wind after each tick of 2 s under offboard, handed over after ``hand_over_s``
+    of armed waiting; and the steady wind before it."""
+    cfg = dataclasses.replace(
+        NEURALFLY, environment=SINE_WIND,
+        sitl=dataclasses.replace(NEURALFLY.sitl, autopilot=personality),
+        ardupilot=dataclasses.replace(NEURALFLY.ardupilot, ekf_origin_after_boot_s=0.0),
+    )  # fmt: skip
+    sim = sim_with(cfg)
+    ap = sim.autopilot
+    if personality == "ardupilot":
+        assert isinstance(ap, ArduCopter)
+        assert ap.set_number(GUIDED, 0.0) == Result.ACCEPTED
+    assert ap.arm(True, 0.0) == Result.ACCEPTED
+    before = []
+    while sim.time_s < hand_over_s - 1e-9:
+        sim.advance_tick()
+        before.append(float(sim.environment.wind_ned_m_s[0]))
+    assert len(set(before)) == 1  # steady until the hand-over
+    setpoint = AttitudeSetpoint(0b111, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.1)
+    ap.on_attitude_setpoint(setpoint, sim.time_s)
+    if personality == "px4":
+        assert ap.set_mode(OFFBOARD, sim.time_s) == Result.ACCEPTED
+    after = []
+    for _ in range(round(2.0 / sim.config.sitl.lockstep_period_s)):
+        ap.on_attitude_setpoint(setpoint, sim.time_s)
+        sim.advance_tick()
+        assert ap.mode == OFFBOARD
+        after.append(float(sim.environment.wind_ned_m_s[0]))
+    return after, before[0]
+
+
+@pytest.mark.parametrize("personality", ["px4", "ardupilot"])
+def test_the_sine_winds_time_starts_at_offboard_entry_not_at_the_sitls_start(
+    personality: str,
+) -> None:
+    """Issue 24: on SITL time the hand-over instant alone decided which stroke of the
+    figure-8 met the gust's peak (neuralfly: max tilt 32-41.5 deg, error 1.9-9.5 cm). The
+    profile's time now starts when the autopilot enters offboard control: handed over at
+    3 s or at 4.37 s, the vehicle meets the same wind from then on."""
+    early, steady_early = _winds_after_hand_over(personality, 3.0)
+    late, steady_late = _winds_after_hand_over(personality, 4.37)
+    # before the hand-over: the mean plus the swing at t = 0, held (towards south: -north)
+    assert steady_early == steady_late == pytest.approx(-(8.5 + 2.4 * math.sin(0.5)), abs=1e-12)
+    assert early == late
+    period_s = NEURALFLY.sitl.lockstep_period_s
+    expected = [-(8.5 + 2.4 * math.sin((k + 1) * period_s + 0.5)) for k in range(len(early))]
+    assert early == pytest.approx(expected, abs=1e-12)
 
 
 @pytest.mark.parametrize(

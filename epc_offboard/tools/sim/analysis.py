@@ -306,6 +306,9 @@ def analyse(
     lap_s = scenario.lap_s or scenario.duration_s
     first_lap = tracking & (t_vehicle < start + lap_s)
     first_lap_misses = int(np.sum(np.isin(source[first_lap], MISS_SOURCES)))
+    # and once it has seen a lap: the share of EPC's ticks the library answered
+    later = tracking & (t_vehicle >= start + lap_s) & np.isin(source, ("hit", *MISS_SOURCES))
+    later_hits = int(np.sum(source[later] == "hit"))
     logged = [k for process, text in record.logs.items() for k in log_kinds(text, process)]
     events = stats.get("phase_events", [])
     sharing_open = bool(stats.get("sharing")) and not stats.get("counters", {}).get(
@@ -332,6 +335,7 @@ def analyse(
             "qp_solves": int(lib.get("qp_solves", 0)),
             "received_shared": int(lib.get("received_shared", 0)),
             "first_lap_misses": first_lap_misses,
+            "hit_rate_after_first_lap": later_hits / int(np.sum(later)) if np.any(later) else None,
         },
         "fleet": fleet_figures(stats),
         "loops": stats.get("loops", {}),
