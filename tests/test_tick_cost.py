@@ -84,14 +84,14 @@ def _count_calls(fn: Any, runs: int) -> tuple[float, float]:
     return float(np.median(python_calls)), float(np.median(c_calls))
 
 
-def test_a_position_tick_makes_few_python_calls():
-    """A figure-8 tick in offboard (the estimator learning, a new position sample every
-    other tick as at 50 Hz, the EPC library warm), with its flight-log row packed."""
+def _figure8_ticks() -> tuple[Cascade, Any]:
+    """A warmed-up cascade and ``tick(k)``: the figure-8's tick k in offboard (the
+    estimator learning, a new position sample every other tick as at 50 Hz), with its
+    flight-log row packed."""
     cfg = load_service_config(_CONFIG)
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, _DT_S,
                       learn_on_miss=True, airframe=cfg.vehicle)  # fmt: skip
     cascade.warm_up()
-    warm_signatures = compiled_signatures()
     loop = cascade.position
     traj = Trajectory(TrajectoryConfig(shape="figure8", ramp_s=1.0, period_s=8.0),
                       np.array([0.0, 0.0, -2.5]))  # fmt: skip
@@ -105,6 +105,13 @@ def test_a_position_tick_makes_few_python_calls():
         out = cascade.position_tick(state, reference, learn=True)
         pack_row(t_s, "offboard", state, reference, out)
 
+    return cascade, tick
+
+
+def test_a_position_tick_makes_few_python_calls():
+    """A figure-8 tick in offboard (the EPC library warm), with its flight-log row packed."""
+    cascade, tick = _figure8_ticks()
+    warm_signatures = compiled_signatures()
     for k in range(400):  # the library learns the figure-8's controllers: then hits
         tick(k)
     python_calls, c_calls = _count_calls(lambda k: tick(400 + k), 200)
@@ -114,6 +121,42 @@ def test_a_position_tick_makes_few_python_calls():
     assert compiled_signatures() == warm_signatures
     assert python_calls <= MAX_PYTHON_CALLS, f"{python_calls} Python-level calls a tick"
     assert c_calls <= MAX_C_CALLS, f"{c_calls} C calls a tick"
+
+
+def _arrays_in(value: Any) -> int:
+    if isinstance(value, np.ndarray):
+        return 1
+    if isinstance(value, tuple):
+        return sum(_arrays_in(v) for v in value)
+    return 0
+
+
+def test_the_estimators_kernels_unbox_few_arrays_a_call():
+    """A compiled call unboxes every array of its arguments, each a cold cache line or more
+    10 ms after the last tick: the estimator's update took its models' field stores as ~110
+    arrays (5 us a call warm, 48 us with the caches cold, for a few us of work; issue 21),
+    its prediction ~40. Packed into one object (``lwpr_kernels.packed``), a few each."""
+    cascade, tick = _figure8_ticks()
+    for k in range(50):  # the models have fields: both kernels run
+        tick(k)
+    group = cascade.position.estimator._model_group()  # type: ignore[attr-defined]
+    arrays: dict[str, list[int]] = {"update": [], "predict": []}
+    for name, attr in (("update", "_update_kernel"), ("predict", "_kernel")):
+        kernel = getattr(group, attr)
+        assert kernel is not None, f"the {name} kernel never ran"
+
+        def counting(*args: Any, _kernel: Any = kernel, _seen: list[int] = arrays[name]) -> Any:
+            _seen.append(_arrays_in(args))
+            return _kernel(*args)
+
+        setattr(group, attr, counting)
+    for k in range(50, 60):
+        tick(k)
+    assert arrays["update"]
+    assert arrays["predict"]
+    # the sample (z, p) or the points and their output (zs, raw): 2 arrays, the rest packed
+    assert max(arrays["update"]) <= 2, arrays["update"]
+    assert max(arrays["predict"]) <= 2, arrays["predict"]
 
 
 def test_flight_log_rows_share_writes(tmp_path, monkeypatch):
