@@ -25,6 +25,7 @@ from epc_offboard.common import frames
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.control.cascade import Cascade, compiled_signatures
 from epc_offboard.control.models import accel_to_attitude
+from epc_offboard.control.perturbation import LwprPerturbation
 from epc_offboard.control.trajectories import Trajectory, TrajectoryConfig
 from epc_offboard.control.types import VehicleState
 from epc_offboard.service.config import load_service_config
@@ -139,7 +140,9 @@ def test_the_estimators_kernels_unbox_few_arrays_a_call():
     cascade, tick = _figure8_ticks()
     for k in range(50):  # the models have fields: both kernels run
         tick(k)
-    group = cascade.position.estimator._model_group()  # type: ignore[attr-defined]
+    estimator = cascade.position.estimator
+    assert isinstance(estimator, LwprPerturbation)
+    group = estimator._model_group()
     arrays: dict[str, list[int]] = {"update": [], "predict": []}
     for name, attr in (("update", "_update_kernel"), ("predict", "_kernel")):
         kernel = getattr(group, attr)
