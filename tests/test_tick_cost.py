@@ -313,3 +313,17 @@ def test_a_tick_walks_no_candidate_pool_while_no_origin_is_proven():
     assert python_calls <= 2, python_calls
     pool.promoted(next(a for a, _o in pool.items()), "peer19")  # proven: now it walks
     assert pool.wanted(8)
+
+
+def test_the_stage_tool_times_every_stage_of_the_tick():
+    """``python -m epc_offboard.tools.tick_stages`` (issue 21's warm/cold figures): every
+    stage it wraps is timed on every tick (no timing is asserted: counts only)."""
+    from epc_offboard.tools.tick_stages import format_report, measure
+
+    report = measure(_CONFIG, 6, ("warm", "evict"))
+    for mode in ("warm", "evict"):
+        stages = report[mode]["stages_us"]
+        for name in ("position_tick", "reference", "pack_row", "epc.step", "epc.theta",
+                     "epc.query", "estimate_along", "attitude_target", "observe"):
+            assert stages[name]["ticks"] == 6, (mode, name)
+    assert "position_tick" in format_report(report)
