@@ -1102,6 +1102,14 @@ class ModelGroup:
         self._kernel: Any = None  # predict_groups for these argument types
         self._update_kernel: Any = None  # update_groups for these argument types
 
+    def __getstate__(self) -> dict[str, Any]:
+        """A copy (``copy.deepcopy``, pickle) without the packed arguments: numba's typed
+        lists do not copy, and a copy's would be the original's arrays. They are packed
+        again from the copy's models at its first call."""
+        state = self.__dict__.copy()
+        state.update(_update_packed=None, _predict_packed=None, _epoch=-1)
+        return state
+
     def _field_args(self) -> tuple[tuple[npt.NDArray[Any], ...], ...]:
         if self._epoch != _reallocations:
             self._epoch = _reallocations
