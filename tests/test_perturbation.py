@@ -309,3 +309,24 @@ def test_the_models_learn_and_predict_in_one_call_with_the_same_bits(inputs, dia
         assert a.n_updates == b.n_updates == 1500
     with pytest.raises(ValueError, match="finite"):  # as before
         grouped.predict_raw_many(np.full((2, NZ), np.nan))
+
+
+def test_an_estimator_copies_after_its_compiled_calls_and_the_copy_learns_alone():
+    """The models' arguments are packed for the compiled calls (numba typed lists, which do
+    not copy): a deep copy (bench --lwpr's reference estimator) packs its own from its own
+    models, so it predicts the same and learns without touching the original."""
+    import copy
+
+    est = bench._service_estimator()
+    for i in range(30):
+        est.observe(np.array([0.1 * i, 0.2, 0.0]), np.array([0.3, 0.1 * i, 0.0]))
+        est.estimate_along(np.zeros((5, 3)))
+    twin = copy.deepcopy(est)
+    zs = np.full((5, 3), 0.3)
+    assert np.array_equal(twin.estimate_along(zs)[1], est.estimate_along(zs)[1])
+    before = [{k: v.copy() for k, v in m._store.items()} for m in est.models]
+    for i in range(5):
+        twin.observe(np.array([0.5 + i, 0.2, 0.0]), np.array([0.3, 0.1, 0.0]))
+    for model, stored in zip(est.models, before, strict=True):
+        for key, value in stored.items():
+            assert np.array_equal(model._store[key], value, equal_nan=True), key

@@ -226,3 +226,89 @@ apply_map: ApplyMap = _NUMBA[0] if _NUMBA is not None else apply_map_numpy
 query_maps: QueryMaps = _NUMBA[1] if _NUMBA is not None else query_maps_numpy
 _LISTS = _compile_lists()
 HAVE_NUMBA = _NUMBA is not None
+
+
+# -- the position tick's disturbance plan -------------------------------------------------------
+
+
+def _disturbance_plan_jit(
+    p_hat: FloatArray,
+    d_along: FloatArray,
+    d_max: float,
+    refs: FloatArray,
+    alpha: FloatArray,
+    one_minus_alpha: FloatArray,
+    h: float,
+    u_p: FloatArray,
+    refs_out: FloatArray,
+    d_hat: FloatArray,
+) -> None:
+    """The position tick's nominal inputs and shifted references from the disturbance
+    estimate in one call: :meth:`PositionLoop.position_tick
+    <epc_offboard.control.position.PositionLoop.position_tick>`'s numpy code (its twin, about
+    25 calls on (N, 3) arrays, each a few cold cache lines in real time; issue 21) with
+    numpy's operations in numpy's order, so the bits are the same:
+
+    * ``d_hat`` (3,) = clip(``p_hat``, +-``d_max``);
+    * d_var (N + 1, 3) = clip(d_hat + (``d_along``[1:] - ``d_along``[1]), +-d_max) - d_hat;
+    * ``u_p`` (N, 3) = feedforward(``refs``) - d_hat - lag_inverse(d_var);
+    * ``refs_out`` (N, 9) = ``refs`` - disturbance_drift(d_var) (``h``: the prediction step).
+
+    A clip is numpy's minimum(maximum()): a NaN stays NaN.
+    """
+    n = refs.shape[0]
+    lo, hi = -d_max, d_max
+    dv = np.empty((n + 1, 3))
+    for i in range(3):
+        x = p_hat[i]
+        if x < lo:
+            x = lo
+        if x > hi:
+            x = hi
+        d_hat[i] = x
+        base = d_along[1, i]
+        for k in range(n + 1):
+            x = d_hat[i] + (d_along[k + 1, i] - base)
+            if x < lo:
+                x = lo
+            if x > hi:
+                x = hi
+            dv[k, i] = x - d_hat[i]
+    c = 0.5 * h * h
+    for i in range(3):
+        a, oma = alpha[i], one_minus_alpha[i]
+        # a_0 extrapolated from the reference's a_1 and a_2 (feedforward)
+        a_prev = 2.0 * refs[0, 6 + i] - refs[1, 6 + i] if n >= 2 else refs[0, 6 + i]
+        s_v = 0.0
+        s_p = 0.0
+        for k in range(n):
+            a_next = refs[k, 6 + i]
+            u_p[k, i] = ((a_next - a * a_prev) / oma - d_hat[i]
+                         - (dv[k + 1, i] - a * dv[k, i]) / oma)  # fmt: skip
+            a_prev = a_next
+            # the drift's cumulative sums start at their first term, as numpy's do
+            d = dv[k, i]
+            s_v = d if k == 0 else s_v + d
+            v = s_v * h
+            term = h * (v - h * d) + c * d
+            s_p = term if k == 0 else s_p + term
+            refs_out[k, i] = refs[k, i] - s_p
+            refs_out[k, 3 + i] = refs[k, 3 + i] - v
+            refs_out[k, 6 + i] = refs[k, 6 + i] - 0.0
+
+
+def _compile_plan() -> Callable[..., None] | None:
+    """The compiled disturbance plan (None on the numpy twins: the caller's numpy code)."""
+    if _NUMBA is None:
+        return None
+    import numba
+
+    try:
+        return cast(Callable[..., None], numba.njit(_disturbance_plan_jit, cache=True,
+                                                    nogil=True))  # fmt: skip
+    except RuntimeError:
+        return cast(Callable[..., None], numba.njit(_disturbance_plan_jit, cache=False,
+                                                    nogil=True))  # fmt: skip
+
+
+disturbance_plan = _compile_plan()

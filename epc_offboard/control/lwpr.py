@@ -1096,10 +1096,19 @@ class ModelGroup:
         # predictions by argument (a tuple of every model's c, then D, ...); for the update,
         # each model's activations and prediction buffers and its store
         self._fields: tuple[tuple[npt.NDArray[Any], ...], ...] = ()
-        self._update_fields: tuple[Any, ...] = ()
+        self._update_packed: Any = None  # the update's arguments after ns, packed
+        self._predict_packed: Any = None  # the prediction's arguments after ns, packed
         self._status = np.zeros(len(models), dtype=np.int64)  # update_groups' results
         self._kernel: Any = None  # predict_groups for these argument types
         self._update_kernel: Any = None  # update_groups for these argument types
+
+    def __getstate__(self) -> dict[str, Any]:
+        """A copy (``copy.deepcopy``, pickle) without the packed arguments: numba's typed
+        lists do not copy, and a copy's would be the original's arrays. They are packed
+        again from the copy's models at its first call."""
+        state = self.__dict__.copy()
+        state.update(_update_packed=None, _predict_packed=None, _epoch=-1)
+        return state
 
     def _field_args(self) -> tuple[tuple[npt.NDArray[Any], ...], ...]:
         if self._epoch != _reallocations:
@@ -1108,10 +1117,16 @@ class ModelGroup:
             for m in models:
                 m._kernel_args()
             self._fields = tuple(zip(*(m._predict_args for m in models), strict=True))
-            self._update_fields = (
+            update_fields = (
                 tuple(m._w_buf for m in models), tuple(m._y_buf for m in models),
                 tuple(m._update_args for m in models),
             )  # fmt: skip
+            # each kernel's arguments beyond the sample as one object (kernels.packed). The
+            # cost is at compile time: on an empty cache the packed kernels and their typed
+            # lists take ~17 s more CPU (the whole warm-up 11 -> 27 s idle), once, in the
+            # cold start's background compile; a start on a warm cache is unchanged
+            self._update_packed = kernels.packed((*self._static, *update_fields, self._status))
+            self._predict_packed = kernels.packed((*self._static, *self._fields))
         return self._fields
 
     def update(self, z: FloatArray, p: FloatArray) -> bool:
@@ -1122,13 +1137,14 @@ class ModelGroup:
         if not (self.compiled and z.flags.c_contiguous and p.flags.c_contiguous):
             return False
         models = self.models
-        self._field_args()
+        if self._epoch != _reallocations:  # (inline: a call is a tick's cost, issue 21)
+            self._field_args()
         ns = tuple([m._n for m in models])
-        args = (z, p, ns, *self._static, *self._update_fields, self._status)
         kernel = self._update_kernel
         if kernel is None:  # (the types are fixed: z and p are checked by the caller)
-            kernel = self._update_kernel = jit.entry_point(kernels.update_groups, *args)
-        kernel(*args)
+            kernel = self._update_kernel = jit.entry_point(
+                kernels.update_groups_packed, z, p, ns, self._update_packed)
+        kernel(z, p, ns, self._update_packed)
         for g, status in enumerate(self._status.tolist()):
             model = models[g]
             if status:  # the rare work in Python (a field to add, prune or drop)
@@ -1145,10 +1161,12 @@ class ModelGroup:
         if not self.compiled:
             return None
         raw = np.zeros((zs.shape[0], self.n_y))
-        args = (zs, raw, tuple([m._n for m in self.models]), *self._static, *self._field_args())
+        if self._epoch != _reallocations:
+            self._field_args()
+        args = (zs, raw, tuple([m._n for m in self.models]), self._predict_packed)
         kernel = self._kernel
         if kernel is None:  # (the types are fixed: zs is checked by the caller)
-            kernel = self._kernel = jit.entry_point(kernels.predict_groups, *args)
+            kernel = self._kernel = jit.entry_point(kernels.predict_groups_packed, *args)
         return raw if kernel(*args) else None
 
 

@@ -47,6 +47,7 @@ from epc_offboard.control.dead_time import (
 )
 from epc_offboard.control.decision import Controller, Decision
 from epc_offboard.control.epc import budgeted_controller
+from epc_offboard.control.kernels import disturbance_plan
 from epc_offboard.control.models import (
     LAG_ACC_STATES,
     AccelLimits,
@@ -399,6 +400,10 @@ class PositionLoop:
         self._a_stages = np.empty((cfg.horizon + 1, 3))  # feedforward: a of x_0..x_N
         # the varying disturbance's drift of x_1..x_N (disturbance_drift); a stays 0
         self._drift = np.zeros((cfg.horizon, 9))
+        # the compiled disturbance plan's outputs: the QP's nominal inputs and references
+        # (read into θ by the controller's step, kept by nothing)
+        self._u_p = np.empty((cfg.horizon, 3))
+        self._refs = np.empty((cfg.horizon, 9))
         # the command dead time flown (use_attitude_path sets the measured default once the
         # autopilot and the attitude mode are known; until then the configured one, or 0)
         self._path: tuple[str, str] | None = None
@@ -754,15 +759,25 @@ class PositionLoop:
             z_stages[1] = reference.stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
             z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
             p_hat, d_var = self.estimator.estimate_along(z_stages)
-            d_var = d_var[1:] - d_var[1]
-            # (minimum(maximum()): np.clip's values, at a third of its cost on these sizes)
-            d_hat = np.minimum(np.maximum(p_hat, -d_max), d_max)
-            d_var = np.minimum(np.maximum(d_hat + d_var, -d_max), d_max) - d_hat
-            u_p = self.feedforward(refs) - d_hat - self.lag_inverse(d_var)
-            # the model carries d_hat alone (a constant c~: the library's parameter vector);
-            # what the disturbance does beyond it along the horizon is exact as a shift of
-            # the references the model's state is held to (see disturbance_drift)
-            refs = refs - self.disturbance_drift(d_var)
+            if disturbance_plan is not None:
+                # what follows below in one compiled call, the same bits (issue 21: each
+                # numpy call on these small arrays is cold cache lines in real time)
+                d_hat = np.empty(3)
+                disturbance_plan(p_hat, d_var, d_max, refs, self.acc_alpha,
+                                 self._one_minus_alpha, self.config.dt_s, self._u_p,
+                                 self._refs, d_hat)  # fmt: skip
+                u_p, refs = self._u_p, self._refs
+            else:  # the numpy twin (no numba, or a cold start: see common.jit)
+                d_var = d_var[1:] - d_var[1]
+                # (minimum(maximum()): np.clip's values, at a third of its cost on these sizes)
+                d_hat = np.minimum(np.maximum(p_hat, -d_max), d_max)
+                d_var = np.minimum(np.maximum(d_hat + d_var, -d_max), d_max) - d_hat
+                u_p = self.feedforward(refs) - d_hat - self.lag_inverse(d_var)
+                # the model carries d_hat alone (a constant c~: the library's parameter
+                # vector); what the disturbance does beyond it along the horizon is exact as
+                # a shift of the references the model's state is held to (see
+                # disturbance_drift)
+                refs = refs - self.disturbance_drift(d_var)
         x0 = self._x0
         x0[0:3] = pos_x0
         x0[3:6] = vel_x0
