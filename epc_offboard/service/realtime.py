@@ -45,7 +45,7 @@ import logging
 import os
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -54,15 +54,26 @@ from epc_offboard.common.errors import EpcError
 log = logging.getLogger(__name__)
 
 _SLOW_COLLECTION_S = 0.001  # a collection longer than this is counted as slow
+_GC_EVENTS_KEPT = 64  # the latest slow collections, with their times, in the stats
 
 
 @dataclass
 class GcMonitor:
-    """Counts and times the cyclic collector's collections, per generation."""
+    """Counts and times the cyclic collector's collections, per generation; the ones in the
+    loops' thread apart (``loop_thread``: its ident, set by :func:`prepare`), since only
+    those stall a tick, and the longest (``events``: when, generation, how long, which
+    thread) for a stall to be traced to one."""
 
     collections: list[int] = field(default_factory=lambda: [0, 0, 0])
     slow: int = 0  # collections longer than _SLOW_COLLECTION_S
     max_pause_s: float = 0.0
+    pause_total_s: float = 0.0  # all collections' time: a stall's share is a difference
+    loop_thread: int | None = None
+    loop_thread_collections: list[int] = field(default_factory=lambda: [0, 0, 0])
+    loop_thread_max_pause_s: float = 0.0
+    events: deque[tuple[float, int, float, bool]] = field(
+        default_factory=lambda: deque(maxlen=_GC_EVENTS_KEPT)
+    )
     _started: float | None = None
 
     def install(self) -> None:
@@ -81,18 +92,30 @@ class GcMonitor:
             return
         pause = time.perf_counter() - self._started
         self._started = None
-        generation = int(info.get("generation", 2))
-        self.collections[min(max(generation, 0), 2)] += 1
+        generation = min(max(int(info.get("generation", 2)), 0), 2)
+        self.collections[generation] += 1
         self.max_pause_s = max(self.max_pause_s, pause)
+        self.pause_total_s += pause
+        in_loops = threading.get_ident() == self.loop_thread
+        if in_loops:
+            self.loop_thread_collections[generation] += 1
+            self.loop_thread_max_pause_s = max(self.loop_thread_max_pause_s, pause)
         if pause > _SLOW_COLLECTION_S:
             self.slow += 1
+            self.events.append((time.monotonic() - pause, generation, pause, in_loops))
 
     def stats(self) -> dict[str, Any]:
         return {
             "collections": list(self.collections),
             "slow_collections": self.slow,
             "max_pause_ms": round(self.max_pause_s * 1e3, 3),
+            "loop_thread_collections": list(self.loop_thread_collections),
+            "loop_thread_max_pause_ms": round(self.loop_thread_max_pause_s * 1e3, 3),
             "frozen_objects": gc.get_freeze_count(),
+            "slow_events": [
+                {"t_s": round(t, 4), "generation": g, "ms": round(p * 1e3, 3), "loop_thread": lt}
+                for t, g, p, lt in self.events
+            ],
         }
 
 
@@ -186,6 +209,7 @@ def prepare(
     collection from now on, and raise the loops' priority and pin them to ``cpus`` if
     configured (a refusal is logged and counted, never fatal)."""
     frozen = freeze_startup_objects()
+    monitor.loop_thread = threading.get_ident()
     monitor.install()
     try:
         log.info("loops: %s", apply_affinity(cpus))
