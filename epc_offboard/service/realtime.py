@@ -40,7 +40,10 @@
   12 ms (12.0-15.4 ms) came with 0 page faults and 0 preemptions, and the process's other
   threads (the miss worker's pool threads) ran < 1 ms in each: not the interpreter lock.
   11 of them are on the library saver's 5 s pattern: its one ~3.7 ms step and a 1-2 ms
-  generation-0/1 collection its allocations start, on the loops' thread.
+  generation-0/1 collection its allocations start, on the loops' thread. A second run
+  (load 3-8.5) had 43 (12.0-22.3 ms), 35 of them waits: the thread blocked (voluntary
+  switches, 0 preemptions, no collection) and ran 2-3 ms of a 12-22 ms interval, so it
+  slept past its tick (a late wake-up, or the interpreter lock; not yet told apart).
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
