@@ -259,4 +259,6 @@ def test_a_stall_between_ticks_is_counted_with_what_the_loops_thread_did():
     waited = [s for s in long if s.gc_ms == 0.0]
     assert waited
     assert waited[-1].thread_cpu_ms < waited[-1].interval_ms - 20.0  # it slept
-    assert set(long[0].as_dict()) >= {"loop", "interval_ms", "thread_cpu_ms", "gc_ms"}
+    assert set(long[0].as_dict()) >= {"loop", "interval_ms", "thread_cpu_ms", "gc_ms",
+                                      "runqueue_ms"}  # fmt: skip
+    assert all(0.0 <= s.runqueue_ms <= s.interval_ms for s in long)  # Linux: the kernel's
