@@ -43,7 +43,12 @@
   generation-0/1 collection its allocations start, on the loops' thread. A second run
   (load 3-8.5) had 43 (12.0-22.3 ms), 35 of them waits: the thread blocked (voluntary
   switches, 0 preemptions, no collection) and ran 2-3 ms of a 12-22 ms interval, so it
-  slept past its tick (a late wake-up, or the interpreter lock; not yet told apart).
+  slept past its tick. A third run (load 4.5-5.3) with the run-queue wait: 29 of 40 stalls
+  were such waits, and in them the thread waited for a CPU for 0 ms (median; at most
+  1.8 ms): the CPU was not taken. The 23.0 ms one ran 1.9 ms and slept once, ~21 ms (2
+  voluntary switches; a wait for the interpreter lock wakes every 5 ms, the switch
+  interval). What the loops' thread blocks in (a lock, a blocking write, the selector's
+  timeout) is the next thing to find.
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
