@@ -68,3 +68,19 @@ def test_the_body_rate_target_is_judged_against_lockstep_only_in_body_rate_mode(
     assert verdict("rates", rmse / 1.25) is False
     assert verdict("quaternion", rmse) is None
     assert verdict("rates", None) is None
+
+
+def test_the_table_tells_the_services_stalls_and_its_collections_in_the_loops_thread():
+    """Issue 21: what the service counted of its stalls and collections is in the printout,
+    not only in the JSON."""
+    stall = {"loop": "position", "t_s": 1.0, "interval_ms": 14.0, "thread_cpu_ms": 12.0,
+             "gc_ms": 1.5}  # fmt: skip
+    text = aa.stall_summary({
+        "stats_stalls": [stall, {**stall, "thread_cpu_ms": 2.0, "interval_ms": 13.0}],
+        "stats_counters": {"position_stalls": 5},
+        "stats_gc": {"loop_thread_collections": [39, 3, 0], "loop_thread_max_pause_ms": 2.1,
+                     "collections": [40, 3, 0], "max_pause_ms": 2.1},
+    })  # fmt: skip
+    assert "position 5 (of the latest 2: 1 on the loops' own CPU, longest 14.0 ms" in text
+    assert "attitude 0" in text
+    assert "[39, 3, 0], longest 2.1 ms" in text

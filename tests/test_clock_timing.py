@@ -211,3 +211,54 @@ def test_lockstep_ticks_depend_on_the_vehicle_data_not_on_when_datagrams_are_rea
     # one tick per vehicle time the vehicle sent state at
     starts = [start for start, _ in calm]
     assert len(set(starts)) == len(starts)
+
+
+async def _stalled_loop() -> tuple[Loops, Counter[str]]:
+    """A 100 Hz real-time loop whose event loop is held 40 ms between two ticks, once by
+    work on the loops' thread (a busy callback), once by a wait (a blocking sleep)."""
+    counters: Counter[str] = Counter()
+    pause = {"s": 0.0}
+    loops = Loops(WallClock(), counters, LogGate(), gc_pause_s=lambda: pause["s"])
+    ticks = 0
+
+    async def tick(t: Tick) -> bool:
+        nonlocal ticks
+        ticks += 1
+        if ticks == 3:  # the collections' total grows by 7 ms meanwhile
+            pause["s"] += 0.007
+            asyncio.get_running_loop().call_soon(_spin, 0.04)
+        if ticks == 6:
+            asyncio.get_running_loop().call_soon(time.sleep, 0.04)
+        if ticks == 9:
+            loops.stopping.set()
+        return True
+
+    with pytest.raises(Stop):
+        await loops.periodic("position", LoopTiming(0.01), tick)
+    return loops, counters
+
+
+def _spin(duration_s: float) -> None:
+    end = time.perf_counter() + duration_s
+    while time.perf_counter() < end:
+        pass
+
+
+def test_a_stall_between_ticks_is_counted_with_what_the_loops_thread_did():
+    """Issue 21: a tick later than 12 ms is kept with its interval and the loops' thread's
+    CPU in it, so a stall is told apart as work on the thread (a callback, a collection) or
+    a wait (the interpreter lock, the CPU taken). Safety bounds: a loaded machine can only
+    add stalls and lengthen them."""
+    loops, counters = asyncio.run(_stalled_loop())
+    long = [s for s in loops.stalls if s.interval_ms >= 40.0]
+    assert len(long) >= 2
+    assert counters["position_stalls"] == len(loops.stalls) >= 2
+    busy = [s for s in long if s.gc_ms == pytest.approx(7.0)]
+    assert busy
+    assert busy[0].thread_cpu_ms > 10.0  # the spin ran on the loops' thread
+    waited = [s for s in long if s.gc_ms == 0.0]
+    assert waited
+    assert waited[-1].thread_cpu_ms < waited[-1].interval_ms - 20.0  # it slept
+    assert set(long[0].as_dict()) >= {"loop", "interval_ms", "thread_cpu_ms", "gc_ms",
+                                      "runqueue_ms"}  # fmt: skip
+    assert all(0.0 <= s.runqueue_ms <= s.interval_ms for s in long)  # Linux: the kernel's

@@ -9,10 +9,13 @@ early, at a stale vehicle time, would make two identical lockstep runs differ.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import math
+import os
 import resource
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import NoReturn
@@ -41,16 +44,72 @@ class Tick:
     period_s: float
 
 
+@dataclass(frozen=True)
+class Stall:
+    """A controlled tick that came more than ``STALL_S`` after the previous one (real time),
+    and what the loops' thread did meanwhile: a stall spent in the thread's own CPU is work
+    on the event loop (a callback, a collection), one spent off it is waiting (the
+    interpreter lock, a timer woken late, the CPU taken)."""
+
+    loop: str
+    t_s: float  # when the late tick ran (loop clock)
+    interval_ms: float  # since the previous tick's start
+    thread_cpu_ms: float  # the loops' thread's CPU time in the interval
+    runqueue_ms: float  # ... time it was runnable but waited for a CPU (NaN: not Linux)
+    gc_ms: float  # the collections' time in the interval (any thread)
+    minor_faults: int
+    major_faults: int
+    voluntary_switches: int  # the thread blocked (the interpreter lock, a syscall)
+    involuntary_switches: int  # ... was preempted
+
+    def as_dict(self) -> dict[str, float | int | str]:
+        return {k: round(v, 3) if isinstance(v, float) else v for k, v in vars(self).items()}
+
+
+STALL_S = 0.012  # issue 21's bound on the position loop's gap (or two periods, if less)
+STALLS_KEPT = 64  # the latest stalls, in the stats
+
+
+class _RunqueueClock:
+    """The calling thread's total wait on a run queue (runnable, no CPU), from the kernel's
+    schedstat: a stall spent there is the CPU taken (by an equal or higher real-time
+    priority, an interrupt), one spent neither there nor running is the thread asleep (a
+    late wake-up, the interpreter lock). NaN where the file is missing."""
+
+    def __init__(self) -> None:
+        self._fd: int | None = None
+        with contextlib.suppress(OSError):
+            self._fd = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def read_s(self) -> float:
+        if self._fd is None:
+            return math.nan
+        try:
+            return int(os.pread(self._fd, 96, 0).split()[1]) * 1e-9
+        except (OSError, ValueError, IndexError):
+            return math.nan
+
+
 class Loops:
     """Waits on the loop clock for the service's tasks, ends them once a stop is asked, and
-    runs the periodic loops. Counts ``clock_wait_timeouts`` and, per loop, ticks skipped
-    and loop errors into ``counters``."""
+    runs the periodic loops. Counts ``clock_wait_timeouts`` and, per loop, ticks skipped,
+    loop errors and (real time) stalls into ``counters``; the latest stalls are ``stalls``.
+    ``gc_pause_s``: the garbage collector's total pause so far (``GcMonitor``), for a
+    stall's share of it."""
 
-    def __init__(self, clock: Clock, counters: Counter[str], log_gate: LogGate) -> None:
+    def __init__(self, clock: Clock, counters: Counter[str], log_gate: LogGate,
+                 gc_pause_s: Callable[[], float] = lambda: 0.0) -> None:  # fmt: skip
         self.clock = clock
         self.counters = counters
         self._log_gate = log_gate
+        self._gc_pause_s = gc_pause_s
         self.stopping = asyncio.Event()
+        self.stalls: deque[Stall] = deque(maxlen=STALLS_KEPT)
 
     async def wait(self, t_s: float, *, until_reached: bool = False) -> None:
         """Wait for loop time t_s; in lockstep never longer than a wall-clock second, unless
@@ -87,30 +146,58 @@ class Loops:
         skips counted (``{name}_ticks_skipped``); before that the loops idle."""
         period = timing.period_s
         t_next = self.clock.now_s()
-        while True:
-            await self.wait(t_next, until_reached=True)
-            start = self.clock.now_s()
-            # the thread's CPU time and context switches (the rusage's CPU time lags by up
-            # to a scheduler tick; the thread clock does not), read outside the wall time
-            use0 = resource.getrusage(resource.RUSAGE_THREAD)
-            cpu0 = time.thread_time()
-            wall0 = time.perf_counter()
-            controlled = await tick(Tick(start, t_next, period))
-            wall = time.perf_counter() - wall0
-            if controlled:
-                cpu = time.thread_time() - cpu0
-                use = resource.getrusage(resource.RUSAGE_THREAD)
-                timing.record(
-                    start, wall, scheduled_s=t_next, cpu_s=cpu,
-                    blocked=use.ru_nvcsw > use0.ru_nvcsw, preempted=use.ru_nivcsw > use0.ru_nivcsw,
+        before: tuple[float, float, float, resource.struct_rusage, float] | None = None
+        with contextlib.closing(_RunqueueClock()) as runqueue:
+            stall_s = min(STALL_S, 2.0 * period)  # the attitude loop's: a deadline miss
+            while True:
+                await self.wait(t_next, until_reached=True)
+                start = self.clock.now_s()
+                # the thread's CPU time and context switches (the rusage's CPU time lags by
+                # up to a scheduler tick; the thread clock does not), outside the wall time
+                use0 = resource.getrusage(resource.RUSAGE_THREAD)
+                cpu0 = time.thread_time()
+                gc0 = self._gc_pause_s()
+                now = (start, cpu0, gc0, use0, runqueue.read_s())
+                if before is not None and start - before[0] > stall_s:
+                    self._stall(name, start, before, now)
+                wall0 = time.perf_counter()
+                controlled = await tick(Tick(start, t_next, period))
+                wall = time.perf_counter() - wall0
+                before = now if controlled and not self.clock.vehicle_time else None
+                if controlled:
+                    cpu = time.thread_time() - cpu0
+                    use = resource.getrusage(resource.RUSAGE_THREAD)
+                    timing.record(
+                        start, wall, scheduled_s=t_next, cpu_s=cpu,
+                        blocked=use.ru_nvcsw > use0.ru_nvcsw,
+                        preempted=use.ru_nivcsw > use0.ru_nivcsw,
+                    )  # fmt: skip
+                # In lockstep the next tick is planned from the vehicle time the tick ran
+                # at, not the clock now: the tick's answer has released the simulator, and
+                # whether its next datagrams were read by now is the scheduler's doing, not
+                # the vehicle's.
+                t_next = self._next_tick(
+                    t_next, period, name if controlled else None,
+                    ran_at_s=start if self.clock.vehicle_time else None,
                 )  # fmt: skip
-            # In lockstep the next tick is planned from the vehicle time the tick ran at,
-            # not the clock now: the tick's answer has released the simulator, and whether
-            # its next datagrams were read by now is the scheduler's doing, not the vehicle's.
-            t_next = self._next_tick(
-                t_next, period, name if controlled else None,
-                ran_at_s=start if self.clock.vehicle_time else None,
-            )  # fmt: skip
+
+    def _stall(
+        self,
+        name: str,
+        t_s: float,
+        a: tuple[float, float, float, resource.struct_rusage, float],
+        b: tuple[float, float, float, resource.struct_rusage, float],
+    ) -> None:
+        """Counted (``{name}_stalls``) and kept: the interval from tick ``a`` to ``b``
+        (start, thread CPU, collections' total, the thread's rusage, its run-queue wait)."""
+        ua, ub = a[3], b[3]
+        self.counters[f"{name}_stalls"] += 1
+        self.stalls.append(Stall(
+            name, t_s, (b[0] - a[0]) * 1e3, (b[1] - a[1]) * 1e3, (b[4] - a[4]) * 1e3,
+            (b[2] - a[2]) * 1e3,
+            ub.ru_minflt - ua.ru_minflt, ub.ru_majflt - ua.ru_majflt,
+            ub.ru_nvcsw - ua.ru_nvcsw, ub.ru_nivcsw - ua.ru_nivcsw,
+        ))  # fmt: skip
 
     def _next_tick(
         self, t_next: float, period: float, counted: str | None, ran_at_s: float | None = None

@@ -38,6 +38,22 @@
   unboxes every array passed in (the estimator's update took ~110: 5 us warm, 48 us cold),
   so a kernel's many arrays are packed into one object (``lwpr_kernels.packed``), and
   chains of small numpy calls are one compiled call (``kernels.disturbance_plan``).
+* **Stalls, traced** (``loop.py``'s ``Stall``, the stats' ``stalls``; the collections in the
+  loops' thread apart in ``gc``). ``bench --attack --hogs 2`` (quaternion, FIFO, load 13-16):
+  no generation-2 collection in flight (186,701 objects frozen), the longest collection
+  2.1 ms (generation 1), all in the loops' thread; the position loop's 19 ticks later than
+  12 ms (12.0-15.4 ms) came with 0 page faults and 0 preemptions, and the process's other
+  threads (the miss worker's pool threads) ran < 1 ms in each: not the interpreter lock.
+  11 of them are on the library saver's 5 s pattern: its one ~3.7 ms step and a 1-2 ms
+  generation-0/1 collection its allocations start, on the loops' thread. A second run
+  (load 3-8.5) had 43 (12.0-22.3 ms), 35 of them waits: the thread blocked (voluntary
+  switches, 0 preemptions, no collection) and ran 2-3 ms of a 12-22 ms interval, so it
+  slept past its tick. A third run (load 4.5-5.3) with the run-queue wait: 29 of 40 stalls
+  were such waits, and in them the thread waited for a CPU for 0 ms (median; at most
+  1.8 ms): the CPU was not taken. The 23.0 ms one ran 1.9 ms and slept once, ~21 ms (2
+  voluntary switches; a wait for the interpreter lock wakes every 5 ms, the switch
+  interval). What the loops' thread blocks in (a lock, a blocking write, the selector's
+  timeout) is the next thing to find.
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
@@ -50,7 +66,7 @@ import logging
 import os
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -59,15 +75,26 @@ from epc_offboard.common.errors import EpcError
 log = logging.getLogger(__name__)
 
 _SLOW_COLLECTION_S = 0.001  # a collection longer than this is counted as slow
+_GC_EVENTS_KEPT = 64  # the latest slow collections, with their times, in the stats
 
 
 @dataclass
 class GcMonitor:
-    """Counts and times the cyclic collector's collections, per generation."""
+    """Counts and times the cyclic collector's collections, per generation; the ones in the
+    loops' thread apart (``loop_thread``: its ident, set by :func:`prepare`), since only
+    those stall a tick, and the longest (``events``: when, generation, how long, which
+    thread) for a stall to be traced to one."""
 
     collections: list[int] = field(default_factory=lambda: [0, 0, 0])
     slow: int = 0  # collections longer than _SLOW_COLLECTION_S
     max_pause_s: float = 0.0
+    pause_total_s: float = 0.0  # all collections' time: a stall's share is a difference
+    loop_thread: int | None = None
+    loop_thread_collections: list[int] = field(default_factory=lambda: [0, 0, 0])
+    loop_thread_max_pause_s: float = 0.0
+    events: deque[tuple[float, int, float, bool]] = field(
+        default_factory=lambda: deque(maxlen=_GC_EVENTS_KEPT)
+    )
     _started: float | None = None
 
     def install(self) -> None:
@@ -86,18 +113,30 @@ class GcMonitor:
             return
         pause = time.perf_counter() - self._started
         self._started = None
-        generation = int(info.get("generation", 2))
-        self.collections[min(max(generation, 0), 2)] += 1
+        generation = min(max(int(info.get("generation", 2)), 0), 2)
+        self.collections[generation] += 1
         self.max_pause_s = max(self.max_pause_s, pause)
+        self.pause_total_s += pause
+        in_loops = threading.get_ident() == self.loop_thread
+        if in_loops:
+            self.loop_thread_collections[generation] += 1
+            self.loop_thread_max_pause_s = max(self.loop_thread_max_pause_s, pause)
         if pause > _SLOW_COLLECTION_S:
             self.slow += 1
+            self.events.append((time.monotonic() - pause, generation, pause, in_loops))
 
     def stats(self) -> dict[str, Any]:
         return {
             "collections": list(self.collections),
             "slow_collections": self.slow,
             "max_pause_ms": round(self.max_pause_s * 1e3, 3),
+            "loop_thread_collections": list(self.loop_thread_collections),
+            "loop_thread_max_pause_ms": round(self.loop_thread_max_pause_s * 1e3, 3),
             "frozen_objects": gc.get_freeze_count(),
+            "slow_events": [
+                {"t_s": round(t, 4), "generation": g, "ms": round(p * 1e3, 3), "loop_thread": lt}
+                for t, g, p, lt in self.events
+            ],
         }
 
 
@@ -191,6 +230,7 @@ def prepare(
     collection from now on, and raise the loops' priority and pin them to ``cpus`` if
     configured (a refusal is logged and counted, never fatal)."""
     frozen = freeze_startup_objects()
+    monitor.loop_thread = threading.get_ident()
     monitor.install()
     try:
         log.info("loops: %s", apply_affinity(cpus))

@@ -113,7 +113,9 @@ class Service:
         self.misses = MissSolver(dict(controllers), slice_s=cfg.sharing.candidate_slice_s)
         self.counters: Counter[str] = Counter()
         log_gate = LogGate()  # wire- and loop-driven log lines, rate-limited
-        self.loops = Loops(self.clock, self.counters, log_gate)
+        self.gc_monitor = realtime.GcMonitor()
+        self.loops = Loops(self.clock, self.counters, log_gate,
+                           gc_pause_s=lambda: self.gc_monitor.pause_total_s)  # fmt: skip
         self.logs: LogWriter | None = None
         if cfg.log.flight_log_path or cfg.log.tlog_path:
             self.logs = LogWriter(cfg.log.flight_log_path, cfg.log.tlog_path, cfg.log,
@@ -143,7 +145,6 @@ class Service:
         )  # fmt: skip
         self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
-        self.gc_monitor = realtime.GcMonitor()
         # the `run` command's: the process ends within this after "stopped" (bounded_exit)
         self.exit_grace_s: float | None = None
         self._position_out: PositionOutput | None = None
@@ -423,6 +424,8 @@ class Service:
                 "signatures": compiled_signatures(),  # more than after warm-up: a loop compile
             },
             "gc": self.gc_monitor.stats(),
+            # real time: ticks later than the loops' bound, and what their thread did meanwhile
+            "stalls": [stall.as_dict() for stall in self.loops.stalls],
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
             "state": {**self.tracker.counters, **self.tracker.clock.counters},

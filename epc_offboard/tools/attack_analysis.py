@@ -304,11 +304,38 @@ def format_table(report: dict[str, Any]) -> str:
                  f"{report['attitude_mode']}; loops SCHED_FIFO "
                  f"{'applied' if report['fifo_applied'] else 'NOT applied'}; SITL (the autopilot) "
                  f"{'SCHED_FIFO' if report.get('sitl_fifo') else 'normal scheduling'}")  # fmt: skip
+    lines.append(stall_summary(report))
     lines.append(f"{'issue 21 target':62s} {'verdict':9s} measured")
     for v in judge(report):
         verdict = "n/a" if v.met is None else ("met" if v.met else "NOT MET")
         lines.append(f"{v.target:62s} {verdict:9s} {v.measured}")
     return "\n".join(lines)
+
+
+def stall_summary(report: dict[str, Any]) -> str:
+    """The service's own account of its real-time stalls (its stats' ``stalls``, the latest
+    ones kept) and of the garbage collector in the loops' thread."""
+    stalls = report.get("stats_stalls", [])
+    gc = report.get("stats_gc", {})
+    parts = []
+    for loop in ("position", "attitude"):
+        mine = [s for s in stalls if s["loop"] == loop]
+        if not mine:
+            parts.append(f"{loop} 0")
+            continue
+        on_cpu = sum(s["thread_cpu_ms"] >= 0.5 * s["interval_ms"] for s in mine)
+        gc_ms = max(s["gc_ms"] for s in mine)
+        parts.append(f"{loop} {report['stats_counters'].get(f'{loop}_stalls', len(mine))} "
+                     f"(of the latest {len(mine)}: {on_cpu} on the loops' own CPU, "
+                     f"longest {max(s['interval_ms'] for s in mine):.1f} ms, "
+                     f"collections <= {gc_ms:.1f} ms of one)")  # fmt: skip
+    text = "stalls (ticks later than 12 ms or two periods): " + "; ".join(parts)
+    if gc:
+        text += (f"\ngarbage collector in the loops' thread: collections by generation "
+                 f"{gc.get('loop_thread_collections')}, longest "
+                 f"{gc.get('loop_thread_max_pause_ms')} ms (all threads "
+                 f"{gc.get('collections')}, longest {gc.get('max_pause_ms')} ms)")
+    return text
 
 
 def write_figure(report: dict[str, Any], series: dict[str, FloatArray], path: Any) -> None:

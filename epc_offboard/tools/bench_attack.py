@@ -401,6 +401,8 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "stats_sharing": stats.get("sharing", {}),
         "stats_link": stats.get("link", {}),
         "stats_counters": counters,
+        "stats_gc": stats.get("gc", {}),
+        "stats_stalls": stats.get("stalls", []),
         "lockstep_rmse_m": lockstep_rmse_m,
         "figure8_rmse_m": analysis.figure8_rmse_m(windows),
     }  # fmt: skip
