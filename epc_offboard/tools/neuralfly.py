@@ -33,6 +33,7 @@ import subprocess
 import sys
 import time
 import tomllib
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -426,10 +427,10 @@ def write_figure(data: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
-def run(args: argparse.Namespace) -> int:
-    """``epc-offboard figures neuralfly``: fly (unless ``--numbers-only``), write, rewrite."""
-    from epc_offboard.tools.readme import rewrite
-
+def run(args: argparse.Namespace, rewrite: Callable[[str, Path], str]) -> int:
+    """``epc-offboard figures neuralfly``: fly (unless ``--numbers-only``), write, rewrite
+    the README with ``rewrite`` (``tools.readme``'s, passed in: that module renders this
+    one's table, so importing it here would be a cycle)."""
     if args.names:
         raise UsageError("figures neuralfly flies the whole table: it takes no NAME")
     if not 1 <= args.jobs <= MAX_JOBS:

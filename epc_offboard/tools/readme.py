@@ -249,7 +249,7 @@ def run_figures_command(args: argparse.Namespace) -> int:
     if args.what == "neuralfly":
         from epc_offboard.tools.neuralfly import run
 
-        return run(args)
+        return run(args, rewrite)
     results_dir = Path(args.results)
     readme = Path(args.readme)
     names = args.names or ([] if args.numbers_only else list(RECIPES))
