@@ -99,6 +99,18 @@ def mark_cache_warm() -> bool:
     return True
 
 
+def njit_cached(fn: F, **options: Any) -> F:
+    """``fn`` compiled by numba (``numba.njit(fn, **options)``) into its on-disk cache, or in
+    memory where the cache has no writable location (numba refuses ``cache=True`` there).
+    Imports numba: call it only where the kernels compile (:func:`enabled`)."""
+    import numba
+
+    try:
+        return cast(F, numba.njit(fn, cache=True, **options))
+    except RuntimeError:  # no writable cache location
+        return cast(F, numba.njit(fn, cache=False, **options))
+
+
 def entry_point(kernel: F, *args: Any) -> F:
     """``kernel``'s compiled function for the types of ``args`` (compiled, or loaded from
     numba's cache, now, as a call with them would be): called directly it skips numba's

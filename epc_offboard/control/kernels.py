@@ -102,7 +102,7 @@ def _compile() -> tuple[ApplyMap, QueryMaps] | None:
     if not jit.enabled():  # the numpy twins (a cold start, see common.jit)
         return None
     try:
-        import numba
+        import numba  # noqa: F401  (compiled below, by jit.njit_cached)
     except ImportError:  # numba is a dependency; keep working without it, only slower
         return None
 
@@ -133,17 +133,10 @@ def _compile() -> tuple[ApplyMap, QueryMaps] | None:
     # reassoc/contract let the dot product vectorise; no nnan/ninf: widths may be +inf.
     # The on-disk cache spares the ~1 s compile on later starts; without a writable cache
     # location numba refuses cache=True, so compile in memory then.
-    fastmath = {"reassoc", "contract"}
-    try:
-        compiled: Any = numba.njit(apply_map_numba, cache=True, nogil=True, fastmath=fastmath)
-        cache = True
-    except RuntimeError:
-        compiled = numba.njit(apply_map_numba, cache=False, nogil=True, fastmath=fastmath)
-        cache = False
-
+    compiled = jit.njit_cached(apply_map_numba, nogil=True, fastmath={"reassoc", "contract"})
     global _apply_jit
     _apply_jit = compiled
-    query = numba.njit(_query_maps_jit, cache=cache, nogil=True)
+    query = jit.njit_cached(_query_maps_jit, nogil=True)
     return cast(ApplyMap, compiled), cast(QueryMaps, query)
 
 
@@ -166,7 +159,6 @@ def _compile_lists() -> tuple[Callable[[], MapLists], Callable[..., None]] | Non
     under load), which delayed start-up enough to shift a lockstep flight's handshake."""
     if _NUMBA is None:
         return None
-    import numba
     from numba import types
     from numba.typed import List
 
@@ -175,13 +167,9 @@ def _compile_lists() -> tuple[Callable[[], MapLists], Callable[..., None]] | Non
     def new_lists() -> MapLists:
         return List.empty_list(mat), List.empty_list(vec)
 
-    try:
-        made = numba.njit(new_lists, cache=True)
-        stored = numba.njit(_store_numpy, cache=True)
-    except RuntimeError:
-        made = numba.njit(new_lists, cache=False)
-        stored = numba.njit(_store_numpy, cache=False)
-    return cast(Callable[[], MapLists], made), cast(Callable[..., None], stored)
+    made = jit.njit_cached(new_lists)
+    stored = jit.njit_cached(cast(Callable[..., None], _store_numpy))
+    return made, stored
 
 
 def new_map_lists() -> MapLists:
@@ -301,14 +289,7 @@ def _compile_plan() -> Callable[..., None] | None:
     """The compiled disturbance plan (None on the numpy twins: the caller's numpy code)."""
     if _NUMBA is None:
         return None
-    import numba
-
-    try:
-        return cast(Callable[..., None], numba.njit(_disturbance_plan_jit, cache=True,
-                                                    nogil=True))  # fmt: skip
-    except RuntimeError:
-        return cast(Callable[..., None], numba.njit(_disturbance_plan_jit, cache=False,
-                                                    nogil=True))  # fmt: skip
+    return jit.njit_cached(cast(Callable[..., None], _disturbance_plan_jit), nogil=True)
 
 
 disturbance_plan = _compile_plan()

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any, TypeVar, cast
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -64,10 +64,7 @@ def _jit(fn: F) -> F:
     results follow the numpy oracle), or ``fn`` itself without numba."""
     if numba is None:
         return fn
-    try:
-        return cast(F, numba.njit(fn, cache=True, nogil=True))
-    except RuntimeError:  # no writable cache location: compile in memory
-        return cast(F, numba.njit(fn, cache=False, nogil=True))
+    return jit.njit_cached(fn, nogil=True)
 
 
 @_jit
