@@ -51,7 +51,7 @@ def rms(e: np.ndarray) -> float:
 def test_the_fused_velocity_has_less_error_than_the_measured_one(seed: int) -> None:
     t, p, v, p_meas, v_meas, a_model = flight(seed)
     f = StateFilter(MATCHED, DT_S)
-    fused = [f.update(t[k], p_meas[k], v_meas[k], a_model[k]) for k in range(len(t))]
+    fused = [f.update(t[k], p_meas[k], v_meas[k], a_model[k], np.zeros(3)) for k in range(len(t))]
     p_f = np.array([x[0] for x in fused])
     v_f = np.array([x[1] for x in fused])
     # the error it is matched to: well below the measured velocity's (a low-pass filter of
@@ -63,7 +63,7 @@ def test_the_fused_velocity_has_less_error_than_the_measured_one(seed: int) -> N
 def test_unset_the_measured_state_is_flown_as_is() -> None:
     f = StateFilter(StateFilterConfig(), DT_S)
     p, v = np.array([1.0, 2.0, -3.0]), np.array([0.1, 0.2, 0.3])
-    p_out, v_out = f.update(0.0, p, v, np.ones(3))
+    p_out, v_out = f.update(0.0, p, v, np.ones(3), np.zeros(3))
     assert np.array_equal(p_out, p)
     assert np.array_equal(v_out, v)
     assert PositionControlConfig().state_filter == StateFilterConfig()
@@ -72,14 +72,14 @@ def test_unset_the_measured_state_is_flown_as_is() -> None:
 def test_a_gap_restarts_from_the_measurement() -> None:
     f = StateFilter(MATCHED, DT_S)
     for k in range(100):
-        f.update(k * DT_S, np.zeros(3), np.zeros(3), np.zeros(3))
+        f.update(k * DT_S, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
     p = np.array([5.0, -1.0, -2.0])
     v = np.array([1.0, 0.0, 0.5])
-    p_out, v_out = f.update(100 * DT_S + 0.5, p, v, np.zeros(3))
+    p_out, v_out = f.update(100 * DT_S + 0.5, p, v, np.zeros(3), np.zeros(3))
     assert np.array_equal(p_out, p)
     assert np.array_equal(v_out, v)
     # a repeated sample (the same time) changes nothing
-    p_again, v_again = f.update(100 * DT_S + 0.5, p + 1.0, v + 1.0, np.ones(3))
+    p_again, v_again = f.update(100 * DT_S + 0.5, p + 1.0, v + 1.0, np.ones(3), np.zeros(3))
     assert np.array_equal(p_again, p)
     assert np.array_equal(v_again, v)
 

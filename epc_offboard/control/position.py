@@ -731,7 +731,7 @@ class PositionLoop:
         # fused one, LWPR would learn back its own estimate the filter was predicted with
         pos_x0, vel_x0 = self._state_filter.update(
             state.time_s - state.position_age_s, state.pos_ned_m, state.vel_ned_m_s,
-            achieved + self._d_hat_last,
+            achieved, self._d_hat_last,
         )
         self.observe(state, ours=learn, thrust_axis_ned=axis)
         d_max = self._d_max

@@ -100,13 +100,17 @@ class StateFilter:
         self._x = np.zeros((4, 3))  # rows p, v, e_p, e_v; a column per axis
 
     def update(
-        self, t_s: float, pos_m: FloatArray, vel_m_s: FloatArray, acc_model_m_s2: FloatArray
+        self, t_s: float, pos_m: FloatArray, vel_m_s: FloatArray, acc_flown_m_s2: FloatArray,
+        acc_disturbance_m_s2: FloatArray,
     ) -> tuple[FloatArray, FloatArray]:
         """The fused (position, velocity) at the sample of time ``t_s`` (s), measured
-        ``pos_m``, ``vel_m_s``; ``acc_model_m_s2``: the model's acceleration over the step
-        that led to it. A repeated sample (same time) returns the last fused state."""
+        ``pos_m``, ``vel_m_s``; the model's acceleration over the step that led to it is
+        ``acc_flown_m_s2`` + ``acc_disturbance_m_s2`` (summed here: without a filter, on
+        every position tick, not at all). A repeated sample (same time) returns the last
+        fused state."""
         if not self.config.enabled:
             return pos_m, vel_m_s
+        acc_model_m_s2 = acc_flown_m_s2 + acc_disturbance_m_s2
         dt_s = t_s - self._t_s
         x = self._x
         if not 0.0 <= dt_s <= 1.5 * self.dt_s:

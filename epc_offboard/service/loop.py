@@ -156,14 +156,15 @@ class Loops:
                 # up to a scheduler tick; the thread clock does not), outside the wall time
                 use0 = resource.getrusage(resource.RUSAGE_THREAD)
                 cpu0 = time.thread_time()
-                gc0 = self._gc_pause_s()
-                now = (start, cpu0, gc0, use0, runqueue.read_s())
-                if before is not None and start - before[0] > stall_s:
+                # a stall is real time's (in lockstep the vehicle's clock waits for the tick)
+                now = None if self.clock.vehicle_time else (
+                    start, cpu0, self._gc_pause_s(), use0, runqueue.read_s())
+                if before is not None and now is not None and start - before[0] > stall_s:
                     self._stall(name, start, before, now)
                 wall0 = time.perf_counter()
                 controlled = await tick(Tick(start, t_next, period))
                 wall = time.perf_counter() - wall0
-                before = now if controlled and not self.clock.vehicle_time else None
+                before = now if controlled else None
                 if controlled:
                     cpu = time.thread_time() - cpu0
                     use = resource.getrusage(resource.RUSAGE_THREAD)
