@@ -29,7 +29,7 @@ from epc_offboard.common.errors import EpcError
 
 WINDOW_LOW = 24576  # above the fixed ports people give tools (7447, 14540, 14550, 5760, 18570)
 EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
-DEFAULT_EPHEMERAL_LOW = 32768  # Linux's default, when the range cannot be read
+DEFAULT_EPHEMERAL_RANGE = (32768, 60999)  # Linux's default, when the range cannot be read
 MIN_WINDOW = 256
 HELD_PER_PROCESS = 512
 
@@ -40,29 +40,26 @@ class NoFreePortError(EpcError, RuntimeError):
     pass
 
 
-def ephemeral_low() -> int:
-    """The lowest port the kernel hands out by itself."""
+def ephemeral_range() -> tuple[int, int]:
+    """The lowest and highest port the kernel hands out by itself."""
     try:
-        return int(EPHEMERAL_RANGE.read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return DEFAULT_EPHEMERAL_LOW
+        low, high = (int(v) for v in EPHEMERAL_RANGE.read_text().split()[:2])
+    except (OSError, ValueError):
+        return DEFAULT_EPHEMERAL_RANGE
+    return low, high
 
 
 def port_window() -> range:
     """The ports :func:`free_port` chooses from: below the ephemeral range, or when that is
     too low to leave a window, above it."""
-    low = ephemeral_low()
+    low, high = ephemeral_range()
     if low - WINDOW_LOW >= MIN_WINDOW:
         return range(WINDOW_LOW, low)
-    try:
-        high = int(EPHEMERAL_RANGE.read_text().split()[1]) + 1
-    except (OSError, ValueError, IndexError):
-        high = 65536
-    if 65536 - high >= MIN_WINDOW:
-        return range(high, 65536)
+    if 65535 - high >= MIN_WINDOW:
+        return range(high + 1, 65536)
     raise NoFreePortError(
         f"no port window outside the kernel's ephemeral range "
-        f"({EPHEMERAL_RANGE}: {low}..{high - 1}): narrow it to leave {MIN_WINDOW} ports"
+        f"({EPHEMERAL_RANGE}: {low}..{high}): narrow it to leave {MIN_WINDOW} ports"
     )
 
 
