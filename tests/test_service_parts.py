@@ -454,3 +454,32 @@ def test_while_the_rate_gate_suspends_body_rates_the_position_loop_flies_the_qua
     service._position_tick(dataclasses.replace(state, time_s=later), later)
     assert position.dead_time.dead_time_s == pytest.approx(0.05)
     assert service.counters["position_dead_time_switches"] == 2
+
+
+def test_ready_is_marked_before_the_phase_the_same_step_starts(
+    notify_socket: socket.socket, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The heartbeat in first, then the first state: one supervisor step sees both and leaves
+    for preflight. systemd's READY and the start-up's "ready" milestone come before that
+    phase's (the cold-start flight test saw "preflight" before "ready" when the heartbeat
+    happened to arrive first: the milestones' order is part of stats.json)."""
+    from epc_offboard.service import supervisor as supervisor_module
+    from epc_offboard.service.startup import Timeline
+
+    timeline = Timeline()
+    monkeypatch.setattr(supervisor_module, "TIMELINE", timeline)
+    sup, _, _, _ = _supervisor(CFG)
+    codec = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    frames = [
+        codec.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0,
+                               (4 << 16) | (3 << 24), mavlink.MAV_STATE_STANDBY),
+        codec.attitude_quaternion_encode(1000, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        codec.local_position_ned_encode(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    ]  # fmt: skip
+    for msg in frames:
+        sup.autopilot.on_message(codec.decode(bytearray(msg.pack(codec))))
+    step = sup.step(time.monotonic(), mission_complete=False)
+    assert step.outputs.phase == Phase.PREFLIGHT
+    marks = list(timeline.report()["milestones"])
+    assert marks == ["ready", "preflight"], marks
+    assert _told(notify_socket)[0] == "READY=1"

@@ -100,6 +100,13 @@ class Supervisor:
         age = self.tracker.age_s(now, vehicle_clock=lockstep)
         state = self.tracker.snapshot(self.tracker.vehicle_time_at(now, vehicle_clock=lockstep))
         fix = autopilot.fresh_global()
+        if not self._ready_sent and age <= self.cfg.offboard.max_state_age_s:
+            # before the step: the step that first sees fresh state may also leave for
+            # preflight (a heartbeat already in), and "ready" comes before any phase it starts
+            self._ready_sent = True
+            self.systemd.notify("READY=1")
+            TIMELINE.mark("ready")
+            log.info("link up and state flowing: ready")
         vel = None if state is None else state.vel_ned_m_s.tolist()
         out = self.sm.step(
             Inputs(
@@ -125,11 +132,6 @@ class Supervisor:
             self._phase_changed(now, out)
         self.outputs = out
         autopilot.manage(now, link_up=hb is not None)
-        if not self._ready_sent and age <= self.cfg.offboard.max_state_age_s:
-            self._ready_sent = True
-            self.systemd.notify("READY=1")
-            TIMELINE.mark("ready")
-            log.info("link up and state flowing: ready")
         if out.phase == Phase.DONE and self.cfg.mission.duration_s > 0:
             self._mission_over()
         return Step(out, state, changed)
