@@ -28,6 +28,9 @@ WALL_CLOCK_FIELDS = ("loops", "warning_examples")
 # warnings that count wall-clock waits (a loaded machine answers slower; in lockstep physics
 # waits for the answer all the same, so nothing else may differ)
 WALL_CLOCK_WARNINGS = ("loop clock waits timed out", "SITL lockstep timeouts")
+# a section's counts of wall-clock waits: the miss worker not stopped in its 2 s at the end
+# (beside the hogs at load 13 it was once; the flight before it was identical)
+WALL_CLOCK_COUNTS = {"miss_worker": ("worker_stop_timeouts",)}
 
 
 def fly(out: Path) -> dict[str, Any]:
@@ -54,6 +57,9 @@ def vehicle_time_fields(report: dict[str, Any]) -> list[dict[str, Any]]:
             for k, v in vehicle["warnings"].items()
             if k not in WALL_CLOCK_WARNINGS and k not in logged
         }
+        for section, keys in WALL_CLOCK_COUNTS.items():
+            if section in fields:
+                fields[section] = {k: v for k, v in fields[section].items() if k not in keys}
         out.append(fields)
     return out
 
