@@ -23,9 +23,11 @@ REPO = Path(__file__).resolve().parents[2]
 class MavClient:
     """A blocking pymavlink client on a UDP socket (sans-IO codec, like a GCS or MAVSDK)."""
 
-    def __init__(self, sysid: int = 245, key: bytes | None = None, sign: bool = True) -> None:
+    def __init__(
+        self, sysid: int = 245, key: bytes | None = None, sign: bool = True, port: int = 0
+    ) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
+        self.sock.bind(("127.0.0.1", port))
         self.port: int = self.sock.getsockname()[1]
         self.out = _Sink()
         self.mav = mavlink.MAVLink(self.out, srcSystem=sysid, srcComponent=190)

@@ -14,6 +14,7 @@ import time
 
 import mavsdk.asyncio as mavsdk
 
+from epc_offboard.common.ports import free_port
 from tests.sitl.mavclient import MavClient, start_sitl, stop_sitl
 
 MAVSDK_OFFBOARD = 7  # mavsdk FlightMode.OFFBOARD
@@ -26,8 +27,10 @@ def test_mavsdk_offboard_plugin_arms_climbs_and_stops_to_hold():
     from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
     from mavsdk.plugins.offboard import Attitude
 
-    port_holder = MavClient()  # only to pick a free port MAVSDK will listen on
-    port = port_holder.port
+    # the port MAVSDK will listen on: reserved, and outside the range port-0 binds draw from
+    # (an OS-chosen port closed and handed on could be any other socket's meanwhile)
+    port = free_port()
+    port_holder = MavClient(port=port)  # only to name it to the SITL
     port_holder.close()
     proc = start_sitl(port_holder)
 
