@@ -10,6 +10,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common.configio import ConfigError
+from epc_offboard.common.ports import free_port
 from epc_offboard.vehicle import link as link_module
 from epc_offboard.vehicle.link import Endpoint, MavlinkLink, parse_url
 
@@ -124,10 +125,9 @@ def test_tcp_link_waits_for_a_server_that_is_not_up_yet(monkeypatch):
     monkeypatch.setattr(link_module, "TCP_RECONNECT_PERIOD_S", 0.05)
 
     async def run() -> None:
-        probe = _Server()
-        await probe.start()
-        port = probe.port
-        await probe.stop()  # a port nobody listens on (for now)
+        # a port nobody listens on (for now), reserved: an OS-chosen one closed and bound
+        # again later could be any other socket's meanwhile
+        port = free_port()
         link = MavlinkLink(
             f"tcp://127.0.0.1:{port}", system_id=245, component_id=191, on_message=lambda m: None
         )
