@@ -181,17 +181,13 @@ class PositionControlConfig:
     # re-entry; its own angle boost does the same for its own targets). The thrust stays
     # within this factor of the target's (and 1/factor); 1.0: the target's tilt alone.
     thrust_tilt_ratio_max: float = 1.4
-    # The commanded acceleration's thrust limits (control/models.py acceleration_limits):
-    # the vertical specific thrust reaches at most g + vertical_share (f_max - g), the rest
-    # is the tilt's margin; thrust_facets: |f| <= f_max as eight planes, so that the
-    # vertical reaches that while the vehicle tilts less than its limit, instead of
-    # f_max cos(max tilt) at any tilt (the Neural-Fly scenario's strong wind: issue 24)
-    vertical_share: float = 0.5
+    # The thrust's bound |f| <= f_max on the commanded acceleration as eight planes
+    # (control/models.py acceleration_limits), so that the vertical specific thrust reaches
+    # g + (f_max - g) / 2 while the vehicle tilts less than its limit, instead of the cap
+    # f_max cos(max tilt) at any tilt: the Neural-Fly scenario's strong wind (issue 24)
     thrust_facets: bool = False
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.vertical_share) and 0.0 < self.vertical_share < 1.0):
-            raise ValueError(f"vertical_share must be in (0, 1), got {self.vertical_share}")
         if not (math.isfinite(self.thrust_tilt_ratio_max) and self.thrust_tilt_ratio_max >= 1.0):
             raise ValueError(
                 f"thrust_tilt_ratio_max must be >= 1, got {self.thrust_tilt_ratio_max}"
@@ -365,7 +361,6 @@ class PositionLoop:
             frame.min_thrust_norm,
             frame.max_thrust_norm,
             frame.hover_thrust_norm,
-            vertical_share=cfg.vertical_share,
             thrust_facets=cfg.thrust_facets,
         )
         self.problem = position_problem(cfg, self.acc_limits)
