@@ -236,7 +236,8 @@ def test_every_acceleration_within_the_thrust_facets_is_flyable(a, tilt_deg, sha
     if lim.contains(a):
         assert np.allclose(out, a)
     sp = accel_to_attitude(out, 0.3, hover)
-    assert math.acos(math.cos(sp.roll_rad) * math.cos(sp.pitch_rad)) <= math.radians(tilt_deg) + 1e-9
+    tilt = math.acos(math.cos(sp.roll_rad) * math.cos(sp.pitch_rad))
+    assert tilt <= math.radians(tilt_deg) + 1e-9
     assert 0.08 - 1e-9 <= sp.thrust_norm <= 0.95 + 1e-9
 
 
@@ -258,6 +259,7 @@ def test_the_thrust_facets_let_a_tilted_vehicle_climb_with_the_thrust_it_has():
     # north at the cap's f_z, 1 % inside the tilt row
     corner = np.array([0.99 * (capped.p[0] - capped.P[0, 2] * capped.u_min[2]), 0.0,
                        capped.u_min[2]])  # fmt: skip
-    assert capped.contains(corner) and facets.contains(corner)
+    assert capped.contains(corner)
+    assert facets.contains(corner)
     # a climb the sphere has no thrust for stays out: |f| = 18.4 > 17.9 m/s^2
     assert not facets.contains(np.array([11.0, 0.0, -4.0]))

@@ -8,8 +8,6 @@ the inflow's 1.6 m/s^2 of thrust loss, the figure-8 asked 4.6: the vehicle sagge
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from epc_offboard.common.configio import from_dict

@@ -456,8 +456,7 @@ def _thrust_facets(max_tilt_rad: float, f_max: float, f_hi: float, f_lo: float) 
         u_min=np.array([-math.inf, -math.inf, g - f_hi]),
         u_max=np.array([math.inf, math.inf, g - f_lo]),
         P=P,
-        p=np.concatenate([np.full(TILT_POLYGON_SIDES, k * g),
-                          np.full(TILT_POLYGON_SIDES, c - g)]),  # fmt: skip
+        p=np.concatenate([np.full(TILT_POLYGON_SIDES, k * g), np.full(TILT_POLYGON_SIDES, c - g)]),
     )
 
 
