@@ -229,3 +229,23 @@ def test_a_start_without_waiting_returns_before_the_worker_has_read_its_problems
         assert time.monotonic() - t0 < UNPICKLE_S / 2
     finally:
         solver.close()
+
+
+def test_a_miss_handed_over_at_its_ticks_end_hits_at_the_next_tick(solver_and_ctrl):
+    """The service's lockstep tick: pump(wait) at its start, the step, hand_over(wait) at
+    its end. Each new region misses once: the next tick has its controller. Queued at the
+    next tick's pump instead (the old path), it missed again at that tick (issue 24: 130 of
+    the 12.1 m/s row's 332 misses were these)."""
+    solver, ctrl = solver_and_ctrl
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    targets = ([4.0, -3.0, 1.0], [-5.0, 4.0, -1.5], [0.5, 6.0, 2.0])
+    for tgt in targets:
+        solver.pump(wait=True)  # the tick's start
+        d, refs = miss(ctrl, x0, tgt)
+        assert d.source == "intermediate"
+        solver.hand_over(wait=True)  # its end
+        solver.pump(wait=True)  # the next tick's start
+        assert ctrl.step(x0, refs).source == "hit"
+    assert solver.counters["solves_submitted"] == len(targets)
+    assert ctrl.stats.misses == len(targets)
+    assert solver.hand_over(wait=True) == 0  # no miss: nothing to do

@@ -214,3 +214,52 @@ def test_limit_tilt_always_lands_inside_and_keeps_what_is_inside(a):
         assert np.allclose(out, a)
     tilt, _ = tilt_and_thrust(out)
     assert tilt <= math.radians(45.0) + 1e-9
+
+
+# The Neural-Fly plant's envelope (config/vehicles/neuralfly_1500g.toml: hover 0.52)
+NF_HOVER = 0.5204
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    a=st.tuples(st.floats(-15, 15), st.floats(-15, 15), st.floats(-9, 6)),
+    tilt_deg=st.sampled_from([20.0, 35.0, 45.0, 60.0]),
+    share=st.sampled_from([0.3, 0.5, 0.7, 0.9]),
+    hover=st.sampled_from([HOVER, NF_HOVER, 0.7]),
+)
+def test_every_acceleration_within_the_thrust_facets_is_flyable(a, tilt_deg, share, hover):
+    lim = acceleration_limits(math.radians(tilt_deg), 0.08, 0.95, hover,
+                              vertical_share=share, thrust_facets=True)  # fmt: skip
+    a = np.array(a)
+    out = limit_tilt(a, lim)
+    assert lim.contains(out, tol=1e-9)
+    if lim.contains(a):
+        assert np.allclose(out, a)
+    sp = accel_to_attitude(out, 0.3, hover)
+    tilt = math.acos(math.cos(sp.roll_rad) * math.cos(sp.pitch_rad))
+    assert tilt <= math.radians(tilt_deg) + 1e-9
+    assert 0.08 - 1e-9 <= sp.thrust_norm <= 0.95 + 1e-9
+
+
+def test_the_thrust_facets_let_a_tilted_vehicle_climb_with_the_thrust_it_has():
+    """Tilted 30 deg into 12 m/s of wind (7.7 m/s^2 of drag to hold), the Neural-Fly plant
+    has 17.9 m/s^2 of specific thrust, 15.5 of it vertical at that tilt. The vertical cap
+    f_max cos(45 deg) allowed a climb of 2.85 m/s^2 at any tilt (the 25 cm sag climbing
+    upwind, issue 24); the facets allow the vertical share's 4.05, and the tilt limit's
+    corner at the cap stays as it was."""
+    tilt = math.radians(45.0)
+    capped = acceleration_limits(tilt, 0.08, 0.95, NF_HOVER)
+    facets = acceleration_limits(tilt, 0.08, 0.95, NF_HOVER, thrust_facets=True)
+    climb = np.array([7.7, 0.0, -4.0])
+    assert not capped.contains(climb)
+    assert facets.contains(climb)
+    assert capped.u_min[2] == pytest.approx(-2.85, abs=0.01)
+    f_max = GRAVITY_M_S2 * 0.95 / NF_HOVER
+    assert facets.u_min[2] == pytest.approx(-0.5 * (f_max - GRAVITY_M_S2))
+    # north at the cap's f_z, 1 % inside the tilt row
+    corner = np.array([0.99 * (capped.p[0] - capped.P[0, 2] * capped.u_min[2]), 0.0,
+                       capped.u_min[2]])  # fmt: skip
+    assert capped.contains(corner)
+    assert facets.contains(corner)
+    # a climb the sphere has no thrust for stays out: |f| = 18.4 > 17.9 m/s^2
+    assert not facets.contains(np.array([11.0, 0.0, -4.0]))

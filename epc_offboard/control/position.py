@@ -181,6 +181,11 @@ class PositionControlConfig:
     # re-entry; its own angle boost does the same for its own targets). The thrust stays
     # within this factor of the target's (and 1/factor); 1.0: the target's tilt alone.
     thrust_tilt_ratio_max: float = 1.4
+    # The thrust's bound |f| <= f_max on the commanded acceleration as eight planes
+    # (control/models.py acceleration_limits), so that the vertical specific thrust reaches
+    # g + (f_max - g) / 2 while the vehicle tilts less than its limit, instead of the cap
+    # f_max cos(max tilt) at any tilt: the Neural-Fly scenario's strong wind (issue 24)
+    thrust_facets: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.thrust_tilt_ratio_max) and self.thrust_tilt_ratio_max >= 1.0):
@@ -356,6 +361,7 @@ class PositionLoop:
             frame.min_thrust_norm,
             frame.max_thrust_norm,
             frame.hover_thrust_norm,
+            thrust_facets=cfg.thrust_facets,
         )
         self.problem = position_problem(cfg, self.acc_limits)
         strategy = position_strategy(cfg, self.problem, learn_on_miss=learn_on_miss)

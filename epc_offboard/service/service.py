@@ -207,6 +207,7 @@ class Service:
         self.misses.pump(wait=self.clock.vehicle_time)
         if self.outputs.stream_setpoints and state is not None:
             self._position_out = self._position_tick(state, tick.start_s)
+            self.misses.hand_over(wait=self.clock.vehicle_time)  # its misses, solved by the next
             self.systemd.control_ticked()
         return self.outputs.stream_setpoints  # ticks that control are timed, not idle ones
 
