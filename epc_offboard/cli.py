@@ -312,7 +312,8 @@ def _add_figures(sub: _Subparsers) -> None:
     figures.add_argument(
         "what", choices=["readme", "neuralfly"],
         help="readme: the recipes' figures and numbers; neuralfly: issue 24's Neural-Fly "
-        "table, every wind by every method (30 lockstep flights a seed, 10-25 min on 2 shared cores)",
+        "table, every wind by every method (30 lockstep flights a seed, 10-25 min on 2 shared "
+        "cores)",
     )  # fmt: skip
     figures.add_argument("names", nargs="*", metavar="NAME",
                          help=f"recipes to fly (default: all): {', '.join(RECIPES)}")  # fmt: skip

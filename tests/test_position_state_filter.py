@@ -5,6 +5,7 @@ and not white (Neural-Fly's plant: 5 mm, 3 cm/s, correlated over 0.25 s)."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -87,8 +88,9 @@ def test_a_gap_restarts_from_the_measurement() -> None:
 @pytest.mark.parametrize("key", ["position_noise_m", "velocity_noise_m_s", "correlation_s",
                                  "acc_noise_m_s2"])  # fmt: skip
 def test_the_config_is_checked(key: str) -> None:
+    bad: dict[str, Any] = {key: -1.0}
     with pytest.raises(ValueError, match=key):
-        StateFilterConfig(**{key: -1.0})
+        StateFilterConfig(**bad)
 
 
 def test_the_neuralfly_scenario_flies_it_and_a_misspelt_key_is_named() -> None:
