@@ -12,6 +12,7 @@ import pytest
 
 from epc_offboard.control.position import PositionControlConfig
 from epc_offboard.control.state_filter import StateFilter, StateFilterConfig
+from epc_offboard.tools.sim.scenario import load_scenario
 
 DT_S = 0.01
 MATCHED = StateFilterConfig(position_noise_m=0.005, velocity_noise_m_s=0.03,
@@ -99,8 +100,13 @@ def test_the_neuralfly_scenario_flies_it_and_a_misspelt_key_is_named() -> None:
     cfg = from_dict(PositionControlConfig, {"state_filter": {"position_noise_m": 0.005,
                                                              "velocity_noise_m_s": 0.03}})
     assert cfg.state_filter.enabled
+    assert not cfg.state_filter.feed_estimator  # the product's: the measured velocity
     with pytest.raises(Exception, match="velocity_noise"):
         from_dict(PositionControlConfig, {"state_filter": {"velocity_noise": 0.03}})
+    scenario = load_scenario("neuralfly").service["position"]
+    cfg = from_dict(PositionControlConfig, scenario)
+    assert cfg.state_filter.enabled
+    assert cfg.state_filter.feed_estimator  # the disturbance learnt at the fused velocity
 
 
 @pytest.mark.slow
