@@ -111,10 +111,11 @@ def test_the_neuralfly_scenario_flies_it_and_a_misspelt_key_is_named() -> None:
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_neuralfly_in_calm_air_tracks_within_2_cm_through_its_estimate_noise(tmp_path) -> None:
+def test_neuralfly_in_calm_air_tracks_within_1_6_cm_through_its_estimate_noise(tmp_path) -> None:
     """The whole `neuralfly` 0 m/s row, lockstep (repeatable), on a seed the filter was not
     tuned on: the QP answered the estimate's velocity error as motion, 2.21 cm mean after the
-    first lap without the filter; 1.76 with it."""
+    first lap without the filter; 1.66 with it, the disturbance still learnt and looked up at
+    the measured velocity (a forgetting LWPR followed its error); 1.53 at the fused one."""
     import json
     import subprocess
     import sys
@@ -128,4 +129,4 @@ def test_neuralfly_in_calm_air_tracks_within_2_cm_through_its_estimate_noise(tmp
     v = json.loads((out / "report.json").read_text())["vehicles"][0]
     assert v["finished"], proc.stdout + proc.stderr
     assert v["constraint_violations"] == 0
-    assert v["tracking"]["mean_error_m"] <= 0.020, proc.stdout
+    assert v["tracking"]["mean_error_m"] <= 0.016, proc.stdout
