@@ -309,7 +309,8 @@ def combine_verdicts(per_seed: list[list[dict[str, Any]]]) -> list[dict[str, Any
     linear in it: its mean is the ratio times the mean), with each seed's value kept."""
     out = []
     for rows in zip(*per_seed, strict=True):
-        values = [r["value"] for r in rows]
+        # (no figure as null: JSON has no NaN)
+        values = [r["value"] if _mean([r["value"]]) is not None else None for r in rows]
         row = {**rows[0], "values": values}
         if all(r["verdict"] != "n/a" for r in rows):
             value, bound = _mean(values), _mean([r["bound"] for r in rows])
@@ -353,22 +354,7 @@ def fly_table(out_dir: Path, results_dir: Path, seeds: tuple[int, ...], jobs: in
     with ThreadPoolExecutor(max_workers=jobs) as pool:
         outcomes = list(pool.map(one, plan))
     cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    by_seed: dict[str, dict[str, dict[int, dict[str, Any]]]] = {
-        row.key: {m.key: {} for m in METHODS} for row in ROWS
-    }
-    for (seed, row, m, out), (code, wall_s) in zip(plan, outcomes, strict=True):
-        by_seed[row.key][m.key][seed] = _flight_entry(out, code, wall_s, scenario)
-    verdicts = {}
-    for row in ROWS:
-        per_seed = []
-        for seed in seeds:
-            flown = {m.method: by_seed[row.key][m.key][seed] for m in METHODS
-                     if not m.product_lwpr}  # fmt: skip
-            reports = {k: e["report"] for k, e in flown.items() if "report" in e}
-            per_seed.append(evaluate(scenario.targets, reports) if reports else [])
-        verdicts[row.key] = (combine_verdicts(per_seed)
-                             if len({len(v) for v in per_seed}) == 1 else [])  # fmt: skip
-    flights = {r: {m: combine_seeds(s) for m, s in ms.items()} for r, ms in by_seed.items()}
+    flights, verdicts = tabulate(plan, outcomes, seeds, scenario)
     data = {
         "kind": "neuralfly_table",
         "command": command,
@@ -393,6 +379,32 @@ def fly_table(out_dir: Path, results_dir: Path, seeds: tuple[int, ...], jobs: in
     (results_dir / f"{RESULT_NAME}.json").write_text(dumps(data))
     write_figure(data, results_dir / f"{RESULT_NAME}.png")
     return data
+
+
+def tabulate(
+    plan: list[tuple[int, Row, Method, Path]], outcomes: list[tuple[int, float]],
+    seeds: tuple[int, ...], scenario: ScenarioConfig,
+) -> tuple[dict[str, dict[str, Any]], dict[str, list[dict[str, Any]]]]:
+    """The flown ``plan`` (seed, row, method, out dir) with each flight's (exit code, wall
+    s): per row and method its seeds combined (:func:`combine_seeds`), and per row the
+    scenario's targets judged on the means (:func:`combine_verdicts`)."""
+    by_seed: dict[str, dict[str, dict[int, dict[str, Any]]]] = {
+        row.key: {m.key: {} for m in METHODS} for row in ROWS
+    }
+    for (seed, row, m, out), (code, wall_s) in zip(plan, outcomes, strict=True):
+        by_seed[row.key][m.key][seed] = _flight_entry(out, code, wall_s, scenario)
+    verdicts = {}
+    for row in ROWS:
+        per_seed = []
+        for seed in seeds:
+            flown = {m.method: by_seed[row.key][m.key][seed] for m in METHODS
+                     if not m.product_lwpr}  # fmt: skip
+            reports = {k: e["report"] for k, e in flown.items() if "report" in e}
+            per_seed.append(evaluate(scenario.targets, reports) if reports else [])
+        verdicts[row.key] = (combine_verdicts(per_seed)
+                             if len({len(v) for v in per_seed}) == 1 else [])  # fmt: skip
+    flights = {r: {m: combine_seeds(s) for m, s in ms.items()} for r, ms in by_seed.items()}
+    return flights, verdicts
 
 
 # -- the README's table ---------------------------------------------------------------------
@@ -441,7 +453,10 @@ def render_table(results_dir: Path) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     g = data["gain"]
     gain_row = next(r for r in data["rows"] if r["key"] == g["row"])["label"]
-    if g["pct"] is None:
+    if g["pct"] is None and g.get("without_left"):
+        gain = (f"not measured (at {gain_row} EPC without adaptation left its envelope "
+                "before its first lap ended)")  # fmt: skip
+    elif g["pct"] is None:
         gain = f"not measured (a flight failed at {gain_row})"
     else:
         left = " (no adaptation left its envelope: its mean over what it flew)" * bool(
