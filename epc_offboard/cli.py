@@ -312,7 +312,8 @@ def _add_figures(sub: _Subparsers) -> None:
     figures.add_argument(
         "what", choices=["readme", "neuralfly"],
         help="readme: the recipes' figures and numbers; neuralfly: issue 24's Neural-Fly "
-        "table, every wind by every method (30 lockstep flights, 10-25 min on 2 shared cores)",
+        "table, every wind by every method (30 lockstep flights a seed, 10-25 min on 2 shared "
+        "cores)",
     )  # fmt: skip
     figures.add_argument("names", nargs="*", metavar="NAME",
                          help=f"recipes to fly (default: all): {', '.join(RECIPES)}")  # fmt: skip
@@ -324,10 +325,25 @@ def _add_figures(sub: _Subparsers) -> None:
                          help="the README to rewrite")  # fmt: skip
     figures.add_argument("--work", "--out", default="out/readme", metavar="DIR",
                          help="where the flights write their full output")  # fmt: skip
-    figures.add_argument("--seed", type=bounded_int(0), default=0,
-                         help="neuralfly: the flights' noise seed")  # fmt: skip
+    seeds = figures.add_mutually_exclusive_group()
+    seeds.add_argument("--seed", type=bounded_int(0), default=None,
+                       help="neuralfly: the flights' noise seed (default 0)")  # fmt: skip
+    seeds.add_argument("--seeds", type=_seeds, default=None, metavar="N,N,...",
+                       help="neuralfly: fly every flight on each seed; the table gives the "
+                       "mean over them and their spread")  # fmt: skip
     figures.add_argument("--jobs", type=bounded_int(1), default=2, metavar="N",
                          help="neuralfly: flights at once (at most 2)")  # fmt: skip
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    """``3,4``: distinct seeds >= 0."""
+    try:
+        seeds = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N or N,N,...: {text!r}") from None
+    if min(seeds) < 0 or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"seeds must be distinct and >= 0: {text!r}")
+    return seeds
 
 
 def _sizes(text: str) -> list[int]:

@@ -43,6 +43,21 @@ def cpu_hog(seconds: float) -> subprocess.Popen[bytes]:
     )
 
 
+def processes_with(marker: str) -> dict[int, str]:
+    """Every live process whose command line holds ``marker`` (a test's tmp path): pid ->
+    the command line's start, spaces for its NULs."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                cmdline = (entry / "cmdline").read_bytes().decode(errors="replace")
+            except OSError:  # gone meanwhile
+                continue
+            if marker in cmdline:
+                found[int(entry.name)] = cmdline.replace("\0", " ")[:160]
+    return found
+
+
 # config/epc-offboard.service runs the service at Nice=-5; the SITL stands in for the
 # autopilot, which has a processor of its own. Both get that priority here (when the test may
 # raise it), so a CPU hog beside them loads the machine as it would a companion computer.

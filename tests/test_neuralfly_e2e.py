@@ -5,14 +5,20 @@ reported with its metric. A few seconds of vehicle time: its figures are no comp
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+
+from tests.rig import processes_with
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -86,3 +92,38 @@ def _assert_handed_over_settled(vehicle_dir: Path) -> None:
     vertical = max(abs(float(r["vel_d_m_s"])) for r in window)
     assert horizontal <= 0.4, (horizontal, events)
     assert vertical <= 0.5, (vertical, events)
+
+
+def test_a_killed_figures_neuralfly_leaves_no_flight_flying(tmp_path: Path) -> None:
+    """`figures neuralfly` flies its table as `sim` children: killed (a timeout, an OOM kill,
+    `kill -9`), it left the running `sim`, its SITL and its service flying to the flight's
+    end (a minute); they now end with it (`sim` gets SIGTERM and stops its own)."""
+    work = tmp_path / "work"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "epc_offboard", "figures", "neuralfly", "--seed", "0",
+         "--jobs", "1", "--work", str(work), "--results", str(tmp_path / "results"),
+         "--readme", str(tmp_path / "README.md")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    marker = str(work)
+    try:
+        deadline = time.monotonic() + 120
+        # figures, its sim, the SITL and the service (their command lines name the work dir)
+        while len(processes_with(marker)) < 4 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(processes_with(marker)) >= 4, "figures never started a flight"
+        proc.kill()
+        assert proc.wait(timeout=20) == -signal.SIGKILL
+        deadline = time.monotonic() + 20
+        while processes_with(marker) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert processes_with(marker) == {}, "a flight outlived figures neuralfly"
+        # and none flew on to its end (an orphan's first flight takes 15-60 s: in 20 s it
+        # may have ended, with its report)
+        assert not list(work.rglob("report.json")), "a flight flew on after figures died"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for pid in processes_with(marker):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)

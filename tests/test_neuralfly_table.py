@@ -130,3 +130,76 @@ def test_the_readme_carries_the_table_its_command_and_figure() -> None:
 def test_bad_neuralfly_arguments_are_usage_errors(argv: list[str], message: str, capsys) -> None:
     assert main(["figures", "neuralfly", *argv, "--numbers-only"]) == 2
     assert message in capsys.readouterr().err
+
+
+def _seed_flight(mean_m: float | None, status: str = "flown", hits: float | None = 0.97,
+                 n: int = 3) -> dict:  # fmt: skip
+    return {**_flight(mean_m, status, hits), "t_s": [0.1 * i for i in range(n)],
+            "error_cm": [100.0 * (mean_m or 0.0)] * n, "rmse_m": mean_m, "max_error_m": mean_m,
+            "max_tilt_deg": 20.0, "constraint_violations": 0, "wall_s": 40.0, "why": "",
+            "exit_code": 0, "first_lap_misses": 5}  # fmt: skip
+
+
+def test_seeds_combine_into_their_mean_spread_and_worst_status() -> None:
+    both = neuralfly.combine_seeds({3: _seed_flight(0.0166), 4: _seed_flight(0.0183, n=2)})
+    assert both["status"] == "flown"
+    assert both["mean_error_m"] == pytest.approx(0.01745)
+    assert (both["mean_error_min_m"], both["mean_error_max_m"]) == (0.0166, 0.0183)
+    assert both["mean_error_std_m"] == pytest.approx(0.00085)
+    assert both["error_cm"] == pytest.approx([1.745, 1.745])  # the time both flew
+    assert set(both["seeds"]) == {"3", "4"}
+    assert both["seeds"]["4"]["mean_error_m"] == 0.0183
+    assert "t_s" not in both["seeds"]["3"]  # the series only in the mean
+    left = neuralfly.combine_seeds({3: _seed_flight(0.0166), 4: _seed_flight(0.5, "left")})
+    assert left["status"] == "left"
+    failed = neuralfly.combine_seeds({3: _seed_flight(None, "failed", None),
+                                      4: _seed_flight(0.5, "left")})  # fmt: skip
+    assert failed["status"] == "failed"
+    assert failed["mean_error_m"] is None
+    assert failed["hit_rate_after_first_lap"] is None
+
+
+def test_targets_over_seeds_are_judged_on_the_means() -> None:
+    def verdict(value: float, bound: float) -> list[dict]:
+        ok = "PASS" if value <= bound else "FAIL"
+        return [{"target": "t", "method": "epc:lwpr", "metric": "mean_error_m", "value": value,
+                 "bound": bound, "vs": None, "verdict": ok}]  # fmt: skip
+
+    # one seed passes, the other fails: the mean (1.55 cm) fails the 1.5 cm bound
+    combined = neuralfly.combine_verdicts([verdict(0.014, 0.015), verdict(0.017, 0.015)])
+    assert combined[0]["verdict"] == "FAIL"
+    assert combined[0]["value"] == pytest.approx(0.0155)
+    assert combined[0]["values"] == [0.014, 0.017]
+    # a ratio's bound (0.4 x the other method's value) averages to 0.4 x its mean
+    combined = neuralfly.combine_verdicts([verdict(0.03, 0.4 * 0.1), verdict(0.05, 0.4 * 0.2)])
+    assert combined[0]["bound"] == pytest.approx(0.4 * 0.15)
+    assert combined[0]["verdict"] == "PASS"
+
+
+def test_a_table_of_several_seeds_gives_each_mean_and_its_range(tmp_path: Path) -> None:
+    results = _table(tmp_path)
+    data = json.loads((results / "neuralfly.json").read_text())
+    del data["seed"]
+    data["seeds"] = [3, 4]
+    data["command"] = "epc-offboard figures neuralfly --seeds 3,4 --jobs 2"
+    data["flights"]["0"]["epc-lwpr"] = neuralfly.combine_seeds(
+        {3: _seed_flight(0.0166), 4: _seed_flight(0.0183)}
+    )
+    (results / "neuralfly.json").write_text(json.dumps(data))
+    text = neuralfly.render_table(results)
+    assert "| 0 m/s | 1.75 (1.66–1.83) | 2.46 |" in text
+    assert "the mean over the seeds, their lowest and highest in brackets" in text
+    assert "(lockstep, seeds 3, 4, 2 flights at once)" in text
+    neuralfly.write_figure(data, tmp_path / "nf.png")
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [(["--seed", "3", "--seeds", "3,4"], "not allowed with argument"),
+     (["--seeds", "3,3"], "distinct"), (["--seeds", "3,x"], "expected N")],
+)  # fmt: skip
+def test_bad_seeds_are_usage_errors(argv: list[str], message: str, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["figures", "neuralfly", *argv, "--numbers-only"])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err

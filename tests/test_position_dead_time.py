@@ -121,6 +121,29 @@ def test_a_state_latency_carries_the_state_but_does_not_shift_the_reference():
     np.testing.assert_array_equal(only.window(stages, 0.05, 20)[:, 0], np.arange(1.0, 21.0))
 
 
+@pytest.mark.parametrize(("dead_time_s", "latency_s"), [(0.0, 0.015), (0.05, 0.013)])
+def test_a_span_between_ticks_is_carried_exactly(dead_time_s, latency_s):
+    """15 ms of state latency on 10 ms ticks (Neural-Fly's plant's telemetry delay) is the
+    oldest command in flight over the last 5 ms of its tick, then the newest over one whole
+    tick: rounded to two ticks, the state was carried 5 ms too far."""
+    period = 0.01
+    pred = DeadTimePredictor(TAU, period, dead_time_s, latency_s=latency_s)
+    span = (dead_time_s + latency_s) / period
+    n = math.ceil(span)
+    assert pred.steps == n
+    rng = np.random.default_rng(7)
+    commands = rng.normal(0.0, 2.0, (n, 3))
+    for k, u in enumerate(commands):
+        pred.sent(k * period, u)
+    x0 = rng.normal(0.0, 1.0, 9)
+    d = rng.normal(0.0, 0.3, 3)
+    got = pred.ahead(x0, d, n * period)
+    first = integrate(x0, commands[:1], d, (span - (n - 1)) * period, TAU)
+    want = integrate(first, commands[1:], d, period, TAU)
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    assert np.max(np.abs(integrate(x0, commands, d, period, TAU) - want)) > 5e-3
+
+
 def test_the_loop_flies_the_configured_state_latency():
     cfg = PositionControlConfig(command_dead_time_s=None, state_latency_s=0.015)
     loop = PositionLoop(cfg, EstimatorConfig(kind="none"), 0.01)

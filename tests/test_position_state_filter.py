@@ -5,12 +5,14 @@ and not white (Neural-Fly's plant: 5 mm, 3 cm/s, correlated over 0.25 s)."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
 
 from epc_offboard.control.position import PositionControlConfig
 from epc_offboard.control.state_filter import StateFilter, StateFilterConfig
+from epc_offboard.tools.sim.scenario import load_scenario
 
 DT_S = 0.01
 MATCHED = StateFilterConfig(position_noise_m=0.005, velocity_noise_m_s=0.03,
@@ -87,8 +89,9 @@ def test_a_gap_restarts_from_the_measurement() -> None:
 @pytest.mark.parametrize("key", ["position_noise_m", "velocity_noise_m_s", "correlation_s",
                                  "acc_noise_m_s2"])  # fmt: skip
 def test_the_config_is_checked(key: str) -> None:
+    bad: dict[str, Any] = {key: -1.0}
     with pytest.raises(ValueError, match=key):
-        StateFilterConfig(**{key: -1.0})
+        StateFilterConfig(**bad)
 
 
 def test_the_neuralfly_scenario_flies_it_and_a_misspelt_key_is_named() -> None:
@@ -97,16 +100,22 @@ def test_the_neuralfly_scenario_flies_it_and_a_misspelt_key_is_named() -> None:
     cfg = from_dict(PositionControlConfig, {"state_filter": {"position_noise_m": 0.005,
                                                              "velocity_noise_m_s": 0.03}})
     assert cfg.state_filter.enabled
+    assert not cfg.state_filter.feed_estimator  # the product's: the measured velocity
     with pytest.raises(Exception, match="velocity_noise"):
         from_dict(PositionControlConfig, {"state_filter": {"velocity_noise": 0.03}})
+    scenario = load_scenario("neuralfly").service["position"]
+    cfg = from_dict(PositionControlConfig, scenario)
+    assert cfg.state_filter.enabled
+    assert cfg.state_filter.feed_estimator  # the disturbance learnt at the fused velocity
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_neuralfly_in_calm_air_tracks_within_2_cm_through_its_estimate_noise(tmp_path) -> None:
+def test_neuralfly_in_calm_air_tracks_within_1_6_cm_through_its_estimate_noise(tmp_path) -> None:
     """The whole `neuralfly` 0 m/s row, lockstep (repeatable), on a seed the filter was not
     tuned on: the QP answered the estimate's velocity error as motion, 2.21 cm mean after the
-    first lap without the filter; 1.76 with it."""
+    first lap without the filter; 1.66 with it, the disturbance still learnt and looked up at
+    the measured velocity (a forgetting LWPR followed its error); 1.53 at the fused one."""
     import json
     import subprocess
     import sys
@@ -120,4 +129,4 @@ def test_neuralfly_in_calm_air_tracks_within_2_cm_through_its_estimate_noise(tmp
     v = json.loads((out / "report.json").read_text())["vehicles"][0]
     assert v["finished"], proc.stdout + proc.stderr
     assert v["constraint_violations"] == 0
-    assert v["tracking"]["mean_error_m"] <= 0.020, proc.stdout
+    assert v["tracking"]["mean_error_m"] <= 0.016, proc.stdout

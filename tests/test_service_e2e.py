@@ -26,7 +26,7 @@ from epc_offboard.vehicle.dialect_px4 import (
     PX4_MAIN_MODE_OFFBOARD,
     px4_custom_mode,
 )
-from tests.rig import Rig, holding_scenario
+from tests.rig import Rig, holding_scenario, processes_with
 from tests.test_coldstart_e2e import HOVER
 
 pytestmark = pytest.mark.timeout(240)
@@ -235,16 +235,7 @@ def test_sigterm_to_sim_stops_every_process_it_started(tmp_path, sig):
     marker = str(out / "vehicle1")
 
     def children() -> dict[int, str]:
-        found = {}
-        for entry in Path("/proc").iterdir():
-            if entry.name.isdigit():
-                try:
-                    cmdline = (entry / "cmdline").read_bytes().decode(errors="replace")
-                except OSError:
-                    continue
-                if marker in cmdline:
-                    found[int(entry.name)] = cmdline.replace("\0", " ")[:160]
-        return found
+        return processes_with(marker)
 
     try:
         deadline = time.monotonic() + 60

@@ -26,6 +26,19 @@ def test_absolute_relative_and_missing_targets():
     assert verdicts == ["FAIL", "PASS", "PASS", "n/a"]
 
 
+def test_a_figure_the_report_has_as_null_fails_its_target_without_a_crash():
+    """A flight `sim` stopped before its metric began (Neural-Fly's 8.5 m/s without
+    adaptation, seed 4: blown off in its first lap) has a null mean error in its written
+    report: `figures neuralfly --seeds 3,4` crashed on it after its 60 flights."""
+    targets = (TargetConfig("epc:lwpr", "rmse_m", vs="epc:none", ratio=0.4),
+               TargetConfig("epc:lwpr", "rmse_m", max=0.02))  # fmt: skip
+    stopped = {"vehicles": [{"tracking": {"rmse_m": None}}]}
+    verdicts = evaluate(targets, {"epc:lwpr": stopped, "epc:none": report(0.5)})
+    assert [v["verdict"] for v in verdicts] == ["FAIL", "FAIL"]
+    verdicts = evaluate(targets[:1], {"epc:lwpr": report(0.01), "epc:none": stopped})
+    assert [v["verdict"] for v in verdicts] == ["FAIL"]
+
+
 def test_target_needs_exactly_one_bound_and_known_methods():
     with pytest.raises(ValueError, match="exactly one"):
         TargetConfig("epc:lwpr", "rmse_m")

@@ -88,10 +88,12 @@ def _ticks(span_s: float, period_s: float) -> int:
 
 
 class DeadTimePredictor:
-    """The lagged position model ``x = [p, v, a]`` on the loop's tick grid, carried over
-    ``dead_time_s`` plus ``latency_s`` (rounded to ticks of ``period_s``) with the commands
-    sent in that time, and a disturbance ``d`` held constant (it enters v as in the QP's
-    model)."""
+    """The lagged position model ``x = [p, v, a]`` carried over ``dead_time_s`` plus
+    ``latency_s`` with the commands sent in that time, and a disturbance ``d`` held constant
+    (it enters v as in the QP's model). The span is carried exactly, not in whole ticks of
+    ``period_s``: a span of 1.5 ticks (Neural-Fly's plant: 15 ms of telemetry delay on 10 ms
+    ticks) is the oldest command in flight over its last half tick, then one whole tick of
+    the newest. Rounded to ticks, the state was carried 5 ms short or long."""
 
     def __init__(
         self,
@@ -110,20 +112,33 @@ class DeadTimePredictor:
         # at the dead time alone (the plan is for the vehicle as it will be, on the
         # reference as it will be then; a dead time standing in for the latency shifted the
         # reference as well, and the vehicle led it by the latency)
-        n = self.steps = _ticks(dead_time_s + latency_s, period_s)
+        span = (dead_time_s + latency_s) / period_s
+        whole = math.floor(span + 1e-9)
+        frac = span - whole if span - whole > 1e-9 else 0.0  # of the oldest command's tick
+        n = self.steps = whole + (frac > 0.0)  # the commands in flight
         self.dead_time_s = min(_ticks(dead_time_s, period_s), n) * period_s  # as flown: ticks
         model = position_model_lagged(period_s, tau_acc_s)
         A, B = model.A, model.B
+        E = velocity_disturbance_input(model)
         powers = [np.eye(9)]
         for _ in range(n):
             powers.append(A @ powers[-1])
-        self._phi = powers[n]
         # x_n = A^n x_0 + sum_j A^(n-1-j) B u_j + sum_j A^j E d; u_0 the oldest in flight
         w = np.zeros((9, 3 * n))
         for j in range(n):
             w[:, 3 * j : 3 * j + 3] = powers[n - 1 - j] @ B
+        self._phi = powers[n]
+        self._wd = sum(powers[:n], np.zeros((9, 9))) @ E
+        if frac:
+            # the oldest command acts over the last ``frac`` of its tick only: x_0 is carried
+            # that long by the model discretised at that step, then ``whole`` ticks
+            part = position_model_lagged(frac * period_s, tau_acc_s)
+            carry = powers[whole]
+            self._phi = carry @ part.A
+            w[:, 0:3] = carry @ part.B
+            self._wd = carry @ velocity_disturbance_input(part) + sum(
+                powers[:whole], np.zeros((9, 9))) @ E  # fmt: skip
         self._w = w
-        self._wd = sum(powers[:n], np.zeros((9, 9))) @ velocity_disturbance_input(model)
         # the commands of the last n ticks, oldest first (one row a tick); the newest
         # _in_flight of them were sent without a gap
         self._sent = np.zeros((n, 3))

@@ -415,6 +415,7 @@ class PositionLoop:
         self._path: tuple[str, str] | None = None
         self.dead_time = self._predictor(cfg.command_dead_time_s or 0.0)
         self._state_filter = StateFilter(cfg.state_filter, loop_period_s)
+        self._feed_estimator = cfg.state_filter.enabled and cfg.state_filter.feed_estimator
         # the disturbance estimate of the last tick: the state filter's model acceleration
         self._d_hat_last = np.zeros(3)
 
@@ -739,12 +740,20 @@ class PositionLoop:
             state.time_s - state.position_age_s, state.pos_ned_m, state.vel_ned_m_s,
             achieved, self._d_hat_last,
         )
-        self.observe(state, ours=learn, thrust_axis_ned=axis)
+        # the velocity the disturbance is learnt and looked up at
+        # ([position.state_filter] feed_estimator): the estimate's smooth error is no
+        # disturbance
+        vel_est = state.vel_ned_m_s
+        if self._feed_estimator:
+            vel_est = vel_x0
+            self.observe(replace(state, vel_ned_m_s=vel_x0), ours=learn, thrust_axis_ned=axis)
+        else:
+            self.observe(state, ours=learn, thrust_axis_ned=axis)
         d_max = self._d_max
         if not self._nominal_feedforward:
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
             # itself; the nominal input only cancels the disturbance
-            d_hat = np.minimum(np.maximum(self.estimator.estimate(state.vel_ned_m_s), -d_max),
+            d_hat = np.minimum(np.maximum(self.estimator.estimate(vel_est), -d_max),
                                d_max)  # fmt: skip
             u_p = np.broadcast_to(-d_hat, (self.config.horizon, 3))
         else:
@@ -761,7 +770,7 @@ class PositionLoop:
             # origin: the reference's there lost the drag's turn over ArduPilot's 0.2 s
             # (circle max 0.90 -> 2.0-4.4 cm)
             z_stages = self._z_stages
-            z_stages[0] = state.vel_ned_m_s
+            z_stages[0] = vel_est
             z_stages[1] = reference.stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
             z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
             p_hat, d_var = self.estimator.estimate_along(z_stages)

@@ -4,20 +4,24 @@ Every wind row (:data:`ROWS`: 0, 4.2, 8.5, 12.1 m/s and 8.5 + 2.4 sin t, blowing
 figure's plane as Neural-Fly's fan array did) by every method (:data:`METHODS`: EPC + LWPR
 as the ``neuralfly`` scenario configures it, EPC + LWPR as the product ships it, the Kalman
 observer, no adaptation, PD and PX4's own position controller) is one lockstep
-``epc-offboard sim --scenario neuralfly`` flight from an empty library, at most ``--jobs``
-(<= 2) at once. Written:
+``epc-offboard sim --scenario neuralfly`` flight from an empty library per seed (``--seed N``,
+or ``--seeds N,N,...``: the held-out seeds the scenario was not tuned on), at most ``--jobs``
+(<= 2) at once. Each ``sim`` ends with this command (:func:`~epc_offboard.common.children.
+die_with_launcher`), and its SITL and service with it. Written:
 
-* ``RESULTS/neuralfly.json``: per flight its mean error after the first lap (Neural-Fly's
-  metric), RMSE, max, max tilt, hit rate after the first lap, whether sim stopped it, and its
-  error against time at 10 Hz; per row the scenario's targets judged; the learning's gain at
-  8.5 m/s; the seed, the machine's load before and after, the wall and CPU time, the commit;
+* ``RESULTS/neuralfly.json``: per row and method the mean over the seeds of its mean error
+  after the first lap (Neural-Fly's metric), their spread, RMSE, max, max tilt, hit rate
+  after the first lap, whether sim stopped it, its error against time at 10 Hz (averaged
+  over the seeds), and each seed's figures; per row the scenario's targets judged on the
+  means; the learning's gain at 8.5 m/s; the seeds, the machine's load before and after,
+  the wall and CPU time, the commit;
 * ``RESULTS/neuralfly.png``: error against time per wind, ours and the baselines, and the
   means beside Neural-Fly's and the targets;
 
 then the README's table between ``<!-- table:neuralfly -->`` and ``<!-- /table -->`` is
 rewritten from that JSON (:func:`render_table`, through :mod:`.readme`, so ``figures readme
 --numbers-only`` and the README test read it too). Each flight's full output stays in
-``--out``/ROW/METHOD.
+``--out``/seedN/ROW/METHOD.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from epc_offboard.common.children import launched_env
 from epc_offboard.common.errors import EXIT_OK, EXIT_RUNTIME, UsageError
 from epc_offboard.tools.sim.scenario import SCENARIO_DIR, ScenarioConfig, load_scenario
 from epc_offboard.tools.targets import evaluate
@@ -129,7 +134,10 @@ def sim_argv(row: Row, method: Method, scenario_arg: str, dir_deg: float, seed: 
 
 
 def _fly(argv: list[str], out: Path) -> tuple[int, float]:
-    """One flight as its own process, its output to ``out/sim.log``; (exit code, wall s)."""
+    """One flight as its own process, its output to ``out/sim.log``; (exit code, wall s).
+    The process ends with this one (SIGTERM when it dies, even SIGKILLed: ``sim`` then stops
+    its SITL and service), from the thread that waits for it: a killed table left its
+    running flight flying to its end."""
     if out.exists():  # from an empty library, as a first flight: reproducible
         shutil.rmtree(out)
     out.mkdir(parents=True)
@@ -138,7 +146,8 @@ def _fly(argv: list[str], out: Path) -> tuple[int, float]:
         log.write("epc-offboard " + " ".join(argv) + "\n")
         log.flush()
         code = subprocess.run([sys.executable, "-m", "epc_offboard", *argv], stdout=log,
-                              stderr=subprocess.STDOUT, check=False).returncode  # fmt: skip
+                              stderr=subprocess.STDOUT, env={**os.environ, **launched_env()},
+                              check=False).returncode  # fmt: skip
     return code, time.monotonic() - start
 
 
@@ -237,49 +246,120 @@ def _gain(flights: dict[str, dict[str, Any]]) -> dict[str, Any]:
     return gain
 
 
-def fly_table(out_dir: Path, results_dir: Path, seed: int, jobs: int) -> dict[str, Any]:
-    """Fly every row by every method (``jobs`` at once) into ``out_dir``; the table's JSON,
-    also written with its figure to ``results_dir``."""
+def _mean(values: list[Any]) -> float | None:
+    """The mean of ``values``; None when one is missing or not finite."""
+    if not values or any(v is None or not math.isfinite(v) for v in values):
+        return None
+    return float(np.mean(values))
+
+
+def _mean_series(entries: list[dict[str, Any]]) -> tuple[list[float], list[float]]:
+    """The seeds' error series averaged over the time all of them flew (same 10 Hz grid)."""
+    n = min((len(e["t_s"]) for e in entries), default=0)
+    if n < 2:
+        return [], []
+    err_cm = np.mean([e["error_cm"][:n] for e in entries], axis=0)
+    return entries[0]["t_s"][:n], [round(float(e), 3) for e in err_cm]
+
+
+# a seed's figures the table keeps beside the mean (its series only in the mean)
+_PER_SEED = ("status", "why", "exit_code", "wall_s", "mean_error_m", "rmse_m", "max_error_m",
+             "max_tilt_deg", "constraint_violations", "hit_rate_after_first_lap",
+             "first_lap_misses", "lockstep_timeouts")  # fmt: skip
+
+
+def combine_seeds(by_seed: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """One row and method over its seeds' flights: the means (None when a seed has none),
+    the mean error's spread (min, max, standard deviation), the worst of the max error, tilt
+    and violations, the status of the worst flight (failed, then left), the mean series,
+    and each seed's figures under ``seeds``."""
+    entries = list(by_seed.values())
+    statuses = {e["status"] for e in entries}
+    means = [e.get("mean_error_m") for e in entries]
+    spread = [m for m in means if m is not None and math.isfinite(m)]
+
+    def worst(key: str) -> Any:
+        values = [e.get(key) for e in entries]
+        return None if None in values else max(v for v in values if v is not None)
+
+    t_s, err_cm = _mean_series(entries)
+    return {
+        "status": next((s for s in ("failed", "left") if s in statuses), "flown"),
+        "why": "; ".join(f"seed {s}: {e['why']}" for s, e in by_seed.items() if e.get("why")),
+        "mean_error_m": _mean(means),
+        "mean_error_min_m": min(spread, default=None),
+        "mean_error_max_m": max(spread, default=None),
+        "mean_error_std_m": float(np.std(spread)) if len(spread) == len(means) else None,
+        "rmse_m": _mean([e.get("rmse_m") for e in entries]),
+        "max_error_m": worst("max_error_m"),
+        "max_tilt_deg": worst("max_tilt_deg"),
+        "constraint_violations": worst("constraint_violations"),
+        "hit_rate_after_first_lap": _mean([e.get("hit_rate_after_first_lap") for e in entries]),
+        "lockstep_timeouts": sum(e.get("lockstep_timeouts", 0) for e in entries),
+        "wall_s": round(sum(e.get("wall_s", 0.0) for e in entries), 1),
+        "t_s": t_s,
+        "error_cm": err_cm,
+        "seeds": {str(s): {k: e.get(k) for k in _PER_SEED} for s, e in by_seed.items()},
+    }
+
+
+def combine_verdicts(per_seed: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """The scenario's targets judged on the seeds' means: each target's value and bound
+    averaged over the seeds (a ratio's bound, ratio times the other method's value, is
+    linear in it: its mean is the ratio times the mean), with each seed's value kept."""
+    out = []
+    for rows in zip(*per_seed, strict=True):
+        # (no figure as null: JSON has no NaN)
+        values = [r["value"] if _mean([r["value"]]) is not None else None for r in rows]
+        row = {**rows[0], "values": values}
+        if all(r["verdict"] != "n/a" for r in rows):
+            value, bound = _mean(values), _mean([r["bound"] for r in rows])
+            ok = value is not None and bound is not None and value <= bound
+            row.update(value=value, bound=bound, verdict="PASS" if ok else "FAIL")
+        else:
+            row.update(value=None, bound=None, verdict="n/a")
+        out.append(row)
+    return out
+
+
+def fly_table(out_dir: Path, results_dir: Path, seeds: tuple[int, ...], jobs: int,
+              command: str) -> dict[str, Any]:  # fmt: skip
+    """Fly every row by every method on every seed (``jobs`` at once) into ``out_dir``; the
+    table's JSON (``command``: what flew it), also written with its figure to
+    ``results_dir``."""
     scenario = load_scenario(SCENARIO)
     product = str(product_lwpr_scenario(out_dir))
-    plan = [(row, m, out_dir / row.key / m.key) for row in ROWS for m in METHODS]
+    plan = [(seed, row, m, out_dir / f"seed{seed}" / row.key / m.key)
+            for seed in seeds for row in ROWS for m in METHODS]  # fmt: skip
     load_before, wall_start, commit = _load(), time.monotonic(), _commit()
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     print(f"epc-offboard figures neuralfly: {len(plan)} lockstep flights, {jobs} at once, "
-          f"seed {seed}, into {out_dir} (about {len(plan) * 0.6 / jobs:.0f}-"
-          f"{len(plan) * 1.2 / jobs:.0f} min on 2 shared cores)", file=sys.stderr)  # fmt: skip
+          f"seed{'s' * (len(seeds) > 1)} {','.join(map(str, seeds))}, into {out_dir} (about "
+          f"{len(plan) * 0.6 / jobs:.0f}-{len(plan) * 1.2 / jobs:.0f} min on 2 shared cores)",
+          file=sys.stderr)  # fmt: skip
     done = 0
 
-    def one(item: tuple[Row, Method, Path]) -> tuple[int, float]:
+    def one(item: tuple[int, Row, Method, Path]) -> tuple[int, float]:
         nonlocal done
-        row, m, out = item
+        seed, row, m, out = item
         argv = sim_argv(row, m, product if m.product_lwpr else SCENARIO,
                         scenario.wind_dir_deg, seed, out)  # fmt: skip
         code, wall_s = _fly(argv, out)
         done += 1
-        print(f"[{done}/{len(plan)}] {row.label}, {m.method}{' (product LWPR)' * m.product_lwpr}:"
-              f" exit {code} in {wall_s:.0f} s", file=sys.stderr)  # fmt: skip
+        print(f"[{done}/{len(plan)}] seed {seed}, {row.label}, {m.method}"
+              f"{' (product LWPR)' * m.product_lwpr}: exit {code} in {wall_s:.0f} s",
+              file=sys.stderr)  # fmt: skip
         return code, wall_s
 
     with ThreadPoolExecutor(max_workers=jobs) as pool:
         outcomes = list(pool.map(one, plan))
     cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    flights: dict[str, dict[str, Any]] = {row.key: {} for row in ROWS}
-    for (row, m, out), (code, wall_s) in zip(plan, outcomes, strict=True):
-        flights[row.key][m.key] = _flight_entry(out, code, wall_s, scenario)
-    verdicts = {}
-    for row in ROWS:
-        reports = {m.method: flights[row.key][m.key]["report"] for m in METHODS
-                   if not m.product_lwpr and "report" in flights[row.key][m.key]}  # fmt: skip
-        verdicts[row.key] = evaluate(scenario.targets, reports) if reports else []
-    for row_flights in flights.values():
-        for entry in row_flights.values():
-            entry.pop("report", None)  # (in out_dir; the JSON keeps what the table needs)
+    flights, verdicts = tabulate(plan, outcomes, seeds, scenario)
     data = {
         "kind": "neuralfly_table",
-        "command": f"epc-offboard figures neuralfly --seed {seed} --jobs {jobs}",
+        "command": command,
         "scenario": SCENARIO,
-        "seed": seed,
+        "seeds": list(seeds),
         "jobs": jobs,
         "lockstep": True,
         "commit": commit,  # the code flown
@@ -301,12 +381,48 @@ def fly_table(out_dir: Path, results_dir: Path, seed: int, jobs: int) -> dict[st
     return data
 
 
+def tabulate(
+    plan: list[tuple[int, Row, Method, Path]], outcomes: list[tuple[int, float]],
+    seeds: tuple[int, ...], scenario: ScenarioConfig,
+) -> tuple[dict[str, dict[str, Any]], dict[str, list[dict[str, Any]]]]:
+    """The flown ``plan`` (seed, row, method, out dir) with each flight's (exit code, wall
+    s): per row and method its seeds combined (:func:`combine_seeds`), and per row the
+    scenario's targets judged on the means (:func:`combine_verdicts`)."""
+    by_seed: dict[str, dict[str, dict[int, dict[str, Any]]]] = {
+        row.key: {m.key: {} for m in METHODS} for row in ROWS
+    }
+    for (seed, row, m, out), (code, wall_s) in zip(plan, outcomes, strict=True):
+        by_seed[row.key][m.key][seed] = _flight_entry(out, code, wall_s, scenario)
+    verdicts = {}
+    for row in ROWS:
+        per_seed = []
+        for seed in seeds:
+            flown = {m.method: by_seed[row.key][m.key][seed] for m in METHODS
+                     if not m.product_lwpr}  # fmt: skip
+            reports = {k: e["report"] for k, e in flown.items() if "report" in e}
+            per_seed.append(evaluate(scenario.targets, reports) if reports else [])
+        verdicts[row.key] = (combine_verdicts(per_seed)
+                             if len({len(v) for v in per_seed}) == 1 else [])  # fmt: skip
+    flights = {r: {m: combine_seeds(s) for m, s in ms.items()} for r, ms in by_seed.items()}
+    return flights, verdicts
+
+
 # -- the README's table ---------------------------------------------------------------------
 
 
-def _cell(entry: dict[str, Any]) -> str:
+def _seeds_text(data: dict[str, Any]) -> str:
+    """``seed 0`` or ``seeds 3, 4`` (a table of one seed may be older than ``seeds``)."""
+    seeds = data.get("seeds") or [data["seed"]]
+    return f"seed{'s' * (len(seeds) > 1)} {', '.join(map(str, seeds))}"
+
+
+def _cell(entry: dict[str, Any], spread: bool = True) -> str:
+    """A flight's mean error (cm); over several seeds, with its range when ``spread``."""
     mean = entry.get("mean_error_m")
     if entry["status"] == "flown" and mean is not None and math.isfinite(mean):
+        lo, hi = entry.get("mean_error_min_m"), entry.get("mean_error_max_m")
+        if spread and lo is not None and hi is not None and len(entry.get("seeds", ())) > 1:
+            return f"{100.0 * mean:.2f} ({100.0 * lo:.2f}–{100.0 * hi:.2f})"
         return f"{100.0 * mean:.2f}"
     return "left" if entry["status"] == "left" else "failed"
 
@@ -337,7 +453,10 @@ def render_table(results_dir: Path) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     g = data["gain"]
     gain_row = next(r for r in data["rows"] if r["key"] == g["row"])["label"]
-    if g["pct"] is None:
+    if g["pct"] is None and g.get("without_left"):
+        gain = (f"not measured (at {gain_row} EPC without adaptation left its envelope "
+                "before its first lap ended)")  # fmt: skip
+    elif g["pct"] is None:
         gain = f"not measured (a flight failed at {gain_row})"
     else:
         left = " (no adaptation left its envelope: its mean over what it flew)" * bool(
@@ -351,9 +470,11 @@ def render_table(results_dir: Path) -> str:
     lines += [
         "",
         f"The learning's gain at {gain_row}: {gain}. \"hits after lap 1\": the share of the "
-        "scenario's EPC + LWPR ticks the library answered after the first lap.",
+        "scenario's EPC + LWPR ticks the library answered after the first lap."
+        + (" Each cell: the mean over the seeds, their lowest and highest in brackets; the "
+           "targets are judged on the means." if len(data.get("seeds", ())) > 1 else ""),
         "",
-        f"Flown by `{data['command']}` (lockstep, seed {data['seed']}, {data['jobs']} flights "
+        f"Flown by `{data['command']}` (lockstep, {_seeds_text(data)}, {data['jobs']} flights "
         f"at once) on {data['commit'] or 'an unknown commit'}, {data['date_utc']} UTC: "
         f"{data['wall_s'] / 60.0:.1f} min, {data['cpu_s'] / 60.0:.1f} min of CPU, load "
         f"{data['load_before'][0]:g} before and {data['load_after'][0]:g} after"
@@ -388,7 +509,7 @@ def write_figure(data: dict[str, Any], path: Path) -> None:
             f = data["flights"][row.key][m.key]
             if not f.get("t_s"):
                 continue
-            what = _cell(f) + (" cm" if f["status"] == "flown" else "")
+            what = _cell(f, spread=False) + (" cm" if f["status"] == "flown" else "")
             ax.plot(f["t_s"], np.maximum(f["error_cm"], 0.01), color=_COLOURS[i],
                     ls="-" if m.ours else "--", lw=1.4 if m.ours else 1.0,
                     label=f"{m.label.replace('`', '')}: {what}")  # fmt: skip
@@ -421,8 +542,9 @@ def write_figure(data: dict[str, Any], path: Path) -> None:
            title="means (no bar: sim stopped it, 2 m off, in its first lap)")  # fmt: skip
     ax.grid(True, axis="y", which="both", alpha=0.3)
     ax.legend(fontsize=7)
-    fig.suptitle(f"Neural-Fly's figure-8 on the bundled SITL (PX4 personality), lockstep, seed "
-                 f"{data['seed']}: EPC + LWPR against the baselines, per wind")  # fmt: skip
+    fig.suptitle(f"Neural-Fly's figure-8 on the bundled SITL (PX4 personality), lockstep, "
+                 f"{_seeds_text(data)} (their mean): EPC + LWPR against the baselines, per "
+                 "wind")  # fmt: skip
     save_once(fig, path)
     plt.close(fig)
 
@@ -441,7 +563,10 @@ def run(args: argparse.Namespace, rewrite: Callable[[str, Path], str]) -> int:
     if args.numbers_only and table.exists():  # the figure too, from the JSON
         write_figure(json.loads(table.read_text()), results_dir / f"{RESULT_NAME}.png")
     if not args.numbers_only:
-        data = fly_table(Path(args.work) / SCENARIO, results_dir, args.seed, args.jobs)
+        seeds = args.seeds or (args.seed or 0,)
+        command = (f"epc-offboard figures neuralfly {'--seeds' if args.seeds else '--seed'} "
+                   f"{','.join(map(str, seeds))} --jobs {args.jobs}")  # fmt: skip
+        data = fly_table(Path(args.work) / SCENARIO, results_dir, seeds, args.jobs, command)
         failed = [f"{r}/{m}" for r, fl in data["flights"].items() for m, f in fl.items()
                   if f["status"] == "failed"]  # fmt: skip
         if failed:

@@ -126,13 +126,13 @@ class CompareConfig:
 
 
 def metric_value(report: dict[str, Any], metric: Metric) -> float:
-    """The metric over a sim report's vehicles: the worst vehicle (largest value)."""
+    """The metric over a sim report's vehicles: the worst vehicle (largest value). A figure
+    the report has as null (a written report has no NaN: a flight stopped before its metric
+    began) is NaN: no figure, which fails a bound."""
     values = []
     for v in report["vehicles"]:
-        if metric in TRACKING_METRICS:
-            values.append(float(v["tracking"].get(metric, math.nan)))
-        else:
-            values.append(float(v[metric]))
+        value = v["tracking"].get(metric) if metric in TRACKING_METRICS else v[metric]
+        values.append(math.nan if value is None else float(value))
     return max(values)
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from epc_offboard.common.children import die_with_launcher
 from epc_offboard.common.errors import EXIT_RUNTIME
 from epc_offboard.tools.sim.options import SimOptions, sim_options
 from epc_offboard.tools.sim.orchestrate import check_ports, fly_and_report, stop_on_sigterm
@@ -28,6 +29,10 @@ from epc_offboard.tools.sim.report import (
 
 def run_sim_command(args: argparse.Namespace) -> int:
     stop_on_sigterm()
+    # started by a launcher (`figures neuralfly`): SIGTERM when it dies, which the handler
+    # above turns into stopping this sim's SITLs and services (a killed launcher left them
+    # flying). After the handler: the signal may come at once
+    die_with_launcher()
     options = sim_options(args)
     try:
         check_ports(options)
