@@ -293,3 +293,48 @@ def _compile_plan() -> Callable[..., None] | None:
 
 
 disturbance_plan = _compile_plan()
+
+
+# -- the position tick's tilt limit -------------------------------------------------------------
+
+
+def _tilt_reach_jit(
+    acc: FloatArray,
+    u_min: FloatArray,
+    u_max: FloatArray,
+    P: FloatArray,
+    p: FloatArray,
+    out: FloatArray,
+) -> float:
+    """:func:`~epc_offboard.control.models.limit_tilt`'s box clip (numpy's
+    minimum(maximum()), the same bits: a NaN stays NaN) written to ``out``, and the largest
+    of the polygon's ratios of horizontal reach to slack at it (NaN if any is). Its
+    matrix-vector product is BLAS's there, whose rounding (fused multiply-adds, or not, by
+    machine) this does not follow: the caller takes ``out`` as the limit's answer only when
+    the ratio is clearly below 1 (no horizontal scaling, so no rounding of it matters), and
+    asks the numpy function otherwise."""
+    for i in range(3):
+        x = acc[i]
+        if x < u_min[i]:
+            x = u_min[i]
+        if x > u_max[i]:
+            x = u_max[i]
+        out[i] = x
+    worst = -np.inf
+    for j in range(P.shape[0]):
+        r = (P[j, 0] * out[0] + P[j, 1] * out[1]) / (p[j] - P[j, 2] * out[2])
+        if r != r:
+            return r
+        if r > worst:
+            worst = r
+    return worst
+
+
+def _compile_tilt() -> Callable[..., float] | None:
+    """The compiled tilt check (None on the numpy twins: the caller's numpy function)."""
+    if _NUMBA is None:
+        return None
+    return jit.njit_cached(cast(Callable[..., float], _tilt_reach_jit), nogil=True)
+
+
+tilt_reach = _compile_tilt()
