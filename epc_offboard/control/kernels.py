@@ -320,9 +320,9 @@ def _tilt_reach_jit(
         if x > u_max[i]:
             x = u_max[i]
         out[i] = x
-    worst = -np.inf
+    worst: float = -np.inf
     for j in range(P.shape[0]):
-        r = (P[j, 0] * out[0] + P[j, 1] * out[1]) / (p[j] - P[j, 2] * out[2])
+        r = float((P[j, 0] * out[0] + P[j, 1] * out[1]) / (p[j] - P[j, 2] * out[2]))
         if r != r:
             return r
         if r > worst:
@@ -338,3 +338,55 @@ def _compile_tilt() -> Callable[..., float] | None:
 
 
 tilt_reach = _compile_tilt()
+
+
+# -- the EPC step's parameter vector ------------------------------------------------------------
+
+
+def _stack_theta_jit(
+    x0: FloatArray,
+    refs: FloatArray,
+    u_p: FloatArray,
+    c: FloatArray,
+    perturbation: FloatArray,
+    theta_aug: FloatArray,
+    cols: IntArray,
+    theta_cols: FloatArray,
+) -> bool:
+    """:meth:`MpcProblem.theta <epc_offboard.control.qp.MpcProblem.theta>` with a
+    perturbation and per-stage nominal inputs, written into ``theta_aug`` ([θ; 1]), and its
+    columns ``cols`` (what the library's maps read) into ``theta_cols``: one call instead of
+    a dozen numpy calls and a gather (issue 21), the same bits (copies, and ``c + p^``
+    element by element). False, nothing written: the shapes do not fit ``theta_aug``."""
+    nx, n, nu = x0.shape[0], refs.shape[0], u_p.shape[1]
+    if (refs.shape[1] != nx or u_p.shape[0] != n or c.shape[0] != nx
+            or perturbation.shape[0] != nx or theta_aug.shape[0] != nx + n * nx + nx + n * nu + 1
+            or theta_cols.shape[0] != cols.shape[0]):  # fmt: skip
+        return False
+    for i in range(nx):
+        theta_aug[i] = x0[i]
+    k = nx
+    for s in range(n):
+        for i in range(nx):
+            theta_aug[k] = refs[s, i]
+            k += 1
+    for i in range(nx):
+        theta_aug[k] = c[i] + perturbation[i]
+        k += 1
+    for s in range(n):
+        for i in range(nu):
+            theta_aug[k] = u_p[s, i]
+            k += 1
+    for j in range(cols.shape[0]):
+        theta_cols[j] = theta_aug[cols[j]]
+    return True
+
+
+def _compile_theta() -> Callable[..., bool] | None:
+    """The compiled θ stack (None on the numpy twins: ``MpcProblem.theta``)."""
+    if _NUMBA is None:
+        return None
+    return jit.njit_cached(cast(Callable[..., bool], _stack_theta_jit), nogil=True)
+
+
+stack_theta = _compile_theta()

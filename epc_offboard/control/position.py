@@ -35,7 +35,7 @@ from typing import Literal
 
 import numpy as np
 
-from epc_offboard.common import frames
+from epc_offboard.common import frames, jit
 from epc_offboard.common.airframe import Airframe
 from epc_offboard.common.frames import GRAVITY_M_S2, FloatArray
 from epc_offboard.control.baselines import MpcController, PdController
@@ -412,6 +412,11 @@ class PositionLoop:
         self._path: tuple[str, str] | None = None
         self.dead_time = self._predictor(cfg.command_dead_time_s or 0.0)
         self._state_filter = StateFilter(cfg.state_filter, loop_period_s)
+        # the compiled tilt check's entry point (its arguments are always (3,) float64 and
+        # this problem's limits: no dispatch on their types, issue 21), or None: numpy
+        lim = self.acc_limits
+        self._tilt_reach = None if tilt_reach is None else jit.entry_point(
+            tilt_reach, np.zeros(3), lim.u_min, lim.u_max, lim.P, lim.p, np.empty(3))
         # the disturbance estimate of the last tick: the state filter's model acceleration
         self._d_hat_last = np.zeros(3)
 
@@ -803,12 +808,12 @@ class PositionLoop:
         """:func:`~epc_offboard.control.models.limit_tilt` of ``acc`` (3,) float64, to the
         last bit: in one compiled call when no horizontal scaling is near (its ~8 numpy calls,
         twice a tick, were cold cache lines in real time; issue 21), else the function."""
-        if tilt_reach is not None:
+        if self._tilt_reach is not None and acc.flags.c_contiguous:
             lim = self.acc_limits
             out = np.empty(3)
             # the compiled ratio's rounding differs from BLAS's by ~1e-16 of the reach: far
             # below 1, the clip alone is the answer either way
-            if tilt_reach(acc, lim.u_min, lim.u_max, lim.P, lim.p, out) < _TILT_EXACT_BELOW:
+            if self._tilt_reach(acc, lim.u_min, lim.u_max, lim.P, lim.p, out) < _TILT_EXACT_BELOW:
                 return out
         return limit_tilt(acc, self.acc_limits)
 

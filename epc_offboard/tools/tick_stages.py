@@ -56,9 +56,17 @@ class _Stages:
 
     def __init__(self) -> None:
         self.tick: dict[str, int] = {}
+        self._wrapped: list[tuple[Any, str, Any]] = []
+
+    def restore(self) -> None:
+        """Unwrap everything (a module's function wrapped is every caller's)."""
+        for owner, method, fn in reversed(self._wrapped):
+            setattr(owner, method, fn)
+        self._wrapped.clear()
 
     def wrap(self, owner: Any, method: str, name: str) -> None:
         fn: Callable[..., Any] = getattr(owner, method)
+        self._wrapped.append((owner, method, fn))
         tick, clock = self.tick, time.thread_time_ns
 
         def timed(*args: Any, **kw: Any) -> Any:
@@ -130,13 +138,27 @@ def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES,
     stages.wrap(loop, "observe", "observe")
     stages.wrap(loop.estimator, "estimate_along", "estimate_along")
     controller: Any = loop.controller
-    stages.wrap(controller.problem, "theta", "epc.theta")
+    from epc_offboard.control import kernels
+    from epc_offboard.control.epc import controller as epc
+
+    if isinstance(controller, epc.ExperienceController) and kernels.stack_theta is not None:
+        stages.wrap(epc, "stack_theta", "epc.theta")  # (the compiled stack, issue 21)
+    else:
+        stages.wrap(controller.problem, "theta", "epc.theta")
     if hasattr(controller, "library"):
         stages.wrap(controller.library, "query", "epc.query")
     stages.wrap(controller, "step", "epc.step")
     stages.wrap(loop, "_attitude_target", "attitude_target")
     if fine:
         _wrap_fine(stages, loop)
+    try:
+        return _run(stages, tick, k, modes, ticks, dt_s)
+    finally:
+        stages.restore()
+
+
+def _run(stages: _Stages, tick: Callable[[int], str], k: int, modes: tuple[str, ...],
+         ticks: int, dt_s: float) -> dict[str, Any]:
     buffer = np.ones(_EVICT_DOUBLES)
     report: dict[str, Any] = {}
     for mode in modes:
