@@ -97,16 +97,19 @@ def _wrap_fine(stages: _Stages, loop: Any) -> None:
 
 
 def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES,
-            fine: bool = False) -> dict[str, Any]:
+            fine: bool = False, path: tuple[str, str] | None = None) -> dict[str, Any]:
     """Per mode: the mean and median thread CPU (us) of each stage over ``ticks`` ticks
     (a stage that runs every other tick: its mean over the ticks that ran it); ``fine``:
-    the smaller steps too."""
+    the smaller steps too; ``path``: (autopilot, attitude mode) whose command dead time the
+    tick flies, as the service sets it (unset: the configuration's, 0 if it sets none)."""
     cfg = load_service_config(config)
     dt_s = 1.0 / cfg.loops.position_rate_hz
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, dt_s, learn_on_miss=True,
                       airframe=cfg.vehicle)  # fmt: skip
     cascade.warm_up()
     loop = cascade.position
+    if path is not None:
+        loop.use_attitude_path(*path)
     traj = Trajectory(TrajectoryConfig(shape="figure8", ramp_s=1.0, period_s=8.0),
                       np.array([0.0, 0.0, -2.5]))  # fmt: skip
     stages = _Stages()
@@ -207,11 +210,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ticks", type=int, default=1500)
     parser.add_argument("--modes", default=",".join(MODES))
     parser.add_argument("--fine", action="store_true", help="the tick's smaller steps too")
+    parser.add_argument("--attitude-path", metavar="AUTOPILOT,MODE",
+                        help="fly this path's command dead time as the service does, e.g. "
+                             "px4,autopilot (quaternion: bench --attack's) or px4,epc")  # fmt: skip
     args = parser.parse_args(argv)
     modes = tuple(m for m in args.modes.split(",") if m)
     if not set(modes) <= set(MODES) or not modes:
         parser.error(f"--modes: some of {', '.join(MODES)}")
-    print(format_report(measure(args.config, args.ticks, modes, args.fine)))
+    path = None
+    if args.attitude_path:
+        autopilot, _, mode = args.attitude_path.partition(",")
+        if autopilot not in ("px4", "ardupilot") or mode not in ("autopilot", "epc"):
+            parser.error("--attitude-path: px4|ardupilot,autopilot|epc")
+        path = (autopilot, mode)
+    print(format_report(measure(args.config, args.ticks, modes, args.fine, path)))
     return 0
 
 
