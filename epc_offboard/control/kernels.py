@@ -334,7 +334,9 @@ def _compile_tilt() -> Callable[..., float] | None:
     """The compiled tilt check (None on the numpy twins: the caller's numpy function)."""
     if _NUMBA is None:
         return None
-    return jit.njit_cached(cast(Callable[..., float], _tilt_reach_jit), nogil=True)
+    # holding the interpreter lock: a kernel of a microsecond that released it would only
+    # let another thread take it, and the loop wait for it back (up to a switch interval)
+    return jit.njit_cached(cast(Callable[..., float], _tilt_reach_jit))
 
 
 tilt_reach = _compile_tilt()
@@ -386,7 +388,7 @@ def _compile_theta() -> Callable[..., bool] | None:
     """The compiled θ stack (None on the numpy twins: ``MpcProblem.theta``)."""
     if _NUMBA is None:
         return None
-    return jit.njit_cached(cast(Callable[..., bool], _stack_theta_jit), nogil=True)
+    return jit.njit_cached(cast(Callable[..., bool], _stack_theta_jit))  # (the GIL kept: above)
 
 
 stack_theta = _compile_theta()
