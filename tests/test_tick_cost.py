@@ -41,11 +41,12 @@ _DT_S = 0.01  # the position loop's period
 # this test builds, the tick (estimator and EPC query included) and its log row. Before
 # (issue 21's measurements): 141 and 212; then 84 and 140; then 69 and 128 (the three LWPR
 # models learn and predict in one compiled call each, through its entry point; the
-# reference window's indices cached), 75 and 130.5 on main 903bae9; now 66 and 125.5 (the
-# disturbance plan, ~25 numpy calls, in one compiled call). The bounds leave room for a
-# small change, not for the old cost (they fail on the code before).
+# reference window's indices cached), 75 and 130.5 on main 903bae9; then 66-68 and 125.5 (the
+# disturbance plan, ~25 numpy calls, in one compiled call); now 67 and 121.5 (the tilt limit
+# and θ's stack each in one compiled call). The bounds leave room for a small change, not
+# for the old cost (they fail on the code before).
 MAX_PYTHON_CALLS = 69
-MAX_C_CALLS = 128
+MAX_C_CALLS = 124
 
 
 def _state(
@@ -244,6 +245,78 @@ def test_the_compiled_disturbance_plan_is_the_numpy_codes_to_the_last_bit():
                          h, out_u_p, out_refs, out_d_hat)  # fmt: skip
         for twin, compiled in ((d_hat, out_d_hat), (u_p, out_u_p), (refs_twin, out_refs)):
             assert np.array_equal(twin.view(np.uint64), compiled.view(np.uint64)), case
+
+
+def test_the_compiled_tilt_limit_is_limit_tilts_to_the_last_bit():
+    """The position tick's tilt limit (twice a tick) in one compiled call where no
+    horizontal scaling is near, numpy's function where one is: its bits whatever ``acc``
+    (inside, on and beyond the polygon, NaN), so the lockstep flights stay bit-identical."""
+    from epc_offboard.control.models import limit_tilt
+
+    cfg = load_service_config(_CONFIG)
+    loop = Cascade(cfg.position, cfg.attitude, cfg.estimator, _DT_S).position
+    if loop._tilt_reach is None:
+        pytest.skip("numba is not in use: the numpy function is all there is")
+    rng = np.random.default_rng(5)
+    for case in range(20000):
+        acc = rng.normal(size=3) * (0.3, 2.0, 6.0, 30.0)[case % 4]
+        if case % 97 == 0:
+            acc[case % 3] = np.nan
+        twin = limit_tilt(acc.copy(), loop.acc_limits)
+        out = loop._limit_tilt(acc.copy())
+        assert np.array_equal(twin.view(np.uint64), out.view(np.uint64)), (case, acc)
+    # both paths ran: the small samples scale nothing (compiled), the large ones do (numpy)
+    lim = loop.acc_limits
+    out = np.empty(3)
+    assert loop._tilt_reach(np.array([0.1, 0.1, 0.0]), lim.u_min, lim.u_max, lim.P, lim.p,
+                            out) < 1.0  # fmt: skip
+    assert loop._tilt_reach(np.array([30.0, 0.0, 0.0]), lim.u_min, lim.u_max, lim.P, lim.p,
+                            out) > 1.0  # fmt: skip
+
+
+def test_the_compiled_theta_is_the_problems_to_the_last_bit():
+    """The EPC step stacks θ (and the columns its maps read) in one compiled call on the
+    position tick's path: the bits of ``MpcProblem.theta``, the gather of the maps' columns;
+    arguments of another shape go the general way."""
+    cfg = load_service_config(_CONFIG)
+    controller: Any = Cascade(cfg.position, cfg.attitude, cfg.estimator, _DT_S).position.controller
+    problem = controller.problem
+    n, nx, nu = problem.horizon, problem.nx, problem.nu
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        x0, refs = rng.normal(size=nx), rng.normal(size=(n, nx)) * 10.0
+        u_p, pert = rng.normal(size=(n, nu)), rng.normal(size=nx)
+        controller.step(x0, refs, u_p, perturbation=pert)
+        twin = np.append(problem.theta(x0, refs, u_p, perturbation=pert), 1.0)
+        assert np.array_equal(controller._theta_aug.view(np.uint64), twin.view(np.uint64))
+        assert np.array_equal(controller._theta_cols, twin[controller.builder.geom.cols])
+    # a wrong shape is the problem's error, as before (not a write out of bounds)
+    with pytest.raises(ValueError, match="refs"):
+        controller.step(x0, refs[:-1], u_p, perturbation=pert)
+
+
+def test_a_map_holds_only_the_columns_some_map_depends_on():
+    """The references' accelerations are not weighed (``q_acc`` 0): their 60 columns were
+    zeros in every map, read at every hit (520 kB a map, cold each tick in real time). A map
+    now holds the columns it can depend on (a map depending on another is refused when
+    built: see ``ActiveSetMap``)."""
+    cfg = load_service_config(_CONFIG)
+    loop = Cascade(cfg.position, cfg.attitude, cfg.estimator, _DT_S).position
+    controller: Any = loop.controller
+    problem, builder = controller.problem, controller.builder
+    assert not any(cfg.position.q_acc)
+    assert len(builder.geom.cols) == problem.n_theta + 1 - 3 * problem.horizon
+    rng = np.random.default_rng(2)
+    built = 0
+    for active in [(), *[(int(i),) for i in rng.choice(problem.n_con, 40, replace=False)]]:
+        try:
+            amap = builder.build(active)
+        except ValueError:
+            continue
+        assert amap.M.shape[1] == problem.n_theta + 1 - 3 * problem.horizon
+        assert builder.fits(amap)
+        built += 1
+    assert built > 10
 
 
 def test_the_fleet_state_a_save_takes_on_the_loops_thread_is_formatted_once(monkeypatch):

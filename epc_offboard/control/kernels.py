@@ -293,3 +293,102 @@ def _compile_plan() -> Callable[..., None] | None:
 
 
 disturbance_plan = _compile_plan()
+
+
+# -- the position tick's tilt limit -------------------------------------------------------------
+
+
+def _tilt_reach_jit(
+    acc: FloatArray,
+    u_min: FloatArray,
+    u_max: FloatArray,
+    P: FloatArray,
+    p: FloatArray,
+    out: FloatArray,
+) -> float:
+    """:func:`~epc_offboard.control.models.limit_tilt`'s box clip (numpy's
+    minimum(maximum()), the same bits: a NaN stays NaN) written to ``out``, and the largest
+    of the polygon's ratios of horizontal reach to slack at it (NaN if any is). Its
+    matrix-vector product is BLAS's there, whose rounding (fused multiply-adds, or not, by
+    machine) this does not follow: the caller takes ``out`` as the limit's answer only when
+    the ratio is clearly below 1 (no horizontal scaling, so no rounding of it matters), and
+    asks the numpy function otherwise."""
+    for i in range(3):
+        x = acc[i]
+        if x < u_min[i]:
+            x = u_min[i]
+        if x > u_max[i]:
+            x = u_max[i]
+        out[i] = x
+    worst: float = -np.inf
+    for j in range(P.shape[0]):
+        r = float((P[j, 0] * out[0] + P[j, 1] * out[1]) / (p[j] - P[j, 2] * out[2]))
+        if r != r:
+            return r
+        if r > worst:
+            worst = r
+    return worst
+
+
+def _compile_tilt() -> Callable[..., float] | None:
+    """The compiled tilt check (None on the numpy twins: the caller's numpy function)."""
+    if _NUMBA is None:
+        return None
+    # holding the interpreter lock: a kernel of a microsecond that released it would only
+    # let another thread take it, and the loop wait for it back (up to a switch interval)
+    return jit.njit_cached(cast(Callable[..., float], _tilt_reach_jit))
+
+
+tilt_reach = _compile_tilt()
+
+
+# -- the EPC step's parameter vector ------------------------------------------------------------
+
+
+def _stack_theta_jit(
+    x0: FloatArray,
+    refs: FloatArray,
+    u_p: FloatArray,
+    c: FloatArray,
+    perturbation: FloatArray,
+    theta_aug: FloatArray,
+    cols: IntArray,
+    theta_cols: FloatArray,
+) -> bool:
+    """:meth:`MpcProblem.theta <epc_offboard.control.qp.MpcProblem.theta>` with a
+    perturbation and per-stage nominal inputs, written into ``theta_aug`` ([θ; 1]), and its
+    columns ``cols`` (what the library's maps read) into ``theta_cols``: one call instead of
+    a dozen numpy calls and a gather (issue 21), the same bits (copies, and ``c + p^``
+    element by element). False, nothing written: the shapes do not fit ``theta_aug``."""
+    nx, n, nu = x0.shape[0], refs.shape[0], u_p.shape[1]
+    if (refs.shape[1] != nx or u_p.shape[0] != n or c.shape[0] != nx
+            or perturbation.shape[0] != nx or theta_aug.shape[0] != nx + n * nx + nx + n * nu + 1
+            or theta_cols.shape[0] != cols.shape[0]):  # fmt: skip
+        return False
+    for i in range(nx):
+        theta_aug[i] = x0[i]
+    k = nx
+    for s in range(n):
+        for i in range(nx):
+            theta_aug[k] = refs[s, i]
+            k += 1
+    for i in range(nx):
+        theta_aug[k] = c[i] + perturbation[i]
+        k += 1
+    for s in range(n):
+        for i in range(nu):
+            theta_aug[k] = u_p[s, i]
+            k += 1
+    for j in range(cols.shape[0]):
+        theta_cols[j] = theta_aug[cols[j]]
+    return True
+
+
+def _compile_theta() -> Callable[..., bool] | None:
+    """The compiled θ stack (None on the numpy twins: ``MpcProblem.theta``)."""
+    if _NUMBA is None:
+        return None
+    return jit.njit_cached(cast(Callable[..., bool], _stack_theta_jit))  # (the GIL kept: above)
+
+
+stack_theta = _compile_theta()

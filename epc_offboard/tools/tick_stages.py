@@ -56,9 +56,17 @@ class _Stages:
 
     def __init__(self) -> None:
         self.tick: dict[str, int] = {}
+        self._wrapped: list[tuple[Any, str, Any]] = []
+
+    def restore(self) -> None:
+        """Unwrap everything (a module's function wrapped is every caller's)."""
+        for owner, method, fn in reversed(self._wrapped):
+            setattr(owner, method, fn)
+        self._wrapped.clear()
 
     def wrap(self, owner: Any, method: str, name: str) -> None:
         fn: Callable[..., Any] = getattr(owner, method)
+        self._wrapped.append((owner, method, fn))
         tick, clock = self.tick, time.thread_time_ns
 
         def timed(*args: Any, **kw: Any) -> Any:
@@ -70,15 +78,38 @@ class _Stages:
         setattr(owner, method, timed)
 
 
-def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES) -> dict[str, Any]:
+def _wrap_fine(stages: _Stages, loop: Any) -> None:
+    """``--fine``: the tick's smaller steps too (each wrapper's own cold cost with them)."""
+    from epc_offboard.control import position
+
+    for name in ("attitude_to_axis_xyz", "limit_tilt", "disturbance_plan"):
+        if getattr(position, name, None) is not None:
+            stages.wrap(position, name, name)
+    stages.wrap(loop.dead_time, "window", "dead_time.window")
+    stages.wrap(loop.dead_time, "ahead", "dead_time.ahead")
+    stages.wrap(loop.dead_time, "sent", "dead_time.sent")
+    stages.wrap(loop._state_filter, "update", "state_filter")
+    stages.wrap(loop, "achieved_acceleration", "achieved_acceleration")
+    stages.wrap(loop, "_entry_ramp", "entry_ramp")
+    stages.wrap(loop.estimator, "observe", "estimator.observe")
+    controller: Any = loop.controller
+    stages.wrap(controller, "decide", "epc.decide")
+
+
+def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES,
+            fine: bool = False, path: tuple[str, str] | None = None) -> dict[str, Any]:
     """Per mode: the mean and median thread CPU (us) of each stage over ``ticks`` ticks
-    (a stage that runs every other tick: its mean over the ticks that ran it)."""
+    (a stage that runs every other tick: its mean over the ticks that ran it); ``fine``:
+    the smaller steps too; ``path``: (autopilot, attitude mode) whose command dead time the
+    tick flies, as the service sets it (unset: the configuration's, 0 if it sets none)."""
     cfg = load_service_config(config)
     dt_s = 1.0 / cfg.loops.position_rate_hz
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, dt_s, learn_on_miss=True,
                       airframe=cfg.vehicle)  # fmt: skip
     cascade.warm_up()
     loop = cascade.position
+    if path is not None:
+        loop.use_attitude_path(*path)
     traj = Trajectory(TrajectoryConfig(shape="figure8", ramp_s=1.0, period_s=8.0),
                       np.array([0.0, 0.0, -2.5]))  # fmt: skip
     stages = _Stages()
@@ -110,11 +141,27 @@ def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES) -> dict[st
     stages.wrap(loop, "observe", "observe")
     stages.wrap(loop.estimator, "estimate_along", "estimate_along")
     controller: Any = loop.controller
-    stages.wrap(controller.problem, "theta", "epc.theta")
+    from epc_offboard.control import kernels
+    from epc_offboard.control.epc import controller as epc
+
+    if isinstance(controller, epc.ExperienceController) and kernels.stack_theta is not None:
+        stages.wrap(epc, "stack_theta", "epc.theta")  # (the compiled stack, issue 21)
+    else:
+        stages.wrap(controller.problem, "theta", "epc.theta")
     if hasattr(controller, "library"):
         stages.wrap(controller.library, "query", "epc.query")
     stages.wrap(controller, "step", "epc.step")
     stages.wrap(loop, "_attitude_target", "attitude_target")
+    if fine:
+        _wrap_fine(stages, loop)
+    try:
+        return _run(stages, tick, k, modes, ticks, dt_s)
+    finally:
+        stages.restore()
+
+
+def _run(stages: _Stages, tick: Callable[[int], str], k: int, modes: tuple[str, ...],
+         ticks: int, dt_s: float) -> dict[str, Any]:
     buffer = np.ones(_EVICT_DOUBLES)
     report: dict[str, Any] = {}
     for mode in modes:
@@ -151,6 +198,8 @@ def format_report(report: dict[str, Any]) -> str:
         lines.append(name.ljust(28) + "".join(
             f"{report[m]['stages_us'].get(name, {}).get('mean', float('nan')):10.1f}"
             for m in modes))  # fmt: skip
+    lines.append("position_tick median".ljust(28) + "".join(
+        f"{report[m]['stages_us']['position_tick']['median']:10.1f}" for m in modes))
     lines.append("sources: " + "; ".join(f"{m} {report[m]['sources']}" for m in modes))
     return "\n".join(lines)
 
@@ -160,11 +209,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", type=Path, default=_DEFAULT_CONFIG)
     parser.add_argument("--ticks", type=int, default=1500)
     parser.add_argument("--modes", default=",".join(MODES))
+    parser.add_argument("--fine", action="store_true", help="the tick's smaller steps too")
+    parser.add_argument("--attitude-path", metavar="AUTOPILOT,MODE",
+                        help="fly this path's command dead time as the service does, e.g. "
+                             "px4,autopilot (quaternion: bench --attack's) or px4,epc")  # fmt: skip
     args = parser.parse_args(argv)
     modes = tuple(m for m in args.modes.split(",") if m)
     if not set(modes) <= set(MODES) or not modes:
         parser.error(f"--modes: some of {', '.join(MODES)}")
-    print(format_report(measure(args.config, args.ticks, modes)))
+    path = None
+    if args.attitude_path:
+        autopilot, _, mode = args.attitude_path.partition(",")
+        if autopilot not in ("px4", "ardupilot") or mode not in ("autopilot", "epc"):
+            parser.error("--attitude-path: px4|ardupilot,autopilot|epc")
+        path = (autopilot, mode)
+    print(format_report(measure(args.config, args.ticks, modes, args.fine, path)))
     return 0
 
 

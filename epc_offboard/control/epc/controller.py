@@ -13,9 +13,11 @@ exchange`.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.decision import Controller, Decision, elapsed_us
@@ -24,6 +26,7 @@ from epc_offboard.control.epc.exchange import LibraryExchange
 from epc_offboard.control.epc.learner import IntermediateQp, Learner
 from epc_offboard.control.epc.library import Entry, Library
 from epc_offboard.control.epc.maps import MapBuilder
+from epc_offboard.control.kernels import stack_theta
 from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.control.models import LinearModel
 from epc_offboard.control.qp import MpcProblem
@@ -131,6 +134,7 @@ class ExperienceController(LibraryExchange, Controller):
         # theta_aug = [theta; 1]: the maps carry their constant as a last column
         self._theta_aug = np.zeros(problem.n_theta + 1)
         self._theta_aug[-1] = 1.0
+        self._theta_cols = self.builder.compact(self._theta_aug)  # what the maps read of it
         self._intermediate_qp = IntermediateQp(problem, self._int_horizon, self._slack_weight)
 
     def set_model(self, model: LinearModel) -> None:
@@ -153,13 +157,39 @@ class ExperienceController(LibraryExchange, Controller):
     def theta_buffer(self) -> FloatArray:
         return self._theta_aug[:-1]
 
+    def step(
+        self,
+        x0: npt.ArrayLike,
+        refs: npt.ArrayLike,
+        u_p: npt.ArrayLike | None = None,
+        *,
+        perturbation: npt.ArrayLike | None = None,
+    ) -> Decision:
+        """:meth:`Controller.step`; the position tick's arguments (arrays, a perturbation,
+        a nominal input per stage) stacked into θ in one compiled call."""
+        if (stack_theta is not None and type(u_p) is np.ndarray and u_p.ndim == 2
+                and type(x0) is np.ndarray and type(refs) is np.ndarray
+                and type(perturbation) is np.ndarray):  # fmt: skip
+            t0 = time.perf_counter()
+            if stack_theta(x0, refs, u_p, self.problem.model.c, perturbation, self._theta_aug,
+                           self.builder.geom.cols, self._theta_cols):  # fmt: skip
+                return self._decide(self._theta_aug[:-1], t0, stacked=True)
+        return super().step(x0, refs, u_p, perturbation=perturbation)
+
     def decide(self, theta: FloatArray, t0: float) -> Decision:
         """Algorithm 1's body at θ (written into ``_theta_aug`` by :meth:`step`)."""
+        return self._decide(theta, t0, stacked=False)
+
+    def _decide(self, theta: FloatArray, t0: float, *, stacked: bool) -> Decision:
+        """``stacked``: the maps' columns of θ are in ``_theta_cols`` already."""
         th_aug = self._theta_aug
         p = self.problem
         self.library.tick += 1
         u = np.empty(p.nu)
-        entry = self.library.query(th_aug, u, p.u_min, p.u_max)
+        th_cols = self._theta_cols
+        if not stacked:
+            th_aug.take(self.builder.geom.cols, out=th_cols)
+        entry = self.library.query(th_cols, u, p.u_min, p.u_max)
         if entry is not None:
             return self._hit(entry, u, th_aug, t0)
         if len(self.candidates):

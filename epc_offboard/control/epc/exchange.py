@@ -189,9 +189,9 @@ class LibraryExchange:
     def covers(self, theta: FloatArray) -> bool:
         """Whether a stored controller passes the KKT check at ``theta`` (nθ,): the query,
         without using it (no importance, transition or counter changes)."""
-        theta_aug = np.append(np.asarray(theta, dtype=np.float64), 1.0)
+        theta_cols = self.builder.compact(np.append(np.asarray(theta, dtype=np.float64), 1.0))
         p = self.problem
-        return self.library.query(theta_aug, np.empty(p.nu), p.u_min, p.u_max) is not None
+        return self.library.query(theta_cols, np.empty(p.nu), p.u_min, p.u_max) is not None
 
     def map_of(self, active: tuple[int, ...]) -> ActiveSetMap | None:
         """The library's map of ``active`` (None when it holds no such entry)."""
@@ -311,10 +311,9 @@ class LibraryExchange:
         ignored): no factorisation here, and the loop checks them before declaring a miss."""
         if model_epoch != self.model_epoch:
             return 0
-        p = self.problem
         attached = 0
         for active, amap in built:
-            if amap is not None and (amap.active != active or amap.M.shape[1] != p.n_theta + 1):
+            if amap is not None and (amap.active != active or not self.builder.fits(amap)):
                 continue
             attached += self.candidates.attach(active, amap)
         return attached

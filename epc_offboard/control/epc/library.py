@@ -226,10 +226,11 @@ class Library:
                                    dtype=np.int64)  # fmt: skip
         return self._order
 
-    def query(self, theta_aug: FloatArray, u_out: FloatArray, u_min: FloatArray,
+    def query(self, theta_cols: FloatArray, u_out: FloatArray, u_min: FloatArray,
               u_max: FloatArray) -> Entry | None:
-        """The first entry in query order that passes the KKT check at ``theta_aug`` (its
-        first input written to ``u_out``), within ``max_checks`` checks; None: a miss."""
+        """The first entry in query order that passes the KKT check at ``theta_cols`` (the
+        columns of ``[theta; 1]`` the maps read: ``MapBuilder.compact``; its first input
+        written to ``u_out``), within ``max_checks`` checks; None: a miss."""
         last = self._last
         budget = len(self._entries) if self.max_checks is None else self.max_checks
         checked = 0
@@ -238,7 +239,7 @@ class Library:
             e = self._entries.get(last)
             if e is not None:
                 checked = 1
-                if e.map.apply(theta_aug, u_out, u_min, u_max):
+                if e.map.check(theta_cols, u_out, u_min, u_max):
                     self.last_query_checks = 1
                     self.checks += 1
                     return e
@@ -246,7 +247,7 @@ class Library:
         start = checked  # the last controller, when there is one, is the order's first
         n = min(budget - checked, len(order) - start)
         k = query_maps(*self._slot_lists, self._slot_n_check, order[start:],
-                       n, theta_aug, u_out, u_min, u_max) if n > 0 else -1
+                       n, theta_cols, u_out, u_min, u_max) if n > 0 else -1
         checked += n if k < 0 else k + 1
         self.last_query_checks = checked
         self.checks += checked

@@ -47,7 +47,7 @@ class DependentActiveSetError(EpcError, ValueError):
 class ActiveSetMap:
     """The cached affine map of one active set, checked and applied by one mat-vec.
 
-    With ``theta_aug = [theta; 1]``, ``w = M theta_aug`` has rows:
+    With ``theta_aug = [theta; 1]``, ``w = M theta_aug[cols]`` has rows:
 
     * the active multipliers plus ``tol`` (must be >= 0);
     * one row per finite-bounded component of ``[U; X]``, shifted (and, for rows bounded
@@ -57,9 +57,15 @@ class ActiveSetMap:
     The first ``n_check`` rows are the KKT check (thesis 3.5-3.8: multipliers >= -tol and every
     bound within tol; an active row's slack is zero by construction, so checking all rows is
     checking the inactive ones). :func:`epc_offboard.control.kernels.apply_map` evaluates it.
+
+    ``M`` holds only the columns ``cols`` of θ a map can depend on (the problem's
+    :attr:`ProblemGeometry.cols`): with ``q_acc`` 0 the references' accelerations are not
+    weighed, and their 60 columns were zeros that every check read (a map is read whole at
+    each hit: 520 -> 400 kB, cold in real time, issue 21). The map is the same; only the
+    rounding of the check's sum changes with its terms, far inside ``tol``.
     """
 
-    __slots__ = ("M", "U", "active", "lam", "n_check", "width")
+    __slots__ = ("M", "U", "active", "cols", "lam", "n_check", "width")
 
     def __init__(self, problem: MpcProblem, active: tuple[int, ...], geom: ProblemGeometry,
                  tol: float) -> None:
@@ -89,7 +95,12 @@ class ActiveSetMap:
         chk[:, -1] += geom.chk_offset
         lam_chk = L_aug.copy()
         lam_chk[:, -1] += tol
-        self.M = np.ascontiguousarray(np.vstack([lam_chk, chk, U_aug[: problem.nu]]))
+        full = np.vstack([lam_chk, chk, U_aug[: problem.nu]])
+        if full[:, geom.unused].any():  # (structurally zero: see ProblemGeometry.cols)
+            raise EpcError(f"active set {active}: a map depends on a parameter its problem "
+                           "does not weigh")  # fmt: skip
+        self.M = np.ascontiguousarray(full[:, geom.cols])
+        self.cols = geom.cols
         self.width = np.concatenate([np.full(len(active), np.inf), geom.chk_width])
         self.n_check = len(self.width)
         self.U = U_aug
@@ -100,7 +111,13 @@ class ActiveSetMap:
               u_max: FloatArray) -> bool:
         """KKT-check at ``theta_aug``; if it passes write the clipped first input to
         ``u_out`` and return True."""
-        return apply_map(self.M, self.width, theta_aug, self.n_check, u_out, u_min, u_max)
+        return self.check(theta_aug[self.cols], u_out, u_min, u_max)
+
+    def check(self, theta_cols: FloatArray, u_out: FloatArray, u_min: FloatArray,
+              u_max: FloatArray) -> bool:
+        """:meth:`apply` at ``theta_cols``, the columns :attr:`cols` of ``theta_aug``
+        (:meth:`MapBuilder.compact`)."""
+        return apply_map(self.M, self.width, theta_cols, self.n_check, u_out, u_min, u_max)
 
 
 class ProblemGeometry:
@@ -144,6 +161,12 @@ class ProblemGeometry:
                 xu[n] -= problem.Bbar[r]
         self.xb_aug = xt
         self.xb_bbar = xu
+        # the columns of [theta; 1] a map can depend on: through F and S (the multipliers,
+        # U) and the bounded states' rows; the constant always. The others (the references
+        # an unweighed state is held to) are zero in every map, and left out of M
+        used = (problem.F.any(axis=0) | problem.S.any(axis=0)) | xt[:, :-1].any(axis=0)
+        self.cols = np.append(np.flatnonzero(used), problem.n_theta).astype(np.intp)
+        self.unused = np.flatnonzero(~used).astype(np.intp)
         lead_max = np.array([problem.lead_max[i] for _, i, _ in lead])
         # the input polytope's rows per stage, P u_k <= p: bounded above only
         self.poly = np.kron(np.eye(N), problem.u_poly_P)
@@ -181,7 +204,13 @@ class MapBuilder:
         miss worker, for a problem of another shape does not)."""
         p = self.problem
         n_check = len(amap.active) + len(self.geom.chk_width)
-        return len(amap.width) == n_check and amap.M.shape == (n_check + p.nu, p.n_theta + 1)
+        return (len(amap.width) == n_check
+                and amap.M.shape == (n_check + p.nu, len(self.geom.cols))
+                and np.array_equal(amap.cols, self.geom.cols))  # fmt: skip
+
+    def compact(self, theta_aug: FloatArray, out: FloatArray | None = None) -> FloatArray:
+        """The columns of ``theta_aug`` the maps read (:attr:`ProblemGeometry.cols`)."""
+        return theta_aug.take(self.geom.cols, out=out)
 
     def check_entry(self, n: int, e: LibraryEntry) -> LibraryEntry:
         """Everything about an entry short of its factorisation (ValueError names it): the
@@ -208,4 +237,4 @@ class MapBuilder:
         active) evaluated to its last row, at :data:`CHECK_NS_PER_MAC`."""
         p = self.problem
         rows = p.n_u + len(self.geom.chk_rows) + p.nu
-        return rows * (p.n_theta + 1) * CHECK_NS_PER_MAC * 1e-3
+        return rows * len(self.geom.cols) * CHECK_NS_PER_MAC * 1e-3
