@@ -106,6 +106,17 @@ def test_fifo_for_the_loops_and_normal_scheduling_for_the_worker():
         helper_policy = os.sched_getscheduler(helper.native_id) & ~os.SCHED_RESET_ON_FORK
         assert helper_policy == os.SCHED_FIFO, helper_policy  # it takes the loops' lock
         assert os.sched_getparam(helper.native_id).sched_priority == 9
+        # a thread started later (the miss worker's pool threads, when the worker comes up
+        # after start-up), by a raised one or by the loops' thread: raised as it starts
+        seen = []
+        def later():
+            seen.append((os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK,
+                         os.sched_getparam(0).sched_priority))
+        def starter():
+            t = threading.Thread(target=later); t.start(); t.join()
+        for start in (starter, later):
+            t = threading.Thread(target=start); t.start(); t.join()
+        assert seen == [(os.SCHED_FIFO, 9)] * 2, seen
         child = subprocess.run(
             [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
             capture_output=True, text=True, check=True)

@@ -64,6 +64,7 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import sys
 import threading
 import time
 from collections import Counter, deque
@@ -153,10 +154,11 @@ class PriorityError(EpcError, OSError):
     """The scheduling policy could not be set (no privilege, or not Linux)."""
 
 
-def apply_priority(priority: int) -> str:
-    """Schedule the calling thread ``SCHED_FIFO`` at ``priority`` (1..99); 0 leaves the
-    scheduling as it is. Returns what was done, for the log; raises :class:`PriorityError`
-    naming why it could not."""
+def apply_priority(priority: int, counters: Counter[str] | None = None) -> str:
+    """Schedule the calling thread ``SCHED_FIFO`` at ``priority`` (1..99), the process's
+    other threads, and those it starts later, one below; 0 leaves the scheduling as it is.
+    ``counters``: the threads raised as they start (``threads_raised_at_start``). Returns
+    what was done, for the log; raises :class:`PriorityError` naming why it could not."""
     if priority == 0:
         return "normal scheduling (loops.realtime_priority = 0)"
     setter = getattr(os, "sched_setscheduler", None)
@@ -166,6 +168,8 @@ def apply_priority(priority: int) -> str:
     try:
         setter(0, policy, os.sched_param(priority))
         others = _raise_other_threads(policy, max(1, priority - 1))
+        _raise_threads_at_start(policy, max(1, priority - 1),
+                                counters if counters is not None else Counter())  # fmt: skip
     except PermissionError as exc:
         raise PriorityError(
             f"SCHED_FIFO priority {priority} refused ({exc.strerror}): run with CAP_SYS_NICE, "
@@ -196,6 +200,27 @@ def _raise_other_threads(policy: int, priority: int) -> int:
             continue
         raised += 1
     return raised
+
+
+def _raise_threads_at_start(policy: int, priority: int, counters: Counter[str]) -> None:
+    """``policy`` at ``priority`` for every thread the threading module starts from now on,
+    as its first act (``threading.setprofile``: a hook each new thread calls once, then
+    drops). A thread started after the loops were raised began at normal priority
+    (``SCHED_RESET_ON_FORK`` holds for threads too): the miss worker's pool manager and
+    queue feeder threads, when the worker came up after start-up (15 s at load 13). Holding
+    the interpreter lock's mutex when a CPU hog preempted them, they stopped the loops for
+    145 and 373 ms (perf: the loops' thread in ``__lll_lock_wait``, woken by them)."""
+
+    def hook(frame: Any, event: str, arg: Any) -> None:
+        sys.setprofile(None)  # once per thread: no cost after
+        try:
+            os.sched_setscheduler(0, policy, os.sched_param(priority))  # 0: this thread
+        except OSError:
+            counters["threads_not_raised_at_start"] += 1
+            return
+        counters["threads_raised_at_start"] += 1
+
+    threading.setprofile(hook)
 
 
 class AffinityError(EpcError, OSError):
@@ -238,7 +263,7 @@ def prepare(
         counters["cpu_affinity_refused"] += 1
         log.warning("loops.cpu_affinity not applied: %s", exc)
     try:
-        how = apply_priority(priority)
+        how = apply_priority(priority, counters)
     except PriorityError as exc:
         counters["realtime_priority_refused"] += 1
         how = "normal scheduling"

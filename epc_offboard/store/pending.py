@@ -5,6 +5,7 @@ a snapshot asks it to unpickle an estimator."""
 
 from __future__ import annotations
 
+import io
 import pickle
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -24,10 +25,17 @@ class PendingSnapshot:
     models: Mapping[str, bytes]
 
     def complete(self) -> LibrarySnapshot:
-        models = {name: pickle.loads(blob[len(PICKLED):]).to_bytes()
+        models = {name: _Unpickler(io.BytesIO(blob[len(PICKLED):])).load().to_bytes()
                   if blob.startswith(PICKLED) else blob
                   for name, blob in self.models.items()}  # fmt: skip
         parts = dict(self.snapshot.signatures)
         parts[self.signature] = replace(parts.get(self.signature, SignatureSnapshot()),
                                         models=models)  # fmt: skip
         return replace(self.snapshot, signatures=parts)
+
+
+class _Unpickler(pickle.Unpickler):
+    """What the saver's pickler left out (the models' compiled group) comes back as None."""
+
+    def persistent_load(self, pid: object) -> None:
+        return None
