@@ -10,6 +10,7 @@ import os
 import signal
 import time
 from collections import Counter
+from typing import Any
 
 import numpy as np
 import pytest
@@ -90,7 +91,7 @@ def test_the_estimator_is_formatted_by_the_store_process_not_on_the_loops_thread
     for _ in range(200):  # a learned model, not the empty one
         est.observe(rng.normal(size=est.n_z), rng.normal(size=est.nx))
     formatted_here: list[int] = []
-    to_bytes = type(est).to_bytes
+    to_bytes: Any = type(est).to_bytes
 
     def counted(self):
         formatted_here.append(1)

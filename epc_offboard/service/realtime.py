@@ -52,8 +52,19 @@
   were such waits, and in them the thread waited for a CPU for 0 ms (median; at most
   1.8 ms): the CPU was not taken. The 23.0 ms one ran 1.9 ms and slept once, ~21 ms (2
   voluntary switches; a wait for the interpreter lock wakes every 5 ms, the switch
-  interval). What the loops' thread blocks in (a lock, a blocking write, the selector's
-  timeout) is the next thing to find.
+  interval). What it blocked in, found with ``perf record -k CLOCK_MONOTONIC -e
+  sched:sched_switch -e sched:sched_wakeup --call-graph=fp`` filtered to the loops'
+  thread (kernel stacks of each sleep and of its waker): the interpreter lock's mutex
+  (``__lll_lock_wait``, 146 and 383 ms), woken by the miss worker's pool manager and queue
+  feeder threads at NORMAL priority: the worker had come up after start-up, and threads
+  started by a raised thread begin at normal priority (``SCHED_RESET_ON_FORK``); a CPU hog
+  preempted them holding the mutex. Every thread started after :func:`apply_priority` is
+  now raised as it starts. The other long gaps of that trace: the loops' thread running
+  10-25 ms every 5 s (the library saver's slices back to back: ``Loops.room``,
+  ``library_keeper.py``), and intervals in which the thread ran (by the scheduler's
+  switches) but its CPU clock advanced a fraction of it, with no preemption and no
+  run-queue wait: the virtual CPU itself descheduled by the hypervisor (steal time),
+  which no setting inside the machine removes.
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
