@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import io
 import os
 import signal
 import time
 from collections import Counter
-from typing import Any
 
 import numpy as np
 import pytest
@@ -74,63 +72,3 @@ def test_saved_by_the_store_process_which_is_restarted_when_it_dies(tmp_path):
     assert summary[p.signature()]["controllers"] == n_position >= 1
     assert summary[p.signature()]["models"] == 1  # the estimator, saved beside them
 
-
-def test_the_estimator_is_formatted_by_the_store_process_not_on_the_loops_thread(
-    tmp_path, monkeypatch
-):
-    """Issue 21: the estimator's npz (``to_bytes``, numpy's zip entry by entry) took 2-8 ms
-    of the loops' thread every save beside two CPU hogs. The saver now pickles it there and
-    the store process formats it: what is stored is the same model."""
-    from epc_offboard.control.cascade import Cascade
-    from epc_offboard.store import experience
-
-    cfg = load_service_config(SITL_SERVICE_CONFIG)
-    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
-    est = cascade.position.estimator
-    rng = np.random.default_rng(0)
-    for _ in range(200):  # a learned model, not the empty one
-        est.observe(rng.normal(size=est.n_z), rng.normal(size=est.nx))
-    formatted_here: list[int] = []
-    to_bytes: Any = type(est).to_bytes
-
-    def counted(self):
-        formatted_here.append(1)
-        return to_bytes(self)
-
-    monkeypatch.setattr(type(est), "to_bytes", counted)
-    path = tmp_path / "library.sqlite"
-    keeper = LibraryKeeper(StoreConfig(str(path), save_period_s=0.05), cascade, Counter(),
-                           published=lambda: False)  # fmt: skip
-    keeper.open()
-
-    async def main() -> None:
-        task = asyncio.create_task(keeper.run())
-        try:
-            deadline = time.monotonic() + 30
-            while keeper.process_stats().get("saves", 0) < 2:
-                assert time.monotonic() < deadline, keeper.process_stats()
-                await asyncio.sleep(0.05)
-        finally:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-
-    asyncio.run(main())
-    assert formatted_here == []  # not once in the flight's process
-    assert keeper.process_stats()["loop_slices"] >= 2
-    store = LibraryStore.open_readonly(path)
-    try:
-        blob = store.load_model(experience._estimator_key(cascade),
-                                cascade.position.problem.signature())  # fmt: skip
-    finally:
-        store.close()
-    keeper.close()
-    assert blob is not None
-    with np.load(io.BytesIO(blob)) as saved, np.load(io.BytesIO(to_bytes(est))) as here:
-        assert sorted(saved.files) == sorted(here.files)
-        for name in here.files:
-            a, b = saved[name], here[name]
-            if a.dtype.kind in "SUO":
-                assert a.tobytes() == b.tobytes(), name
-            else:
-                np.testing.assert_array_equal(a, b, err_msg=name)

@@ -128,23 +128,19 @@ class LibraryKeeper:
                 continue
             self._hand_over(snap)
 
-    async def _sliced_snapshot(self) -> experience.PendingSnapshot:
+    async def _sliced_snapshot(self) -> LibrarySnapshot:
         """The snapshot, taken in slices that each start when the next tick is at least
         ``Loops.room``'s room away (the whole took the loops' thread for one stretch, 5-30 ms
-        beside a fleet: position gaps and late attitude ticks every 5 s, issue 21). The
-        estimator is pickled here (0.8 ms) and formatted by the store process (its npz took
-        2-8 ms of the loops' thread beside two CPU hogs)."""
+        beside a fleet: position gaps and late attitude ticks every 5 s, issue 21; slices
+        separated by ``sleep(0)`` alone ran back to back whenever no tick was due)."""
         for _slice in range(_MAX_PREPARE_SLICES):  # what is left: in fleet_state
             if self._prepare_fleet is None or await self._slice(self._prepare_fleet):
                 break
         fleet = await self._slice(self._fleet_part)
-        models = await self._slice(lambda: experience.estimator_state(self.cascade))
-        signature = self.cascade.position.problem.signature()
-        pending = await self._slice(
-            lambda: experience.PendingSnapshot(self._snapshot(fleet, {}), signature, models)
-        )
+        models = await self._slice(lambda: experience.estimator_models(self.cascade))
+        snap = await self._slice(lambda: self._snapshot(fleet, models))
         await self._room()  # the hand-over pickles and writes the frame
-        return pending
+        return snap
 
     async def _slice(self, step: Callable[[], _T]) -> _T:
         """``step`` run once there is room for it between two ticks; timed and counted."""
@@ -171,7 +167,7 @@ class LibraryKeeper:
         snap = experience.snapshot(self.cascade, models)
         return replace(snap, fleet=fleet) if fleet else snap
 
-    def _hand_over(self, snap: LibrarySnapshot | experience.PendingSnapshot) -> bool:
+    def _hand_over(self, snap: LibrarySnapshot) -> bool:
         outbox = self._outbox
         if outbox is None:
             self.counters["store_snapshots_dropped"] += 1

@@ -10,18 +10,12 @@ signature (also with a PD or MPC position controller, which keep no library).
 
 from __future__ import annotations
 
-import io
 import logging
-import pickle
 from dataclasses import replace
 
 from epc_offboard.control.cascade import Cascade
 from epc_offboard.control.library_types import LibrarySnapshot, SignatureSnapshot, Transition
-from epc_offboard.control.lwpr import ModelGroup
 from epc_offboard.store.database import LibraryStore
-from epc_offboard.store.pending import PICKLED, PendingSnapshot
-
-__all__ = ["PendingSnapshot", "estimator_models", "estimator_state", "load", "save", "snapshot"]
 
 log = logging.getLogger(__name__)
 
@@ -34,27 +28,6 @@ def estimator_models(cascade: Cascade) -> dict[str, bytes]:
     """The estimator's learned model, serialised now (the part of :func:`snapshot` that costs
     most: 2-3 ms, taken on its own by a saver that lets the loops tick in between)."""
     return {_estimator_key(cascade): cascade.position.estimator.to_bytes()}
-
-
-def estimator_state(cascade: Cascade) -> dict[str, bytes]:
-    """The estimator pickled now, for a process of its own to format
-    (:class:`PendingSnapshot`): 0.8 ms of the loops' thread where :func:`estimator_models`
-    (numpy's npz, zip entry by entry) took 2-8 ms beside two CPU hogs. An estimator that
-    cannot be pickled is formatted now."""
-    buf = io.BytesIO()
-    try:
-        _StatePickler(buf, pickle.HIGHEST_PROTOCOL).dump(cascade.position.estimator)
-    except (pickle.PicklingError, TypeError, AttributeError):
-        return estimator_models(cascade)
-    return {_estimator_key(cascade): PICKLED + buf.getvalue()}
-
-
-class _StatePickler(pickle.Pickler):
-    """Leaves out the LWPR models' shared compiled group (its numba kernels do not pickle;
-    it is the loop's machinery, not learned state: ``to_bytes`` never reads it)."""
-
-    def persistent_id(self, obj: object) -> str | None:
-        return "runtime" if isinstance(obj, ModelGroup) else None
 
 
 def snapshot(cascade: Cascade, models: dict[str, bytes] | None = None) -> LibrarySnapshot:

@@ -17,7 +17,6 @@ from epc_offboard.common.channel import read_frames
 from epc_offboard.common.children import die_with_parent, lower_priority
 from epc_offboard.common.logsetup import LogConfig, setup_logging
 from epc_offboard.store.database import LibraryStore
-from epc_offboard.store.pending import PendingSnapshot
 
 log = logging.getLogger("epc_offboard.service")
 
@@ -37,8 +36,6 @@ def store_main(conn: Any, parent_pid: int, path: str, slots: Any, log_cfg: LogCo
     try:
         for snap in read_frames(conn.fileno()):
             try:
-                if isinstance(snap, PendingSnapshot):  # its estimator is formatted here
-                    snap = snap.complete()
                 store.save_snapshot(snap)
                 counts[SAVES] += 1
             except Exception as exc:  # a full disk must not stop the flight
