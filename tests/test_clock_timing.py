@@ -264,3 +264,46 @@ def test_a_stall_between_ticks_is_counted_with_what_the_loops_thread_did():
     assert set(long[0].as_dict()) >= {"loop", "interval_ms", "thread_cpu_ms", "gc_ms",
                                       "runqueue_ms"}  # fmt: skip
     assert all(0.0 <= s.runqueue_ms <= s.interval_ms for s in long)  # Linux: the kernel's
+
+
+def test_work_beside_the_loops_starts_only_with_room_before_the_next_tick():
+    """Issue 21: the library saver's slices, separated by ``sleep(0)``, ran back to back
+    whenever no tick was due at that instant (10-25 ms of the loops' thread every 5 s:
+    position gaps, late attitude ticks). ``Loops.room`` returns only once a tick has run and
+    the next tick of either loop is ``ROOM_S`` away or more."""
+    from epc_offboard.service.loop import ROOM_S
+
+    async def main() -> tuple[list[float], Counter[str]]:
+        counters: Counter[str] = Counter()
+        loops = Loops(WallClock(), counters, LogGate())
+        room_at_start: list[float] = []
+
+        async def tick(t: Tick) -> bool:
+            return True
+
+        async def work() -> None:
+            for _ in range(20):
+                await loops.room()
+                now = loops.clock.now_s()
+                room_at_start.append(min(loops._next_due.values()) - now)
+                _spin(0.0015)  # a slice: shorter than the room, longer than a tick's gap
+            loops.stopping.set()
+
+        async def fly() -> None:
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(loops.periodic("attitude", LoopTiming(0.005), tick))
+                tg.create_task(loops.periodic("position", LoopTiming(0.01), tick))
+                tg.create_task(work())
+                tg.create_task(loops.stop_watch())
+
+        with pytest.raises(ExceptionGroup) as raised:
+            await fly()
+        assert raised.group_contains(Stop)
+        return room_at_start, counters
+
+    room_at_start, counters = asyncio.run(main())
+    assert len(room_at_start) == 20
+    # a slice whose wait timed out (50 ms without room: a loaded machine) is counted
+    timed_out = counters["room_timeouts"]
+    assert timed_out <= 5
+    assert sum(r >= ROOM_S for r in room_at_start) >= 20 - timed_out

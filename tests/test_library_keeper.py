@@ -71,3 +71,4 @@ def test_saved_by_the_store_process_which_is_restarted_when_it_dies(tmp_path):
     summary = stored(path)
     assert summary[p.signature()]["controllers"] == n_position >= 1
     assert summary[p.signature()]["models"] == 1  # the estimator, saved beside them
+

@@ -106,6 +106,19 @@ def test_fifo_for_the_loops_and_normal_scheduling_for_the_worker():
         helper_policy = os.sched_getscheduler(helper.native_id) & ~os.SCHED_RESET_ON_FORK
         assert helper_policy == os.SCHED_FIFO, helper_policy  # it takes the loops' lock
         assert os.sched_getparam(helper.native_id).sched_priority == 9
+        # a thread started later (the miss worker's pool threads, when the worker comes up
+        # after start-up), by a raised one or by the loops' thread: raised as it starts
+        seen = []
+        def later():
+            seen.append((os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK,
+                         os.sched_getparam(0).sched_priority))
+        def starter():
+            t = threading.Thread(target=later); t.start(); t.join()
+        for start in (starter, later):
+            t = threading.Thread(target=start); t.start(); t.join()
+        assert seen == [(os.SCHED_FIFO, 9)] * 2, seen
+        # a helper thread holding the interpreter lock gives it up to the loops within this
+        assert sys.getswitchinterval() <= 0.001, sys.getswitchinterval()
         child = subprocess.run(
             [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
             capture_output=True, text=True, check=True)
@@ -118,6 +131,7 @@ def test_fifo_for_the_loops_and_normal_scheduling_for_the_worker():
         assert "CAP_SYS_NICE" in out.stdout or "not available" in out.stdout
     else:
         assert "SCHED_FIFO priority 10, the process's 1 other thread(s) at 9" in out.stdout
+        assert "switch interval 0.5 ms" in out.stdout
         import os
 
         assert f"CHILD {os.SCHED_OTHER}" in out.stdout

@@ -20,9 +20,9 @@ import logging
 import multiprocessing
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import replace
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TypeVar
 
 import numpy as np
 
@@ -43,6 +43,7 @@ log = logging.getLogger("epc_offboard.service")
 
 _MAX_PENDING_BYTES = 64 << 20  # snapshots waiting for the store process, at most
 _CLOSE_TIMEOUT_S = 30.0
+_T = TypeVar("_T")
 _MAX_PREPARE_SLICES = 64  # the fleet state's slices before a save (a backlog: 32)
 
 
@@ -61,6 +62,7 @@ class LibraryKeeper:
         log_cfg: LogConfig | None = None,
         fleet_state: Callable[[], Mapping[str, str]] | None = None,
         prepare_fleet: Callable[[], bool] | None = None,
+        room: Callable[[], Awaitable[None]] | None = None,
     ) -> None:
         self.cfg = cfg
         self.cascade = cascade
@@ -69,6 +71,10 @@ class LibraryKeeper:
         self._fleet_state = fleet_state
         # a slice of the fleet state's work before it is taken (whether it is all done)
         self._prepare_fleet = prepare_fleet
+        # waits until a slice of the save fits between two ticks (``Loops.room``)
+        self._room = room or (lambda: asyncio.sleep(0))
+        self.slices = 0  # slices of saves run on the loops' thread
+        self.slice_max_s = 0.0  # ... the longest
         self.fleet_saved: dict[str, str] = {}
         self._log_cfg = log_cfg or LogConfig()
         self._ctx = multiprocessing.get_context("spawn")
@@ -115,24 +121,36 @@ class LibraryKeeper:
                 self.counters["store_restarts"] += 1
                 self._start()
             try:
-                # in parts, the ticks due meanwhile run between them: the whole took the
-                # loops' thread for one stretch (5-30 ms beside a fleet: position gaps and
-                # late attitude ticks every 5 s, issue 21)
-                for _slice in range(_MAX_PREPARE_SLICES):  # what is left: in fleet_state
-                    if self._prepare_fleet is None or self._prepare_fleet():
-                        break
-                    await asyncio.sleep(0)
-                fleet = self._fleet_part()
-                await asyncio.sleep(0)
-                models = experience.estimator_models(self.cascade)
-                await asyncio.sleep(0)
-                snap = self._snapshot(fleet, models)
+                snap = await self._sliced_snapshot()
             except Exception as exc:  # never let saving take a loop down
                 self.counters["store_snapshot_errors"] += 1
                 log.error("snapshotting the library failed: %s", exc)
                 continue
-            await asyncio.sleep(0)
             self._hand_over(snap)
+
+    async def _sliced_snapshot(self) -> LibrarySnapshot:
+        """The snapshot, taken in slices that each start when the next tick is at least
+        ``Loops.room``'s room away (the whole took the loops' thread for one stretch, 5-30 ms
+        beside a fleet: position gaps and late attitude ticks every 5 s, issue 21; slices
+        separated by ``sleep(0)`` alone ran back to back whenever no tick was due)."""
+        for _slice in range(_MAX_PREPARE_SLICES):  # what is left: in fleet_state
+            if self._prepare_fleet is None or await self._slice(self._prepare_fleet):
+                break
+        fleet = await self._slice(self._fleet_part)
+        models = await self._slice(lambda: experience.estimator_models(self.cascade))
+        snap = await self._slice(lambda: self._snapshot(fleet, models))
+        await self._room()  # the hand-over pickles and writes the frame
+        return snap
+
+    async def _slice(self, step: Callable[[], _T]) -> _T:
+        """``step`` run once there is room for it between two ticks; timed and counted."""
+        await self._room()
+        t0 = time.perf_counter()
+        try:
+            return step()
+        finally:
+            self.slices += 1
+            self.slice_max_s = max(self.slice_max_s, time.perf_counter() - t0)
 
     def _fleet_part(self) -> dict[str, str]:
         return dict(self._fleet_state()) if self._fleet_state is not None else {}
@@ -234,4 +252,5 @@ class LibraryKeeper:
             saves=int(self._slots[_SAVES]), errors=int(self._slots[_ERRORS]),
             dropped=self.counters["store_snapshots_dropped"],
             failures=self.counters["store_failures"], restarts=self.counters["store_restarts"],
+            loop_slices=self.slices, loop_slice_max_ms=round(self.slice_max_s * 1e3, 3),
         )  # fmt: skip

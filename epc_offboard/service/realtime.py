@@ -52,8 +52,19 @@
   were such waits, and in them the thread waited for a CPU for 0 ms (median; at most
   1.8 ms): the CPU was not taken. The 23.0 ms one ran 1.9 ms and slept once, ~21 ms (2
   voluntary switches; a wait for the interpreter lock wakes every 5 ms, the switch
-  interval). What the loops' thread blocks in (a lock, a blocking write, the selector's
-  timeout) is the next thing to find.
+  interval). What it blocked in, found with ``perf record -k CLOCK_MONOTONIC -e
+  sched:sched_switch -e sched:sched_wakeup --call-graph=fp`` filtered to the loops'
+  thread (kernel stacks of each sleep and of its waker): the interpreter lock's mutex
+  (``__lll_lock_wait``, 146 and 383 ms), woken by the miss worker's pool manager and queue
+  feeder threads at NORMAL priority: the worker had come up after start-up, and threads
+  started by a raised thread begin at normal priority (``SCHED_RESET_ON_FORK``); a CPU hog
+  preempted them holding the mutex. Every thread started after :func:`apply_priority` is
+  now raised as it starts. The other long gaps of that trace: the loops' thread running
+  10-25 ms every 5 s (the library saver's slices back to back: ``Loops.room``,
+  ``library_keeper.py``), and intervals in which the thread ran (by the scheduler's
+  switches) but its CPU clock advanced a fraction of it, with no preemption and no
+  run-queue wait: the virtual CPU itself descheduled by the hypervisor (steal time),
+  which no setting inside the machine removes.
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
@@ -64,6 +75,7 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import sys
 import threading
 import time
 from collections import Counter, deque
@@ -74,6 +86,7 @@ from epc_offboard.common.errors import EpcError
 
 log = logging.getLogger(__name__)
 
+GIL_SWITCH_S = 0.0005  # the interpreter's switch interval once the loops are raised
 _SLOW_COLLECTION_S = 0.001  # a collection longer than this is counted as slow
 _GC_EVENTS_KEPT = 64  # the latest slow collections, with their times, in the stats
 
@@ -153,10 +166,11 @@ class PriorityError(EpcError, OSError):
     """The scheduling policy could not be set (no privilege, or not Linux)."""
 
 
-def apply_priority(priority: int) -> str:
-    """Schedule the calling thread ``SCHED_FIFO`` at ``priority`` (1..99); 0 leaves the
-    scheduling as it is. Returns what was done, for the log; raises :class:`PriorityError`
-    naming why it could not."""
+def apply_priority(priority: int, counters: Counter[str] | None = None) -> str:
+    """Schedule the calling thread ``SCHED_FIFO`` at ``priority`` (1..99), the process's
+    other threads, and those it starts later, one below; 0 leaves the scheduling as it is.
+    ``counters``: the threads raised as they start (``threads_raised_at_start``). Returns
+    what was done, for the log; raises :class:`PriorityError` naming why it could not."""
     if priority == 0:
         return "normal scheduling (loops.realtime_priority = 0)"
     setter = getattr(os, "sched_setscheduler", None)
@@ -166,6 +180,14 @@ def apply_priority(priority: int) -> str:
     try:
         setter(0, policy, os.sched_param(priority))
         others = _raise_other_threads(policy, max(1, priority - 1))
+        _raise_threads_at_start(policy, max(1, priority - 1),
+                                counters if counters is not None else Counter())  # fmt: skip
+        # A thread that holds the interpreter lock gives it up to a waiting one only after
+        # the switch interval (5 ms by default): the miss worker's pool threads unpickling a
+        # returned map held the loops for 3-3.5 ms (perf: the loops' thread in a futex
+        # wait, woken by them). Now the loops wait at most this for a raised thread's slice
+        # of Python; a tick of theirs is interrupted for as little when a helper thread asks.
+        sys.setswitchinterval(GIL_SWITCH_S)
     except PermissionError as exc:
         raise PriorityError(
             f"SCHED_FIFO priority {priority} refused ({exc.strerror}): run with CAP_SYS_NICE, "
@@ -173,11 +195,12 @@ def apply_priority(priority: int) -> str:
         ) from exc
     except OSError as exc:
         raise PriorityError(f"SCHED_FIFO priority {priority} refused: {exc}") from exc
+    switch = f"interpreter lock switch interval {GIL_SWITCH_S * 1e3:g} ms"
     if not others:
-        return f"SCHED_FIFO priority {priority}"
+        return f"SCHED_FIFO priority {priority}, {switch}"
     return (
         f"SCHED_FIFO priority {priority}, the process's {others} other thread(s) at "
-        f"{max(1, priority - 1)} (they take the interpreter lock the loops need)"
+        f"{max(1, priority - 1)} (they take the interpreter lock the loops need), {switch}"
     )
 
 
@@ -196,6 +219,27 @@ def _raise_other_threads(policy: int, priority: int) -> int:
             continue
         raised += 1
     return raised
+
+
+def _raise_threads_at_start(policy: int, priority: int, counters: Counter[str]) -> None:
+    """``policy`` at ``priority`` for every thread the threading module starts from now on,
+    as its first act (``threading.setprofile``: a hook each new thread calls once, then
+    drops). A thread started after the loops were raised began at normal priority
+    (``SCHED_RESET_ON_FORK`` holds for threads too): the miss worker's pool manager and
+    queue feeder threads, when the worker came up after start-up (15 s at load 13). Holding
+    the interpreter lock's mutex when a CPU hog preempted them, they stopped the loops for
+    145 and 373 ms (perf: the loops' thread in ``__lll_lock_wait``, woken by them)."""
+
+    def hook(frame: Any, event: str, arg: Any) -> None:
+        sys.setprofile(None)  # once per thread: no cost after
+        try:
+            os.sched_setscheduler(0, policy, os.sched_param(priority))  # 0: this thread
+        except OSError:
+            counters["threads_not_raised_at_start"] += 1
+            return
+        counters["threads_raised_at_start"] += 1
+
+    threading.setprofile(hook)
 
 
 class AffinityError(EpcError, OSError):
@@ -238,7 +282,7 @@ def prepare(
         counters["cpu_affinity_refused"] += 1
         log.warning("loops.cpu_affinity not applied: %s", exc)
     try:
-        how = apply_priority(priority)
+        how = apply_priority(priority, counters)
     except PriorityError as exc:
         counters["realtime_priority_refused"] += 1
         how = "normal scheduling"

@@ -164,6 +164,7 @@ class Service:
             log_cfg=cfg.log,
             fleet_state=lambda: self.sharing.fleet_state() if self.sharing is not None else {},
             prepare_fleet=lambda: self.sharing is None or self.sharing.prepare_fleet_state(),
+            room=self.loops.room,
         )  # fmt: skip
 
     @property
