@@ -55,9 +55,22 @@ class Controller(Protocol):
         the model offset. With a perturbation and no ``u_p``, ``u_p = -pinv(B) p^`` (the
         input cancelling it)."""
         t0 = time.perf_counter()
-        theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation,
-                                   out=self.theta_buffer())
+        theta = self.theta_compiled(x0, refs, u_p, perturbation)
+        if theta is None:
+            theta = self.problem.theta(x0, refs, u_p, perturbation=perturbation,
+                                       out=self.theta_buffer())  # fmt: skip
         return self.decide(theta, t0)
+
+    def theta_compiled(
+        self,
+        x0: npt.ArrayLike,
+        refs: npt.ArrayLike,
+        u_p: npt.ArrayLike | None,
+        perturbation: npt.ArrayLike | None,
+    ) -> FloatArray | None:
+        """θ stacked by a compiled kernel where a controller has one and the arguments suit
+        it, bit for bit :meth:`MpcProblem.theta`'s; None: ``problem.theta`` stacks it."""
+        return None
 
     def theta_buffer(self) -> FloatArray | None:
         """Where :meth:`step` writes θ (None: a new array each tick)."""

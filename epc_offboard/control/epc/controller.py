@@ -13,7 +13,6 @@ exchange`.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,6 +134,7 @@ class ExperienceController(LibraryExchange, Controller):
         self._theta_aug = np.zeros(problem.n_theta + 1)
         self._theta_aug[-1] = 1.0
         self._theta_cols = self.builder.compact(self._theta_aug)  # what the maps read of it
+        self._cols_stacked = False  # theta_compiled wrote _theta_cols for this tick
         self._intermediate_qp = IntermediateQp(problem, self._int_horizon, self._slack_weight)
 
     def set_model(self, model: LinearModel) -> None:
@@ -157,38 +157,36 @@ class ExperienceController(LibraryExchange, Controller):
     def theta_buffer(self) -> FloatArray:
         return self._theta_aug[:-1]
 
-    def step(
+    def theta_compiled(
         self,
         x0: npt.ArrayLike,
         refs: npt.ArrayLike,
-        u_p: npt.ArrayLike | None = None,
-        *,
-        perturbation: npt.ArrayLike | None = None,
-    ) -> Decision:
-        """:meth:`Controller.step`; the position tick's arguments (arrays, a perturbation,
-        a nominal input per stage) stacked into θ in one compiled call."""
-        if (stack_theta is not None and type(u_p) is np.ndarray and u_p.ndim == 2
+        u_p: npt.ArrayLike | None,
+        perturbation: npt.ArrayLike | None,
+    ) -> FloatArray | None:
+        """The position tick's arguments (arrays, a perturbation, a nominal input per stage)
+        stacked into θ, and the maps' columns of it, in one compiled call."""
+        if not (stack_theta is not None and type(u_p) is np.ndarray and u_p.ndim == 2
                 and type(x0) is np.ndarray and type(refs) is np.ndarray
                 and type(perturbation) is np.ndarray):  # fmt: skip
-            t0 = time.perf_counter()
-            if stack_theta(x0, refs, u_p, self.problem.model.c, perturbation, self._theta_aug,
+            return None
+        if not stack_theta(x0, refs, u_p, self.problem.model.c, perturbation, self._theta_aug,
                            self.builder.geom.cols, self._theta_cols):  # fmt: skip
-                return self._decide(self._theta_aug[:-1], t0, stacked=True)
-        return super().step(x0, refs, u_p, perturbation=perturbation)
+            return None  # (arrays of another shape: problem.theta raises its error)
+        self._cols_stacked = True
+        return self._theta_aug[:-1]
 
     def decide(self, theta: FloatArray, t0: float) -> Decision:
-        """Algorithm 1's body at θ (written into ``_theta_aug`` by :meth:`step`)."""
-        return self._decide(theta, t0, stacked=False)
-
-    def _decide(self, theta: FloatArray, t0: float, *, stacked: bool) -> Decision:
-        """``stacked``: the maps' columns of θ are in ``_theta_cols`` already."""
+        """Algorithm 1's body at θ (written into ``_theta_aug`` by :meth:`step`; the maps'
+        columns of it too when :meth:`theta_compiled` stacked it)."""
         th_aug = self._theta_aug
         p = self.problem
         self.library.tick += 1
         u = np.empty(p.nu)
         th_cols = self._theta_cols
-        if not stacked:
+        if not self._cols_stacked:
             th_aug.take(self.builder.geom.cols, out=th_cols)
+        self._cols_stacked = False
         entry = self.library.query(th_cols, u, p.u_min, p.u_max)
         if entry is not None:
             return self._hit(entry, u, th_aug, t0)
