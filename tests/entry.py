@@ -39,6 +39,7 @@ from epc_offboard.common.frames import GRAVITY_M_S2
 from epc_offboard.common.ports import free_port
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD, px4_modes
 from sitl.params import load_sim_config
+from tests.rig import early_origin_vehicle
 
 ARDUPILOT_GUIDED = 4
 _POSITION_STREAMS = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ODOMETRY)
@@ -73,6 +74,9 @@ class Flight:
     adaptation: str = "lwpr"
     freezes_s: tuple[float, ...] = ()
     settle_s: float = SETTLE_S  # vehicle seconds from an entry to the next freeze
+    # ArduPilot's EKF origin, vehicle seconds after boot (None: the vehicle file's, 36 s);
+    # before it the vehicle waits on the ground, which no entry's window sees
+    ekf_origin_s: float | None = None
     entries: list[EntryFigures] = field(default_factory=list)
     freezes_done: list[tuple[float, float]] = field(default_factory=list)  # (t, duration)
     exit_code: int | None = None
@@ -298,8 +302,12 @@ def fly(
     out.mkdir(parents=True, exist_ok=True)
     scenario = out / "entry_scenario.toml"
     duration = flight.settle_s + sum(f + REENTRY_S for f in flight.freezes_s) + 1.0
+    vehicle = ""  # "": the default vehicle
+    if flight.autopilot == "ardupilot" and flight.ekf_origin_s is not None:
+        vehicle = str(early_origin_vehicle(out, flight.ekf_origin_s))
     scenario.write_text(
         'description = "hover, entered in wind"\n'
+        f"vehicle = {json.dumps(vehicle)}\n"
         f"duration_s = {duration}\nsettle_s = 1.0\naltitude_m = 2.5\n"
         '[trajectory]\nshape = "hover"\n'
         f'[service.attitude]\nmode = "{flight.mode}"\n'

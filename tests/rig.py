@@ -69,6 +69,19 @@ def deployed_priority() -> None:
         os.nice(DEPLOYED_NICE)
 
 
+def early_origin_vehicle(folder: Path, origin_s: float = 2.0) -> Path:
+    """The packaged vehicle file, in ``folder``, with ArduCopter's EKF origin ``origin_s``
+    after boot instead of 36 s: for flights that judge nothing of the position stream it
+    withholds until then (34 s of vehicle time on the ground, 15-20 s of wall clock in
+    lockstep). The wait itself: tests/sitl/test_ardupilot.py and tests/test_ardupilot_e2e.py."""
+    from sitl.params import DEFAULT_VEHICLE_FILE
+
+    path = folder / "vehicle.toml"
+    origin = f"\n[ardupilot]\nekf_origin_after_boot_s = {origin_s}\n"
+    path.write_text(DEFAULT_VEHICLE_FILE.read_text() + origin)
+    return path
+
+
 def holding_scenario(folder: Path, name: str) -> Path:
     """A copy of the shipped scenario ``name`` in ``folder`` whose flights end holding (the
     service exits; ``sim`` flies no landing): for the suite's lockstep flights that judge

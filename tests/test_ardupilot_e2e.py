@@ -15,7 +15,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.tools.sim.analysis import sitl_counters
-from tests.rig import Rig
+from tests.rig import Rig, early_origin_vehicle
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -92,8 +92,10 @@ def _wait_for_log(path, text: str, timeout_s: float) -> str:
 def test_guid_options_refused_until_a_ground_station_sets_it_over_tcp(tmp_path):
     """GUID_OPTIONS 0 (ArduCopter's default): the service refuses GUIDED, arms nothing and
     says why; a ground station on the SITL's TCP port (as MAVProxy on 5760) sets it to 8,
-    the service reads it again and flies: GUIDED, arm, one takeoff."""
-    with Rig(tmp_path, sitl_args=("--autopilot", "ardupilot")) as rig:
+    the service reads it again and flies: GUIDED, arm, one takeoff. (The EKF's origin 2 s
+    after boot: the 36 s wait for it is the circle's above.)"""
+    vehicle = early_origin_vehicle(tmp_path)
+    with Rig(tmp_path, sitl_args=("--autopilot", "ardupilot", "--config", str(vehicle))) as rig:
         service_log = tmp_path / "service.log"
         _wait_for_log(service_log, "GUID_OPTIONS is 0: bit 3 (value 8) must be set", 60.0)
         assert "action: arm" not in service_log.read_text()

@@ -334,18 +334,24 @@ def replay_then_flap(tmp_path_factory: pytest.TempPathFactory) -> SharedFlight:
     overrides = hover_overrides(port, FLEET, 120.0)
     overrides["loops"] = {"realtime_priority": 50}  # config/default.toml's, where permitted
     summaries: dict[str, dict[str, Any]] = {}
-    with (
-        holding({"alone"}),
-        Rig(tmp, lockstep=False, speedup=1.0, service_overrides=overrides) as rig,
-    ):
-        assert rig.sitl is not None
-        autopilot_priority(rig.sitl.pid)
-        attackers = {kind: _attacker(kind, port, rig.config_path) for kind in PEER_KINDS}
-        try:
-            rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=90)
+    rig = Rig(tmp, lockstep=False, speedup=1.0, service_overrides=overrides)
+    # The attackers prepare before the flight, beside other tests as any test may (the
+    # replay's 1,200 QP solves, 7-10 s of CPU: a peer's own machine's), and say ready once
+    # their sessions are open; each connects to the victim when it listens (Zenoh retries
+    # within 4 s; the attacks begin 10 s or more after). Prepared during the takeoff, they
+    # loaded it, and the hover waited for them with the machine's lock held (18 s at load 8).
+    attackers: dict[str, subprocess.Popen[str]] = {}
+    try:
+        with holding(set()):
+            for kind in PEER_KINDS:
+                attackers[kind] = _attacker(kind, port, rig.config_path)
             for attacker in attackers.values():
                 assert attacker.stdout is not None
                 assert attacker.stdout.readline().strip() == "ready"
+        with holding({"alone"}), rig:
+            assert rig.sitl is not None
+            autopilot_priority(rig.sitl.pid)
+            rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=90)
             wait_offboard(tmp / "flight.csv", settle_s=2.0)
             for kind, attacker in attackers.items():
                 assert attacker.stdin is not None
@@ -355,14 +361,14 @@ def replay_then_flap(tmp_path_factory: pytest.TempPathFactory) -> SharedFlight:
                 summaries[kind] = json.loads(attacker.stdout.readline())
                 time.sleep(CALM_S if kind != PEER_KINDS[-1] else 0.5)
             code, _ = rig.stop_service(timeout_s=30)
-        finally:
-            for attacker in attackers.values():
-                if attacker.stdin is not None:
-                    attacker.stdin.close()
-                attacker.wait(timeout=20)
-        stats = rig.stats()
-        truth = rig.groundtruth()
-        log = rig.log()
+            stats = rig.stats()
+            truth = rig.groundtruth()
+            log = rig.log()
+    finally:
+        for attacker in attackers.values():
+            if attacker.stdin is not None:
+                attacker.stdin.close()
+            attacker.wait(timeout=20)
     return SharedFlight(tmp, code, stats, truth, log, summaries)
 
 

@@ -13,12 +13,10 @@ covered by tests/test_attitude_delay.py (telemetry latency on top).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import pytest
 
-from sitl.params import DEFAULT_VEHICLE_FILE
-from tests.rig import Rig
+from tests.rig import Rig, early_origin_vehicle
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -41,16 +39,6 @@ def hover_tilt_deg(rig: Rig) -> float:
     return max(tilt)
 
 
-def sitl_config(tmp: Path) -> Path:
-    """The packaged vehicle with ArduCopter's EKF origin after 2 s instead of 36 s (the
-    position stream it withholds until then is not what this test is about)."""
-    path = tmp / "vehicle.toml"
-    path.write_text(
-        DEFAULT_VEHICLE_FILE.read_text() + "\n[ardupilot]\nekf_origin_after_boot_s = 2.0\n"
-    )
-    return path
-
-
 def test_body_rates_hold_a_level_hover_on_ardupilots_shaped_response(tmp_path):
     overrides = {
         "link": {"autopilot": "ardupilot"},
@@ -59,7 +47,7 @@ def test_body_rates_hold_a_level_hover_on_ardupilots_shaped_response(tmp_path):
         "trajectory": {"shape": "hover"},
     }
     sitl_args = ("--autopilot", "ardupilot", "--param", "GUID_OPTIONS=8",
-                 "--config", str(sitl_config(tmp_path)))  # fmt: skip
+                 "--config", str(early_origin_vehicle(tmp_path)))  # fmt: skip
     with Rig(tmp_path, service_overrides=overrides, sitl_args=sitl_args) as rig:
         code = rig.wait_exit(timeout_s=200)
         log = rig.log()

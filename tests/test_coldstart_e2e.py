@@ -107,24 +107,3 @@ def test_cold_start_flies_the_numpy_twins_and_reaches_offboard_in_seconds(tmp_pa
 
 
 # (its warm twin, a flight on compiled kernels, is lockstep: tests/test_service_e2e.py)
-
-
-def test_the_start_up_runs_at_the_loops_priority_from_before_the_heavy_imports(tmp_path: Path):
-    """With loops.realtime_priority set, the start-up runs SCHED_FIFO from before the service's
-    imports: at normal priority, beside a real PX4 at load 10-15, its 0.6-1.3 s of CPU took
-    2.4-5 s of wall clock before the first command (offboard 12-15 s after a cold start)."""
-    if not fifo_permitted():
-        pytest.skip("SCHED_FIFO not permitted here")
-    rig = Rig(tmp_path, lockstep=False, speedup=1.0,
-              service_overrides={"loops": {"realtime_priority": 10}})  # fmt: skip
-    try:
-        rig.start_service()  # no autopilot: it waits for one, and is stopped
-        deadline = time.monotonic() + 60.0
-        while "epc-offboard running" not in rig.log() and time.monotonic() < deadline:
-            time.sleep(0.2)
-        code, _ = rig.stop_service()
-    finally:
-        rig.__exit__()
-    assert code == 0, rig.log()
-    marks = list(rig.stats()["startup"]["milestones"])
-    assert marks[:4] == ["entry", "start_up_priority", "kernels_chosen", "config"], marks

@@ -18,11 +18,14 @@ deferred import inside a function counts as well as one at the top).
 from __future__ import annotations
 
 import ast
+import functools
 import importlib
 import inspect
 import subprocess
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 
 import pytest
 
@@ -72,7 +75,8 @@ PLANT_MAY_IMPORT = _in("epc_offboard.common")
 TOOLS = (*_in("epc_offboard.tools"), "epc_offboard.cli")
 
 
-def _imports(path: Path, *, top_level_only: bool) -> set[str]:
+@functools.cache  # the sources do not change during a run: each file is parsed once
+def _imports(path: Path, *, top_level_only: bool) -> frozenset[str]:
     """Everything a module imports (``from a import b`` counts as ``a`` and ``a.b``)."""
     tree = ast.parse(path.read_text())
     nodes = tree.body if top_level_only else list(ast.walk(tree))
@@ -83,17 +87,19 @@ def _imports(path: Path, *, top_level_only: bool) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             found.add(node.module)
             found.update(f"{node.module}.{a.name}" for a in node.names)
-    return found
+    return frozenset(found)
 
 
-def _graph(*, top_level_only: bool) -> dict[str, set[str]]:
-    return {
-        m: {d for d in _imports(p, top_level_only=top_level_only) if d in MODULES} - {m}
+@functools.cache
+def _graph(*, top_level_only: bool) -> Mapping[str, frozenset[str]]:
+    return MappingProxyType({
+        m: frozenset(d for d in _imports(p, top_level_only=top_level_only)
+                     if d in MODULES and d != m)
         for m, p in MODULES.items()
-    }
+    })  # fmt: skip
 
 
-def _reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+def _reachable(graph: Mapping[str, frozenset[str]], start: str) -> set[str]:
     seen: set[str] = set()
     todo = [start]
     while todo:
