@@ -70,6 +70,7 @@ from epc_offboard.common.channel import (
     write_frame,
 )
 from epc_offboard.common.children import die_with_parent, enlarge_pipe, spawn_fed
+from epc_offboard.common.errors import EpcError
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control import kernels
@@ -219,7 +220,7 @@ def _offer(
     return worker.pool.unbuilt, built
 
 
-class _WorkerError(RuntimeError):
+class _WorkerError(EpcError, RuntimeError):
     """A request the worker answered with an error (a solve that raised)."""
 
 
