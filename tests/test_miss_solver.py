@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -50,18 +51,14 @@ def test_a_miss_is_solved_off_the_loop_then_hits_exactly(solver_and_ctrl):
 
 
 def test_a_worker_started_without_waiting_outlives_the_start_and_solves():
-    """start(wait=False) spawns the worker from a thread; the worker dies with the THREAD
-    that spawned it (PR_SET_PDEATHSIG), so a thread that ended after the start killed it
-    (a lockstep flight's service failed with BrokenProcessPool)."""
+    """start(wait=False) spawns the worker from the caller's thread (the worker dies with
+    the THREAD that spawned it, PR_SET_PDEATHSIG: spawned from a short-lived thread, it
+    died with it, and a lockstep flight's service failed)."""
     ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
     solver = MissSolver({"position": ctrl})
     solver.start(wait=False)
     try:
         solver.wait_ready()
-        # the spawning thread lives as long as the worker (a short-lived thread's end
-        # signals the worker when the kernel reparents it to the thread that dies next)
-        assert solver._spawning is not None
-        assert solver._spawning.is_alive()
         time.sleep(1.0)
         pid = solver.worker_pid()
         assert pid is not None
@@ -73,6 +70,50 @@ def test_a_worker_started_without_waiting_outlives_the_start_and_solves():
         assert ctrl.step(x0, refs).source == "hit"
     finally:
         solver.close()
+
+
+def test_the_worker_adds_no_thread_to_the_control_process():
+    """Issue 21: a process pool's manager and queue-feeder threads lived in the control
+    process and took its interpreter lock to move the worker's traffic (a CPU hog that
+    preempted one holding the lock stalled the loops for up to 1.4 s). The loops' thread
+    moves it itself now: from the start to the stop, through solves, a death and a
+    restart, no other thread."""
+    ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl})
+    before = {t.ident for t in threading.enumerate()}
+    seen: set[int | None] = set()
+
+    def threads() -> None:
+        seen.update(t.ident for t in threading.enumerate())
+
+    solver.start(wait=False)
+    try:
+        threads()
+        solver.wait_ready()
+        threads()
+        x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+        miss(ctrl, x0, [4.0, -3.0, 1.0])
+        solver.pump()
+        threads()
+        assert solver.pump(wait=True) == 1
+        threads()
+        pid = solver.worker_pid()
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+        time.sleep(0.3)
+        for _ in range(3):  # the tick that finds it dead, then the new one's solve
+            miss(ctrl, x0, [-5.0, 4.0, -1.5])
+            solver.pump(wait=True)
+            threads()
+            if solver.pump(wait=True):
+                break
+        threads()
+        assert solver.counters["worker_restarts"] == 1
+        assert ctrl.stats.size == 2
+    finally:
+        solver.close()
+    threads()
+    assert seen <= before, f"{len(seen - before)} thread(s) started in the control process"
 
 
 def test_misses_of_one_region_are_solved_once(solver_and_ctrl):
@@ -249,3 +290,39 @@ def test_a_miss_handed_over_at_its_ticks_end_hits_at_the_next_tick(solver_and_ct
     assert solver.counters["solves_submitted"] == len(targets)
     assert ctrl.stats.misses == len(targets)
     assert solver.hand_over(wait=True) == 0  # no miss: nothing to do
+
+
+def test_a_wedged_worker_is_restarted_and_solves_again():
+    """A worker that answers nothing (SIGSTOP: wedged, or starved) is killed and replaced
+    after ``wedged_s`` in real time; the misses of the flight are solved again. With the
+    pool, its solve stayed in flight for good and no miss was solved again."""
+    ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl}, wedged_s=1.0)
+    solver.start()
+    try:
+        pid = solver.worker_pid()
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+        miss(ctrl, x0, [4.0, -3.0, 1.0])
+        solver.pump()  # submitted to the wedged worker
+        t0 = time.monotonic()
+        while solver.counters["worker_restarts"] == 0 and time.monotonic() - t0 < 10.0:
+            time.sleep(0.05)  # the loop's ticks, real time: never blocked
+            assert solver.pump() == 0
+        assert solver.counters["worker_restarts"] == 1
+        assert solver.worker_pid() not in (None, pid)
+        for _ in range(50):  # the wedged one is gone, and reaped
+            solver.pump()
+            if not os.path.exists(f"/proc/{pid}"):
+                break
+            time.sleep(0.1)
+        assert not os.path.exists(f"/proc/{pid}")
+        solver.wait_ready()
+        d, refs = miss(ctrl, x0, [4.0, -3.0, 1.0])
+        assert d.source == "intermediate"
+        solver.pump()
+        assert solver.pump(wait=True) == 1
+        assert ctrl.step(x0, refs).source == "hit"
+    finally:
+        solver.close()

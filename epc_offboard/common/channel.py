@@ -17,8 +17,10 @@ The control process's side never blocks and its work is bounded per call:
   or drops it and counts when the pipe is full (the log writer fell behind).
 * :class:`FrameOutbox` sends length-prefixed pickled frames (its own data, to a helper),
   without blocking, keeping at most ``max_pending_bytes`` waiting; beyond, a frame is refused.
+* :class:`FrameInbox` takes the frames a helper answers with (:func:`write_frame`), reading
+  at most ``max_read_bytes`` per call; a frame is unpickled once it is whole.
 
-The helper's side may block: :func:`write_all`, :func:`read_frames`.
+The helper's side may block: :func:`write_all`, :func:`write_frame`, :func:`read_frames`.
 """
 
 from __future__ import annotations
@@ -116,8 +118,7 @@ class FrameOutbox:
 
     def send(self, obj: object) -> bool:
         """Queue ``obj``; False (and counted) when that would exceed the bound."""
-        data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-        frame = _FRAME_HEADER.pack(len(data)) + data
+        frame = _frame(obj)
         if self.pending_bytes + len(frame) > self.max_pending_bytes:
             self.refused += 1
             return False
@@ -140,6 +141,51 @@ class FrameOutbox:
                 self._pending.popleft()
             else:  # a partial write: the rest goes next time, in order
                 self._pending[0] = head[n:]
+
+
+class FrameInbox:
+    """Pickled frames from a helper (:func:`write_frame`), never blocking: :meth:`read` takes
+    what the pipe holds, at most ``max_read_bytes`` (one ``os.read``), and returns the frames
+    now whole; a frame's rest waits for the next call."""
+
+    def __init__(self, fd: int, max_read_bytes: int) -> None:
+        os.set_blocking(fd, False)
+        self.fd = fd
+        self.max_read_bytes = max_read_bytes
+        self._buf = bytearray()
+
+    def read(self) -> list[Any]:
+        """The frames now whole (possibly none); ChannelClosedError at EOF, once the whole
+        frames before it are returned."""
+        try:
+            chunk: bytes | None = os.read(self.fd, self.max_read_bytes)
+        except BlockingIOError:
+            chunk = None
+        buf = self._buf
+        if chunk:
+            buf += chunk
+        out = []
+        head = _FRAME_HEADER.size
+        while len(buf) >= head:
+            (size,) = _FRAME_HEADER.unpack_from(buf)
+            if len(buf) < head + size:
+                break
+            with memoryview(buf) as view:  # no copy; released before the buffer shrinks
+                out.append(pickle.loads(view[head : head + size]))
+            del buf[: head + size]
+        if chunk == b"" and not out:
+            raise ChannelClosedError("the writer closed the pipe")
+        return out
+
+
+def _frame(obj: object) -> bytes:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    return _FRAME_HEADER.pack(len(data)) + data
+
+
+def write_frame(fd: int, obj: object) -> None:
+    """Blocking write of one pickled frame (the helper's side, to a :class:`FrameInbox`)."""
+    write_all(fd, _frame(obj))
 
 
 def write_all(fd: int, data: bytes) -> None:

@@ -123,6 +123,13 @@ class Backoff:
             self.wait_s = self.first_s
 
 
+def enlarge_pipe(conn: Connection, nbytes: int) -> None:
+    """Make the pipe under ``conn`` hold ``nbytes`` (Linux ``F_SETPIPE_SZ``; elsewhere, or
+    above the system's ceiling, it keeps its size)."""
+    with contextlib.suppress(OSError):
+        fcntl.fcntl(conn.fileno(), _F_SETPIPE_SZ, nbytes)
+
+
 def spawn_fed(
     target: Callable[..., None], name: str, *args: object, pipe_bytes: int = 0
 ) -> tuple[multiprocessing.process.BaseProcess, Connection]:
@@ -132,8 +139,7 @@ def spawn_fed(
     ctx = multiprocessing.get_context("spawn")  # no fork of a threaded process
     read, write = ctx.Pipe(duplex=False)
     if pipe_bytes:
-        with contextlib.suppress(OSError):  # Linux only; elsewhere the default size
-            fcntl.fcntl(write.fileno(), _F_SETPIPE_SZ, pipe_bytes)
+        enlarge_pipe(write, pipe_bytes)
     proc = ctx.Process(target=target, args=(read, os.getpid(), *args), name=name, daemon=True)
     proc.start()
     read.close()  # the child's end: ours closed, its death is EOF for nobody but it

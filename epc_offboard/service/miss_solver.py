@@ -3,8 +3,8 @@
 On a library miss the tick applies the intermediate controller at once (thesis 3.1.3) and
 the controller queues the parameter vector θ (``ExperienceController(learn_on_miss=False)``,
 its ``pending``). :class:`MissSolver` takes those θ, solves the full QP, recovers and
-verifies its active set in ONE worker process (a standard
-``ProcessPoolExecutor``; each problem is sent once, at start, then only θ travels), and hands
+verifies its active set in ONE worker process (fed through two pipes, :class:`MissSolver`
+says why; each problem is sent once, at start, then only θ travels), and hands
 the active set back with its KKT map, built there (0.3-1.3 ms of factorisation and products
 for the position problem that the loop's tick no longer pays). The loop adds it only after
 its own KKT check passes at that θ (:meth:`ExperienceController.add_built`; a map for another
@@ -14,7 +14,8 @@ body-rate mode, flipped the vehicle.
 
 * one solve in flight per controller; further misses wait in a small bounded buffer, and
   those the returning controller already covers are dropped (a region is solved once);
-* the worker's death is survived: the pool is rebuilt, the lost solve counted;
+* the worker's death is survived: a new one is started, the lost solve counted; so is its
+  wedging (SIGSTOP, starvation): a request unanswered for ``wedged_s``;
 * ``wait=True`` (lockstep simulation) blocks until the solve in flight has returned, so the
   result enters the library at the same tick every run: deterministic.
 
@@ -45,21 +46,31 @@ No asyncio here: :meth:`pump` is called from the position loop's tick.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
-import threading
+import select
+import sys
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from typing import TYPE_CHECKING, Any, Generic, TypeVar, cast
 
 import numpy as np
 
-from epc_offboard.common.children import die_with_parent
+from epc_offboard.common.channel import (
+    ChannelClosedError,
+    FrameInbox,
+    FrameOutbox,
+    read_frames,
+    write_frame,
+)
+from epc_offboard.common.children import die_with_parent, enlarge_pipe, spawn_fed
+from epc_offboard.common.errors import EpcError
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control import kernels
@@ -76,6 +87,13 @@ log = logging.getLogger(__name__)
 # close(): the task in flight returns and the worker ends within this (a slice's solve is
 # tens of ms; at load 6 a few hundred), inside the unit's TimeoutStopSec (5 s) with the rest
 STOP_TIMEOUT_S = 2.0
+START_TIMEOUT_S = 30.0  # its imports and learners: seconds at load 15
+WAIT_TIMEOUT_S = 30.0  # lockstep's wait for an answer: longer, and the worker is wedged
+WEDGED_S = 10.0  # real time: a request unanswered that long (a solve is tens of ms)
+_PIPE_BYTES = 1 << 20  # each pipe (Linux's default ceiling): a reply with its maps in one read
+# requests waiting for room in the pipe: the problems (1.2 MB) at the start, then a solve's θ
+# and a slice's candidates per lane at a time; beyond, the worker takes nothing: wedged
+_MAX_PENDING_BYTES = 16 << 20
 _T = TypeVar("_T")
 
 # an active set, its origin ("solved" or a peer's) and its map, built here: the loop only
@@ -136,20 +154,38 @@ class _Worker:
         return out
 
 
-# worker-process state: one per problem, built once by the initializer
+# worker-process state: one per problem, built once by the first request
 _WORKERS: dict[str, _Worker] = {}
 
 
-def _init_worker(
-    problems: dict[str, tuple[MpcProblem, float, int, int]], parent_pid: int
-) -> None:
-    die_with_parent(parent_pid)  # no 168 MB orphan when the service is SIGKILLed
+def _init_worker(problems: dict[str, tuple[MpcProblem, float, int, int]]) -> bool:
     kernels.warm_up()  # the KKT check's compiled scan: before the first solve, not in it
     _WORKERS.clear()
     for name, (problem, tol, pool, per_origin) in problems.items():
         builder = MapBuilder(problem, tol)
         _WORKERS[name] = _Worker(builder, Learner(builder),
                                  CandidatePool(pool, per_origin, pool, per_origin))
+    return True
+
+
+def _worker_main(requests: Connection, parent_pid: int, replies: Connection) -> None:
+    """The worker process: each request ``(seq, fn, args)`` run in order, answered
+    ``(seq, ok, value or the error)``; ends at the requests' EOF or when its answer finds
+    the replies' pipe closed (the service stopping)."""
+    die_with_parent(parent_pid)  # no 168 MB orphan when the service is SIGKILLed
+    out = replies.fileno()
+    with contextlib.suppress(ChannelClosedError):
+        for seq, fn, args in read_frames(requests.fileno()):
+            try:
+                answer = (seq, True, fn(*args))
+            except Exception as exc:  # said to the service, which counts it
+                answer = (seq, False, f"{type(exc).__name__}: {exc}")
+            write_frame(out, answer)
+    # it holds no file, and nothing else waits: no interpreter teardown (its 168 MB of
+    # objects and compiled kernels, freed one by one: most of a second at load 13, and
+    # beside two hogs beyond the service's 2 s for the stop)
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def _solve(name: str, theta: FloatArray, slice_s: float) -> Found | None:
@@ -184,8 +220,41 @@ def _offer(
     return worker.pool.unbuilt, built
 
 
-def _ping() -> bool:
-    return True
+class _WorkerError(EpcError, RuntimeError):
+    """A request the worker answered with an error (a solve that raised)."""
+
+
+@dataclass(eq=False)
+class _Reply(Generic[_T]):
+    """A request's answer, ``done`` once the worker's reply has been read."""
+
+    sent_s: float
+    done: bool = False
+    ok: bool = False
+    value: Any = None
+
+    def result(self) -> _T:
+        if not self.ok:
+            raise _WorkerError(self.value)
+        return cast(_T, self.value)
+
+
+@dataclass
+class _Process:
+    """The worker process and its two pipes: requests out (bounded, never blocking) and
+    replies in (read without blocking, a bounded amount per call)."""
+
+    proc: BaseProcess
+    outbox: FrameOutbox
+    inbox: FrameInbox
+    conns: tuple[Connection, Connection]
+    ready: _Reply[bool]
+    replies: dict[int, _Reply[Any]] = field(default_factory=dict)
+    next_seq: int = 0
+
+    def close(self) -> None:
+        for conn in self.conns:  # its EOF; its answer finds a closed pipe
+            conn.close()
 
 
 @dataclass
@@ -194,9 +263,9 @@ class _Lane:
 
     ctrl: ExperienceController
     waiting: deque[FloatArray]
-    in_flight: Future[Found | None] | None = None
+    in_flight: _Reply[Found | None] | None = None
     in_flight_theta: FloatArray | None = None
-    offer: Future[tuple[int, Built]] | None = None  # candidates copied / maps built there
+    offer: _Reply[tuple[int, Built]] | None = None  # candidates copied / maps built there
     unbuilt: int = 0  # candidate maps the worker still has to build (its last report)
     resend: list[tuple[tuple[int, ...], str]] = field(default_factory=list)  # after a restart
     model_epoch: int = 0  # the controller's model when the worker got its problem
@@ -204,7 +273,19 @@ class _Lane:
 
 class MissSolver:
     """``slice_s``: the most CPU time the worker spends building candidate maps before it
-    takes the next solve (a flood must not delay the misses of the flight)."""
+    takes the next solve (a flood must not delay the misses of the flight). ``wedged_s``:
+    in real time, a request unanswered that long means a wedged worker (SIGSTOPped, or
+    starved): it is killed and restarted.
+
+    The worker is one ``spawn``-ed process fed through two pipes (:mod:`common.channel`),
+    and this side of them never blocks and starts no thread: the requests go out through a
+    bounded :class:`~epc_offboard.common.channel.FrameOutbox`, the answers are read by
+    :meth:`pump` itself. A ``ProcessPoolExecutor`` here had a manager and a queue-feeder
+    thread in the control process: they took its interpreter lock to pickle, read and
+    unpickle, at their own priority, and a CPU hog that preempted one holding the lock
+    stalled the loops (146 ms to 1.4 s, issue 21); raised to FIFO they still took the lock
+    whenever the worker answered. Now every byte of it is moved by the loops' thread, at a
+    time the loop chose, bounded per call."""
 
     def __init__(
         self,
@@ -212,27 +293,43 @@ class MissSolver:
         *,
         max_waiting: int = 4,
         slice_s: float = 0.005,
+        wedged_s: float = WEDGED_S,
     ) -> None:
         self._slice_s = slice_s
+        self._wedged_s = wedged_s
         self._lanes = {
             name: _Lane(c, deque(maxlen=max_waiting)) for name, c in controllers.items()
         }
         self.counters: Counter[str] = Counter()
-        self._pool: ProcessPoolExecutor | None = None
-        self._ready: Future[Any] | None = None
-        # start(wait=False): the thread that spawned the worker, parked until close() (the
-        # worker's PR_SET_PDEATHSIG fires when the spawning THREAD ends), and whether it has
-        # handed the worker its problems
-        self._spawning: threading.Thread | None = None
-        self._handed = threading.Event()
-        self._release = threading.Event()
-        self._spawn_error: BaseException | None = None
+        self._worker: _Process | None = None
+        self._killed: list[BaseProcess] = []  # not yet reaped
+        self._start_timeout_s = START_TIMEOUT_S
+        self._start_error: BaseException | None = None
 
-    def start(self, timeout_s: float = 30.0, *, wait: bool = True) -> None:
+    def start(self, timeout_s: float = START_TIMEOUT_S, *, wait: bool = True) -> None:
         """Start the worker and wait until it has imported and built its learners (before
         READY: a worker that cannot start is an error now, not mid-flight). ``wait`` False:
-        return at once and :meth:`wait_ready` later (its start overlaps other work; until
-        it is up, :meth:`pump` keeps the misses waiting)."""
+        return at once and :meth:`wait_ready` or :meth:`poll_ready` later (its start overlaps
+        other work; until it is up, :meth:`pump` keeps the misses waiting)."""
+        self._start_timeout_s = timeout_s
+        self._start_error = None
+        try:
+            self._spawn()
+        except Exception as exc:
+            if wait:
+                raise
+            self._start_error = exc  # said by wait_ready
+            return
+        if wait:
+            self.wait_ready(timeout_s)
+
+    def _spawn(self) -> None:
+        """Spawn the worker (from the loops' thread, which lives as long as the process:
+        the worker's parent-death signal follows the thread that started it) and send it
+        its problems. They are 1.2 MB, more than a pipe takes, and the worker reads them
+        only once it has imported all that unpickling them needs (a second on a quiet
+        machine, 7 s at load 15 beside a real PX4): the outbox writes what the pipe takes
+        now, :meth:`pump` the rest."""
         problems = {
             name: (lane.ctrl.problem, lane.ctrl.tol, lane.ctrl.candidates.max_size,
                    lane.ctrl.candidates.max_per_origin)
@@ -240,74 +337,157 @@ class MissSolver:
         }  # fmt: skip
         for lane in self._lanes.values():  # maps the worker builds are for this model
             lane.model_epoch = lane.ctrl.model_epoch
-        self._pool = ProcessPoolExecutor(
-            max_workers=1,
-            mp_context=multiprocessing.get_context("spawn"),  # no fork of a threaded process
-            initializer=_init_worker,
-            initargs=(problems, os.getpid()),
-        )
-        self._spawn_error = None
-        if wait:
-            self._ready = self._pool.submit(_ping)
-            self.wait_ready(timeout_s)
-            return
-        # The first submit spawns the worker and writes it its problems (1.2 MB through a
-        # pipe): the write returns only once the worker has imported all that unpickling
-        # them needs, a second of this process idle on a quiet machine, 7 s at load 15 beside
-        # a real PX4, all of it before the link opened. A thread waits for it instead, and
-        # stays (parked) as long as the worker: the worker dies with the thread that
-        # spawned it (PR_SET_PDEATHSIG is per thread), as it does with the process.
-        self._handed.clear()
-        self._spawning = threading.Thread(
-            target=self._spawn, args=(self._pool,), name="miss-worker-start", daemon=True
-        )
-        self._spawning.start()
-
-    def _spawn(self, pool: ProcessPoolExecutor) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        replies_r, replies_w = ctx.Pipe(duplex=False)
+        enlarge_pipe(replies_r, _PIPE_BYTES)  # a reply with its maps in one read
         try:
-            self._ready = pool.submit(_ping)
-        except BaseException as exc:  # said by wait_ready
-            self._spawn_error = exc
-        self._handed.set()
-        self._release.wait()
+            proc, requests_w = spawn_fed(_worker_main, "epc-miss-worker", replies_w,
+                                         pipe_bytes=_PIPE_BYTES)  # fmt: skip
+        except BaseException:
+            replies_r.close()
+            raise
+        finally:
+            replies_w.close()  # the worker's end: EOF here when it dies
+        now = time.monotonic()
+        worker = _Process(
+            proc, FrameOutbox(requests_w.fileno(), _MAX_PENDING_BYTES),
+            FrameInbox(replies_r.fileno(), _PIPE_BYTES), (requests_w, replies_r), _Reply(now),
+        )  # fmt: skip
+        self._worker = worker
+        self._send(worker, worker.ready, _init_worker, problems)
 
-    def _spawned(self) -> bool:
-        """Whether the pool may be used: a start(wait=False) has handed the worker its
-        problems (until then a submit would wait on the pool's lock for that write)."""
-        if self._spawning is not None and not self._handed.is_set():
+    @staticmethod
+    def _send(worker: _Process, reply: _Reply[Any], fn: Callable[..., Any],
+              *args: object) -> bool:
+        """Queue ``fn(*args)`` for the worker (False: the outbox is full, the worker takes
+        nothing); ChannelClosedError if it is gone."""
+        seq = worker.next_seq
+        if not worker.outbox.send((seq, fn, args)):
             return False
-        return self._spawn_error is None
+        worker.next_seq += 1
+        worker.replies[seq] = reply
+        return True
 
-    def wait_ready(self, timeout_s: float = 30.0) -> None:
+    def poll_ready(self) -> bool:
+        """Whether the worker is up, never blocking (the real-time start's wait).
+        RuntimeError if it failed to start, TimeoutError if it did not within the start's
+        timeout."""
+        worker = self._worker
+        if worker is None:
+            raise RuntimeError(f"EPC miss worker did not start: {self._start_error}")
+        self._read(worker, wait=False, restart=False)
+        if worker.ready.done:
+            if not worker.ready.ok:
+                raise RuntimeError(f"EPC miss worker did not start: {worker.ready.value}")
+            return True
+        if self._worker is not worker or not worker.proc.is_alive():
+            raise RuntimeError("EPC miss worker died in its start")
+        if time.monotonic() - worker.ready.sent_s > self._start_timeout_s:
+            raise TimeoutError(f"EPC miss worker not started in {self._start_timeout_s:g} s")
+        return False
+
+    def wait_ready(self, timeout_s: float = START_TIMEOUT_S) -> None:
         """Wait until a worker started with ``start(wait=False)`` is up."""
-        if self._spawning is not None and not self._handed.wait(timeout_s):
-            raise TimeoutError(f"EPC miss worker not started in {timeout_s:g} s")
-        if self._spawn_error is not None:
-            raise RuntimeError(f"EPC miss worker did not start: {self._spawn_error}")
-        if self._ready is not None:
-            self._ready.result(timeout=timeout_s)
-            self._ready = None
+        self._start_timeout_s = timeout_s
+        deadline = time.monotonic() + timeout_s
+        while not self.poll_ready():
+            self._wait_io(self._worker, deadline - time.monotonic())
 
     def close(self, timeout_s: float = STOP_TIMEOUT_S) -> None:
-        """Stop the worker: its queued tasks cancelled, the one in flight let return, then
-        the worker ends by itself; only then the spawning thread (the worker dies with it).
-        Killed mid-answer, the worker left the pool's manager thread reading half a message
-        for good (the pool's own end of the pipe keeps it open), and the process's exit,
-        which joins that thread, waiting on it: a finished `sim` flight's service hung for
-        minutes. A worker that does not end in ``timeout_s`` is killed all the same,
-        counted (``worker_stop_timeouts``); the service's bounded exit covers the rest."""
-        pool, self._pool = self._pool, None
-        if pool is not None:
-            stopping = threading.Thread(
-                target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True},
-                name="miss-worker-stop", daemon=True,
-            )  # fmt: skip
-            stopping.start()
-            stopping.join(timeout_s)
-            if stopping.is_alive():
-                self.counters["worker_stop_timeouts"] += 1
-                log.warning("EPC miss worker not stopped in %.1f s: killed", timeout_s)
-        self._release.set()  # the spawning thread ends, and with it the worker
+        """Stop the worker: the EOF of its requests, and its answer in flight refused (the
+        replies' pipe closed), end it after the request it works on. A worker that does not
+        end in ``timeout_s`` is killed all the same, counted (``worker_stop_timeouts``); the
+        service's bounded exit covers the rest."""
+        worker, self._worker = self._worker, None
+        if worker is None:
+            return
+        worker.close()
+        worker.proc.join(timeout_s)
+        if worker.proc.is_alive():
+            self.counters["worker_stop_timeouts"] += 1
+            log.warning("EPC miss worker not stopped in %.1f s: killed", timeout_s)
+            worker.proc.kill()
+            worker.proc.join(1.0)
+
+    def _up(self, wait: bool) -> bool:
+        """Read what the worker answered; whether it is up and takes requests (``wait``:
+        waits for its start)."""
+        if self._killed:
+            self._reap()
+        worker = self._worker
+        if worker is None:
+            return False
+        self._read(worker, wait)
+        worker = self._worker
+        if worker is not None and wait and not worker.ready.done:
+            self._wait(worker.ready, self._start_timeout_s)
+            worker = self._worker
+        if worker is None or not worker.ready.done:
+            return False
+        if not worker.ready.ok:  # the loops fly on: misses stay intermediate
+            log.error("EPC miss worker did not start: %s", worker.ready.value)
+            self._stop_now()
+            return False
+        return True
+
+    def _read(self, worker: _Process, wait: bool, *, restart: bool = True) -> None:
+        """Write what waits for the worker, read its answers; a worker gone or wedged is
+        restarted (``restart``)."""
+        try:
+            worker.outbox.flush()
+            for seq, ok, value in worker.inbox.read():
+                reply = worker.replies.pop(seq, None)
+                if reply is not None:
+                    reply.done, reply.ok, reply.value = True, ok, value
+        except ChannelClosedError:
+            if restart:
+                self._restart("the worker died", wait)
+            return
+        if not restart or not worker.replies:
+            return
+        now = time.monotonic()
+        answer_s = WAIT_TIMEOUT_S if wait else self._wedged_s
+        for reply in worker.replies.values():
+            limit = self._start_timeout_s if reply is worker.ready else answer_s
+            if now - reply.sent_s > limit:
+                self._restart(f"no answer in {limit:g} s (wedged)", wait)
+                return
+
+    def _wait_io(self, worker: _Process | None, timeout_s: float) -> None:
+        """Block until the worker's answer or room for what waits for it, or ``timeout_s``."""
+        if worker is None or timeout_s <= 0.0:
+            return
+        out = [worker.outbox.fd] if worker.outbox.pending_bytes else []
+        with contextlib.suppress(OSError, ValueError):  # a pipe closed meanwhile: read says
+            select.select([worker.inbox.fd], out, [], min(timeout_s, 0.5))
+
+    def _wait(self, reply: _Reply[Any], timeout_s: float) -> None:
+        """Block (lockstep) until ``reply`` is done or its worker was restarted; a worker
+        silent for ``timeout_s`` is wedged: restarted."""
+        deadline = time.monotonic() + timeout_s
+        while not reply.done:
+            worker = self._worker
+            if worker is None or reply not in (worker.ready, *worker.replies.values()):
+                return  # restarted meanwhile: the request is lost
+            if time.monotonic() >= deadline:
+                self._restart(f"no answer in {timeout_s:g} s (wedged)", wait=True)
+                return
+            self._wait_io(worker, deadline - time.monotonic())
+            self._read(worker, wait=True)
+
+    def _stop_now(self) -> None:
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            worker.close()
+            worker.proc.kill()
+            self._killed.append(worker.proc)
+        self._reap()
+
+    def _reap(self) -> None:
+        """Reap the killed workers that have ended (no wait: SIGKILL takes a moment)."""
+        for proc in self._killed:
+            proc.join(0.0)
+        self._killed = [proc for proc in self._killed if proc.exitcode is None]
 
     def pump(self, *, wait: bool = False) -> int:
         """Collect returned solves into the libraries, queue new misses, submit the next.
@@ -316,14 +496,14 @@ class MissSolver:
         has returned first (lockstep).
         """
         added = 0
-        spawned = self._spawned()  # else the misses wait for the worker's start
+        up = self._up(wait)  # else the misses wait for the worker's start
         for name, lane in self._lanes.items():
-            if spawned:
+            if up:
                 added += self._collect(name, lane, wait)
             self._queue_pending(lane)
-            if spawned:
+            if up:
                 self._offer_next(name, lane, wait)  # first: the worker takes tasks in order
-                self._submit_next(name, lane)
+                self._submit_next(name, lane, wait)
         return added
 
     def hand_over(self, *, wait: bool = False) -> int:
@@ -334,7 +514,7 @@ class MissSolver:
         were queued again while their first was still unsolved (issue 24). Collects a solve
         in flight first (``wait``: blocks for it, as :meth:`pump`); no candidate traffic.
         Returns the number of controllers added."""
-        if not self._spawned():
+        if not any(lane.ctrl.pending for lane in self._lanes.values()) or not self._up(wait):
             return 0
         added = 0
         for name, lane in self._lanes.items():
@@ -342,8 +522,18 @@ class MissSolver:
                 continue
             added += self._collect(name, lane, wait)
             self._queue_pending(lane)
-            self._submit_next(name, lane)
+            self._submit_next(name, lane, wait)
         return added
+
+    def drain(self, timeout_s: float = WAIT_TIMEOUT_S) -> None:
+        """Block until every request in flight is answered (not collected: :meth:`pump`
+        does), or ``timeout_s``: a benchmark's untimed wait."""
+        deadline = time.monotonic() + timeout_s
+        while (worker := self._worker) is not None and worker.replies:
+            if time.monotonic() >= deadline:
+                return
+            self._wait_io(worker, deadline - time.monotonic())
+            self._read(worker, wait=True)
 
     def _queue_pending(self, lane: _Lane) -> None:
         ctrl = lane.ctrl
@@ -352,26 +542,32 @@ class MissSolver:
                 self.counters["misses_dropped"] += 1  # the oldest gives way
             lane.waiting.append(ctrl.pending.pop(0))
 
+    def _result(self, reply: _Reply[_T], wait: bool) -> _Reply[_T] | None:
+        """``reply`` once it is done (``wait``: blocks for it); None while it is not, or if
+        the worker was restarted meanwhile (the request is lost)."""
+        if wait and not reply.done:
+            self._wait(reply, WAIT_TIMEOUT_S)
+        return reply if reply.done else None
+
     def _offer_next(self, name: str, lane: _Lane, wait: bool) -> None:
         """Copy new candidates to the worker, have it build the maps the loop wants or a
         slice of its pool's, and attach the maps it returned (one task in flight per lane;
         the pool's own bounds keep what waits here bounded)."""
-        fut = lane.offer
         ctrl = lane.ctrl
-        if fut is not None:
-            if not (wait or fut.done()):
-                return
+        if lane.offer is not None:
+            reply = self._result(lane.offer, wait)
+            if reply is None and lane.offer is not None:
+                return  # not answered yet
             lane.offer = None
-            try:
-                lane.unbuilt, built = fut.result(timeout=30.0 if wait else 0.0)
-                self.counters["candidate_maps_attached"] += ctrl.attach_maps(
-                    built, lane.model_epoch
-                )
-            except BrokenProcessPool:
-                self._restart("the worker died")  # then the new one gets the pool, below
-            except Exception as exc:  # candidates lost; the flight is not
-                self.counters["candidate_errors"] += 1
-                log.warning("%s candidate import failed: %s", name, exc)
+            if reply is not None:
+                try:
+                    lane.unbuilt, built = reply.result()
+                    self.counters["candidate_maps_attached"] += ctrl.attach_maps(
+                        built, lane.model_epoch
+                    )
+                except Exception as exc:  # candidates lost; the flight is not
+                    self.counters["candidate_errors"] += 1
+                    log.warning("%s candidate import failed: %s", name, exc)
         fresh = lane.resend + ctrl.candidates.pop_fresh()
         lane.resend = []
         wanted: list[tuple[int, ...]] = []
@@ -383,7 +579,7 @@ class MissSolver:
         # lockstep: the wanted maps (at most _MAX_WANTED) are a count, whatever the machine's
         # speed, so the loop checks the same maps at the same tick every run
         slice_s: float | None = None if wait and wanted else self._slice_s
-        lane.offer = self._submit("candidates", _offer, name, fresh, wanted, slice_s)
+        lane.offer = self._submit("candidates", wait, _offer, name, fresh, wanted, slice_s)
         if lane.offer is None:
             return
         self.counters["candidate_maps_wanted"] += len(wanted)
@@ -391,17 +587,16 @@ class MissSolver:
         self.counters["candidate_slices"] += 1
 
     def _collect(self, name: str, lane: _Lane, wait: bool) -> int:
-        fut = lane.in_flight
-        if fut is None or not (wait or fut.done()):
+        if lane.in_flight is None:
             return 0
+        reply = self._result(lane.in_flight, wait)
+        if reply is None:
+            return 0  # not answered yet, or lost with a dead worker (counted there)
         theta = lane.in_flight_theta
         lane.in_flight = lane.in_flight_theta = None
         try:
-            active = fut.result(timeout=30.0 if wait else 0.0)
-        except BrokenProcessPool:
-            self._restart("the worker died")
-            return 0
-        except Exception as exc:  # a solve that raised: the miss stays a miss
+            active = reply.result()
+        except _WorkerError as exc:  # a solve that raised: the miss stays a miss
             self.counters["solve_errors"] += 1
             log.warning("%s miss solve failed: %s", name, exc)
             return 0
@@ -422,32 +617,42 @@ class MissSolver:
             return 0
         return 1
 
-    def _submit_next(self, name: str, lane: _Lane) -> None:
-        if lane.in_flight is not None or self._pool is None:
+    def _submit_next(self, name: str, lane: _Lane, wait: bool) -> None:
+        if lane.in_flight is not None or self._worker is None:
             return
         while lane.waiting:
             theta = lane.waiting.popleft()
             if lane.ctrl.covers(theta):
                 self.counters["misses_already_covered"] += 1  # solved meanwhile: once only
                 continue
-            lane.in_flight = self._submit("a solve", _solve, name, theta, self._slice_s)
+            lane.in_flight = self._submit("a solve", wait, _solve, name, theta, self._slice_s)
             if lane.in_flight is None:
                 return
             lane.in_flight_theta = theta
             self.counters["solves_submitted"] += 1
             return
 
-    def _submit(self, what: str, fn: Callable[..., _T], *args: object) -> Future[_T] | None:
-        """Hand ``fn(*args)`` to the worker; None, and the worker restarted, if it cannot."""
-        if self._pool is None:
+    def _submit(
+        self, what: str, wait: bool, fn: Callable[..., _T], *args: object
+    ) -> _Reply[_T] | None:
+        """Hand ``fn(*args)`` to the worker; None, and the worker restarted, if it cannot
+        (gone, or so wedged that the outbox's bound is reached)."""
+        worker = self._worker
+        if worker is None or not worker.ready.done:
             return None
+        reply: _Reply[_T] = _Reply(time.monotonic())
         try:
-            return self._pool.submit(fn, *args)
-        except (BrokenProcessPool, RuntimeError):
-            self._restart(f"the worker could not take {what}")
-            return None
+            if self._send(worker, reply, fn, *args):
+                return reply
+        except ChannelClosedError:
+            pass
+        self._restart(f"the worker could not take {what}", wait)
+        return None
 
-    def _restart(self, why: str) -> None:
+    def _restart(self, why: str, wait: bool) -> None:
+        """A new worker for a dead or wedged one (killed first). Its start does not block
+        the loops (``wait``, lockstep: it is waited for, so the next request meets it up);
+        until it is up the misses wait, as at the start."""
         self.counters["worker_restarts"] += 1
         log.error("EPC miss worker: %s; restarting it", why)
         for lane in self._lanes.values():
@@ -455,12 +660,13 @@ class MissSolver:
             # the new worker's pool starts empty: send it every candidate again
             lane.ctrl.candidates.pop_fresh()
             lane.resend = lane.ctrl.candidates.items()
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        self._stop_now()
         try:
-            self.start()
+            self._spawn()
+            if wait:
+                self.wait_ready(self._start_timeout_s)
         except Exception as exc:  # the loops fly on: misses stay intermediate
-            self._pool = None
+            self._stop_now()
             log.error("EPC miss worker cannot restart: %s", exc)
 
     @property
@@ -477,7 +683,4 @@ class MissSolver:
 
     def worker_pid(self) -> int | None:
         """The worker process's pid (fault tests kill it)."""
-        if self._pool is None:
-            return None
-        procs = getattr(self._pool, "_processes", None) or {}
-        return next(iter(procs), None)
+        return None if self._worker is None else self._worker.proc.pid

@@ -59,7 +59,9 @@
   feeder threads at NORMAL priority: the worker had come up after start-up, and threads
   started by a raised thread begin at normal priority (``SCHED_RESET_ON_FORK``); a CPU hog
   preempted them holding the mutex. Every thread started after :func:`apply_priority` is
-  now raised as it starts. The other long gaps of that trace: the loops' thread running
+  now raised as it starts; and the pool is gone: the loops' thread feeds the miss worker
+  through two pipes itself (``miss_solver.py``), so no thread of the control process
+  takes its interpreter lock in flight. The other long gaps of that trace: the loops' thread running
   10-25 ms every 5 s (the library saver's slices back to back: ``Loops.room``,
   ``library_keeper.py``), and intervals in which the thread ran (by the scheduler's
   switches) but its CPU clock advanced a fraction of it, with no preemption and no
@@ -183,10 +185,10 @@ def apply_priority(priority: int, counters: Counter[str] | None = None) -> str:
         _raise_threads_at_start(policy, max(1, priority - 1),
                                 counters if counters is not None else Counter())  # fmt: skip
         # A thread that holds the interpreter lock gives it up to a waiting one only after
-        # the switch interval (5 ms by default): the miss worker's pool threads unpickling a
-        # returned map held the loops for 3-3.5 ms (perf: the loops' thread in a futex
-        # wait, woken by them). Now the loops wait at most this for a raised thread's slice
-        # of Python; a tick of theirs is interrupted for as little when a helper thread asks.
+        # the switch interval (5 ms by default): the miss worker's pool threads (gone since)
+        # unpickling a returned map held the loops for 3-3.5 ms (perf: the loops' thread in
+        # a futex wait, woken by them). Now the loops wait at most this for another thread's
+        # slice of Python; a tick of theirs is interrupted for as little when one asks.
         sys.setswitchinterval(GIL_SWITCH_S)
     except PermissionError as exc:
         raise PriorityError(

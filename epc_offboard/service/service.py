@@ -77,6 +77,7 @@ from epc_offboard.vehicle.offboard import Action, Outputs, Phase
 from epc_offboard.vehicle.state import StateTracker
 
 log = logging.getLogger("epc_offboard.service")
+_MISS_WORKER_POLL_S = 0.05  # real time: how often the start polls whether the worker is up
 
 # After "stopped", the process ends within this or says where it hangs: once, the
 # interpreter's teardown after a finished flight waited minutes (a helper's pipe; CPython
@@ -354,8 +355,7 @@ class Service:
                     name="attitude-loop",
                 )
                 if not self.clock.vehicle_time:  # the worker's start overlaps the flight's
-                    tg.create_task(asyncio.to_thread(self._miss_worker_up, t0),
-                                   name="miss-worker-start")  # fmt: skip
+                    tg.create_task(self._miss_worker_polled(t0), name="miss-worker-start")
                 tg.create_task(self.library.run(), name="library-saver")
                 if self.sharing is not None:
                     tg.create_task(self.sharing.run(), name="library-sharing")
@@ -369,17 +369,27 @@ class Service:
         return 0
 
     def _miss_worker_up(self, t0: float) -> None:
-        """Wait for the miss worker's start. In real time the link does not: the worker's
-        imports (seconds on a loaded computer) overlap the arming and the takeoff, during
-        which no miss is solved; its misses wait for it (``MissSolver.pump``)."""
+        """Lockstep: wait for the miss worker's start (every run's first miss meets it up)."""
+        self.misses.wait_ready()
+        self._miss_worker_started(t0)
+
+    async def _miss_worker_polled(self, t0: float) -> None:
+        """Real time: the link does not wait for the worker. Its imports (seconds on a loaded
+        computer) overlap the arming and the takeoff, during which no miss is solved; its
+        misses wait for it (``MissSolver.pump``). Polled on the event loop: no thread."""
         try:
-            self.misses.wait_ready()
+            up = self.misses.poll_ready()
+            while not up:
+                await asyncio.sleep(_MISS_WORKER_POLL_S)
+                up = self.misses.poll_ready()
         except Exception as exc:  # the loops fly on: misses stay intermediate
-            if self.clock.vehicle_time:
-                raise
             self.counters["miss_worker_start_failed"] += 1
             log.error("EPC miss worker: %s; misses stay with the intermediate controller", exc)
             return
+        self._miss_worker_started(t0)
+
+    @staticmethod
+    def _miss_worker_started(t0: float) -> None:
         TIMELINE.mark("miss_worker_up")
         log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
 

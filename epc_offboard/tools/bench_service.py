@@ -40,7 +40,6 @@ import tempfile
 import time
 from collections import Counter
 from collections.abc import Callable
-from concurrent.futures import wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -178,12 +177,7 @@ def _encode_setpoint(
 
 def _wait_for_solves(misses: MissSolver) -> None:
     """Block until the worker's tasks in flight are done (lockstep's wait), untimed."""
-    futures = []
-    for lane in getattr(misses, "_lanes", {}).values():
-        futures += [f for f in (getattr(lane, "in_flight", None), getattr(lane, "offer", None))
-                    if f is not None]
-    if futures:
-        wait(futures, timeout=30.0)
+    misses.drain()
 
 
 def _stats_us(samples_s: list[float]) -> dict[str, float]:
