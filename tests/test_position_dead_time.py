@@ -144,65 +144,6 @@ def test_a_span_between_ticks_is_carried_exactly(dead_time_s, latency_s):
     assert np.max(np.abs(integrate(x0, commands, d, period, TAU) - want)) > 5e-3
 
 
-def test_the_vertical_axis_is_carried_over_its_own_latency():
-    """Neural-Fly's plant: the north error tracked the reference's velocity with the state
-    carried 10 ms (the vehicle ahead), the vertical's with it carried 15 ms (behind): each
-    axis over its own span. The model's axes are independent, so the horizontal rows are
-    the 15 ms carry's and the vertical rows the 10 ms one's, exactly."""
-    period = 0.01
-    both = DeadTimePredictor(TAU, period, 0.0, latency_s=0.015, latency_vertical_s=0.01)
-    horizontal = DeadTimePredictor(TAU, period, 0.0, latency_s=0.015)
-    vertical = DeadTimePredictor(TAU, period, 0.0, latency_s=0.01)
-    assert both.steps == 2
-    assert both.dead_time_s == 0.0
-    rng = np.random.default_rng(11)
-    commands = rng.normal(0.0, 2.0, (2, 3))
-    for p in (both, horizontal, vertical):
-        for k, u in enumerate(commands):
-            p.sent(k * period, u)
-    x0 = rng.normal(0.0, 1.0, 9)
-    d = rng.normal(0.0, 0.3, 3)
-    got = both.ahead(x0, d, period)
-    h_rows, v_rows = [0, 1, 3, 4, 6, 7], [2, 5, 8]
-    np.testing.assert_array_equal(got[h_rows], horizontal.ahead(x0, d, period)[h_rows])
-    np.testing.assert_array_equal(got[v_rows], vertical.ahead(x0, d, period)[v_rows])
-    assert np.max(np.abs(got[v_rows] - horizontal.ahead(x0, d, period)[v_rows])) > 1e-3
-    # the longer span on the vertical: the horizontal rows weigh the newest command alone
-    longer = DeadTimePredictor(TAU, period, 0.0, latency_s=0.01, latency_vertical_s=0.015)
-    for k, u in enumerate(commands):
-        longer.sent(k * period, u)
-    np.testing.assert_array_equal(longer.ahead(x0, d, period)[h_rows],
-                                  vertical.ahead(x0, d, period)[h_rows])  # fmt: skip
-    # the same span: the one carry, bit for bit
-    same = DeadTimePredictor(TAU, period, 0.0, latency_s=0.015, latency_vertical_s=0.015)
-    for k, u in enumerate(commands):
-        same.sent(k * period, u)
-    np.testing.assert_array_equal(same.ahead(x0, d, period), horizontal.ahead(x0, d, period))
-
-
-def test_the_loop_flies_the_configured_vertical_latency():
-    cfg = PositionControlConfig(command_dead_time_s=0.0, state_latency_s=0.015,
-                                state_latency_vertical_s=0.01)  # fmt: skip
-    loop = PositionLoop(cfg, EstimatorConfig(kind="none"), 0.01)
-    x0 = np.arange(9.0)
-    want = DeadTimePredictor(cfg.tau_acc_s, 0.01, 0.0, 0.01).ahead(x0, np.zeros(3), 0.0)
-    np.testing.assert_array_equal(loop.dead_time.ahead(x0, np.zeros(3), 0.0)[[2, 5, 8]],
-                                  want[[2, 5, 8]])  # fmt: skip
-    with pytest.raises(ValueError, match="state_latency_vertical_s"):
-        PositionControlConfig(state_latency_vertical_s=0.6)
-
-
-def test_the_neuralfly_scenario_carries_each_axis_over_its_own_latency() -> None:
-    from epc_offboard.common.configio import from_dict
-    from epc_offboard.tools.sim.scenario import load_scenario
-
-    cfg = from_dict(PositionControlConfig, load_scenario("neuralfly").service["position"])
-    # the plant's 15 ms of telemetry delay horizontally, 10 ms vertically
-    assert cfg.state_latency_s == pytest.approx(0.015)
-    assert cfg.state_latency_vertical_s == pytest.approx(0.01)
-    assert PositionControlConfig().state_latency_vertical_s is None  # the product's: one
-
-
 def test_the_loop_flies_the_configured_state_latency():
     cfg = PositionControlConfig(command_dead_time_s=None, state_latency_s=0.015)
     loop = PositionLoop(cfg, EstimatorConfig(kind="none"), 0.01)

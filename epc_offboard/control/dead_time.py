@@ -87,44 +87,6 @@ def _ticks(span_s: float, period_s: float) -> int:
     return math.floor(span_s / period_s + 0.5 + 1e-9)
 
 
-def _carry(
-    tau_acc_s: tuple[float, float, float], period_s: float, span_s: float, n: int | None = None,
-) -> tuple[int, FloatArray, FloatArray, FloatArray]:
-    """(the commands in flight, phi (9, 9), w (9, 3 n), wd (9, 3)): the lagged model carried
-    over ``span_s`` exactly, ``x = phi x_0 + w u + wd d`` with ``u`` the commands in flight,
-    oldest first. ``n``: columns for that many (at least the span's), the span's the newest;
-    an older one has no weight. A span of 1.5 ticks is the oldest command in flight over its
-    last half tick, then one whole tick of the newest."""
-    span = span_s / period_s
-    whole = math.floor(span + 1e-9)
-    frac = span - whole if span - whole > 1e-9 else 0.0  # of the oldest command's tick
-    m = whole + (frac > 0.0)  # the commands in flight
-    n = m if n is None else n
-    model = position_model_lagged(period_s, tau_acc_s)
-    A, B = model.A, model.B
-    E = velocity_disturbance_input(model)
-    powers = [np.eye(9)]
-    for _ in range(m):
-        powers.append(A @ powers[-1])
-    # x_m = A^m x_0 + sum_j A^(m-1-j) B u_j + sum_j A^j E d; u_0 the oldest in flight
-    w = np.zeros((9, 3 * n))
-    off = 3 * (n - m)
-    for j in range(m):
-        w[:, off + 3 * j : off + 3 * j + 3] = powers[m - 1 - j] @ B
-    phi = powers[m]
-    wd = sum(powers[:m], np.zeros((9, 9))) @ E
-    if frac:
-        # the oldest command acts over the last ``frac`` of its tick only: x_0 is carried
-        # that long by the model discretised at that step, then ``whole`` ticks
-        part = position_model_lagged(frac * period_s, tau_acc_s)
-        carry = powers[whole]
-        phi = carry @ part.A
-        w[:, off : off + 3] = carry @ part.B
-        wd = carry @ velocity_disturbance_input(part) + sum(
-            powers[:whole], np.zeros((9, 9))) @ E  # fmt: skip
-    return m, phi, w, wd
-
-
 class DeadTimePredictor:
     """The lagged position model ``x = [p, v, a]`` carried over ``dead_time_s`` plus
     ``latency_s`` with the commands sent in that time, and a disturbance ``d`` held constant
@@ -139,12 +101,9 @@ class DeadTimePredictor:
         period_s: float,
         dead_time_s: float,
         latency_s: float = 0.0,
-        latency_vertical_s: float | None = None,
     ) -> None:
         check_span_s("dead_time_s", dead_time_s)
         check_span_s("latency_s", latency_s)
-        if latency_vertical_s is not None:
-            check_span_s("latency_vertical_s", latency_vertical_s)
         self.period_s = period_s
         # ``latency_s``: how old the measured state already is when it arrives, beyond what
         # its time stamp shows (an estimator's output lag and the link). The commands that
@@ -152,20 +111,33 @@ class DeadTimePredictor:
         # latency + dead time: x0 is carried over both, while the reference window starts
         # at the dead time alone (the plan is for the vehicle as it will be, on the
         # reference as it will be then; a dead time standing in for the latency shifted the
-        # reference as well, and the vehicle led it by the latency).
-        # ``latency_vertical_s``: the down axis's own (None: ``latency_s``). The model's
-        # axes are independent, so each is carried over its own span: the rows of p_d, v_d
-        # and a_d are the vertical span's, over its newest commands
-        span_h = dead_time_s + latency_s
-        span_v = span_h if latency_vertical_s is None else dead_time_s + latency_vertical_s
-        carry_h = _carry(tau_acc_s, period_s, span_h)
-        n = self.steps = max(carry_h[0], _carry(tau_acc_s, period_s, span_v)[0])
+        # reference as well, and the vehicle led it by the latency)
+        span = (dead_time_s + latency_s) / period_s
+        whole = math.floor(span + 1e-9)
+        frac = span - whole if span - whole > 1e-9 else 0.0  # of the oldest command's tick
+        n = self.steps = whole + (frac > 0.0)  # the commands in flight
         self.dead_time_s = min(_ticks(dead_time_s, period_s), n) * period_s  # as flown: ticks
-        self._phi, w, self._wd = _carry(tau_acc_s, period_s, span_h, n)[1:]
-        if span_v != span_h:
-            phi_v, w_v, wd_v = _carry(tau_acc_s, period_s, span_v, n)[1:]
-            rows = [2, 5, 8]  # p_d, v_d, a_d
-            self._phi[rows], w[rows], self._wd[rows] = phi_v[rows], w_v[rows], wd_v[rows]
+        model = position_model_lagged(period_s, tau_acc_s)
+        A, B = model.A, model.B
+        E = velocity_disturbance_input(model)
+        powers = [np.eye(9)]
+        for _ in range(n):
+            powers.append(A @ powers[-1])
+        # x_n = A^n x_0 + sum_j A^(n-1-j) B u_j + sum_j A^j E d; u_0 the oldest in flight
+        w = np.zeros((9, 3 * n))
+        for j in range(n):
+            w[:, 3 * j : 3 * j + 3] = powers[n - 1 - j] @ B
+        self._phi = powers[n]
+        self._wd = sum(powers[:n], np.zeros((9, 9))) @ E
+        if frac:
+            # the oldest command acts over the last ``frac`` of its tick only: x_0 is carried
+            # that long by the model discretised at that step, then ``whole`` ticks
+            part = position_model_lagged(frac * period_s, tau_acc_s)
+            carry = powers[whole]
+            self._phi = carry @ part.A
+            w[:, 0:3] = carry @ part.B
+            self._wd = carry @ velocity_disturbance_input(part) + sum(
+                powers[:whole], np.zeros((9, 9))) @ E  # fmt: skip
         self._w = w
         # the commands of the last n ticks, oldest first (one row a tick); the newest
         # _in_flight of them were sent without a gap

@@ -136,13 +136,6 @@ class PositionControlConfig:
     # Neural-Fly plant's 15 ms). x0 is carried over it with the commands flown meanwhile
     # (with the command dead time), the reference window is not shifted by it
     state_latency_s: float = 0.0
-    # ... the down axis's own, if it differs (unset: state_latency_s). The state is as old
-    # on every axis, but what carrying it over a span stands for also covers each axis's
-    # path the lag model leaves out: the thrust's (the motors) is not the tilt's (the
-    # attitude loop). Neural-Fly's plant, 0 m/s, seed 0: carried 15 ms, the north error
-    # that tracks the reference's velocity (the vehicle ahead of it) fell 0.72 -> 0.18 cm
-    # per m/s and the vertical's grew -0.07 -> -0.66 (behind it)
-    state_latency_vertical_s: float | None = None
     # [position.state_filter]: the state estimate's error the QP's initial state is fused
     # against (control/state_filter.py); unset, the measured state as is
     state_filter: StateFilterConfig = field(default_factory=StateFilterConfig)
@@ -221,8 +214,6 @@ class PositionControlConfig:
         if self.command_dead_time_s is not None:
             check_span_s("command_dead_time_s", self.command_dead_time_s)
         check_span_s("state_latency_s", self.state_latency_s)
-        if self.state_latency_vertical_s is not None:
-            check_span_s("state_latency_vertical_s", self.state_latency_vertical_s)
         if any(q < 0.0 for q in (*self.q_pos, *self.q_vel, *self.q_acc)):
             raise ValueError("q_pos, q_vel and q_acc must be >= 0")
         if not (math.isfinite(self.entry_ramp_s) and self.entry_ramp_s >= 0.0):
@@ -457,7 +448,7 @@ class PositionLoop:
         """The predictor over ``dead_time_s`` and the configured state latency."""
         cfg = self.config
         return DeadTimePredictor(cfg.tau_acc_s, self.loop_period_s, dead_time_s,
-                                 cfg.state_latency_s, cfg.state_latency_vertical_s)  # fmt: skip
+                                 cfg.state_latency_s)  # fmt: skip
 
     def hold(self, pos_ned_m: FloatArray) -> ReferenceHorizon:
         """At rest at ``pos_ned_m`` (3,) m, at the configured heading, over the stages a
