@@ -49,6 +49,31 @@ def test_the_product_lwpr_variant_differs_from_the_scenario_by_its_lwpr_alone(
     assert same == {k: v for k, v in vars(product).items() if k != "service"}
 
 
+def test_the_gain_baseline_alone_flies_the_wider_comparison_envelope(tmp_path: Path) -> None:
+    # issue 24: EPC without adaptation at 8.5 m/s is blown 2 m off within its first lap
+    # (seeds 3 and 4), which sim stops: the gain's comparison flies it in a figures-only
+    # envelope, the scenario and sim's default unchanged
+    scenario = load_scenario("neuralfly")
+    wide_path = neuralfly.comparison_scenario(tmp_path)
+    wide = load_scenario(str(wide_path))
+    assert scenario.envelope.max_error_m == 2.0
+    assert wide.envelope.max_error_m == neuralfly.COMPARISON_MAX_ERROR_M > 2.0
+    assert {k: v for k, v in vars(wide).items() if k != "envelope"} == {
+        k: v for k, v in vars(scenario).items() if k != "envelope"}
+    product = str(neuralfly.product_lwpr_scenario(tmp_path))
+    flown = {(r.key, m.key): neuralfly.scenario_arg(r, m, product, str(wide_path))
+             for r in neuralfly.ROWS for m in neuralfly.METHODS}  # fmt: skip
+    assert [k for k, v in flown.items() if v == str(wide_path)] == [("8.5", "epc-none")]
+    assert flown[("8.5", "epc-lwpr")] == flown[("12.1", "epc-none")] == "neuralfly"
+    assert flown[("8.5", "epc-lwpr-default")] == product
+    argv = neuralfly.sim_argv(neuralfly.ROWS[2], neuralfly.METHODS[3], flown[("8.5", "epc-none")],
+                              -90.0, 3, tmp_path / "o")  # fmt: skip
+    o = sim_options(build_parser().parse_args(argv))
+    assert o.scenario.envelope.max_error_m == neuralfly.COMPARISON_MAX_ERROR_M
+    assert o.method == "epc:none"
+    assert o.wind_speed_m_s == 8.5
+
+
 def _flight(mean_m: float | None, status: str = "flown", hits: float | None = 0.97) -> dict:
     return {"status": status, "mean_error_m": mean_m, "hit_rate_after_first_lap": hits,
             "t_s": [0.0, 0.1], "error_cm": [1.0, 2.0], "lockstep_timeouts": 0}  # fmt: skip
@@ -89,6 +114,7 @@ def test_the_table_renders_from_its_json_with_the_gain_command_seed_and_load(
     assert "| failed | 8.7 |" in text
     # 1 - 1.23 / 50: the no-adaptation flight left its envelope, so it says so
     assert "**98 %** less error than EPC without adaptation (50.00 → 1.23 cm" in text
+    assert "no adaptation flown within 10 m of the reference, not `sim`'s 2 m" in text
     assert "left its envelope" in text
     assert "target ≥ 60 % ✔" in text
     assert "`epc-offboard figures neuralfly --seed 0 --jobs 2` (lockstep, seed 0" in text

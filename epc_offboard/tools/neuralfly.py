@@ -78,6 +78,12 @@ ROWS = (
 )
 GAIN_ROW = "8.5"  # issue 24: the learning's gain, at 8.5 m/s, >= 60 % less error
 GAIN_TARGET_PCT = 60.0
+# The gain's comparison flight (EPC without adaptation at GAIN_ROW) is judged against a wider
+# envelope than the scenario's 2 m from the reference (figures only, never `sim`'s default):
+# without integral action it is blown 2 m off within its first lap on seeds 3 and 4, which
+# `sim` stops as not sane, and left no error after the first lap to compare with. Flown on,
+# it settles about that far off and its mean error after the first lap is measured
+COMPARISON_MAX_ERROR_M = 10.0
 
 
 @dataclass(frozen=True)
@@ -87,13 +93,15 @@ class Method:
     method: str  # controller:adaptation
     ours: bool = False  # drawn solid: the product's controller with learning
     product_lwpr: bool = False  # the service's LWPR defaults, not the scenario's forgetting
+    # the gain's baseline: at GAIN_ROW flown within COMPARISON_MAX_ERROR_M of the reference
+    gain_baseline: bool = False
 
 
 METHODS = (
     Method("epc-lwpr", "EPC + LWPR, forgetting (the scenario's)", "epc:lwpr", ours=True),
     Method("epc-lwpr-default", "EPC + LWPR (product default)", "epc:lwpr", True, True),
     Method("epc-kf", "EPC, Kalman observer", "epc:kf"),
-    Method("epc-none", "EPC, no adaptation", "epc:none"),
+    Method("epc-none", "EPC, no adaptation", "epc:none", gain_baseline=True),
     Method("pd", "PD", "pd:none"),
     Method("px4", "PX4's own (`px4:none`)", "px4:none"),
 )
@@ -123,6 +131,27 @@ def product_lwpr_scenario(directory: Path) -> Path:
     return path
 
 
+def comparison_scenario(directory: Path, max_error_m: float = COMPARISON_MAX_ERROR_M) -> Path:
+    """The ``neuralfly`` scenario with ``[envelope] max_error_m`` widened to ``max_error_m``,
+    written to ``directory``: the learning's gain's baseline flight (figures only). Checked
+    on its parse: the only difference from the scenario is that bound (RuntimeError
+    otherwise)."""
+    source = SCENARIO_DIR / f"{SCENARIO}.toml"
+    text = source.read_text()
+    want = tomllib.loads(text)
+    if "envelope" in want:
+        raise RuntimeError(f"{source}: has its own [envelope]; widen it there")
+    wide = text + f"\n[envelope]\nmax_error_m = {max_error_m!r}\n"
+    want["envelope"] = {"max_error_m": max_error_m}
+    if tomllib.loads(wide) != want:
+        raise RuntimeError(f"{source}: could not add [envelope] alone")
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / f"{SCENARIO}_comparison_envelope.toml"
+    path.write_text(f"# {source} with a {max_error_m:g} m envelope: the learning's gain's "
+                    "baseline (epc-offboard figures neuralfly)\n" + wide)  # fmt: skip
+    return path
+
+
 def sim_argv(row: Row, method: Method, scenario_arg: str, dir_deg: float, seed: int,
              out: Path) -> list[str]:  # fmt: skip
     """The ``epc-offboard sim`` command line of one flight (lockstep, no GCS stream)."""
@@ -131,6 +160,17 @@ def sim_argv(row: Row, method: Method, scenario_arg: str, dir_deg: float, seed: 
             "--adaptation", adaptation, "--wind", f"{row.speed_m_s:g},{dir_deg:g}",
             "--wind-profile", row.profile, "--seed", str(seed), "--gcs-port", "0",
             "--out", str(out)]  # fmt: skip
+
+
+def scenario_arg(row: Row, method: Method, product: str, wide: str) -> str:
+    """The scenario ``method`` flies ``row`` in: the product's LWPR variant (``product``),
+    the gain's baseline at GAIN_ROW in the comparison envelope (``wide``), else the
+    scenario itself."""
+    if method.product_lwpr:
+        return product
+    if method.gain_baseline and row.key == GAIN_ROW:
+        return wide
+    return SCENARIO
 
 
 def _fly(argv: list[str], out: Path) -> tuple[int, float]:
@@ -234,11 +274,14 @@ def _load() -> list[float]:
 
 
 def _gain(flights: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """The learning's gain at GAIN_ROW: 1 - mean(EPC + LWPR) / mean(EPC, no adaptation)."""
+    """The learning's gain at GAIN_ROW: 1 - mean(EPC + LWPR) / mean(EPC, no adaptation),
+    the latter flown in the comparison envelope (``without_max_error_m`` from the
+    reference: COMPARISON_MAX_ERROR_M)."""
     ours = flights[GAIN_ROW][SCORED.key].get("mean_error_m")
     none = flights[GAIN_ROW]["epc-none"].get("mean_error_m")
     gain: dict[str, Any] = {"row": GAIN_ROW, "with_lwpr_m": ours, "without_m": none,
-                            "target_pct": GAIN_TARGET_PCT, "pct": None, "pass": False}  # fmt: skip
+                            "target_pct": GAIN_TARGET_PCT, "pct": None, "pass": False,
+                            "without_max_error_m": COMPARISON_MAX_ERROR_M}  # fmt: skip
     if ours is not None and none and math.isfinite(ours) and math.isfinite(none):
         gain["pct"] = 100.0 * (1.0 - ours / none)
         gain["pass"] = gain["pct"] >= GAIN_TARGET_PCT
@@ -329,6 +372,7 @@ def fly_table(out_dir: Path, results_dir: Path, seeds: tuple[int, ...], jobs: in
     ``results_dir``."""
     scenario = load_scenario(SCENARIO)
     product = str(product_lwpr_scenario(out_dir))
+    wide = str(comparison_scenario(out_dir))
     plan = [(seed, row, m, out_dir / f"seed{seed}" / row.key / m.key)
             for seed in seeds for row in ROWS for m in METHODS]  # fmt: skip
     load_before, wall_start, commit = _load(), time.monotonic(), _commit()
@@ -342,8 +386,8 @@ def fly_table(out_dir: Path, results_dir: Path, seeds: tuple[int, ...], jobs: in
     def one(item: tuple[int, Row, Method, Path]) -> tuple[int, float]:
         nonlocal done
         seed, row, m, out = item
-        argv = sim_argv(row, m, product if m.product_lwpr else SCENARIO,
-                        scenario.wind_dir_deg, seed, out)  # fmt: skip
+        argv = sim_argv(row, m, scenario_arg(row, m, product, wide), scenario.wind_dir_deg,
+                        seed, out)  # fmt: skip
         code, wall_s = _fly(argv, out)
         done += 1
         print(f"[{done}/{len(plan)}] seed {seed}, {row.label}, {m.method}"
@@ -462,9 +506,13 @@ def render_table(results_dir: Path) -> str:
         left = " (no adaptation left its envelope: its mean over what it flew)" * bool(
             g["without_left"]
         )
+        wide = g.get("without_max_error_m")
+        wide_text = (f", no adaptation flown within {wide:g} m of the reference, not `sim`'s "
+                     "2 m: figures only" if wide else "")  # fmt: skip
         gain = (f"**{g['pct']:.0f} %** less error than EPC without adaptation "
-                f"({100.0 * g['without_m']:.2f} → {100.0 * g['with_lwpr_m']:.2f} cm{left}; "
-                f"target ≥ {g['target_pct']:g} % {'✔' if g['pass'] else '✘'})")  # fmt: skip
+                f"({100.0 * g['without_m']:.2f} → {100.0 * g['with_lwpr_m']:.2f} cm{left}"
+                f"{wide_text}; target ≥ {g['target_pct']:g} % "
+                f"{'✔' if g['pass'] else '✘'})")  # fmt: skip
     timeouts = sum(f.get("lockstep_timeouts", 0) for r in data["flights"].values()
                    for f in r.values())  # fmt: skip
     lines += [
