@@ -25,7 +25,7 @@ pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone")]
 # before, when the compile ran first).
 MAX_COLD_START_TO_OFFBOARD_S = 25.0
 
-MAX_CPU_TO_LINK_S = 1.0
+MAX_CPU_TO_LINK_S = 1.5
 
 HOVER = {
     # then a hold, and the service exits: the autopilot's landing judges nothing here
@@ -95,9 +95,11 @@ def test_cold_start_flies_the_numpy_twins_and_reaches_offboard_in_seconds(tmp_pa
     assert stats["counters"].get("heartbeat_requests", 0) >= 2, stats["counters"]
     assert "heartbeat_flaps" not in stats["state"], stats["state"]
     assert startup["offboard_s"] <= elapsed + 1.0  # the process started after t0
-    # The service's own CPU up to its link, which load does not stretch: 0.64-0.79 s here
-    # at load 2-18 (imports 0.5 s); 1.22 s before, when a cold start still imported numba
-    # and compiled the rate identifier's kernel in the warm-up
+    # The service's own CPU up to its link, which load does not stretch: 0.64-0.79 s on an
+    # earlier machine at load 2-18 (imports 0.5 s); 1.22 s there before, when a cold start
+    # still imported numba (0.4 s of CPU) and compiled the rate identifier's kernel in the
+    # warm-up. A slower machine (stop 32) takes 1.06-1.23 s, main and merge alike, idle:
+    # numba's import on top of that still fails it
     assert marks["link_open"]["cpu_s"] < MAX_CPU_TO_LINK_S, marks
     # the rates the loops need were asked for at link-up and are what arrives
     rates = stats["rates_hz"]

@@ -72,6 +72,24 @@ def test_a_worker_started_without_waiting_outlives_the_start_and_solves():
         solver.close()
 
 
+def test_a_start_the_caller_was_too_busy_to_feed_counts_from_its_first_wait():
+    """A worker's problems larger than its pipe reach it only while the parent writes them
+    (``poll_ready``, ``pump``). The service starts the worker, then warms its kernels up:
+    50 s and more with a cold cache (a wheel's first flight), in which no one writes. The
+    start's timeout counted from the spawn, so the first wait after the warm-up failed at
+    once ("not started in 30 s") and the flight never began. It counts from the first wait."""
+    ctrl = ExperienceController(position_problem(30), learn_on_miss=False)  # 1.5 MB pickled
+    solver = MissSolver({"position": ctrl})
+    solver.start(wait=False, timeout_s=1.0)
+    try:
+        time.sleep(1.5)  # the warm-up: longer than the start's timeout, nothing written
+        assert solver.poll_ready() is False  # not up (its problems not all written): no timeout
+        solver.wait_ready(timeout_s=60.0)  # a loaded machine's import; an idle one ~1 s
+        assert solver.worker_pid() is not None
+    finally:
+        solver.close()
+
+
 def test_the_worker_adds_no_thread_to_the_control_process():
     """Issue 21: a process pool's manager and queue-feeder threads lived in the control
     process and took its interpreter lock to move the worker's traffic (a CPU hog that

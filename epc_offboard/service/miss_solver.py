@@ -251,6 +251,7 @@ class _Process:
     ready: _Reply[bool]
     replies: dict[int, _Reply[Any]] = field(default_factory=dict)
     next_seq: int = 0
+    ready_waited: bool = False  # whether poll_ready has started the start's clock
 
     def close(self) -> None:
         for conn in self.conns:  # its EOF; its answer finds a closed pipe
@@ -382,6 +383,9 @@ class MissSolver:
             return True
         if self._worker is not worker or not worker.proc.is_alive():
             raise RuntimeError("EPC miss worker died in its start")
+        if not worker.ready_waited:  # the start's clock runs from the first wait: until
+            worker.ready_waited = True  # then no one fed it the rest of its problems
+            worker.ready.sent_s = time.monotonic()  # (a cold warm-up takes 50 s and more)
         if time.monotonic() - worker.ready.sent_s > self._start_timeout_s:
             raise TimeoutError(f"EPC miss worker not started in {self._start_timeout_s:g} s")
         return False
