@@ -251,7 +251,7 @@ class _Process:
     ready: _Reply[bool]
     replies: dict[int, _Reply[Any]] = field(default_factory=dict)
     next_seq: int = 0
-    ready_waited: bool = False  # whether poll_ready has started the start's clock
+    ready_waited: bool = False  # whether a read has started the start's clock
 
     def close(self) -> None:
         for conn in self.conns:  # its EOF; its answer finds a closed pipe
@@ -383,9 +383,6 @@ class MissSolver:
             return True
         if self._worker is not worker or not worker.proc.is_alive():
             raise RuntimeError("EPC miss worker died in its start")
-        if not worker.ready_waited:  # the start's clock runs from the first wait: until
-            worker.ready_waited = True  # then no one fed it the rest of its problems
-            worker.ready.sent_s = time.monotonic()  # (a cold warm-up takes 50 s and more)
         if time.monotonic() - worker.ready.sent_s > self._start_timeout_s:
             raise TimeoutError(f"EPC miss worker not started in {self._start_timeout_s:g} s")
         return False
@@ -437,6 +434,9 @@ class MissSolver:
     def _read(self, worker: _Process, wait: bool, *, restart: bool = True) -> None:
         """Write what waits for the worker, read its answers; a worker gone or wedged is
         restarted (``restart``)."""
+        if not worker.ready_waited:  # the start's clock runs from the first write after the
+            worker.ready_waited = True  # spawn: until then no one fed it the rest of its
+            worker.ready.sent_s = time.monotonic()  # problems (a cold warm-up: 50 s and more)
         try:
             worker.outbox.flush()
             for seq, ok, value in worker.inbox.read():
