@@ -78,11 +78,13 @@ def test_the_estimator_is_serialised_a_model_a_slice_to_the_same_bytes():
     """LWPR's three models took 4-9 ms in one slice on the loops' thread every save (a late
     attitude tick, issue 21): each model is a slice of its own, and the bytes are the same."""
     from epc_offboard.control.cascade import Cascade
+    from epc_offboard.control.perturbation import LwprPerturbation
     from epc_offboard.store import experience
 
     cfg = load_service_config(SITL_SERVICE_CONFIG)
     cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
     estimator = cascade.position.estimator
+    assert isinstance(estimator, LwprPerturbation)
     rng = np.random.default_rng(3)
     for _ in range(200):  # something learned in every model
         estimator.observe(rng.normal(size=estimator.n_z), rng.normal(size=estimator.nx))
