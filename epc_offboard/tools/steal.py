@@ -15,15 +15,16 @@ with them. ``/proc/stat`` counts in 10 ms ticks: a single short gap's steal is k
 within ~10 ms, and what tells is the steal in the gaps against the steal everywhere else.
 
 ``python -m epc_offboard.tools.steal --pid PID --out FILE.json [--seconds S]`` samples
-beside any process (its main thread), for a run of a bench this module is not part of.
+beside any process (its main thread), for a run of a bench this module is not part of;
+SIGINT or SIGTERM ends it early.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
+import signal
 import threading
 import time
 from dataclasses import dataclass
@@ -185,9 +186,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=600.0)
     args = p.parse_args(argv)
     sampler = StealSampler(args.pid)
+    for sig in (signal.SIGINT, signal.SIGTERM):  # either ends it, the samples written
+        signal.signal(sig, lambda *_: sampler.stop.set())
     sampler.start()
-    with contextlib.suppress(KeyboardInterrupt):
-        sampler.stop.wait(args.seconds)
+    sampler.stop.wait(args.seconds)
     sampler.stop.set()
     sampler.join()
     with open(args.out, "w", encoding="utf-8") as fh:
