@@ -72,3 +72,27 @@ def test_saved_by_the_store_process_which_is_restarted_when_it_dies(tmp_path):
     assert summary[p.signature()]["controllers"] == n_position >= 1
     assert summary[p.signature()]["models"] == 1  # the estimator, saved beside them
 
+
+
+def test_the_estimator_is_serialised_a_model_a_slice_to_the_same_bytes():
+    """LWPR's three models took 4-9 ms in one slice on the loops' thread every save (a late
+    attitude tick, issue 21): each model is a slice of its own, and the bytes are the same."""
+    from epc_offboard.control.cascade import Cascade
+    from epc_offboard.control.perturbation import LwprPerturbation
+    from epc_offboard.store import experience
+
+    cfg = load_service_config(SITL_SERVICE_CONFIG)
+    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
+    estimator = cascade.position.estimator
+    assert isinstance(estimator, LwprPerturbation)
+    rng = np.random.default_rng(3)
+    for _ in range(200):  # something learned in every model
+        estimator.observe(rng.normal(size=estimator.n_z), rng.normal(size=estimator.nx))
+    models = len(estimator.models)
+    assert models >= 2
+    steps = list(experience.estimator_model_steps(cascade))
+    assert steps[:-1] == [None] * models
+    assert steps[-1] == experience.estimator_models(cascade)
+    keeper = LibraryKeeper(StoreConfig(""), cascade, Counter(), published=lambda: False)
+    asyncio.run(keeper._sliced_snapshot())
+    assert keeper.slices == 2 + models + 1  # the fleet's, a model each, the outer npz, the rest

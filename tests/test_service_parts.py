@@ -483,3 +483,23 @@ def test_ready_is_marked_before_the_phase_the_same_step_starts(
     marks = list(timeline.report()["milestones"])
     assert marks == ["ready", "preflight"], marks
     assert _told(notify_socket)[0] == "READY=1"
+
+
+def test_a_fleet_turn_waits_for_room_between_the_loops_ticks():
+    """A turn of the library-sharing task (candidates, publications, snapshots: 2-3 ms of
+    the loops' thread, up to 7) started whenever its sleep ended and came between two ticks
+    due: 100 of 135 position-loop gaps over 12 ms beside bench --attack (issue 21). It waits
+    for ``Loops.room`` before any of its work."""
+    from epc_offboard.fleet.sharing import FleetSharing
+
+    class Waited(Exception):  # noqa: N818 - the room was asked first
+        pass
+
+    async def room() -> None:
+        raise Waited
+
+    fleet = FleetSharing(sharing_config("a", free_port(), [], enabled=False), [],
+                         share_library=False, reference=True, room=room)  # fmt: skip
+    with pytest.raises(Waited):
+        asyncio.run(fleet.run())
+    assert fleet.counters["helper_restarts"] == 0  # no turn's work ran before it

@@ -42,7 +42,7 @@ import multiprocessing
 import os
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -195,6 +195,7 @@ class FleetSharing:
         reference: bool = False,
         log_cfg: LogConfig | None = None,
         candidates: CandidatePoolConfig | None = None,
+        room: Callable[[], Awaitable[None]] | None = None,
     ) -> None:
         if not cfg.vehicle_id:
             raise ValueError("sharing.vehicle_id must be set to open a fleet session")
@@ -204,6 +205,8 @@ class FleetSharing:
         self.subscribe_reference = reference
         self.log_cfg = log_cfg or LogConfig()  # the helper's log lines, on the same stderr
         self.counters: Counter[str] = Counter()
+        # waits until a turn fits between two of the loops' ticks (``Loops.room``)
+        self._room = room or (lambda: asyncio.sleep(0))
         pool = self.candidates = candidates or CandidatePoolConfig()
         ports = [(name, FleetPort(ctrl, pool)) for name, ctrl in controllers]
         self.specs = tuple(
@@ -327,11 +330,19 @@ class FleetSharing:
         period = self.cfg.publish_period_s
         next_publish = time.monotonic() + period
         while True:
+            # a turn (candidates offered, a publication, the snapshots) takes the loops'
+            # thread 2-3 ms, up to 7: started whenever its sleep ended, it came between two
+            # ticks due (100 of 135 position-loop gaps over 12 ms beside bench --attack's
+            # replay, issue 21); it starts now when a tick has just run and the next is
+            # at least ROOM_S away
+            await self._room()
             now = time.monotonic()
             self.poll(now)
             if now >= next_publish:
                 next_publish = now + period
+                await self._room()  # each part of its own: together up to 7 ms
                 self.publish_new()
+                await self._room()
                 self._refresh_snapshots()
             await asyncio.sleep(_TURN_S)
 

@@ -137,7 +137,10 @@ class LibraryKeeper:
             if self._prepare_fleet is None or await self._slice(self._prepare_fleet):
                 break
         fleet = await self._slice(self._fleet_part)
-        models = await self._slice(lambda: experience.estimator_models(self.cascade))
+        steps = experience.estimator_model_steps(self.cascade)  # a slice a model: LWPR's
+        models = None  # three took 4-9 ms at once, a late attitude tick every save
+        while models is None:
+            models = await self._slice(lambda: next(steps))
         snap = await self._slice(lambda: self._snapshot(fleet, models))
         await self._room()  # the hand-over pickles and writes the frame
         return snap

@@ -67,6 +67,27 @@
   switches) but its CPU clock advanced a fraction of it, with no preemption and no
   run-queue wait: the virtual CPU itself descheduled by the hypervisor (steal time),
   which no setting inside the machine removes.
+* **Steal time, measured** (``tools/steal.py``; ``bench --attack`` reports it per window,
+  in each position-loop gap over 12 ms, each late attitude tick and each stall). This VM
+  (KVM, ``CONFIG_PARAVIRT_TIME_ACCOUNTING``: the kernel counts steal per CPU in
+  ``/proc/stat`` and leaves it out of the threads' CPU clocks) stole 3.5-21 ms a second of
+  its two CPUs' 2,000 in two runs beside two hogs (load 9-23). The position-loop gaps
+  were not it: 172 and 135 gaps over 12 ms, 5 and 10 of them with any steal, 22 and
+  37 ms/s of steal in them against 21 and 3.5 over the run; in them the loops' thread
+  ran 5 ms (median, of a 12.8 ms gap) and waited for a CPU 0 ms: work on its own thread.
+  The late attitude ticks had 6x the run's steal in them (127-132 ms/s), but 11-26 ticks,
+  1-6 with any: steal makes some of them, not most. Timing the event loop's steps
+  (``asyncio.Handle._run`` wrapped, steps over 1.5 ms) named the work: the fleet-sharing
+  task's 50 ms turns (candidates offered, publication, snapshots), 2.3 ms median and up
+  to 7 ms on the loops' thread, lay in 100 of the 135 gaps, and the library saver's
+  estimator slice (LWPR's three models' npz at once, 4-9 ms every save) in 12 and in 6 of
+  the 11 late attitude ticks. A turn now waits for ``Loops.room`` as the saver's slices do,
+  and the estimator is serialised a model a slice (``to_bytes_steps``). Alternated with
+  main's code under the measurement lock (load 6-23, others' work beside): gaps over
+  12 ms in the 20 windows 128 and 251 on main, 73 and 23 after; of those left, 46 of 73
+  and 9 of 23 had steal in them, at 15-22x the run's rate: what remains is now mostly the
+  hypervisor's. Not traced: one 106 ms stall (the loops' thread on its CPU 75-80 ms of
+  it, no switch, 37 ms of steal) in one of the two runs after.
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).

@@ -157,7 +157,7 @@ class Service:
             self.sharing = FleetSharing(
                 cfg.sharing, controllers if cfg.sharing.enabled else [],
                 share_library=cfg.sharing.enabled, reference=live, log_cfg=cfg.log,
-                candidates=cfg.candidates,
+                candidates=cfg.candidates, room=self.loops.room,
             )  # fmt: skip
         self.library = LibraryKeeper(
             cfg.store, self.cascade, self.counters,

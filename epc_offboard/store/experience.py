@@ -11,6 +11,7 @@ signature (also with a PD or MPC position controller, which keep no library).
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from dataclasses import replace
 
 from epc_offboard.control.cascade import Cascade
@@ -28,6 +29,19 @@ def estimator_models(cascade: Cascade) -> dict[str, bytes]:
     """The estimator's learned model, serialised now (the part of :func:`snapshot` that costs
     most: 2-3 ms, taken on its own by a saver that lets the loops tick in between)."""
     return {_estimator_key(cascade): cascade.position.estimator.to_bytes()}
+
+
+def estimator_model_steps(cascade: Cascade) -> Iterator[dict[str, bytes] | None]:
+    """:func:`estimator_models` in steps (None between them, the models last), for a saver
+    that lets the loops tick between steps: an estimator that serialises in parts
+    (``to_bytes_steps``: LWPR, a model a step) is taken a part at a time."""
+    estimator = cascade.position.estimator
+    steps = getattr(estimator, "to_bytes_steps", None)
+    if steps is None:
+        yield estimator_models(cascade)
+        return
+    for data in steps():
+        yield None if data is None else {_estimator_key(cascade): data}
 
 
 def snapshot(cascade: Cascade, models: dict[str, bytes] | None = None) -> LibrarySnapshot:

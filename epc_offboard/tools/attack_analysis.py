@@ -19,6 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.service.loop import STALL_S
+from epc_offboard.tools import steal
 
 PX4_OFFBOARD = 6  # PX4 main mode OFFBOARD (vehicle/state.py); the bench flies PX4's personality
 SET_ATTITUDE_TARGET = 82
@@ -164,6 +166,54 @@ def window_figures(
     return out
 
 
+def steal_figures(
+    record: dict[str, Any],
+    wins: Sequence[Window],
+    windows: list[dict[str, Any]],
+    flight: dict[str, Any],
+    att_times_s: FloatArray,
+    attitude_period_s: float,
+    stalls: Sequence[dict[str, Any]] = (),
+) -> dict[str, Any]:
+    """The hypervisor's steal time (:mod:`~epc_offboard.tools.steal`'s samples, ``record``)
+    beside each window's figures (``windows``, updated in place: ``steal_ms_per_s``, the
+    machine's; ``position_max_gap_steal_ms``, in its longest gap between ticks), and lined
+    up with every position-loop gap over ``STALL_S`` and every late attitude tick in the
+    windows: a gap the hypervisor made has the steal, one the code made has not.
+    ``stalls``: the service's own (its stats' ``stalls``, ``service.loop.Stall``), each
+    given the steal in its interval (``steal_ms``; None outside the samples)."""
+    cols = steal.Columns.of(record)
+    if cols is None:
+        return {"sampled": False}
+    off = flight["phase"] == "offboard"
+    position: list[tuple[float, float]] = []
+    late: list[tuple[float, float]] = []
+    for w, fig in zip(wins, windows, strict=True):
+        rows = (flight["t_s"] >= w.t0_s) & (flight["t_s"] <= w.t1_s)
+        position += steal.gaps(flight["t_s"][rows & off], STALL_S)
+        sends = att_times_s[(att_times_s >= w.t0_s) & (att_times_s <= w.t1_s)]
+        late += steal.gaps(sends, _LATE_PERIODS * attitude_period_s)
+        s = cols.stretch(w.t0_s, w.t1_s)
+        fig["steal_ms_per_s"] = None if s is None else round(1e3 * s["steal_ms"] / s["ms"], 2)
+        t = flight["t_s"][rows]
+        i = int(np.argmax(np.diff(t))) if t.size > 1 else -1
+        g = cols.stretch(float(t[i]), float(t[i + 1])) if i >= 0 else None
+        fig["position_max_gap_steal_ms"] = None if g is None else g["steal_ms"]
+    return {
+        "sample_s": float(np.median(np.diff(cols.t_s))),
+        "cpus": int(cols.steal_s.shape[1]),
+        "position_gaps": steal.gap_account(cols, position),
+        "attitude_late": steal.gap_account(cols, late),
+        "stalls": [_stall_steal(cols, st) for st in stalls],
+    }
+
+
+def _stall_steal(cols: steal.Columns, stall: dict[str, Any]) -> dict[str, Any]:
+    s = cols.stretch(stall["t_s"] - 1e-3 * stall["interval_ms"], stall["t_s"])
+    return dict(stall, steal_ms=None if s is None else s["steal_ms"],
+                steal_thread_cpu_ms=None if s is None else s["steal_thread_cpu_ms"])  # fmt: skip
+
+
 def error_series(
     flight: dict[str, Any], truth: dict[str, Any], every: int = 10
 ) -> tuple[FloatArray, FloatArray]:
@@ -285,7 +335,8 @@ def format_table(report: dict[str, Any]) -> str:
             ("position_compute_us_median", "med us", "{:.0f}"),
             ("position_compute_us_p99", "p99 us", "{:.0f}"),
             ("helpers_cpu_share", "helpers", "{:.2f}"),
-            ("load_avg_1min", "load", "{:.1f}")]  # fmt: skip
+            ("load_avg_1min", "load", "{:.1f}"),
+            ("steal_ms_per_s", "steal", "{:.1f}")]  # fmt: skip
     head = f"{'phase':8s} {'window':7s}" + "".join(f" {k[1]:>9s}" for k in keys)
     lines = [head]
     for w in report["windows"]:
@@ -305,11 +356,28 @@ def format_table(report: dict[str, Any]) -> str:
                  f"{'applied' if report['fifo_applied'] else 'NOT applied'}; SITL (the autopilot) "
                  f"{'SCHED_FIFO' if report.get('sitl_fifo') else 'normal scheduling'}")  # fmt: skip
     lines.append(stall_summary(report))
+    lines.append(steal_summary(report))
     lines.append(f"{'issue 21 target':62s} {'verdict':9s} measured")
     for v in judge(report):
         verdict = "n/a" if v.met is None else ("met" if v.met else "NOT MET")
         lines.append(f"{v.target:62s} {verdict:9s} {v.measured}")
     return "\n".join(lines)
+
+
+def steal_summary(report: dict[str, Any]) -> str:
+    """The hypervisor's steal (ms a second, all CPUs) over the run and in the gaps."""
+    st = report.get("steal", {})
+    if not st.get("position_gaps", {}).get("sampled"):
+        return "steal time: not sampled"
+    parts = []
+    for key, name in (("position_gaps", "position-loop gaps > 12 ms"),
+                      ("attitude_late", "late attitude ticks")):  # fmt: skip
+        a = st[key]
+        rate = a["steal_in_gaps_ms_per_s"]
+        parts.append(f"{name}: {len(a['gaps'])}, {a['gaps_with_steal']} with steal, "
+                     f"{_text(math.nan if rate is None else rate, '{:.0f}')} ms/s in them")
+    return (f"steal time (ms a second, {st['cpus']} CPUs, column 'steal'): over the run "
+            f"{st['position_gaps']['steal_ms_per_s']:.1f}; " + "; ".join(parts))
 
 
 def stall_summary(report: dict[str, Any]) -> str:

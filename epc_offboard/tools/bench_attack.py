@@ -54,6 +54,7 @@ from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.ports import free_port
 from epc_offboard.tools import attack_analysis as analysis
+from epc_offboard.tools import steal as steal_time
 from epc_offboard.tools.bench_modes import start_hogs, stop_hogs
 from epc_offboard.tools.sim.analysis import read_csv_columns
 from epc_offboard.tools.sim.orchestrate import service_env, stop_process, vehicle_file
@@ -295,6 +296,7 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> di
     service = sitl = None
     attackers: Attackers | None = None
     sampler: Sampler | None = None
+    stealer: steal_time.StealSampler | None = None
     windows: list[analysis.Window] = []
     sitl_fifo = False
     load_start = os.getloadavg()
@@ -313,6 +315,8 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> di
         hog_procs = start_hogs(hogs)
         sampler = Sampler(service.pid)
         sampler.start()
+        stealer = steal_time.StealSampler(service.pid)  # its loops run on its main thread
+        stealer.start()
         attackers.wait_ready()
         wait_offboard(run_dir / "flight.csv", SETTLE_S, service)
         for phase in ("hover", "figure8"):
@@ -339,12 +343,15 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> di
         stop_hogs(hog_procs)  # by PID, first: the rest stops faster without them
         if sampler is not None:
             sampler.stop.set()
+        if stealer is not None:
+            stealer.stop.set()
         if attackers is not None:
             attackers.close()
         _stop(service)
         _stop(sitl)
     return {"windows": windows, "samples": sampler.samples if sampler else [],
             "service_exit": code, "load_avg": {"start": load_start, "end": load_end},
+            "steal": stealer.record() if stealer else {},
             "fifo_priority": REALTIME_PRIORITY, "sitl_fifo": sitl_fifo,
             "loops_cpu": loops_cpu}  # fmt: skip
 
@@ -368,6 +375,9 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
     samples = record["samples"]
     windows = [analysis.window_figures(w, flight, truth, att_t_s, rates, samples, names,
                                        period_s) for w in record["windows"]]  # fmt: skip
+    steal = analysis.steal_figures(record.get("steal", {}), record["windows"], windows,
+                                   flight, att_t_s, period_s, stats.get("stalls", []))  # fmt: skip
+    (run_dir / "steal.json").write_text(json.dumps(record.get("steal", {})))
     attacks = [w for w in record["windows"] if w.attack]
     in_attack = np.zeros(flight["t_s"].size, dtype=bool)
     for w in attacks:
@@ -403,6 +413,7 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "stats_counters": counters,
         "stats_gc": stats.get("gc", {}),
         "stats_stalls": stats.get("stalls", []),
+        "steal": steal,
         "lockstep_rmse_m": lockstep_rmse_m,
         "figure8_rmse_m": analysis.figure8_rmse_m(windows),
     }  # fmt: skip
@@ -438,7 +449,8 @@ def run_attack_bench(json_path: str | None, hogs: int, mode: str,
     with tempfile.TemporaryDirectory(prefix="epc-attack-") as tmp:
         run_dir = out.with_suffix("") if out else Path(tmp)
         run_dir.mkdir(parents=True, exist_ok=True)
-        for stale in ("flight.csv", "groundtruth.csv", "session.tlog", "stats.json"):
+        for stale in ("flight.csv", "groundtruth.csv", "session.tlog", "stats.json",
+                      "steal.json"):
             (run_dir / stale).unlink(missing_ok=True)
         unix_minus_monotonic_s = time.time() - time.monotonic()
         record = fly(run_dir, hogs, mode, loops_cpu)

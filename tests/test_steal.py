@@ -1,0 +1,96 @@
+"""Steal time beside a real-time flight (tools/steal.py): the kernel's counters read, and a
+gap lined up with them (issue 21: the code's gaps told from the hypervisor's)."""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from epc_offboard.tools import attack_analysis as aa
+from epc_offboard.tools import steal
+
+_STAT = """cpu  1195191 548018 140376 609596 3795 0 10872 20035 0 0
+cpu0 580681 275218 67227 325146 596 0 5174 9755 0 0
+cpu1 614510 272800 73149 284450 3199 0 5698 10280 0 0
+intr 1 2 3
+"""
+
+
+def test_each_cpus_steal_is_read_from_proc_stat_in_seconds():
+    tick = 1.0 / os.sysconf("SC_CLK_TCK")
+    assert steal.read_steal_s(_STAT) == [9755 * tick, 10280 * tick]
+    with open("/proc/stat", encoding="ascii") as fh:
+        assert len(steal.read_steal_s(fh.read())) == os.cpu_count()
+
+
+def test_the_sampler_follows_a_real_threads_cpu_time():
+    sampler = steal.StealSampler(os.getpid())  # this process's main thread: this test
+    sampler.start()
+    end = time.monotonic() + 0.3
+    while time.monotonic() < end:
+        pass  # on the CPU
+    sampler.stop.set()
+    sampler.join()
+    cols = steal.Columns.of(sampler.record())
+    assert cols is not None
+    assert cols.t_s.size > 5
+    s = cols.stretch(cols.t_s[0], cols.t_s[-1])
+    assert s is not None
+    assert s["steal_ms"] >= 0.0
+    # spinning: its CPU time and its run-queue wait make up most of the stretch
+    assert s["thread_cpu_ms"] + s["thread_wait_ms"] > 0.3 * s["ms"]
+
+
+def _columns(steal_ms_at: dict[float, float]) -> steal.Columns:
+    """Samples every 10 ms over 1 s; CPU 1 steals ``ms`` in the sample interval ending at t."""
+    t = np.round(np.arange(0.0, 1.0001, 0.01), 6)
+    per = np.zeros((t.size, 2))
+    for at, ms in steal_ms_at.items():
+        per[t >= at, 1] += ms * 1e-3
+    return steal.Columns(t, per, t * 0.5, np.zeros(t.size), np.ones(t.size, dtype=int))
+
+
+def test_a_gap_is_charged_the_steal_in_it_and_set_against_the_runs():
+    cols = _columns({0.50: 10.0})  # 10 ms stolen from CPU 1 in (0.49, 0.50]
+    account = steal.gap_account(cols, steal.gaps(np.array([0.47, 0.48, 0.51, 0.52, 0.53,
+                                                           0.55]), 0.012))  # fmt: skip
+    first, second = account["gaps"]
+    assert first["t0_s"] == 0.48
+    assert abs(first["ms"] - 30.0) < 1e-9
+    assert abs(first["steal_ms"] - 10.0) < 1e-9
+    assert abs(first["steal_thread_cpu_ms"] - 10.0) < 1e-9
+    assert abs(first["thread_cpu_ms"] - 15.0) < 1e-6
+    assert second["steal_ms"] == 0.0
+    assert account["gaps_with_steal"] == 1
+    assert abs(account["steal_ms_per_s"] - 10.0) < 1e-9  # 10 ms in 1 s
+    assert abs(account["steal_in_gaps_ms_per_s"] - 200.0) < 1e-6  # 10 ms in 50 ms of gaps
+    assert cols.stretch(-0.1, 0.2) is None  # before the samples: unknown, not zero
+    assert steal.gap_account(None, []) == {"sampled": False}
+
+
+def test_the_bench_reports_steal_per_window_and_in_its_gaps():
+    cols = _columns({0.30: 20.0})
+    record = {"t_s": list(cols.t_s), "steal_s": cols.steal_s.tolist(),
+              "thread_cpu_s": list(cols.thread_cpu_s), "thread_wait_s": list(cols.thread_wait_s),
+              "thread_on_cpu": [1] * cols.t_s.size}  # fmt: skip
+    ticks = np.concatenate([np.arange(0.10, 0.28, 0.01), np.arange(0.31, 0.9, 0.01)])
+    flight = {"t_s": ticks, "phase": np.full(ticks.size, "offboard")}
+    att = np.arange(0.10, 0.9, 0.005)
+    wins = [aa.Window("hover", "flood", 0.2, 0.5, {}), aa.Window("hover", "calm", 0.6, 0.8, {})]
+    figures: list[dict[str, Any]] = [{}, {}]
+    stalls = [{"loop": "position", "t_s": 0.31, "interval_ms": 40.0}]
+    out = aa.steal_figures(record, wins, figures, flight, att, 0.005, stalls)
+    assert out["stalls"][0]["steal_ms"] == 20.0
+    assert abs(figures[0]["steal_ms_per_s"] - 20.0 / 0.3) < 0.01
+    assert figures[0]["position_max_gap_steal_ms"] == 20.0
+    assert figures[1]["steal_ms_per_s"] == 0.0
+    assert figures[1]["position_max_gap_steal_ms"] == 0.0
+    gaps = out["position_gaps"]["gaps"]
+    assert len(gaps) == 1
+    assert gaps[0]["steal_ms"] == 20.0
+    assert out["attitude_late"]["gaps"] == []
+    report = {"steal": out}
+    assert "position-loop gaps > 12 ms: 1, 1 with steal" in aa.steal_summary(report)
