@@ -83,11 +83,13 @@
   estimator slice (LWPR's three models' npz at once, 4-9 ms every save) in 12 and in 6 of
   the 11 late attitude ticks. A turn now waits for ``Loops.room`` as the saver's slices do,
   and the estimator is serialised a model a slice (``to_bytes_steps``). Alternated with
-  main's code under the measurement lock (load 6-23, others' work beside): gaps over
-  12 ms in the 20 windows 128 and 251 on main, 73 and 23 after; of those left, 46 of 73
-  and 9 of 23 had steal in them, at 15-22x the run's rate: what remains is now mostly the
-  hypervisor's. Not traced: one 106 ms stall (the loops' thread on its CPU 75-80 ms of
-  it, no switch, 37 ms of steal) in one of the two runs after.
+  main's code under the measurement lock, three pairs (load 6-23, others' work beside):
+  gaps over 12 ms in the 20 windows 128, 251 and 284 on main, 73, 23 and 30 after; of
+  those left, 46, 9 and 12 had steal in them, at 14-22x the run's rate: what remains is
+  mostly the hypervisor's. Not traced: a rare single stretch of work on the loops' thread
+  (one a run in two of the three runs after, 31 ms and 106 ms: the thread on its CPU
+  31 ms and 75-80 ms of them, no switch at all; main's runs had their largest gaps at
+  19-28 ms), the next thing to name with the event loop's steps timed.
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).

@@ -173,7 +173,8 @@ def gap_account(cols: Columns | None, stretches: list[tuple[float, float]]) -> d
         "sampled": True,
         "steal_ms_per_s": round(1e3 * total / span_ms, 2) if span_ms > 0 else None,
         "steal_in_gaps_ms_per_s": round(1e3 * sum(e["steal_ms"] for e in each) / in_ms, 2)
-        if in_ms else None,
+        if in_ms
+        else None,
         "gaps_with_steal": sum(e["steal_ms"] > 0.0 for e in each),
         "gaps": each,
     }
