@@ -42,6 +42,8 @@ from epc_offboard.control.baselines import MpcController, PdController
 from epc_offboard.control.dead_time import (
     DEFAULT_COMMAND_DEAD_TIME_S,
     DeadTimePredictor,
+    TimingLead,
+    TimingLeadConfig,
     check_span_s,
     default_command_dead_time_s,
 )
@@ -139,6 +141,10 @@ class PositionControlConfig:
     # [position.state_filter]: the state estimate's error the QP's initial state is fused
     # against (control/state_filter.py); unset, the measured state as is
     state_filter: StateFilterConfig = field(default_factory=StateFilterConfig)
+    # [position.timing_lead]: the vehicle's lead on the reference along its velocity that
+    # no fixed delay fits, learnt per flight and taken out of x0 (control/dead_time.py
+    # TimingLead); off unless time_constant_s is set
+    timing_lead: TimingLeadConfig = field(default_factory=TimingLeadConfig)
     r_acc: Vec3 = (0.3, 0.3, 0.3)
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     # The QP bounds the predicted velocity by max_vel_m_s less this (constraint tightening,
@@ -419,6 +425,7 @@ class PositionLoop:
         self.dead_time = self._predictor(cfg.command_dead_time_s or 0.0)
         self._state_filter = StateFilter(cfg.state_filter, loop_period_s)
         self._feed_estimator = cfg.state_filter.enabled and cfg.state_filter.feed_estimator
+        self.timing_lead = TimingLead(cfg.timing_lead, loop_period_s)
         # the compiled tilt check's entry point (its arguments are always (3,) float64 and
         # this problem's limits: no dispatch on their types, issue 21), or None: numpy
         lim = self.acc_limits
@@ -808,6 +815,14 @@ class PositionLoop:
         self._d_hat_last = d_hat
         if dead_time.steps:
             x0[:] = dead_time.ahead(x0, d_hat, state.time_s)
+        lead = self.timing_lead
+        if lead.config.enabled:
+            # the reference where x0 now is: the dead time ahead (the window starts after it)
+            stage = math.floor(dead_time.dead_time_s / self.config.dt_s + 0.5)
+            now = reference.stages[min(stage, reference.stages.shape[0] - 1)]
+            if learn:
+                lead.learn(x0[0:3] - now[0:3], now[3:6])
+            lead.carry(x0)
         decision: Decision = controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = self._limit_tilt(np.asarray(decision.u, dtype=np.float64))
         acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
