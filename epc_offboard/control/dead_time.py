@@ -16,7 +16,6 @@ Pure numerics (no I/O).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -217,67 +216,3 @@ class DeadTimePredictor:
         out *= frac
         out += lo
         return out
-
-
-@dataclass(frozen=True)
-class TimingLeadConfig:
-    """``[position.timing_lead]``: the vehicle's lead on the reference along its velocity,
-    learnt per flight and per axis (:class:`TimingLead`).
-
-    ``time_constant_s``: how fast the lead is learnt (0: off, nothing learnt); ``max_s``: the
-    lead's bound either way (s); ``min_speed_m_s``: below this reference speed (its running
-    RMS, per axis) an axis learns proportionally less (a hover teaches no timing)."""
-
-    time_constant_s: float = 0.0
-    max_s: float = 0.02
-    min_speed_m_s: float = 0.3
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.time_constant_s) and self.time_constant_s >= 0.0):
-            raise ValueError(f"time_constant_s must be >= 0, got {self.time_constant_s}")
-        check_span_s("max_s", self.max_s)
-        if not (math.isfinite(self.min_speed_m_s) and self.min_speed_m_s > 0.0):
-            raise ValueError(f"min_speed_m_s must be > 0, got {self.min_speed_m_s}")
-
-    @property
-    def enabled(self) -> bool:
-        return self.time_constant_s > 0.0
-
-
-class TimingLead:
-    """How far ahead of the reference (s, per NED axis) the vehicle flies along the
-    reference's velocity, learnt while it tracks, and taken out of the QP's initial state.
-
-    A position error in phase with the reference's velocity, e = tau v, is a timing error:
-    an unmodelled delay, or a disturbance model whose slope along the velocity is off (LWPR's
-    drag slope, learnt over its forgetting's memory from the estimate's noise, differs flight
-    by flight: issue 24's calm row). Per axis, tau follows the error's regression on the
-    reference's velocity, an integrator of time constant ``time_constant_s``:
-    tau += dt / T * e v / max(mean v^2, min_speed^2), bounded by ``max_s``; the QP then starts
-    from x0 with its position carried by tau along its velocity, and a vehicle ahead is held
-    back. Learnt on the state the QP starts from (before the carry): the error the plant's
-    known delays leave (``state_latency_s``, the command dead time) must already be modelled,
-    this takes what no fixed delay fits. Pure numerics, deterministic."""
-
-    def __init__(self, cfg: TimingLeadConfig, period_s: float) -> None:
-        self.config = cfg
-        self._gain = period_s / cfg.time_constant_s if cfg.enabled else 0.0
-        self._floor = cfg.min_speed_m_s**2
-        self.lead_s = np.zeros(3)
-        self._speed2 = np.full(3, self._floor)  # the reference speed's running mean square
-
-    def learn(self, err_ned_m: FloatArray, ref_vel_ned_m_s: FloatArray) -> None:
-        """One tick's position error (vehicle less reference, (3,) m) at the reference's
-        velocity (3,) m/s."""
-        if not self._gain:
-            return
-        g = self._gain
-        self._speed2 += g * (ref_vel_ned_m_s * ref_vel_ned_m_s - self._speed2)
-        step = g * err_ned_m * ref_vel_ned_m_s / np.maximum(self._speed2, self._floor)
-        bound = self.config.max_s
-        self.lead_s = np.minimum(np.maximum(self.lead_s + step, -bound), bound)
-
-    def carry(self, x0: FloatArray) -> None:
-        """x0 = [p, v, a] (9,) in place: its position carried ``lead_s`` along its velocity."""
-        if self._gain:
-            x0[0:3] += self.lead_s * x0[3:6]

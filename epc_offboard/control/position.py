@@ -42,8 +42,6 @@ from epc_offboard.control.baselines import MpcController, PdController
 from epc_offboard.control.dead_time import (
     DEFAULT_COMMAND_DEAD_TIME_S,
     DeadTimePredictor,
-    TimingLead,
-    TimingLeadConfig,
     check_span_s,
     default_command_dead_time_s,
 )
@@ -60,7 +58,13 @@ from epc_offboard.control.models import (
     position_model_lagged,
     velocity_disturbance_input,
 )
-from epc_offboard.control.perturbation import EstimatorConfig, PerturbationConfig, make_estimator
+from epc_offboard.control.perturbation import (
+    EstimatorConfig,
+    KalmanPerturbation,
+    LwprPerturbation,
+    PerturbationConfig,
+    make_estimator,
+)
 from epc_offboard.control.qp import MpcProblem
 from epc_offboard.control.state_filter import StateFilter, StateFilterConfig
 from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
@@ -141,10 +145,6 @@ class PositionControlConfig:
     # [position.state_filter]: the state estimate's error the QP's initial state is fused
     # against (control/state_filter.py); unset, the measured state as is
     state_filter: StateFilterConfig = field(default_factory=StateFilterConfig)
-    # [position.timing_lead]: the vehicle's lead on the reference along its velocity that
-    # no fixed delay fits, learnt per flight and taken out of x0 (control/dead_time.py
-    # TimingLead); off unless time_constant_s is set
-    timing_lead: TimingLeadConfig = field(default_factory=TimingLeadConfig)
     r_acc: Vec3 = (0.3, 0.3, 0.3)
     max_vel_m_s: Vec3 = (3.8, 3.8, 2.0)  # state constraint |v_i| <= max (thesis zig-zag: 3.8)
     # The QP bounds the predicted velocity by max_vel_m_s less this (constraint tightening,
@@ -381,6 +381,12 @@ class PositionLoop:
             kf=replace(estimator.kf, dt_s=loop_period_s),
         )
         self.estimator = make_estimator(estimator.kind, 3, 3, filtered)
+        # [estimator.lwpr] residual_kf: the Kalman observer follows what LWPR leaves (the
+        # drag slope LWPR's forgetting learns from the estimate's noise, per flight), and its
+        # estimate is added to LWPR's; None: LWPR alone (or another estimator)
+        self._residual: KalmanPerturbation | None = None
+        if isinstance(self.estimator, LwprPerturbation) and estimator.lwpr.residual_kf:
+            self._residual = KalmanPerturbation.from_config(3, 3, filtered.kf)
         # a[k+1] = alpha a[k] + (1 - alpha) u[k] per axis: what the feedforward inverts
         self.acc_alpha = np.exp(-cfg.dt_s / np.array(cfg.tau_acc_s, dtype=np.float64))
         self._one_minus_alpha = 1.0 - self.acc_alpha
@@ -425,7 +431,6 @@ class PositionLoop:
         self.dead_time = self._predictor(cfg.command_dead_time_s or 0.0)
         self._state_filter = StateFilter(cfg.state_filter, loop_period_s)
         self._feed_estimator = cfg.state_filter.enabled and cfg.state_filter.feed_estimator
-        self.timing_lead = TimingLead(cfg.timing_lead, loop_period_s)
         # the compiled tilt check's entry point (its arguments are always (3,) float64 and
         # this problem's limits: no dispatch on their types, issue 21), or None: numpy
         lim = self.acc_limits
@@ -578,6 +583,11 @@ class PositionLoop:
         # d_meas is the mean disturbance over the window: pair it with the mean velocity
         # over the same window (drag at the window's start would be a 1/2-window lag)
         z = np.array([svx / m, svy / m, svz / m])
+        residual = self._residual
+        if residual is not None:
+            lwpr = self.estimator
+            assert isinstance(lwpr, LwprPerturbation)
+            residual.observe(z, d_meas - lwpr.predict_raw(z))
         self.estimator.observe(z, d_meas)
 
     def feedforward(self, refs: FloatArray) -> FloatArray:
@@ -768,8 +778,10 @@ class PositionLoop:
         if not self._nominal_feedforward:
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
             # itself; the nominal input only cancels the disturbance
-            d_hat = np.minimum(np.maximum(self.estimator.estimate(vel_est), -d_max),
-                               d_max)  # fmt: skip
+            p_est = self.estimator.estimate(vel_est)
+            if self._residual is not None:
+                p_est = p_est + self._residual.estimate(vel_est)
+            d_hat = np.minimum(np.maximum(p_est, -d_max), d_max)
             u_p = np.broadcast_to(-d_hat, (self.config.horizon, 3))
         else:
             # the disturbance at each stage's reference velocity, as the estimator knows it
@@ -789,6 +801,8 @@ class PositionLoop:
             z_stages[1] = reference.stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
             z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
             p_hat, d_var = self.estimator.estimate_along(z_stages)
+            if self._residual is not None:
+                p_hat = p_hat + self._residual.estimate(vel_est)
             if disturbance_plan is not None:
                 # what follows below in one compiled call, the same bits (issue 21: each
                 # numpy call on these small arrays is cold cache lines in real time)
@@ -815,14 +829,6 @@ class PositionLoop:
         self._d_hat_last = d_hat
         if dead_time.steps:
             x0[:] = dead_time.ahead(x0, d_hat, state.time_s)
-        lead = self.timing_lead
-        if lead.config.enabled:
-            # the reference where x0 now is: the dead time ahead (the window starts after it)
-            stage = math.floor(dead_time.dead_time_s / self.config.dt_s + 0.5)
-            now = reference.stages[min(stage, reference.stages.shape[0] - 1)]
-            if learn:
-                lead.learn(x0[0:3] - now[0:3], now[3:6])
-            lead.carry(x0)
         decision: Decision = controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = self._limit_tilt(np.asarray(decision.u, dtype=np.float64))
         acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
