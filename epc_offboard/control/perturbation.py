@@ -78,6 +78,9 @@ class LwprPerturbationConfig:
         subspace per output element (a list of lists). Empty: all of z.
     norm_z, norm_p: typical magnitude of each z / p element (LWPR's normalisation); empty:
         ones. init_d is in these normalised units.
+    residual_kf: the position loop's Kalman observer (``[estimator.kf]``) also follows what
+        LWPR leaves, the measured disturbance less LWPR's prediction, and its estimate is
+        added to LWPR's (control/position.py; not the estimator's own state).
     The remaining keys are the LWPR learner's (epc_offboard.control.lwpr.LWPR), same meaning and
     defaults.
     """
@@ -102,6 +105,7 @@ class LwprPerturbationConfig:
     init_s2: float = 1e-10
     add_threshold: float = 0.5
     max_rfs: int | None = None
+    residual_kf: bool = False
 
     def __post_init__(self) -> None:
         _check_filter_settings(self.lowpass_cutoff_hz, self.dt_s)
@@ -380,7 +384,9 @@ class LwprPerturbation:
 
     @classmethod
     def from_config(cls, nx: int, n_z: int, cfg: LwprPerturbationConfig) -> LwprPerturbation:
-        return cls(nx, n_z, **_settings(cfg))
+        settings = _settings(cfg)
+        del settings["residual_kf"]  # the position loop's, not the learner's
+        return cls(nx, n_z, **settings)
 
     def _new_models(self) -> list[LWPR]:
         return [

@@ -58,7 +58,13 @@ from epc_offboard.control.models import (
     position_model_lagged,
     velocity_disturbance_input,
 )
-from epc_offboard.control.perturbation import EstimatorConfig, PerturbationConfig, make_estimator
+from epc_offboard.control.perturbation import (
+    EstimatorConfig,
+    KalmanPerturbation,
+    LwprPerturbation,
+    PerturbationConfig,
+    make_estimator,
+)
 from epc_offboard.control.qp import MpcProblem
 from epc_offboard.control.state_filter import StateFilter, StateFilterConfig
 from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
@@ -375,6 +381,14 @@ class PositionLoop:
             kf=replace(estimator.kf, dt_s=loop_period_s),
         )
         self.estimator = make_estimator(estimator.kind, 3, 3, filtered)
+        # [estimator.lwpr] residual_kf: the Kalman observer follows what LWPR leaves (the
+        # drag slope LWPR's forgetting learns from the estimate's noise, per flight), and its
+        # estimate is added to LWPR's; None: LWPR alone (or another estimator)
+        self._residual: KalmanPerturbation | None = None
+        self._residual_of: LwprPerturbation | None = None  # the LWPR it follows
+        if isinstance(self.estimator, LwprPerturbation) and estimator.lwpr.residual_kf:
+            self._residual = KalmanPerturbation.from_config(3, 3, filtered.kf)
+            self._residual_of = self.estimator
         # a[k+1] = alpha a[k] + (1 - alpha) u[k] per axis: what the feedforward inverts
         self.acc_alpha = np.exp(-cfg.dt_s / np.array(cfg.tau_acc_s, dtype=np.float64))
         self._one_minus_alpha = 1.0 - self.acc_alpha
@@ -571,6 +585,9 @@ class PositionLoop:
         # d_meas is the mean disturbance over the window: pair it with the mean velocity
         # over the same window (drag at the window's start would be a 1/2-window lag)
         z = np.array([svx / m, svy / m, svz / m])
+        residual, lwpr = self._residual, self._residual_of
+        if residual is not None and lwpr is not None:
+            residual.observe(z, d_meas - lwpr.predict_raw(z))
         self.estimator.observe(z, d_meas)
 
     def feedforward(self, refs: FloatArray) -> FloatArray:
@@ -761,8 +778,10 @@ class PositionLoop:
         if not self._nominal_feedforward:
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
             # itself; the nominal input only cancels the disturbance
-            d_hat = np.minimum(np.maximum(self.estimator.estimate(vel_est), -d_max),
-                               d_max)  # fmt: skip
+            p_est = self.estimator.estimate(vel_est)
+            if self._residual is not None:
+                p_est = p_est + self._residual.estimate(vel_est)
+            d_hat = np.minimum(np.maximum(p_est, -d_max), d_max)
             u_p = np.broadcast_to(-d_hat, (self.config.horizon, 3))
         else:
             # the disturbance at each stage's reference velocity, as the estimator knows it
@@ -782,6 +801,8 @@ class PositionLoop:
             z_stages[1] = reference.stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
             z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
             p_hat, d_var = self.estimator.estimate_along(z_stages)
+            if self._residual is not None:
+                p_hat = p_hat + self._residual.estimate(vel_est)
             if disturbance_plan is not None:
                 # what follows below in one compiled call, the same bits (issue 21: each
                 # numpy call on these small arrays is cold cache lines in real time)
