@@ -28,6 +28,8 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
 
+from epc_offboard.common.procstats import stat_fields
+
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 _F_SETPIPE_SZ = 1031  # <linux/fcntl.h>
 
@@ -81,9 +83,7 @@ def descendants(pid: int) -> set[int]:
             text = stat.read_text()
         except OSError:  # gone meanwhile
             continue
-        # pid (comm) state ppid ...: comm may hold spaces and parentheses
-        fields = text[text.rindex(")") + 2 :].split()
-        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+        children.setdefault(int(stat_fields(text)[1]), []).append(int(stat.parent.name))
     out: set[int] = set()
     todo = [pid]
     while todo:

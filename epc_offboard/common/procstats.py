@@ -13,6 +13,13 @@ _TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 _PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
 
 
+def stat_fields(text: str) -> list[str]:
+    """``/proc/<pid>/stat``'s fields after "pid (comm) " (comm may hold spaces and
+    parentheses), 0-based from the state: ppid [1], utime [11], stime [12], starttime [19],
+    rss [21], processor [36]."""
+    return text[text.rindex(")") + 2 :].split()
+
+
 def process_report(pid: int | None, **extra: Any) -> dict[str, Any]:
     """``pid``'s CPU seconds (user + system), its share of one CPU over its life so far (a
     restarted helper is a new pid: its share counts from its start) and its resident
@@ -27,7 +34,7 @@ def process_report(pid: int | None, **extra: Any) -> dict[str, Any]:
             uptime_s = float(fh.read().split()[0])
     except OSError:  # gone, or no /proc
         return out
-    fields = text[text.rindex(")") + 2 :].split()  # after "pid (comm) ": state is fields[0]
+    fields = stat_fields(text)
     cpu_s = (int(fields[11]) + int(fields[12])) / _TICKS_PER_S  # utime, stime
     life_s = uptime_s - int(fields[19]) / _TICKS_PER_S  # starttime
     out["cpu_s"] = round(cpu_s, 2)

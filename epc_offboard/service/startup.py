@@ -30,6 +30,8 @@ import os
 import time
 from typing import Any
 
+from epc_offboard.common.procstats import stat_fields
+
 _TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
@@ -43,7 +45,7 @@ def process_age_s() -> float:
             uptime_s = float(fh.read().split()[0])
     except OSError:
         return time.monotonic() - _IMPORTED_MONO_S
-    start_ticks = int(text[text.rindex(")") + 2 :].split()[19])
+    start_ticks = int(stat_fields(text)[19])
     return max(uptime_s - start_ticks / _TICKS_PER_S, 0.0)
 
 

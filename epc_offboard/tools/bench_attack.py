@@ -53,6 +53,7 @@ import numpy as np
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.ports import free_port
+from epc_offboard.common.procstats import stat_fields
 from epc_offboard.tools import attack_analysis as analysis
 from epc_offboard.tools import steal as steal_time
 from epc_offboard.tools.bench_modes import start_hogs, stop_hogs
@@ -139,7 +140,7 @@ def _stat(pid: int) -> tuple[float, float] | None:
         text = Path(f"/proc/{pid}/stat").read_text()
     except OSError:
         return None
-    fields = text[text.rindex(")") + 2 :].split()
+    fields = stat_fields(text)
     tick = os.sysconf("SC_CLK_TCK")
     rss_mb = int(fields[21]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     return (int(fields[11]) + int(fields[12])) / tick, rss_mb

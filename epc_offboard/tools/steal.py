@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.common.frames import FloatArray
+from epc_offboard.common.procstats import stat_fields
 
 SAMPLE_S = 0.01  # the kernel's steal moves in 10 ms ticks
 _TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
@@ -54,11 +55,11 @@ def read_thread(pid: int, tid: int) -> tuple[float, float, int] | None:
     try:
         with open(f"{base}/schedstat", "rb") as fh:
             run_ns, wait_ns = fh.read().split()[:2]
-        with open(f"{base}/stat", "rb") as fh:
+        with open(f"{base}/stat") as fh:
             stat = fh.read()
     except (OSError, ValueError):
         return None
-    cpu = int(stat[stat.rindex(b")") + 2 :].split()[36])  # field 39, "processor"
+    cpu = int(stat_fields(stat)[36])  # "processor"
     return int(run_ns) * 1e-9, int(wait_ns) * 1e-9, cpu
 
 
@@ -142,13 +143,6 @@ class Columns:
             "thread_wait_ms": round(1e3 * (self._at(self.thread_wait_s, t1_s)
                                            - self._at(self.thread_wait_s, t0_s)), 2),
         }  # fmt: skip
-
-    def share(self, t0_s: float, t1_s: float) -> float | None:
-        """The machine's steal over [t0, t1] as a share of its CPUs' time."""
-        s = self.stretch(t0_s, t1_s)
-        if s is None:
-            return None
-        return float(s["steal_ms"] / (s["ms"] * self.steal_s.shape[1]))
 
 
 def gaps(times_s: FloatArray, over_s: float) -> list[tuple[float, float]]:
