@@ -385,10 +385,8 @@ class PositionLoop:
         # drag slope LWPR's forgetting learns from the estimate's noise, per flight), and its
         # estimate is added to LWPR's; None: LWPR alone (or another estimator)
         self._residual: KalmanPerturbation | None = None
-        self._residual_of: LwprPerturbation | None = None  # the LWPR it follows
         if isinstance(self.estimator, LwprPerturbation) and estimator.lwpr.residual_kf:
             self._residual = KalmanPerturbation.from_config(3, 3, filtered.kf)
-            self._residual_of = self.estimator
         # a[k+1] = alpha a[k] + (1 - alpha) u[k] per axis: what the feedforward inverts
         self.acc_alpha = np.exp(-cfg.dt_s / np.array(cfg.tau_acc_s, dtype=np.float64))
         self._one_minus_alpha = 1.0 - self.acc_alpha
@@ -585,8 +583,8 @@ class PositionLoop:
         # d_meas is the mean disturbance over the window: pair it with the mean velocity
         # over the same window (drag at the window's start would be a 1/2-window lag)
         z = np.array([svx / m, svy / m, svz / m])
-        residual, lwpr = self._residual, self._residual_of
-        if residual is not None and lwpr is not None:
+        residual, lwpr = self._residual, self.estimator
+        if residual is not None and isinstance(lwpr, LwprPerturbation):  # (set with LWPR only)
             residual.observe(z, d_meas - lwpr.predict_raw(z))
         self.estimator.observe(z, d_meas)
 
