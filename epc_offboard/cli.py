@@ -190,6 +190,11 @@ def _add_sim(sub: _Subparsers) -> None:
         "--json", default=None, metavar="FILE", help="also write the report JSON here"
     )
     sim.add_argument(
+        "--no-figure", action="store_true",
+        help="no flight.png (flights judged on report.json alone: its drawing takes 2-3 s "
+        "of CPU a flight); --compare still draws compare.png",
+    )  # fmt: skip
+    sim.add_argument(
         "--compare",
         nargs="?",
         const="",

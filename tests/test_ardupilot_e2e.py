@@ -24,7 +24,7 @@ def test_sim_circle_against_ardupilot(tmp_path):
     out = tmp_path / "out"
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--out", str(out), "--autopilot",
-         "ardupilot", "--scenario", "circle", "--duration", "8"],
+         "ardupilot", "--scenario", "circle", "--duration", "8", "--no-figure"],
         capture_output=True, text=True, timeout=110, check=False,
     )  # fmt: skip
     # (exit 1 would be a declared target of the full 30 s circle missed on this short one)

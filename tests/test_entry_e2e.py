@@ -24,7 +24,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.entry import Flight, fly
+from tests.entry import WINDOW_S, Flight, fly
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]
 
@@ -47,6 +47,9 @@ def _judge(flight: Flight, entries: int, *, from_hold: bool = False) -> None:
     assert len(flight.entries) == entries, (flight.name, flight.entries, flight.freezes_done)
     for e in flight.entries:
         what = f"{flight.name} entry at {e.t_s:.2f} s: {e}"
+        # the whole window judged: the flight (shortened to REENTRY_S past a freeze) and the
+        # next freeze never cut it short (the ground truth's samples: 5 ms apart)
+        assert e.judged_s >= WINDOW_S - 0.01, what
         assert e.alt_change_m < MAX_ALT_CHANGE_M, what
         assert e.tilt_max_deg < TILT_LIMIT_DEG, what
         if from_hold:

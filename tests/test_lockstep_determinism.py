@@ -38,7 +38,8 @@ def fly(out: Path) -> dict[str, Any]:
     scenario = holding_scenario(out.parent, "circle")
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--scenario", str(scenario),
-         "--duration", "8", "--wind", "2,30", "--gcs-port", "0", "--out", str(out)],
+         "--duration", "8", "--wind", "2,30", "--gcs-port", "0", "--out", str(out),
+         "--no-figure"],
         capture_output=True, text=True, timeout=240, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -133,7 +133,8 @@ def test_mavproxy_watches_a_running_sim_fly_offboard(tmp_path):
         # 20 s of hover: MAVProxy names a mode it finds at its own pace, and on an idle machine
         # lockstep flew a 6 s hover's Offboard in 1.2 s of wall time, which it missed once
         [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "hover", "--duration", "20",
-         "--adaptation", "none", "--gcs-port", str(gcs_port), "--out", str(tmp_path / "out")],
+         "--adaptation", "none", "--gcs-port", str(gcs_port), "--out", str(tmp_path / "out"),
+         "--no-figure"],
         stdin=subprocess.DEVNULL, stdout=(tmp_path / "sim.log").open("wb"),
         stderr=subprocess.STDOUT,
     )  # fmt: skip

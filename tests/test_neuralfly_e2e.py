@@ -28,7 +28,7 @@ def test_neuralfly_flies_its_plant_in_a_sine_wind_and_reports_its_metric(tmp_pat
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "neuralfly",
          "--duration", "8", "--wind", "8.5,-90", "--wind-profile", "sine:2.4,1",
-         "--gcs-port", "0", "--out", str(out)],
+         "--gcs-port", "0", "--out", str(out), "--no-figure"],
         capture_output=True, text=True, timeout=280, check=False,
     )  # fmt: skip
     report = json.loads((out / "report.json").read_text())

@@ -123,7 +123,8 @@ def test_neuralfly_in_calm_air_tracks_within_1_6_cm_through_its_estimate_noise(t
     out = tmp_path / "nf"
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "neuralfly",
-         "--wind", "0,-90", "--seed", "3", "--gcs-port", "0", "--out", str(out)],
+         "--wind", "0,-90", "--seed", "3", "--gcs-port", "0", "--out", str(out),
+         "--no-figure"],
         capture_output=True, text=True, timeout=280, check=False,
     )  # fmt: skip
     v = json.loads((out / "report.json").read_text())["vehicles"][0]

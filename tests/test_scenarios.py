@@ -31,7 +31,7 @@ def compare(tmp: Path, scenario: str, duration_s: float, methods: str) -> dict[s
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--scenario", str(holding),
          "--duration", str(duration_s), "--compare", methods, "--gcs-port", "0",
-         "--out", str(out)],
+         "--out", str(out), "--no-figure"],  # (compare.png still drawn: judged below)
         capture_output=True, text=True, timeout=400, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -35,11 +35,15 @@ OFFBOARD = (PX4_MAIN_MODE_OFFBOARD, 0)
 HOLD = (PX4_MAIN_MODE_AUTO, PX4_AUTO_SUB_LOITER)
 
 
-def sim(tmp_path, *args, expect: int = 0):
+def sim(tmp_path, *args, expect: int = 0, figure: bool = False):
+    """One lockstep `sim` into ``tmp_path/out``: (report, out, process). No flight.png unless
+    ``figure`` (its drawing, 2-3 s of CPU, judged by one test)."""
     out = tmp_path / "out"
+    no_figure = () if figure else ("--no-figure",)
     proc = subprocess.run(
         # (--gcs-port 0: nothing streamed to a ground station's UDP 14550)
-        [sys.executable, "-m", "epc_offboard", "sim", "--out", str(out), "--gcs-port", "0", *args],
+        [sys.executable, "-m", "epc_offboard", "sim", "--out", str(out), "--gcs-port", "0",
+         *no_figure, *args],
         capture_output=True,
         text=True,
         timeout=220,
@@ -62,7 +66,7 @@ def test_sim_hover_holds_within_5_cm_and_fails_with_the_targets_it_missed_named(
     )
     report, out, proc = sim(
         tmp_path, "--scenario", str(scenario), "--duration", "6", "--adaptation", "none",
-        expect=1,
+        expect=1, figure=True,
     )  # fmt: skip
     assert "targets failed: RMSE of exactly zero" in proc.stderr
     assert "max error under 5 cm" not in proc.stderr

@@ -23,7 +23,7 @@ def test_a_vehicle_joining_after_another_flies_on_its_library(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--out", str(out), "--scenario", "hover",
          "--duration", "5", "--adaptation", "none", "--vehicles", "2", "--stagger",
-         "--gcs-port", "0"],
+         "--gcs-port", "0", "--no-figure"],
         capture_output=True, text=True, timeout=220, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout + proc.stderr

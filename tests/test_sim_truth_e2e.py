@@ -27,12 +27,16 @@ from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 pytestmark = pytest.mark.timeout(300)
 
 
-def sim(out: Path, *args: str) -> tuple[dict[str, Any], subprocess.CompletedProcess[str], float]:
-    """One `sim` run into ``out``: (report, process, wall seconds)."""
+def sim(
+    out: Path, *args: str, figure: bool = False
+) -> tuple[dict[str, Any], subprocess.CompletedProcess[str], float]:
+    """One `sim` run into ``out``: (report, process, wall seconds); flight.png only if
+    ``figure``."""
     t0 = time.monotonic()
+    no_figure = () if figure else ("--no-figure",)
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard", "sim", "--gcs-port", "0", "--out", str(out),
-         *args],
+         *no_figure, *args],
         capture_output=True, text=True, timeout=280, check=False,
     )  # fmt: skip
     wall_s = time.monotonic() - t0
@@ -65,6 +69,10 @@ def test_a_corrupt_library_moved_aside_fails_the_flight_and_its_error_is_reporte
     assert "moved aside to" in v["warning_examples"][errors[0]]
     assert errors[0] in proc.stdout  # printed under the table, not only in report.json
     assert any("moved aside" in f for f in report["failures"])
+    # --no-figure (this module's flights but one): no flight.png, and stdout names none
+    assert not (out / "flight.png").exists()
+    assert "report: " in proc.stdout
+    assert "figure:" not in proc.stdout
 
 
 def hold_port(port: int) -> socket.socket | None:
@@ -167,7 +175,9 @@ def test_a_wind_beyond_the_vehicles_authority_ends_the_flight_outside_its_envelo
 def test_a_vehicle_blown_away_before_it_is_airborne_is_stopped_in_bounded_time(tmp_path):
     # 300 m/s: the service never trusts the state (too fast to be plausible) and waited for it
     # while the vehicle drifted 89 km of vehicle time; sim never ended
-    report, proc, wall_s = sim(tmp_path / "out", "--duration", "4", "--wind", "300,45")
+    report, proc, wall_s = sim(
+        tmp_path / "out", "--duration", "4", "--wind", "300,45", figure=True
+    )
     assert proc.returncode == 1, proc.stdout + proc.stderr
     v = report["vehicles"][0]
     assert not v["flew_offboard"]

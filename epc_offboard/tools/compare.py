@@ -10,7 +10,8 @@ and a fresh estimator, so the comparison is reproducible. Written to ``--out``:
 * ``compare.png``: in the style of the thesis's figures 3.4-3.7: every method's path against
   the reference, the tracking error over time, the speed against its bound and the tilt
   against its limit;
-* one directory per method with that flight's report.json, flight.png and logs.
+* one directory per method with that flight's report.json, flight.png (not with
+  ``--no-figure``) and logs.
 
 Exit code 0 when every flight completed and no declared target failed; 1 when a flight failed
 (:func:`epc_offboard.tools.sim.report.flight_failures`) or a target did (both named on

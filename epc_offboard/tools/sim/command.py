@@ -61,5 +61,6 @@ def run_one(options: SimOptions) -> int:
     write_json(report, out_dir / "report.json", options.json_path)
     print_report(report)
     print_targets(report["targets"])
-    print(f"report: {out_dir / 'report.json'}  figure: {out_dir / 'flight.png'}")
+    figure = f"  figure: {out_dir / 'flight.png'}" if options.figure else ""
+    print(f"report: {out_dir / 'report.json'}{figure}")
     return exit_code(failures, report["targets"])

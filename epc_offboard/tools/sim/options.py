@@ -47,6 +47,7 @@ class SimOptions:
     out_dir: Path = Path("out")
     json_path: Path | None = None  # also write the report JSON here
     compare: tuple[str, ...] | None = None  # `--compare`: the methods; None: one flight
+    figure: bool = True  # draw flight.png (`--no-figure`: not)
 
     def __post_init__(self) -> None:
         _check_vehicles(self.vehicles)
@@ -106,6 +107,7 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
         out_dir=Path(args.out),
         json_path=Path(args.json) if args.json else None,
         compare=compare,
+        figure=not args.no_figure,
     )
 
 

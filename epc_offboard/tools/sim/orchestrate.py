@@ -504,7 +504,7 @@ def fly_and_report(
     options: SimOptions, out_dir: Path, title: str
 ) -> tuple[dict[str, Any], list[VehicleResult], FloatArray]:
     """Fly, analyse on ground truth, write ``report.json`` and ``flight.png`` (``title``: the
-    scenario's name as the figure names it) to ``out_dir``;
+    scenario's name as the figure names it; none with ``options.figure`` false) to ``out_dir``;
     returns (report, results, velocity bounds m/s (3,) NED). A flight that failed is reported
     all the same (its ``stopped``, the report's ``failures``); RuntimeError only when a
     vehicle left nothing to report (no ground truth)."""
@@ -533,6 +533,7 @@ def fly_and_report(
     write_json(report, out_dir / "report.json")
     title = flight_title(title, options.method, options.autopilot, options.wind,
                          options.vehicles)  # fmt: skip
-    write_figure(results, bounds, out_dir / "flight.png", title,
-                 settle_s=options.scenario.settle_s)  # fmt: skip
+    if options.figure:
+        write_figure(results, bounds, out_dir / "flight.png", title,
+                     settle_s=options.scenario.settle_s)  # fmt: skip
     return report, results, bounds
