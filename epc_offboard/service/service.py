@@ -115,8 +115,10 @@ class Service:
         self.counters: Counter[str] = Counter()
         log_gate = LogGate()  # wire- and loop-driven log lines, rate-limited
         self.gc_monitor = realtime.GcMonitor()
+        self.step_monitor = realtime.StepMonitor()  # installed in real time (run)
         self.loops = Loops(self.clock, self.counters, log_gate,
-                           gc_pause_s=lambda: self.gc_monitor.pause_total_s)  # fmt: skip
+                           gc_pause_s=lambda: self.gc_monitor.pause_total_s,
+                           steps=self.step_monitor)  # fmt: skip
         self.logs: LogWriter | None = None
         if cfg.log.flight_log_path or cfg.log.tlog_path:
             self.logs = LogWriter(cfg.log.flight_log_path, cfg.log.tlog_path, cfg.log,
@@ -331,6 +333,8 @@ class Service:
         realtime.prepare(loops_cfg.realtime_priority, self.gc_monitor, self.counters,
                          loops_cfg.cpu_affinity)  # fmt: skip
         TIMELINE.mark("gc_frozen")
+        if not self.clock.vehicle_time:  # a stall's longest step named (real time only)
+            self.step_monitor.install()
         await self.link.open()
         TIMELINE.mark("link_open")
         loop = asyncio.get_running_loop()
@@ -409,6 +413,7 @@ class Service:
         if self.logs is not None:  # after the link: its last frames are in the tlog
             self.logs.close()
         self.gc_monitor.uninstall()
+        self.step_monitor.uninstall()
         log.info("stopped: %s", dict(self.counters))
         if self.exit_grace_s is not None:
             bounded_exit(self.exit_grace_s)
@@ -438,6 +443,7 @@ class Service:
             "gc": self.gc_monitor.stats(),
             # real time: ticks later than the loops' bound, and what their thread did meanwhile
             "stalls": [stall.as_dict() for stall in self.loops.stalls],
+            "event_loop_steps": self.step_monitor.stats(),  # ... and the long steps by name
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
             "state": {**self.tracker.counters, **self.tracker.clock.counters},
