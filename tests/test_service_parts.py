@@ -503,3 +503,35 @@ def test_a_fleet_turn_waits_for_room_between_the_loops_ticks():
     with pytest.raises(Waited):
         asyncio.run(fleet.run())
     assert fleet.counters["helper_restarts"] == 0  # no turn's work ran before it
+
+
+def test_sighup_reads_the_config_off_the_loops_thread_and_applies_it_on_it(tmp_path, monkeypatch):
+    """Issue 21: SIGHUP's read and validation of the configuration held the loops' thread
+    14-19 ms (bench --attack: a 24-27 ms position-loop gap, named by the event loop's steps
+    timed). It is read in a thread of its own; what it changes is applied on the loops'
+    thread, as before."""
+    import threading
+
+    from epc_offboard.service import service as service_module
+    from epc_offboard.service.service import Service
+
+    cfg = dataclasses.replace(CFG, log=dataclasses.replace(CFG.log, flight_log_path="",
+                                                          tlog_path=""))  # fmt: skip
+    service = Service(cfg, str(tmp_path / "service.toml"))
+    read_in: list[threading.Thread] = []
+    new = dataclasses.replace(cfg, mission=dataclasses.replace(cfg.mission, duration_s=123.0))
+
+    def load(path: str) -> object:
+        read_in.append(threading.current_thread())
+        return new
+
+    monkeypatch.setattr(service_module, "load_service_config", load)
+
+    async def main() -> None:
+        service._reload()
+        await asyncio.gather(*service._reloads)
+
+    asyncio.run(main())
+    assert read_in
+    assert read_in[0] is not threading.main_thread()
+    assert service.cfg.mission.duration_s == 123.0

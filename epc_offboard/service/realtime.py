@@ -212,6 +212,34 @@ class StepMonitor:
         self.longest_s = 0.0
         self.longest = ""
         self._original: Any = None
+        self._current_t0 = 0.0
+        # a diagnosis, not for flight: EPC_STEP_SAMPLE_MS=N samples the loops' thread's Python
+        # stack (a thread waking every ms) in each step running longer than N ms
+        self.samples: deque[tuple[float, float, str]] = deque(maxlen=_LONG_STEPS_KEPT)
+        sample_ms = float(os.environ.get("EPC_STEP_SAMPLE_MS", "0"))
+        if sample_ms > 0:
+            threading.Thread(target=self._sampler, args=(sample_ms * 1e-3,), name="step-sampler",
+                             daemon=True).start()  # fmt: skip
+
+    def _sampler(self, after_s: float) -> None:
+        """Every ms: the loops' thread's stack, in a step longer than ``after_s`` (the latest
+        sample of each step kept)."""
+        import traceback
+
+        main = threading.main_thread().ident
+        while True:
+            time.sleep(0.001)
+            t0 = self._current_t0
+            if not t0 or self._original is None or time.perf_counter() - t0 <= after_s:
+                continue
+            frame = sys._current_frames().get(main or 0)
+            if frame is None or self._current_t0 != t0:
+                continue
+            text = " < ".join(f"{os.path.basename(f.filename)}:{f.lineno} {f.name}"
+                              for f in reversed(traceback.extract_stack(frame)[-14:]))  # fmt: skip
+            if self.samples and self.samples[-1][0] == t0:
+                self.samples.pop()
+            self.samples.append((t0, time.perf_counter() - t0, text))
 
     def install(self) -> None:
         """Time every step from now on (process-wide: the service's one event loop)."""
@@ -222,9 +250,10 @@ class StepMonitor:
         clock = time.perf_counter
 
         def timed_run(h: asyncio.Handle) -> None:
-            t0 = clock()
+            t0 = self._current_t0 = clock()
             original(h)
             dt = clock() - t0
+            self._current_t0 = 0.0
             self.total_s += dt
             self.count += 1
             if dt > _LONG_STEP_S:
@@ -272,6 +301,8 @@ class StepMonitor:
             "long_steps": self.long_seen,
             "longest_ms": round(self.longest_s * 1e3, 3),
             "longest": self.longest,
+            "samples": [{"t0": round(a, 4), "ms": round(b * 1e3, 2), "stack": c}
+                        for a, b, c in tuple(self.samples)],
             "long_by_name": [{"name": k, "count": int(c), "longest_ms": round(m * 1e3, 3)}
                              for k, (c, m) in top],
         }  # fmt: skip
