@@ -377,7 +377,7 @@ class FleetSharing:
                 self._read += len(records)
                 waiting = self._to_offer
                 self._to_offer = np.concatenate((waiting, records)) if len(waiting) else records
-                offered = self.offer_slice()
+                offered = self._offer(self._next_slice())  # the rest: offer_slice, in run
             helper.outbox.flush()
             self._hand_off()
         except ChannelClosedError:
@@ -412,9 +412,13 @@ class FleetSharing:
         waits for ``Loops.room`` before each slice); returns how many were new. A turn's
         ten offered at once took the loops' thread 2-6 ms (bench --attack's replay, the
         event loop's steps timed: the longest step of most turns, issue 21)."""
-        head = self._to_offer[:_OFFERS_PER_SLICE]  # (none: counted all the same, as before)
+        return self._offer(self._next_slice())
+
+    def _next_slice(self) -> Records:
+        """The next few candidates waiting (none: offered all the same, counted as before)."""
+        head = self._to_offer[:_OFFERS_PER_SLICE]
         self._to_offer = self._to_offer[_OFFERS_PER_SLICE:]
-        return self._offer(head)
+        return head
 
     def _offer(self, records: Records) -> int:
         """Candidates read from the helper to their libraries (the fleet bench stamps their
