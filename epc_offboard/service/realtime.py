@@ -105,10 +105,13 @@
   ``sendto``): no piece of code, the virtual CPU running slow (the host's, invisible as
   steal); the library saver's slices, 5-11 ms (the fleet state's texts, 8-10 ms; an LWPR
   model's npz); the fleet turn's candidates, ten offered at once, 2-6 ms (now three a
-  slice, each after ``Loops.room``). Of the late attitude ticks lined up with them, about a
-  third had steal in them, a third followed a long position step, the rest the saver's
-  slices: a 5 ms period is late whenever one step of the thread's exceeds ~3 ms
-  (``ROOM_S`` before a tick), which a cooperative loop on one thread cannot prevent.
+  slice, each after ``Loops.room``). The late attitude sends of those four runs' windows
+  (129) lined up with the steal and the stalls: 67 had steal in them; of the 62 without,
+  18 came after a long position-loop step, 15 after a saver's slice, 3 after the reload,
+  25 had no stall left to name them (the stats keep the latest 64). A 5 ms period is late
+  whenever one step of the thread's runs past the tick it is due (``ROOM_S`` before), which
+  a cooperative loop on one thread cannot prevent: the position tick's 0.3-0.5 ms cannot,
+  its rare 5-24 ms (above) can.
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
