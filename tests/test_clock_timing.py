@@ -11,6 +11,7 @@ import pytest
 from epc_offboard.common.logsetup import LogGate
 from epc_offboard.service.clock import VehicleClock, WallClock
 from epc_offboard.service.loop import Loops, Stop, Tick
+from epc_offboard.service.realtime import StepMonitor
 from epc_offboard.service.timing import LoopReport, LoopTiming
 
 
@@ -213,12 +214,12 @@ def test_lockstep_ticks_depend_on_the_vehicle_data_not_on_when_datagrams_are_rea
     assert len(set(starts)) == len(starts)
 
 
-async def _stalled_loop() -> tuple[Loops, Counter[str]]:
+async def _stalled_loop(steps: StepMonitor | None = None) -> tuple[Loops, Counter[str]]:
     """A 100 Hz real-time loop whose event loop is held 40 ms between two ticks, once by
     work on the loops' thread (a busy callback), once by a wait (a blocking sleep)."""
     counters: Counter[str] = Counter()
     pause = {"s": 0.0}
-    loops = Loops(WallClock(), counters, LogGate(), gc_pause_s=lambda: pause["s"])
+    loops = Loops(WallClock(), counters, LogGate(), gc_pause_s=lambda: pause["s"], steps=steps)
     ticks = 0
 
     async def tick(t: Tick) -> bool:
@@ -264,6 +265,53 @@ def test_a_stall_between_ticks_is_counted_with_what_the_loops_thread_did():
     assert set(long[0].as_dict()) >= {"loop", "interval_ms", "thread_cpu_ms", "gc_ms",
                                       "runqueue_ms"}  # fmt: skip
     assert all(0.0 <= s.runqueue_ms <= s.interval_ms for s in long)  # Linux: the kernel's
+
+
+def test_a_stall_names_the_event_loops_longest_step_in_it():
+    """Issue 21: a stretch of work on the loops' thread is named in its stall: the event
+    loop's longest step in the interval (what ran, how long) and the steps' count and time.
+    Without the steps timed, a stall names nothing."""
+    steps = StepMonitor()
+    original = asyncio.events.Handle._run
+    steps.install()
+    try:
+        loops, _ = asyncio.run(_stalled_loop(steps))
+    finally:
+        steps.uninstall()
+    busy = [s for s in loops.stalls if s.gc_ms == pytest.approx(7.0)]
+    assert busy
+    assert busy[0].longest_step == "callback _spin"
+    assert busy[0].longest_step_ms >= 35.0  # its 40 ms of CPU, in wall time
+    assert busy[0].steps >= 2
+    assert busy[0].steps_ms >= busy[0].longest_step_ms
+    # a blocking sleep is a step too: the stall it made names it
+    assert any(s.longest_step == "callback sleep" and s.longest_step_ms >= 35.0
+               for s in loops.stalls)  # fmt: skip
+    assert steps.stats()["longest_ms"] >= 35.0
+    assert asyncio.events.Handle._run is original  # uninstalled: the class's own again
+    untimed, _ = asyncio.run(_stalled_loop())
+    assert all(s.longest_step == "" and s.steps == 0 for s in untimed.stalls)
+
+
+def test_a_long_task_step_is_named_by_its_task_coroutine_and_await():
+    """A task's step is named by the task, its coroutine and the line it awaits at next."""
+    steps = StepMonitor()
+
+    async def saver() -> None:
+        _spin(0.003)
+        await asyncio.sleep(0)
+
+    async def main() -> None:
+        await asyncio.create_task(saver(), name="library-saver")
+
+    steps.install()
+    try:
+        asyncio.run(main())
+    finally:
+        steps.uninstall()
+    names = [n["name"] for n in steps.stats()["long_by_name"]]
+    assert any(n.startswith("task library-saver ") and "saver" in n and "test_clock_timing.py:"
+               in n for n in names), names  # fmt: skip
 
 
 def test_work_beside_the_loops_starts_only_with_room_before_the_next_tick():

@@ -503,3 +503,69 @@ def test_a_fleet_turn_waits_for_room_between_the_loops_ticks():
     with pytest.raises(Waited):
         asyncio.run(fleet.run())
     assert fleet.counters["helper_restarts"] == 0  # no turn's work ran before it
+
+
+def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(monkeypatch):
+    """A turn's candidates (ten at 200 a second) offered at once took the loops' thread 2-6
+    ms, the longest step of most turns beside bench --attack's replay (issue 21, the event
+    loop's steps timed). They are offered a few at a time, each slice after ``Loops.room``."""
+    from epc_offboard.fleet import sharing as sharing_module
+    from epc_offboard.fleet.sharing import FleetSharing
+
+    class Done(Exception):  # noqa: N818 - the test's end
+        pass
+
+    events: list[object] = []
+
+    async def room() -> None:
+        events.append("room")
+        if events.count("room") > 6:
+            raise Done
+
+    fleet = FleetSharing(sharing_config("a", free_port(), [], enabled=False), [],
+                         share_library=False, reference=True, room=room)  # fmt: skip
+    monkeypatch.setattr(fleet, "poll", lambda now_s: 0)  # no helper: the turn's candidates
+    fleet._to_offer = np.zeros(10, dtype=fleet.candidate_dtype)  # are these, read before
+    def offer(records: np.ndarray) -> int:
+        events.append(len(records))
+        return 0
+
+    monkeypatch.setattr(fleet, "_offer", offer)
+    with pytest.raises(Done):
+        asyncio.run(fleet.run())
+    per = sharing_module._OFFERS_PER_SLICE
+    sizes = [e for e in events if isinstance(e, int)]
+    assert sizes == [per] * (10 // per) + ([10 % per] if 10 % per else [])
+    assert all(events[i - 1] == "room" for i, e in enumerate(events) if isinstance(e, int))
+
+
+def test_sighup_reads_the_config_off_the_loops_thread_and_applies_it_on_it(tmp_path, monkeypatch):
+    """Issue 21: SIGHUP's read and validation of the configuration held the loops' thread
+    14-19 ms (bench --attack: a 24-27 ms position-loop gap, named by the event loop's steps
+    timed). It is read in a thread of its own; what it changes is applied on the loops'
+    thread, as before."""
+    import threading
+
+    from epc_offboard.service import service as service_module
+    from epc_offboard.service.service import Service
+
+    cfg = dataclasses.replace(CFG, log=dataclasses.replace(CFG.log, flight_log_path="",
+                                                          tlog_path=""))  # fmt: skip
+    service = Service(cfg, str(tmp_path / "service.toml"))
+    read_in: list[threading.Thread] = []
+    new = dataclasses.replace(cfg, mission=dataclasses.replace(cfg.mission, duration_s=123.0))
+
+    def load(path: str) -> object:
+        read_in.append(threading.current_thread())
+        return new
+
+    monkeypatch.setattr(service_module, "load_service_config", load)
+
+    async def main() -> None:
+        service._reload()
+        await asyncio.gather(*service._reloads)
+
+    asyncio.run(main())
+    assert read_in
+    assert read_in[0] is not threading.main_thread()
+    assert service.cfg.mission.duration_s == 123.0

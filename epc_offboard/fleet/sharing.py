@@ -80,6 +80,7 @@ __all__ = ["FleetSharing", "LiveReference", "SharingConfig", "open_or_fly_alone"
 
 log = logging.getLogger(__name__)
 
+_OFFERS_PER_SLICE = 3  # candidates offered in one stretch of the loops' thread
 _TURN_S = 0.05  # the library-sharing task's period: candidates, references, the helper
 _MAX_OUTBOX_BYTES = 4 << 20  # frames to the helper waiting in this process, at most
 _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is restarted
@@ -232,6 +233,8 @@ class FleetSharing:
         self._reference: LiveReference | None = None
         self._backlog = PublishBacklog(cfg.publish_backlog_entries)
         self._read = 0  # candidate records read from the running helper
+        # ... read this turn, not offered yet (offer_slice)
+        self._to_offer: Records = np.zeros(0, dtype=self.candidate_dtype)
         self._marks: list[list[Any]] = []  # [signature, peer, epoch, number]: fleet_state's
         # per problem: each received controller's JSON text by the entry's id (fleet_state)
         self._received_text: dict[int, dict[int, tuple[LibraryEntry, str]]] = {}
@@ -338,6 +341,9 @@ class FleetSharing:
             await self._room()
             now = time.monotonic()
             self.poll(now)
+            while len(self._to_offer):  # the rest of the turn's candidates, a slice at a time
+                await self._room()
+                self.offer_slice()
             if now >= next_publish:
                 next_publish = now + period
                 await self._room()  # each part of its own: together up to 7 ms
@@ -369,7 +375,9 @@ class FleetSharing:
                 records = helper.candidates.read(n)
                 self._budget -= len(records)
                 self._read += len(records)
-                offered = self._offer(records)
+                waiting = self._to_offer
+                self._to_offer = np.concatenate((waiting, records)) if len(waiting) else records
+                offered = self._offer(self._next_slice())  # the rest: offer_slice, in run
             helper.outbox.flush()
             self._hand_off()
         except ChannelClosedError:
@@ -398,6 +406,19 @@ class FleetSharing:
         self._stop_helper(kill=True)
         self._reference = None
         self.counters["publish_requeued"] += self._backlog.requeue()
+
+    def offer_slice(self) -> int:
+        """Offer at most ``_OFFERS_PER_SLICE`` of the candidates read and waiting (``run``
+        waits for ``Loops.room`` before each slice); returns how many were new. A turn's
+        ten offered at once took the loops' thread 2-6 ms (bench --attack's replay, the
+        event loop's steps timed: the longest step of most turns, issue 21)."""
+        return self._offer(self._next_slice())
+
+    def _next_slice(self) -> Records:
+        """The next few candidates waiting (none: offered all the same, counted as before)."""
+        head = self._to_offer[:_OFFERS_PER_SLICE]
+        self._to_offer = self._to_offer[_OFFERS_PER_SLICE:]
+        return head
 
     def _offer(self, records: Records) -> int:
         """Candidates read from the helper to their libraries (the fleet bench stamps their

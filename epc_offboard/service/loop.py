@@ -18,10 +18,11 @@ import time
 from collections import Counter, deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import NoReturn
+from typing import NamedTuple, NoReturn
 
 from epc_offboard.common.logsetup import LogGate
 from epc_offboard.service.clock import Clock
+from epc_offboard.service.realtime import StepMark, StepMonitor
 from epc_offboard.service.timing import LoopTiming
 
 log = logging.getLogger("epc_offboard.service")
@@ -61,6 +62,11 @@ class Stall:
     major_faults: int
     voluntary_switches: int  # the thread blocked (the interpreter lock, a syscall)
     involuntary_switches: int  # ... was preempted
+    # the event loop's steps in the interval (``realtime.StepMonitor``; 0 and "" untimed):
+    steps: int  # how many ran (callbacks, tasks' steps)
+    steps_ms: float  # ... their time, the ticks' own included
+    longest_step_ms: float  # the longest of them (over 1 ms; else 0)
+    longest_step: str  # ... what it ran: a task, its coroutine and its await; a callback
 
     def as_dict(self) -> dict[str, float | int | str]:
         return {k: round(v, 3) if isinstance(v, float) else v for k, v in vars(self).items()}
@@ -71,6 +77,17 @@ STALLS_KEPT = 64  # the latest stalls, in the stats
 # Work beside the loops on their thread (``Loops.room``) starts only this long before the
 # next tick is due: a slice of it that fits runs between two ticks, not across one.
 ROOM_S = 0.002
+
+
+class _Mark(NamedTuple):
+    """What a stall's interval is measured from, taken as a tick starts."""
+
+    start_s: float  # loop clock
+    cpu_s: float  # the loops' thread's CPU time
+    gc_s: float  # the collections' total pause
+    rusage: resource.struct_rusage  # the thread's faults and switches
+    runqueue_s: float  # its run-queue wait
+    steps: StepMark  # the event loop's steps
 
 
 class _RunqueueClock:
@@ -103,14 +120,17 @@ class Loops:
     runs the periodic loops. Counts ``clock_wait_timeouts`` and, per loop, ticks skipped,
     loop errors and (real time) stalls into ``counters``; the latest stalls are ``stalls``.
     ``gc_pause_s``: the garbage collector's total pause so far (``GcMonitor``), for a
-    stall's share of it."""
+    stall's share of it; ``steps``: the event loop's steps timed (installed by the caller),
+    for a stall's longest step."""
 
     def __init__(self, clock: Clock, counters: Counter[str], log_gate: LogGate,
-                 gc_pause_s: Callable[[], float] = lambda: 0.0) -> None:  # fmt: skip
+                 gc_pause_s: Callable[[], float] = lambda: 0.0,
+                 steps: StepMonitor | None = None) -> None:  # fmt: skip
         self.clock = clock
         self.counters = counters
         self._log_gate = log_gate
         self._gc_pause_s = gc_pause_s
+        self.steps = steps if steps is not None else StepMonitor()
         self.stopping = asyncio.Event()
         self.stalls: deque[Stall] = deque(maxlen=STALLS_KEPT)
         self._next_due: dict[str, float] = {}  # per loop: when its next tick is due
@@ -172,7 +192,7 @@ class Loops:
         skips counted (``{name}_ticks_skipped``); before that the loops idle."""
         period = timing.period_s
         t_next = self.clock.now_s()
-        before: tuple[float, float, float, resource.struct_rusage, float] | None = None
+        before: _Mark | None = None
         with contextlib.closing(_RunqueueClock()) as runqueue:
             stall_s = min(STALL_S, 2.0 * period)  # the attitude loop's: a deadline miss
             while True:
@@ -183,8 +203,9 @@ class Loops:
                 use0 = resource.getrusage(resource.RUSAGE_THREAD)
                 cpu0 = time.thread_time()
                 # a stall is real time's (in lockstep the vehicle's clock waits for the tick)
-                now = None if self.clock.vehicle_time else (
-                    start, cpu0, self._gc_pause_s(), use0, runqueue.read_s())
+                now = None if self.clock.vehicle_time else _Mark(
+                    start, cpu0, self._gc_pause_s(), use0, runqueue.read_s(),
+                    self.steps.mark())
                 if before is not None and now is not None and start - before[0] > stall_s:
                     self._stall(name, start, before, now)
                 wall0 = time.perf_counter()
@@ -211,22 +232,18 @@ class Loops:
                 if self._ticked is not None and not self._ticked.done():
                     self._ticked.set_result(None)  # work waiting for room() may check now
 
-    def _stall(
-        self,
-        name: str,
-        t_s: float,
-        a: tuple[float, float, float, resource.struct_rusage, float],
-        b: tuple[float, float, float, resource.struct_rusage, float],
-    ) -> None:
-        """Counted (``{name}_stalls``) and kept: the interval from tick ``a`` to ``b``
-        (start, thread CPU, collections' total, the thread's rusage, its run-queue wait)."""
-        ua, ub = a[3], b[3]
+    def _stall(self, name: str, t_s: float, a: _Mark, b: _Mark) -> None:
+        """Counted (``{name}_stalls``) and kept: the interval from tick ``a`` to ``b``."""
+        ua, ub = a.rusage, b.rusage
         self.counters[f"{name}_stalls"] += 1
+        longest_s, longest = self.steps.longest_since(a.steps)
         self.stalls.append(Stall(
-            name, t_s, (b[0] - a[0]) * 1e3, (b[1] - a[1]) * 1e3, (b[4] - a[4]) * 1e3,
-            (b[2] - a[2]) * 1e3,
+            name, t_s, (b.start_s - a.start_s) * 1e3, (b.cpu_s - a.cpu_s) * 1e3,
+            (b.runqueue_s - a.runqueue_s) * 1e3, (b.gc_s - a.gc_s) * 1e3,
             ub.ru_minflt - ua.ru_minflt, ub.ru_majflt - ua.ru_majflt,
             ub.ru_nvcsw - ua.ru_nvcsw, ub.ru_nivcsw - ua.ru_nivcsw,
+            b.steps.count - a.steps.count, (b.steps.total_s - a.steps.total_s) * 1e3,
+            longest_s * 1e3, longest,
         ))  # fmt: skip
 
     def _next_tick(

@@ -90,6 +90,28 @@
   (one a run in two of the three runs after, 31 ms and 106 ms: the thread on its CPU
   31 ms and 75-80 ms of them, no switch at all; main's runs had their largest gaps at
   19-28 ms), the next thing to name with the event loop's steps timed.
+* **The event loop's steps, named** (:class:`StepMonitor`, in real time always: a stall's
+  ``longest_step``, the stats' ``event_loop_steps``; ``EPC_STEP_SAMPLE_MS`` samples the
+  loops' thread's stack in steps longer than that, a diagnosis only). Four ``bench --attack
+  --hogs 2`` runs (load 12-24, steal 1.3-12.6 ms/s): no compile in flight (19 signatures
+  after the warm-up, 19 at exit), no collection over 5.2 ms. Named, longest first: SIGHUP's
+  config read, 14-19 ms of the loops' thread (a 24-27 ms position-loop gap; now read in a
+  thread started at start-up: one started by the SIGHUP began at normal priority and the
+  loops waited 46 ms for it, load 20); the position loop's own step, 5-24 ms a few times a
+  run: the 23.9 ms one was a library hit whose tick computed 23.4 ms with the thread's CPU
+  clock running the whole interval (no switch, fault, collection or steal counted), and the
+  stack samples in such steps land inside compiled calls that take 50-110 us warm (LWPR's
+  update 27 ms, its predict 15.7 ms) or on plain Python lines (a quaternion's rotation, a
+  ``sendto``): no piece of code, the virtual CPU running slow (the host's, invisible as
+  steal); the library saver's slices, 5-11 ms (the fleet state's texts, 8-10 ms; an LWPR
+  model's npz); the fleet turn's candidates, ten offered at once, 2-6 ms (now three a
+  slice, each after ``Loops.room``). The late attitude sends of those four runs' windows
+  (129) lined up with the steal and the stalls: 67 had steal in them; of the 62 without,
+  18 came after a long position-loop step, 15 after a saver's slice, 3 after the reload,
+  25 had no stall left to name them (the stats keep the latest 64). A 5 ms period is late
+  whenever one step of the thread's runs past the tick it is due (``ROOM_S`` before), which
+  a cooperative loop on one thread cannot prevent: the position tick's 0.3-0.5 ms cannot,
+  its rare 5-24 ms (above) can.
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
@@ -97,6 +119,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import logging
 import os
@@ -176,6 +199,168 @@ class GcMonitor:
                 for t, g, p, lt in self.events
             ],
         }
+
+
+_LONG_STEP_S = 0.001  # an event-loop step longer than this is named (and kept)
+_LONG_STEPS_KEPT = 256  # the latest long steps, for a stall to be traced to one
+_STEP_NAMES_KEPT = 64  # distinct long steps' names counted in the stats
+
+
+@dataclass(frozen=True)
+class StepMark:
+    """The event loop's steps so far (:class:`StepMonitor`): their time, their count, the
+    long ones'; two marks bound an interval (a stall's)."""
+
+    total_s: float = 0.0
+    count: int = 0
+    long_seen: int = 0
+
+
+class StepMonitor:
+    """Times every step of the asyncio event loop (a callback, or one step of a task: its
+    code from one await to the next) on the loops' thread, so a stretch of work between two
+    ticks is named: a step longer than ``_LONG_STEP_S`` is kept with what ran (the task's
+    name, its coroutine and the line it awaits at after the step; a callback's qualified
+    name). ``install`` wraps ``asyncio.Handle._run``, which runs every step: two clock reads
+    and three additions a step (~0.3 us; a few hundred steps a second in flight), a name only
+    for a long one. Real time only: in lockstep nothing is timed."""
+
+    def __init__(self) -> None:
+        self.total_s = 0.0
+        self.count = 0
+        self.long_seen = 0  # steps longer than _LONG_STEP_S so far
+        self.long: deque[tuple[int, float, float, str]] = deque(maxlen=_LONG_STEPS_KEPT)
+        self.names: dict[str, list[float]] = {}  # name -> [count, longest s]
+        self.longest_s = 0.0
+        self.longest = ""
+        self._original: Any = None
+        self._current_t0 = 0.0
+        # a diagnosis, not for flight: EPC_STEP_SAMPLE_MS=N samples the loops' thread's Python
+        # stack (a thread waking every ms) in each step running longer than N ms
+        self.samples: deque[tuple[float, float, str]] = deque(maxlen=_LONG_STEPS_KEPT)
+        sample_ms = float(os.environ.get("EPC_STEP_SAMPLE_MS", "0"))
+        if sample_ms > 0:
+            threading.Thread(target=self._sampler, args=(sample_ms * 1e-3,), name="step-sampler",
+                             daemon=True).start()  # fmt: skip
+
+    def _sampler(self, after_s: float) -> None:
+        """Every ms: the loops' thread's stack, in a step longer than ``after_s`` (the latest
+        sample of each step kept)."""
+        import traceback
+
+        main = threading.main_thread().ident
+        while True:
+            time.sleep(0.001)
+            t0 = self._current_t0
+            if not t0 or self._original is None or time.perf_counter() - t0 <= after_s:
+                continue
+            frame = sys._current_frames().get(main or 0)
+            if frame is None or self._current_t0 != t0:
+                continue
+            text = " < ".join(f"{os.path.basename(f.filename)}:{f.lineno} {f.name}"
+                              for f in reversed(traceback.extract_stack(frame)[-14:]))  # fmt: skip
+            if self.samples and self.samples[-1][0] == t0:
+                self.samples.pop()
+            self.samples.append((t0, time.perf_counter() - t0, text))
+
+    def install(self) -> None:
+        """Time every step from now on (process-wide: the service's one event loop)."""
+        if self._original is not None:
+            return
+        handle = asyncio.events.Handle
+        original = self._original = handle._run
+        clock = time.perf_counter
+
+        def timed_run(h: asyncio.Handle) -> None:
+            t0 = self._current_t0 = clock()
+            original(h)
+            dt = clock() - t0
+            self._current_t0 = 0.0
+            self.total_s += dt
+            self.count += 1
+            if dt > _LONG_STEP_S:
+                self._long(h, t0, dt)
+
+        handle._run = timed_run  # type: ignore[method-assign,assignment]
+
+    def uninstall(self) -> None:
+        if self._original is not None:
+            asyncio.events.Handle._run = self._original  # type: ignore[method-assign]
+            self._original = None
+
+    def mark(self) -> StepMark:
+        return StepMark(self.total_s, self.count, self.long_seen)
+
+    def longest_since(self, mark: StepMark) -> tuple[float, str]:
+        """(s, name) of the longest step that ended since ``mark`` ((0, "") if none was long,
+        or the ones since were dropped from the kept)."""
+        best = (0.0, "")
+        for seq, _, dt, name in reversed(self.long):
+            if seq < mark.long_seen:
+                break
+            if dt > best[0]:
+                best = (dt, name)
+        return best
+
+    def _long(self, h: asyncio.Handle, t0: float, dt: float) -> None:
+        name = step_name(h)
+        self.long.append((self.long_seen, t0, dt, name))
+        self.long_seen += 1
+        seen = self.names.get(name)
+        if seen is not None:
+            seen[0] += 1
+            seen[1] = max(seen[1], dt)
+        elif len(self.names) < _STEP_NAMES_KEPT:
+            self.names[name] = [1, dt]
+        if dt > self.longest_s:
+            self.longest_s, self.longest = dt, name
+
+    def stats(self) -> dict[str, Any]:
+        top = sorted(self.names.items(), key=lambda kv: -kv[1][1])
+        return {
+            "steps": self.count,
+            "steps_ms": round(self.total_s * 1e3, 1),
+            "long_steps": self.long_seen,
+            "longest_ms": round(self.longest_s * 1e3, 3),
+            "longest": self.longest,
+            "samples": [{"t0": round(a, 4), "ms": round(b * 1e3, 2), "stack": c}
+                        for a, b, c in tuple(self.samples)],
+            "long_by_name": [{"name": k, "count": int(c), "longest_ms": round(m * 1e3, 3)}
+                             for k, (c, m) in top],
+        }  # fmt: skip
+
+
+def step_name(h: asyncio.Handle) -> str:
+    """What an event-loop step ran: a task's name, its coroutine and where it awaits now (the
+    step just ended: the line after the work), or a callback's qualified name."""
+    callback = getattr(h, "_callback", None)
+    owner = getattr(callback, "__self__", None)
+    if isinstance(owner, asyncio.Task):
+        coro = owner.get_coro()
+        return f"task {owner.get_name()} {getattr(coro, '__qualname__', '?')} at {_awaits_at(coro)}"
+    name = getattr(callback, "__qualname__", None)
+    if name is None:  # a functools.partial, a callable object
+        inner = getattr(callback, "func", callback)
+        name = getattr(inner, "__qualname__", type(inner).__name__)
+    return f"callback {name}"
+
+
+_ASYNCIO_DIR = os.path.dirname(asyncio.__file__)
+
+
+def _awaits_at(coro: Any) -> str:
+    """file:line function of the innermost coroutine ``coro`` awaits in, asyncio's own left
+    out ("done" if none)."""
+    where = "done"
+    for _ in range(32):  # a chain of awaits, innermost last
+        frame = getattr(coro, "cr_frame", None) or getattr(coro, "gi_frame", None)
+        if frame is None:
+            break
+        code = frame.f_code
+        if not code.co_filename.startswith(_ASYNCIO_DIR):
+            where = f"{os.path.basename(code.co_filename)}:{frame.f_lineno} {code.co_name}"
+        coro = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
+    return where
 
 
 def freeze_startup_objects() -> int:

@@ -45,6 +45,7 @@ import signal
 import sys
 import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -115,8 +116,14 @@ class Service:
         self.counters: Counter[str] = Counter()
         log_gate = LogGate()  # wire- and loop-driven log lines, rate-limited
         self.gc_monitor = realtime.GcMonitor()
+        self.step_monitor = realtime.StepMonitor()  # installed in real time (run)
+        self._reloads: set[asyncio.Task[None]] = set()  # SIGHUP's reads under way
+        # ... in a thread started at start-up: one started by the first SIGHUP began at
+        # normal priority, and the loops' thread waited 46 ms (load 20) for it to run
+        self._reload_pool = ThreadPoolExecutor(1, thread_name_prefix="config-reload")
         self.loops = Loops(self.clock, self.counters, log_gate,
-                           gc_pause_s=lambda: self.gc_monitor.pause_total_s)  # fmt: skip
+                           gc_pause_s=lambda: self.gc_monitor.pause_total_s,
+                           steps=self.step_monitor)  # fmt: skip
         self.logs: LogWriter | None = None
         if cfg.log.flight_log_path or cfg.log.tlog_path:
             self.logs = LogWriter(cfg.log.flight_log_path, cfg.log.tlog_path, cfg.log,
@@ -282,10 +289,21 @@ class Service:
         self.loops.stopping.set()
 
     def _reload(self) -> None:
+        """SIGHUP: the configuration read and validated in a thread of its own, applied here
+        on the loops' thread. Read here it held the loops' thread 14-19 ms (bench --attack,
+        the event loop's steps timed: its longest step, a 24-27 ms position-loop gap); in
+        the thread it gives the interpreter lock back every switch interval."""
         if self.config_path is None:
             return
+        task = asyncio.get_running_loop().create_task(self._reload_from(self.config_path),
+                                                      name="config-reload")  # fmt: skip
+        self._reloads.add(task)
+        task.add_done_callback(self._reloads.discard)
+
+    async def _reload_from(self, config_path: str | Path) -> None:
         try:
-            new = load_service_config(self.config_path)
+            new = await asyncio.get_running_loop().run_in_executor(
+                self._reload_pool, load_service_config, config_path)  # fmt: skip
         except ConfigError as exc:
             log.error("SIGHUP: config not reloaded: %s", exc)
             return
@@ -328,9 +346,12 @@ class Service:
         # 1.1-1.9 s on a loaded machine beside a real PX4, and that backlog read as a time
         # jump ("samples on another timeline ... resynchronised") on 7 of 9 starts.
         loops_cfg = self.cfg.loops
+        self._reload_pool.submit(int).result()  # its thread up now: raised with the others
         realtime.prepare(loops_cfg.realtime_priority, self.gc_monitor, self.counters,
                          loops_cfg.cpu_affinity)  # fmt: skip
         TIMELINE.mark("gc_frozen")
+        if not self.clock.vehicle_time:  # a stall's longest step named (real time only)
+            self.step_monitor.install()
         await self.link.open()
         TIMELINE.mark("link_open")
         loop = asyncio.get_running_loop()
@@ -409,6 +430,8 @@ class Service:
         if self.logs is not None:  # after the link: its last frames are in the tlog
             self.logs.close()
         self.gc_monitor.uninstall()
+        self.step_monitor.uninstall()
+        self._reload_pool.shutdown(wait=False)
         log.info("stopped: %s", dict(self.counters))
         if self.exit_grace_s is not None:
             bounded_exit(self.exit_grace_s)
@@ -438,6 +461,7 @@ class Service:
             "gc": self.gc_monitor.stats(),
             # real time: ticks later than the loops' bound, and what their thread did meanwhile
             "stalls": [stall.as_dict() for stall in self.loops.stalls],
+            "event_loop_steps": self.step_monitor.stats(),  # ... and the long steps by name
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
             "state": {**self.tracker.counters, **self.tracker.clock.counters},

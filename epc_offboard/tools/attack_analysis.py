@@ -398,6 +398,12 @@ def stall_summary(report: dict[str, Any]) -> str:
                      f"longest {max(s['interval_ms'] for s in mine):.1f} ms, "
                      f"collections <= {gc_ms:.1f} ms of one)")  # fmt: skip
     text = "stalls (ticks later than 12 ms or two periods): " + "; ".join(parts)
+    named = sorted((s for s in stalls if s.get("longest_step")),
+                   key=lambda s: -s["interval_ms"])[:3]  # fmt: skip
+    if named:
+        text += "\nthe longest stalls' longest event-loop step: " + "; ".join(
+            f"{s['interval_ms']:.1f} ms {s['loop']}: {s['longest_step_ms']:.1f} ms "
+            f"{s['longest_step']}" for s in named)  # fmt: skip
     if gc:
         text += (f"\ngarbage collector in the loops' thread: collections by generation "
                  f"{gc.get('loop_thread_collections')}, longest "
