@@ -126,14 +126,19 @@ def euler_to_quat(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArr
     cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
     cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
     cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
-    return quat_normalize(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ]
-    )
+    w = cr * cp * cy + sr * sp * sy
+    x = sr * cp * cy - cr * sp * sy
+    y = cr * sp * cy + sr * cp * sy
+    z = cr * cp * sy - sr * sp * cy
+    # quat_normalize's bits from the floats: numpy's norm (the square root of the dot
+    # product), then the division and the sign element by element (three numpy calls, not
+    # six: the position tick's attitude target, issue 21)
+    q = np.array([w, x, y, z])
+    n = math.sqrt(q.dot(q))
+    if not math.isfinite(n) or n < 1e-12:
+        raise ValueError(f"cannot normalise quaternion {q!r}")
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([-w, -x, -y, -z] if w < 0.0 else [w, x, y, z])
 
 
 def quat_to_euler(q: npt.ArrayLike) -> tuple[float, float, float]:

@@ -293,6 +293,40 @@ def _compile_plan() -> Callable[..., None] | None:
 
 
 disturbance_plan = _compile_plan()
+_plan = cast(Callable[..., None], disturbance_plan)  # (called by filtered_plan where compiled)
+
+
+def _filtered_plan_jit(raw: FloatArray, refs: FloatArray, d_hat: FloatArray, state: FloatArray,
+                       consts: FloatArray, u_p: FloatArray, refs_out: FloatArray) -> None:
+    """:func:`disturbance_plan` from the LWPR estimator's raw predictions ``raw`` (N + 2, 3)
+    at the tick's query points (the velocity now, the variation's origin, the reference's
+    velocities), its low-pass filter's ``state`` (3,) stepped here: ``estimate_along``
+    (``filter.step(raw[0])``, ``raw - raw[0]``) and the plan in one call, element by
+    element in numpy's order (the same bits; issue 21: those numpy calls were a cold tick's
+    cache lines). ``consts`` (9,): the lag's alpha (3), 1 - alpha (3), the filter's gain,
+    d_max and the prediction step h; ``d_hat`` and the plan's outputs as
+    :func:`disturbance_plan` writes them. Seven arrays: a compiled call unboxes each (a few
+    us apiece with the caches cold; packing four into a typed list cost more than it
+    saved)."""
+    gain = consts[6]
+    for i in range(state.shape[0]):  # LowPassFilter.step: state += gain * (u - state)
+        state[i] = state[i] + gain * (raw[0, i] - state[i])
+    d_along = np.empty(raw.shape)
+    for k in range(raw.shape[0]):
+        for i in range(raw.shape[1]):
+            d_along[k, i] = raw[k, i] - raw[0, i]
+    _plan(state, d_along, consts[7], refs, consts[0:3], consts[3:6], consts[8], u_p, refs_out,
+          d_hat)  # fmt: skip
+
+
+def _compile_filtered_plan() -> Callable[..., None] | None:
+    """The compiled filtered plan (None on the numpy twins: the caller's numpy code)."""
+    if _NUMBA is None:
+        return None
+    return jit.njit_cached(cast(Callable[..., None], _filtered_plan_jit))  # (the GIL kept)
+
+
+filtered_plan = _compile_filtered_plan()
 
 
 # -- the position tick's tilt limit -------------------------------------------------------------
@@ -392,3 +426,4 @@ def _compile_theta() -> Callable[..., bool] | None:
 
 
 stack_theta = _compile_theta()
+

@@ -34,6 +34,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import operator
 import os
 import tempfile
 import time
@@ -1061,6 +1062,11 @@ class LWPR:
         self._views_n = -1
 
 
+# each model's fields in use (its ``_n``), read in C: a comprehension is a Python-level call
+# on the position tick's path (issue 21)
+_FIELDS_IN_USE = operator.attrgetter("_n")
+
+
 class ModelGroup:
     """Several compiled models predicted in one compiled call: model ``g`` reads the columns
     ``ins[g]`` of the points and writes its outputs into the columns ``outs[g]`` of the
@@ -1139,7 +1145,7 @@ class ModelGroup:
         models = self.models
         if self._epoch != _reallocations:  # (inline: a call is a tick's cost, issue 21)
             self._field_args()
-        ns = tuple([m._n for m in models])
+        ns = tuple(map(_FIELDS_IN_USE, models))
         kernel = self._update_kernel
         if kernel is None:  # (the types are fixed: z and p are checked by the caller)
             kernel = self._update_kernel = jit.entry_point(
@@ -1163,7 +1169,7 @@ class ModelGroup:
         raw = np.zeros((zs.shape[0], self.n_y))
         if self._epoch != _reallocations:
             self._field_args()
-        args = (zs, raw, tuple([m._n for m in self.models]), self._predict_packed)
+        args = (zs, raw, tuple(map(_FIELDS_IN_USE, self.models)), self._predict_packed)
         kernel = self._kernel
         if kernel is None:  # (the types are fixed: zs is checked by the caller)
             kernel = self._kernel = jit.entry_point(kernels.predict_groups_packed, *args)

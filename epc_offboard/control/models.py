@@ -240,7 +240,8 @@ def accel_to_attitude(
     """
     a = np.asarray(accel_ned_m_s2, dtype=np.float64)
     f = a - _GRAVITY_NED_M_S2  # = -(T/m) R e_z
-    mag = frames.vector_norm(f)
+    # (vector_norm's bits: a (3,) vector is its own ravel; one call fewer, issue 21)
+    mag = math.sqrt(f.dot(f)) if f.ndim == 1 else frames.vector_norm(f)
     if mag < 1e-9:
         # free fall: attitude is arbitrary, keep level
         return AttitudeThrust(0.0, 0.0, yaw_rad, 0.0)

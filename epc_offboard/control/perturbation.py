@@ -403,7 +403,10 @@ class LwprPerturbation:
     def observe(self, z: npt.ArrayLike, p_measured: npt.ArrayLike) -> None:
         zv = check_vector(z, self.n_z, "z")
         pv = check_vector(p_measured, self.nx, "p_measured")
-        if self._model_group().update(zv, pv):  # every model in one compiled call
+        group = self._group
+        if group is None or group.models is not self.models:
+            group = self._model_group()
+        if group.update(zv, pv):  # every model in one compiled call
             return
         for model, (ins, outs) in zip(self.models, self._index, strict=True):
             model.update_finite(zv[ins], pv[outs])  # (checked above, as a whole)

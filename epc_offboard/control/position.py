@@ -31,7 +31,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -47,7 +47,7 @@ from epc_offboard.control.dead_time import (
 )
 from epc_offboard.control.decision import Controller, Decision
 from epc_offboard.control.epc import budgeted_controller
-from epc_offboard.control.kernels import disturbance_plan, tilt_reach
+from epc_offboard.control.kernels import disturbance_plan, filtered_plan, tilt_reach
 from epc_offboard.control.models import (
     LAG_ACC_STATES,
     AccelLimits,
@@ -70,6 +70,8 @@ from epc_offboard.control.state_filter import StateFilter, StateFilterConfig
 from epc_offboard.control.types import PositionOutput, ReferenceHorizon, VehicleState
 
 Vec3 = tuple[float, float, float]
+
+_F64 = np.dtype(np.float64)  # (an array's dtype is this object: the compiled calls' check)
 
 # below this largest reach-to-slack ratio limit_tilt scales nothing (see _limit_tilt)
 _TILT_EXACT_BELOW = 1.0 - 1e-6
@@ -438,6 +440,28 @@ class PositionLoop:
             tilt_reach, np.zeros(3), lim.u_min, lim.u_max, lim.P, lim.p, np.empty(3))
         # the disturbance estimate of the last tick: the state filter's model acceleration
         self._d_hat_last = np.zeros(3)
+        # the compiled filtered plan (its entry point, the filter's state, its constants)
+        # and the estimator it was made for (_filtered_plan)
+        self._plan: tuple[Any, FloatArray, FloatArray] | None = None
+        self._plan_for: object = None
+
+    def _filtered_plan(self) -> tuple[Any, FloatArray, FloatArray] | None:
+        """:func:`~epc_offboard.control.kernels.filtered_plan`'s entry point for the
+        estimator flown, with its filter's state and the plan's constants, or None where
+        the tick takes the general way: no numba, an estimator other than LWPR (or one
+        wrapped), or LWPR with the residual observer (its estimate joins LWPR's between
+        the filter and the plan)."""
+        estimator = self._plan_for = self.estimator
+        self._plan = None
+        if (filtered_plan is not None and type(estimator) is LwprPerturbation
+                and self._residual is None):  # fmt: skip
+            filt, n = estimator.filter, self.config.horizon
+            consts = np.concatenate([self.acc_alpha, self._one_minus_alpha,
+                                     [filt.gain, self._d_max, self.config.dt_s]])  # fmt: skip
+            kernel = jit.entry_point(filtered_plan, np.zeros((n + 2, 3)), np.zeros((n, 9)),
+                                     np.empty(3), filt.state, consts, self._u_p, self._refs)
+            self._plan = (kernel, filt.state, consts)
+        return self._plan
 
     def use_attitude_path(self, autopilot: str, attitude_mode: str) -> None:
         """Fly the command dead time of ``autopilot`` ("px4", "ardupilot") in
@@ -798,28 +822,38 @@ class PositionLoop:
             z_stages[0] = vel_est
             z_stages[1] = reference.stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
             z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
-            p_hat, d_var = self.estimator.estimate_along(z_stages)
-            if self._residual is not None:
-                p_hat = p_hat + self._residual.estimate(vel_est)
-            if disturbance_plan is not None:
-                # what follows below in one compiled call, the same bits (issue 21: each
-                # numpy call on these small arrays is cold cache lines in real time)
+            plan = self._plan if self._plan_for is self.estimator else self._filtered_plan()
+            if plan is not None and refs.dtype is _F64 and refs.flags.c_contiguous:
+                # LWPR's estimate_along (its filter stepped, the variation) and the plan
+                # below in one compiled call after the prediction, the same bits (issue 21)
+                kernel, filter_state, consts = plan
+                raw = self.estimator.predict_raw_many(z_stages)  # type: ignore[union-attr]
                 d_hat = np.empty(3)
-                disturbance_plan(p_hat, d_var, d_max, refs, self.acc_alpha,
-                                 self._one_minus_alpha, self.config.dt_s, self._u_p,
-                                 self._refs, d_hat)  # fmt: skip
+                kernel(raw, refs, d_hat, filter_state, consts, self._u_p, self._refs)
                 u_p, refs = self._u_p, self._refs
-            else:  # the numpy twin (no numba, or a cold start: see common.jit)
-                d_var = d_var[1:] - d_var[1]
-                # (minimum(maximum()): np.clip's values, at a third of its cost on these sizes)
-                d_hat = np.minimum(np.maximum(p_hat, -d_max), d_max)
-                d_var = np.minimum(np.maximum(d_hat + d_var, -d_max), d_max) - d_hat
-                u_p = self.feedforward(refs) - d_hat - self.lag_inverse(d_var)
-                # the model carries d_hat alone (a constant c~: the library's parameter
-                # vector); what the disturbance does beyond it along the horizon is exact as
-                # a shift of the references the model's state is held to (see
-                # disturbance_drift)
-                refs = refs - self.disturbance_drift(d_var)
+            else:
+                p_hat, d_var = self.estimator.estimate_along(z_stages)
+                if self._residual is not None:
+                    p_hat = p_hat + self._residual.estimate(vel_est)
+                if disturbance_plan is not None:
+                    # what follows below in one compiled call, the same bits (issue 21: each
+                    # numpy call on these small arrays is cold cache lines in real time)
+                    d_hat = np.empty(3)
+                    disturbance_plan(p_hat, d_var, d_max, refs, self.acc_alpha,
+                                     self._one_minus_alpha, self.config.dt_s, self._u_p,
+                                     self._refs, d_hat)  # fmt: skip
+                    u_p, refs = self._u_p, self._refs
+                else:  # the numpy twin (no numba, or a cold start: see common.jit)
+                    d_var = d_var[1:] - d_var[1]
+                    # (minimum(maximum()): np.clip's values, a third of its cost on these sizes)
+                    d_hat = np.minimum(np.maximum(p_hat, -d_max), d_max)
+                    d_var = np.minimum(np.maximum(d_hat + d_var, -d_max), d_max) - d_hat
+                    u_p = self.feedforward(refs) - d_hat - self.lag_inverse(d_var)
+                    # the model carries d_hat alone (a constant c~: the library's parameter
+                    # vector); what the disturbance does beyond it along the horizon is exact as
+                    # a shift of the references the model's state is held to (see
+                    # disturbance_drift)
+                    refs = refs - self.disturbance_drift(d_var)
         x0 = self._x0
         x0[0:3] = pos_x0
         x0[3:6] = vel_x0

@@ -37,7 +37,12 @@
   ticks). The largest growth was not arithmetic but the arguments of compiled calls: numba
   unboxes every array passed in (the estimator's update took ~110: 5 us warm, 48 us cold),
   so a kernel's many arrays are packed into one object (``lwpr_kernels.packed``), and
-  chains of small numpy calls are one compiled call (``kernels.disturbance_plan``).
+  chains of small numpy calls are one compiled call (``kernels.disturbance_plan``; LWPR's
+  filter step and variation joined it, ``kernels.filtered_plan``). Packing pays for dozens
+  of arrays, not for a few: θ's stack (8 arrays) took 30-35 us cold through numba's
+  dispatcher and 21-27 us through its entry point, and 41-74 us with four of its arrays
+  packed into a typed list (its unboxing calls back into Python; thread CPU, a 64 MB read
+  or a 10 ms sleep before each call, load 16-18). A few arrays go through an entry point.
 * **Stalls, traced** (``loop.py``'s ``Stall``, the stats' ``stalls``; the collections in the
   loops' thread apart in ``gc``). ``bench --attack --hogs 2`` (quaternion, FIFO, load 13-16):
   no generation-2 collection in flight (186,701 objects frozen), the longest collection

@@ -139,7 +139,10 @@ def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES,
     # inside the tick: the estimator (learning, prediction), the EPC step (θ, the library
     # query, the rest of the decision), the attitude map
     stages.wrap(loop, "observe", "observe")
-    stages.wrap(loop.estimator, "estimate_along", "estimate_along")
+    if loop._filtered_plan() is None:
+        stages.wrap(loop.estimator, "estimate_along", "estimate_along")
+    else:  # LWPR's prediction along the horizon; its filter's step is in the compiled plan
+        stages.wrap(loop.estimator, "predict_raw_many", "estimate_along")
     controller: Any = loop.controller
     from epc_offboard.control import kernels
     from epc_offboard.control.epc import controller as epc
