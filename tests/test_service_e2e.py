@@ -126,6 +126,32 @@ def test_stream_loss_makes_the_vehicle_hold(tmp_path):
         assert rig.wait_mode(*HOLD, timeout_s=20) < 20
 
 
+@pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "real-time"])
+def test_system_time_is_asked_for_at_the_attitude_rate_in_lockstep_only(tmp_path, lockstep):
+    # lockstep: each SYSTEM_TIME is a tick of the vehicle's clock, the 200 Hz attitude loop's
+    # period between the state messages; in real time the wall clock ticks and the autopilot
+    # is asked for nothing more (the SITL, as PX4 on its onboard link, sends none unasked)
+    with Rig(tmp_path, lockstep=lockstep, speedup=4.0 if lockstep else 1.0) as rig:
+        rig.wait_mode(*OFFBOARD)
+        system_ms: list[int] = []
+        attitude_ms: list[int] = []
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end:
+            msg = rig.gcs.recv_match(
+                type=["SYSTEM_TIME", "ATTITUDE_QUATERNION"], blocking=True, timeout=0.5
+            )
+            if msg is not None:
+                seen = system_ms if msg.get_type() == "SYSTEM_TIME" else attitude_ms
+                seen.append(msg.time_boot_ms)
+    assert len(attitude_ms) > 20  # the link streamed all along
+    if not lockstep:
+        assert system_ms == []
+        return
+    assert len(system_ms) > 20, len(system_ms)
+    span_s = (system_ms[-1] - system_ms[0]) * 1e-3
+    assert (len(system_ms) - 1) / span_s == pytest.approx(200.0, rel=0.02)
+
+
 def test_stale_state_commands_hold(tmp_path):
     with Rig(tmp_path) as rig:
         rig.wait_mode(*OFFBOARD)
