@@ -47,6 +47,7 @@ STREAMS: dict[str, int] = {
     "global_position_int_hz": mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
     "home_position_hz": mavlink.MAVLINK_MSG_ID_HOME_POSITION,
     "attitude_target_hz": mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET,
+    "system_time_hz": mavlink.MAVLINK_MSG_ID_SYSTEM_TIME,
 }
 # The state a controller runs on: their stamps are what a lockstep answer must reach.
 STATE_STREAMS = frozenset(
@@ -171,6 +172,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
             mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: self._attitude_target,
             mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
+            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: self._system_time,
         }
 
         self._handlers: dict[str, Callable[[Any, Address], None] | None] = {
@@ -282,7 +284,8 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             else:
                 batch += self._pack(self._builders[msg_id]())
                 stamp_ms = self.sim.time_ms
-            if msg_id in STATE_STREAMS:
+            if msg_id in STATE_STREAMS or msg_id == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME:
+                # SYSTEM_TIME, sent only when a controller asked for it: its clock's tick
                 self.newest_state_stamp_ms = max(self.newest_state_stamp_ms, stamp_ms)
         self._send_bytes(bytes(batch))
 
@@ -584,6 +587,10 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             vd,
             round(yaw_deg * 100.0) % 36000,
         )
+
+    def _system_time(self) -> Any:
+        # time_unix_usec 0: no GPS time (the simulation has none)
+        return self.mav.system_time_encode(0, self.sim.time_ms)
 
     def _home_position(self) -> Any:
         cfg = self.sim.config.sitl

@@ -6,8 +6,10 @@ Lockstep protocol (the service implements the other side):
    time, in one datagram;
 2. wait for the controller's answer to the newest state it was sent: a SET_ATTITUDE_TARGET,
    SET_POSITION_TARGET_LOCAL_NED or SYSTEM_TIME whose ``time_boot_ms`` reaches the newest
-   state stamp sent (ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY). A tick
-   that sent no new state needs no new answer.
+   state stamp sent (ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY, and
+   SYSTEM_TIME once the controller asked for it: a tick of its clock between state
+   messages, so its loops keep their period as in real time). A tick that sent no new
+   state needs no new answer.
 
 Physics never advances without that answer, however slow the controller is, so two runs
 with the same seed and commands are identical. Before the first answer the clock holds at

@@ -429,6 +429,10 @@ class TelemetryRates:
     global_position_int_hz: float = 50.0
     home_position_hz: float = 0.5
     attitude_target_hz: float = 50.0
+    # 0 by default; a lockstep controller asks for it at its fastest loop's rate: each one is
+    # a tick of the vehicle's clock it answers (sitl/lockstep.py), as the wall clock ticks in
+    # real time between the state messages
+    system_time_hz: float = 0.0
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():

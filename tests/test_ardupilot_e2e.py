@@ -14,6 +14,7 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from epc_offboard.service.config import LinkConfig
 from epc_offboard.tools.sim.analysis import sitl_counters
 from tests.rig import Rig, early_origin_vehicle
 
@@ -64,13 +65,15 @@ def test_sim_circle_against_ardupilot(tmp_path):
 def _answers_before(tlog, origin_ms: int) -> tuple[int, float]:
     """The service's lockstep answers stamped before ``origin_ms``, and the wall time from
     the vehicle's first state to its first position (the origin), from the service's tlog
-    (each frame stamped with the wall time it was sent or received)."""
+    (each frame stamped with the wall time it was sent or received; the SYSTEM_TIME the
+    vehicle sends, the lockstep clock's ticks the service asks for, are not answers)."""
     conn = mavutil.mavlink_connection(str(tlog), dialect="common")
     answers, first_state_s = 0, None
+    ours = LinkConfig().system_id
     while (msg := conn.recv_match()) is not None:
         kind = msg.get_type()
         if kind in ("SYSTEM_TIME", "SET_ATTITUDE_TARGET", "SET_POSITION_TARGET_LOCAL_NED"):
-            answers += msg.time_boot_ms < origin_ms
+            answers += msg.get_srcSystem() == ours and msg.time_boot_ms < origin_ms
         elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION") and first_state_s is None:
             first_state_s = msg._timestamp
         elif kind == "LOCAL_POSITION_NED" and msg.time_boot_ms >= origin_ms:

@@ -57,8 +57,9 @@ def late_tick(delay_s: float, attitude_age_s: float, period_s: float) -> bool:
     loop keeps tracking whatever we do next. The attitude loop predicts over the sample's
     age, so an age within the stream's interval (PX4 grants ATTITUDE_QUATERNION 123 Hz,
     8.1 ms) plus a tick or two is normal, not late; and a tick one period behind (lockstep
-    runs it at the next vehicle time with state) is the newest possible: only half a period
-    more, or an age over :data:`LATE_ATTITUDE_PERIODS` ticks, is late.
+    against an autopilot that sends no SYSTEM_TIME runs it at the next vehicle time with
+    state) is the newest possible: only half a period more, or an age over
+    :data:`LATE_ATTITUDE_PERIODS` ticks, is late.
     """
     return (
         delay_s > LATE_TICK_PERIODS * period_s

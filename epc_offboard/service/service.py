@@ -280,7 +280,7 @@ class Service:
             # lockstep with attitude but no position (ArduCopter before its EKF origin, 36 s
             # of vehicle time): the tick is answered all the same, or the simulator would
             # hold (or fall back to real-time pace) until a position it never sends
-            self.link.send(commands.system_time(self.tracker.vehicle_time_s))
+            self.link.send(commands.system_time(self.clock.now_s()))
         return self.outputs.stream_setpoints
 
     # -- lifecycle --------------------------------------------------------------------

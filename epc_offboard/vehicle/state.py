@@ -597,9 +597,10 @@ class StateTracker:
 
     def vehicle_time_at(self, now_s: float, *, vehicle_clock: bool) -> float | None:
         """The vehicle time the state should be predicted to at loop time ``now_s``: in
-        lockstep None (the newest sample's time, as the clock is), else ``now_s`` on the
-        autopilot's clock (None before any sample)."""
-        return None if vehicle_clock else self.clock.to_autopilot(now_s)
+        lockstep ``now_s`` itself (the clock is the vehicle's: the newest sample's time, or
+        a SYSTEM_TIME tick after it), else ``now_s`` on the autopilot's clock (None before
+        any sample)."""
+        return now_s if vehicle_clock else self.clock.to_autopilot(now_s)
 
     def snapshot(self, at_vehicle_s: float | None = None) -> VehicleState | None:
         """The state predicted to vehicle time ``at_vehicle_s`` (default: newest sample time).
