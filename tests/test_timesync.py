@@ -128,7 +128,9 @@ def test_tracker_judges_a_late_read_sample_stale_in_real_time():
     s = tr.snapshot(at)
     assert s is not None
     assert s.position_age_s == pytest.approx(0.8, abs=0.01)
-    assert tr.vehicle_time_at(rx, vehicle_clock=True) is None  # lockstep: as before
+    # lockstep: the loop's clock is the vehicle's (the newest sample's time, or a SYSTEM_TIME
+    # tick after it), so the state is predicted to that time itself, no mapping
+    assert tr.vehicle_time_at(rx, vehicle_clock=True) == rx
 
 
 def test_clock_limits_are_validated():
