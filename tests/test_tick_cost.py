@@ -311,9 +311,46 @@ def test_the_tick_takes_the_general_way_where_the_filtered_plan_does_not_fit():
     assert loop._filtered_plan() is None
 
 
-def test_the_quaternion_from_euler_angles_is_quat_normalizes_to_the_last_bit():
-    """``euler_to_quat`` normalises its four floats itself (three numpy calls, not six):
-    ``quat_normalize``'s bits, the sign included."""
+def _quat_normalize_array(q: Any) -> np.ndarray:
+    """``frames.quat_normalize`` as it was written on arrays (before stop 35): the oracle of
+    its float form."""
+    qa = np.asarray(q, dtype=np.float64)
+    n = frames.vector_norm(qa)
+    if not math.isfinite(n) or n < 1e-12:
+        raise ValueError(f"cannot normalise quaternion {qa!r}")
+    qa = qa / n
+    return -qa if qa[0] < 0.0 else qa
+
+
+def test_quat_normalize_is_its_array_forms_to_the_last_bit():
+    """``quat_normalize`` divides four floats, not an array (no temporaries, no Python-level
+    call; ``euler_to_quat`` calls it on the position tick, the SITL every step): the array
+    form's bits, the sign and signed zeros included, and the same refusals."""
+    rng = np.random.default_rng(23)
+    for case in range(20000):
+        q = rng.normal(size=4) * (1e-5, 0.3, 1.0, 1e3)[case % 4]
+        if case % 7 == 0:
+            q[case % 4] = 0.0
+        if case % 11 == 0:
+            q[0] = -0.0 if case % 22 else 0.0
+        for given in (q, q.tolist()):
+            want, got = _quat_normalize_array(given), frames.quat_normalize(given)
+            assert got.dtype == np.float64
+            assert got.shape == (4,)
+            assert np.array_equal(want.view(np.uint64), got.view(np.uint64)), case
+    for bad in ([0.0, 0.0, 0.0, 0.0], [math.nan, 0.0, 0.0, 1.0], [math.inf, 0.0, 0.0, 0.0],
+                [1e-13, 0.0, 0.0, 0.0], [1e200, 1e200, 0.0, 0.0]):  # fmt: skip
+        with pytest.raises(ValueError, match="quaternion"):
+            _quat_normalize_array(bad)
+        with pytest.raises(ValueError, match="quaternion"):
+            frames.quat_normalize(bad)
+    with pytest.raises(ValueError, match="quaternion"):
+        frames.quat_normalize([1.0, 0.0, 0.0])
+
+
+def test_the_quaternion_from_euler_angles_is_the_array_forms_to_the_last_bit():
+    """``euler_to_quat`` normalises through ``quat_normalize``'s float form: the array
+    form's bits, the sign included."""
     rng = np.random.default_rng(17)
     for case in range(20000):
         roll, pitch, yaw = rng.normal(size=3) * (1e-6, 0.1, 1.0, 4.0)[case % 4]
@@ -321,7 +358,7 @@ def test_the_quaternion_from_euler_angles_is_quat_normalizes_to_the_last_bit():
         cr, sr = math.cos(roll / 2), math.sin(roll / 2)
         cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
         cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-        want = frames.quat_normalize([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+        want = _quat_normalize_array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
                                       cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
         got = frames.euler_to_quat(roll, pitch, yaw)
         assert np.array_equal(want.view(np.uint64), got.view(np.uint64)), case

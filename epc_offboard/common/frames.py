@@ -67,13 +67,20 @@ def vector_norm(v: FloatArray) -> float:
 
 
 def quat_normalize(q: npt.ArrayLike) -> FloatArray:
-    """Return the unit quaternion of ``q`` (shape (4,)), sign fixed so that w >= 0."""
+    """Return the unit quaternion of ``q`` (shape (4,)), sign fixed so that w >= 0.
+
+    The bits of the array form (``q / vector_norm(q)``, then ``-q`` if w < 0) from the four
+    floats: no Python-level call, no numpy temporaries, no ``isfinite`` (it runs twice a
+    position tick, in :func:`euler_to_quat`, and every SITL step; issue 21)."""
     qa = np.asarray(q, dtype=np.float64)
-    n = vector_norm(qa)
-    if not math.isfinite(n) or n < 1e-12:
+    if qa.shape != (4,):
+        raise ValueError(f"a quaternion has shape (4,), got {qa.shape}")
+    n = math.sqrt(qa.dot(qa))
+    if not 1e-12 <= n < math.inf:  # (NaN fails it too: no isfinite call)
         raise ValueError(f"cannot normalise quaternion {qa!r}")
-    qa = qa / n
-    return -qa if qa[0] < 0.0 else qa
+    w, x, y, z = qa.tolist()
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([-w, -x, -y, -z] if w < 0.0 else [w, x, y, z])
 
 
 def quat_multiply(p: npt.ArrayLike, q: npt.ArrayLike) -> FloatArray:
@@ -130,15 +137,7 @@ def euler_to_quat(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArr
     x = sr * cp * cy - cr * sp * sy
     y = cr * sp * cy + sr * cp * sy
     z = cr * cp * sy - sr * sp * cy
-    # quat_normalize's bits from the floats: numpy's norm (the square root of the dot
-    # product), then the division and the sign element by element (three numpy calls, not
-    # six: the position tick's attitude target, issue 21)
-    q = np.array([w, x, y, z])
-    n = math.sqrt(q.dot(q))
-    if not math.isfinite(n) or n < 1e-12:
-        raise ValueError(f"cannot normalise quaternion {q!r}")
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([-w, -x, -y, -z] if w < 0.0 else [w, x, y, z])
+    return quat_normalize([w, x, y, z])
 
 
 def quat_to_euler(q: npt.ArrayLike) -> tuple[float, float, float]:

@@ -105,6 +105,8 @@ class StateFilter:
     def __init__(self, cfg: StateFilterConfig, dt_s: float) -> None:
         self.config = cfg
         self.dt_s = dt_s
+        # (read once: the property is a Python-level call on every position tick, issue 21)
+        self._enabled = cfg.enabled
         self._f, self._b, self._k = steady_gain(cfg, dt_s) if cfg.enabled else (
             np.eye(4), np.zeros(4), np.zeros((4, 2)))
         self._t_s = -math.inf
@@ -119,7 +121,7 @@ class StateFilter:
         ``acc_flown_m_s2`` + ``acc_disturbance_m_s2`` (summed here: without a filter, on
         every position tick, not at all). A repeated sample (same time) returns the last
         fused state."""
-        if not self.config.enabled:
+        if not self._enabled:
             return pos_m, vel_m_s
         acc_model_m_s2 = acc_flown_m_s2 + acc_disturbance_m_s2
         dt_s = t_s - self._t_s
