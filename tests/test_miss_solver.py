@@ -159,6 +159,32 @@ def test_the_waiting_queue_is_bounded(solver_and_ctrl):
     assert ctrl.stats.size <= 1 + 4  # one in flight and the bounded waiting list at most
 
 
+def test_an_idle_pump_reads_nothing_from_the_worker(solver_and_ctrl):
+    """Every position tick pumps; with nothing asked of the worker there is nothing to
+    read (it writes only answers), and the empty pipe's read was a system call and an
+    exception a tick, 30-45 us in real time (issue 21). Once a solve is in flight its
+    answer is read, and joins the library."""
+    solver, ctrl = solver_and_ctrl
+    inbox = solver._worker.inbox
+    reads = []
+    read = inbox.read
+
+    def counted():
+        reads.append(1)
+        return read()
+
+    inbox.read = counted
+    for _ in range(20):
+        assert solver.pump() == 0
+    assert reads == []
+    x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+    miss(ctrl, x0, [4.0, -3.0, 1.0])
+    solver.pump()
+    assert solver.pump(wait=True) == 1
+    assert reads
+    assert miss(ctrl, x0, [4.0, -3.0, 1.0])[0].source == "hit"
+
+
 def test_the_workers_death_is_survived(solver_and_ctrl):
     solver, ctrl = solver_and_ctrl
     pid = solver.worker_pid()

@@ -439,10 +439,15 @@ class MissSolver:
             worker.ready.sent_s = time.monotonic()  # problems (a cold warm-up: 50 s and more)
         try:
             worker.outbox.flush()
-            for seq, ok, value in worker.inbox.read():
-                reply = worker.replies.pop(seq, None)
-                if reply is not None:
-                    reply.done, reply.ok, reply.value = True, ok, value
+            # Nothing asked, nothing to read: the worker writes only answers. The read of an
+            # empty pipe was a system call and an exception on every position tick, 30-45
+            # us of the tick in real time (issue 21); a worker that died meanwhile is found
+            # by the next request's write, or by this read once one is in flight.
+            if worker.replies:
+                for seq, ok, value in worker.inbox.read():
+                    reply = worker.replies.pop(seq, None)
+                    if reply is not None:
+                        reply.done, reply.ok, reply.value = True, ok, value
         except ChannelClosedError:
             if restart:
                 self._restart("the worker died", wait)
@@ -622,7 +627,9 @@ class MissSolver:
         return 1
 
     def _submit_next(self, name: str, lane: _Lane, wait: bool) -> None:
-        if lane.in_flight is not None or self._worker is None:
+        # after a restart the new worker's pool is filled first (``resend``, the next
+        # offer): a solve sent before it would screen an empty pool
+        if lane.in_flight is not None or self._worker is None or lane.resend:
             return
         while lane.waiting:
             theta = lane.waiting.popleft()
