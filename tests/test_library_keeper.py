@@ -288,3 +288,35 @@ def test_kill_9_of_the_store_process_mid_save_loses_nothing_committed(tmp_path):
     n_position = ctrl.stats.size
     keeper.close()
     assert stored(path)[p.signature()]["controllers"] == n_position
+
+
+def test_a_snapshot_larger_than_the_pipe_crosses_before_the_next_save(tmp_path):
+    """The saver wrote the pipe to the store process only at a save: a snapshot larger than
+    the pipe's 64 KiB (the fleet's 2,048 received controllers: ~175 KB) took several save
+    periods to cross and the frames queued up (2.8 MB at the end of a bench --attack
+    flight, all written at shutdown). Between saves it writes what the pipe takes."""
+    cascade, sharing = _learned_cascade_and_fleet(2048)
+    keeper = LibraryKeeper(StoreConfig(str(tmp_path / "library.sqlite"), save_period_s=3.0),
+                           cascade, Counter(), published=lambda: True,
+                           fleet_steps=sharing.fleet_state_steps)  # fmt: skip
+    keeper.open()
+
+    async def main() -> None:
+        task = asyncio.create_task(keeper.run())
+        try:
+            deadline = time.monotonic() + 60
+            while not (keeper._outbox is not None and keeper._outbox.pending_bytes):
+                assert time.monotonic() < deadline, "no snapshot larger than the pipe"
+                await asyncio.sleep(0.005)
+            slices = keeper.slices  # the first save's, handed over
+            while keeper._outbox.pending_bytes:
+                assert time.monotonic() < deadline, keeper.process_stats()
+                await asyncio.sleep(0.05)
+            assert keeper.slices == slices  # across before the next save began
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    asyncio.run(main())
+    keeper.close()

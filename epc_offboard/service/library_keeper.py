@@ -19,6 +19,7 @@ process cannot take it).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import multiprocessing
 import time
@@ -48,6 +49,7 @@ log = logging.getLogger("epc_offboard.service")
 _MAX_PENDING_BYTES = 64 << 20  # snapshots waiting for the store process, at most
 _CLOSE_TIMEOUT_S = 30.0
 _T = TypeVar("_T")
+_FLUSH_PERIOD_S = 0.2  # the pipe to the store process written this often between saves
 FleetState = Mapping[str, str | DeferredText]
 
 
@@ -112,7 +114,7 @@ class LibraryKeeper:
     async def run(self) -> NoReturn:
         """The ``library-saver`` task."""
         while True:
-            await asyncio.sleep(self.cfg.save_period_s)
+            await self._flushing(self.cfg.save_period_s)
             if not self._published():
                 # nobody publishes them: the store saves the whole library anyway
                 for _name, ctrl in self.cascade.experience_controllers():
@@ -130,6 +132,20 @@ class LibraryKeeper:
                 log.error("snapshotting the library failed: %s", exc)
                 continue
             await self._slice("hand-over", partial(self._hand_over, snap))  # pickled, written
+
+    async def _flushing(self, wait_s: float) -> None:
+        """Wait ``wait_s``, writing what the pipe takes of the snapshot waiting for the store
+        process every ``_FLUSH_PERIOD_S`` (one ``os.write`` of at most the pipe's 64 KiB):
+        flushed only at the next save, a snapshot larger than the pipe took several save
+        periods to cross, and the frames queued up (2.8 MB waiting at the end of a
+        ``bench --attack`` flight, all of it then written at shutdown)."""
+        deadline = time.monotonic() + wait_s
+        while (left := deadline - time.monotonic()) > 0:
+            await asyncio.sleep(min(left, _FLUSH_PERIOD_S))
+            outbox = self._outbox
+            if outbox is not None and outbox.pending_bytes:
+                with contextlib.suppress(ChannelClosedError):  # the next hand-over sees it
+                    outbox.flush()
 
     async def _sliced_snapshot(self) -> LibrarySnapshot:
         """The snapshot, taken in slices that each start when the next tick is at least
@@ -228,6 +244,8 @@ class LibraryKeeper:
             return
         saved = False
         deadline = time.monotonic() + _CLOSE_TIMEOUT_S
+        if self._outbox is not None:  # this snapshot carries everything the queued ones do
+            self.counters["store_snapshots_dropped"] += self._outbox.drop_pending()
         if self._hand_over(snap):
             try:
                 while self._outbox is not None and self._outbox.pending_bytes:
