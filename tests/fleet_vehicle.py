@@ -45,7 +45,11 @@ async def main(args: dict[str, Any]) -> None:
                            candidates=cfg.candidates)  # fmt: skip
     # (a build without them, e.g. the code before issue 25's restart: it starts afresh)
     restart = hasattr(sharing, "fleet_state")
-    keep: dict[str, Any] = {"fleet_state": sharing.fleet_state} if restart else {}
+    keep: dict[str, Any] = {}
+    if hasattr(sharing, "fleet_state_steps"):  # taken in slices (issue 21)
+        keep = {"fleet_steps": sharing.fleet_state_steps}
+    elif restart:
+        keep = {"fleet_state": sharing.fleet_state}
     keeper = LibraryKeeper(StoreConfig(args["store"], SAVE_PERIOD_S), cascade, Counter(),
                            published=lambda: True, **keep)  # fmt: skip
     keeper.open()

@@ -46,3 +46,29 @@ def test_the_inbox_returns_whole_frames_only_then_the_writers_end():
         os.close(r)
         if w >= 0:
             os.close(w)
+
+
+def test_the_outbox_drops_the_frames_a_newer_one_supersedes_never_a_started_one():
+    """At shutdown the library keeper's last snapshot carries everything the queued ones do:
+    the frames not begun are dropped (a slow store process made the shutdown wait for all of
+    them, past the 10 s a service is given); one partly written is finished, so the reader
+    still reads whole frames only."""
+    from epc_offboard.common.channel import FrameOutbox, read_frames
+
+    r, w = os.pipe()
+    outbox = FrameOutbox(w, 64 << 20)
+    big = [b"x" * 100_000, b"y" * 100_000, b"z" * 100_000]  # each larger than the pipe
+    for obj in big:
+        assert outbox.send(obj)
+    assert outbox.pending_bytes > 200_000
+    assert outbox.drop_pending() == 2  # the first is partly in the pipe: kept
+    assert outbox.send(b"last")
+    got: list[Any] = []
+    reader = threading.Thread(target=lambda: got.extend(read_frames(r)))
+    reader.start()
+    while outbox.pending_bytes:
+        outbox.flush()
+    os.close(w)
+    reader.join(timeout=10)
+    assert got == [big[0], b"last"]
+    os.close(r)

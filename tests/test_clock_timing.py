@@ -355,3 +355,31 @@ def test_work_beside_the_loops_starts_only_with_room_before_the_next_tick():
     timed_out = counters["room_timeouts"]
     assert timed_out <= 5
     assert sum(r >= ROOM_S for r in room_at_start) >= 20 - timed_out
+
+
+def test_the_step_sampler_thread_runs_only_while_installed(monkeypatch):
+    """``EPC_STEP_SAMPLE_MS`` (a diagnosis) samples the loops' thread from a thread of its
+    own, started by ``install`` (real time), not by the monitor's constructor: a monitor
+    made in lockstep, or the default one ``Loops`` makes, starts none; it ends with
+    ``uninstall``."""
+    import threading
+
+    def samplers() -> int:
+        return sum(t.name == "step-sampler" and t.is_alive() for t in threading.enumerate())
+
+    monkeypatch.setenv("EPC_STEP_SAMPLE_MS", "5")
+    before = samplers()
+    steps = StepMonitor()
+    Loops(WallClock(), Counter(), LogGate())  # its default monitor, never installed
+    assert samplers() == before
+    steps.install()
+    try:
+        assert samplers() == before + 1
+        steps.install()  # again: still one
+        assert samplers() == before + 1
+    finally:
+        steps.uninstall()
+    deadline = time.monotonic() + 5.0
+    while samplers() > before:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)

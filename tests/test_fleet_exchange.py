@@ -4,6 +4,7 @@ out, as docs/DESIGN.md's "A fleet message, file by file" tells it (steps 2 and 4
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -77,6 +78,13 @@ class _Library:
 
     def received(self) -> list[tuple[LibraryEntry, tuple[tuple[int, ...], ...]]]:
         return [(e, s) for e, _o, s in self.offered]
+
+    def received_parts(
+        self, per_part: int
+    ) -> Iterator[list[tuple[LibraryEntry, tuple[tuple[int, ...], ...]]]]:
+        received = self.received()
+        for at in range(0, len(received), per_part):
+            yield received[at : at + per_part]
 
 
 def _exchange(**cfg: object) -> tuple[FleetExchange, _Tally]:

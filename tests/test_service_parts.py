@@ -569,3 +569,39 @@ def test_sighup_reads_the_config_off_the_loops_thread_and_applies_it_on_it(tmp_p
     assert read_in
     assert read_in[0] is not threading.main_thread()
     assert service.cfg.mission.duration_s == 123.0
+
+
+def test_sighups_config_is_merged_off_the_loops_thread(tmp_path, monkeypatch):
+    """Issue 21: after the read moved to a thread, the reload's apply still held the loops'
+    thread 5-7 ms under bench --attack: merging the new settings into the config
+    (``dataclasses.replace``) validates the whole config again, the vehicle file read and
+    parsed among it. The merge is made in the reader's thread; the loops' thread only
+    assigns what it made."""
+    import threading
+
+    from epc_offboard.service import config as config_module
+    from epc_offboard.service.service import Service
+
+    cfg = dataclasses.replace(CFG, log=dataclasses.replace(CFG.log, flight_log_path="",
+                                                          tlog_path=""))  # fmt: skip
+    path = tmp_path / "service.toml"
+    path.write_text(SITL_CONFIG.read_text().replace(
+        "[trajectory]", "[trajectory]\nperiod_s = 17.0", 1))  # fmt: skip
+    service = Service(cfg, str(path))
+    airframe_read_in: list[threading.Thread] = []
+    load_airframe = config_module.load_airframe  # type: ignore[attr-defined]
+
+    def counted(file: str) -> Any:
+        airframe_read_in.append(threading.current_thread())
+        return load_airframe(file)
+
+    monkeypatch.setattr(config_module, "load_airframe", counted)
+
+    async def main() -> None:
+        service._reload()
+        await asyncio.gather(*service._reloads)
+
+    asyncio.run(main())
+    assert service.cfg.trajectory.period_s == 17.0
+    assert airframe_read_in  # the file and the merge validated...
+    assert threading.main_thread() not in airframe_read_in  # ... none of it on the loops'

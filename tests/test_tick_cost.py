@@ -436,12 +436,13 @@ def test_a_map_holds_only_the_columns_some_map_depends_on():
     assert built > 10
 
 
-def test_the_fleet_state_a_save_takes_on_the_loops_thread_is_formatted_once(monkeypatch):
+def test_the_fleet_state_a_save_takes_on_the_loops_thread_is_packed_once(monkeypatch):
     """Every library save (5 s) lists the fleet's received controllers on the loops' thread
-    (``FleetSharing.fleet_state``, for a restart). Rebuilt whole each time, the backlog's
-    2,048 controllers took 20-30 ms there: under a fleet's traffic a 20-30 ms position-loop
-    gap every 5 s (``bench --attack``'s figure-8, issue 21). Only what arrived since the
-    last save may cost calls now; what is saved stays the same."""
+    (``FleetSharing.fleet_state_steps``, for a restart). Rebuilt whole each time, the
+    backlog's 2,048 controllers took 20-30 ms there: under a fleet's traffic a 20-30 ms
+    position-loop gap every 5 s (``bench --attack``'s figure-8, issue 21). Only what arrived
+    since the last save may cost calls now (each controller is packed once, the store
+    process formats the text); what is saved stays the same."""
     from epc_offboard.fleet.config import SharingConfig
     from epc_offboard.fleet.sharing import FleetSharing
 
@@ -459,11 +460,11 @@ def test_the_fleet_state_a_save_takes_on_the_loops_thread_is_formatted_once(monk
 
     backlog = cfg.candidates.backlog_size
     assert sharing.restore({f"candidates:{sig}": received(0, backlog)}) == backlog
-    # a saver prepares it in slices (the loops tick in between), 64 formatted at a time
-    slices = 1
-    while not sharing.prepare_fleet_state(64):
-        slices += 1
-    assert slices == backlog // 64
+    # a saver takes it in slices (the loops tick in between), 64 controllers at a time
+    steps = list(sharing.fleet_state_steps(64))
+    # at most 64 at a time (an origin's 32 here: a part each)
+    assert len(steps) >= backlog // 64 + 1
+    assert steps[:-1] == [None] * (len(steps) - 1)
     first = sharing.fleet_state()
     # ten more arrive (the oldest leave the bounded backlog); the next save
     sharing.restore({f"candidates:{sig}": received(backlog, 10)})
@@ -474,13 +475,15 @@ def test_the_fleet_state_a_save_takes_on_the_loops_thread_is_formatted_once(monk
 
     sys.setprofile(profile)
     try:
-        second = sharing.fleet_state()
+        *_, taken = sharing.fleet_state_steps()  # what the loops' thread does
     finally:
         sys.setprofile(None)
     # before: 2,134 Python-level calls (an entry built per known controller), now ~100
-    # (the ten new ones formatted); C calls stay 1-3 per controller (dict look-ups)
+    # (the ten new ones packed); C calls stay 1-3 per controller (dict look-ups)
     assert calls["call"] <= 300, dict(calls)
-    # the same texts: a fresh list of what is known, formatted as before
+    # the same texts (built by the store process): a fresh list of what is known
+    assert taken is not None
+    second = {k: v if isinstance(v, str) else v.build() for k, v in taken.items()}
     again = json.loads(second[f"candidates:{sig}"])
     assert len(again) == backlog
     assert len(json.loads(first[f"candidates:{sig}"])) == backlog

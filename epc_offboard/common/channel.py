@@ -115,6 +115,7 @@ class FrameOutbox:
         self._pending: deque[memoryview] = deque()
         self.pending_bytes = 0
         self.refused = 0
+        self._head_started = False  # the first pending frame is partly written
 
     def send(self, obj: object) -> bool:
         """Queue ``obj``; False (and counted) when that would exceed the bound."""
@@ -139,8 +140,20 @@ class FrameOutbox:
             self.pending_bytes -= n
             if n == len(head):
                 self._pending.popleft()
+                self._head_started = False
             else:  # a partial write: the rest goes next time, in order
                 self._pending[0] = head[n:]
+                self._head_started = True
+
+    def drop_pending(self) -> int:
+        """Forget the frames not begun yet (a newer one supersedes them); a frame partly
+        written is kept, so that the reader still gets whole frames. Returns the frames
+        dropped."""
+        keep = 1 if self._head_started and self._pending else 0
+        dropped = len(self._pending) - keep
+        while len(self._pending) > keep:
+            self.pending_bytes -= len(self._pending.pop())
+        return dropped
 
 
 class FrameInbox:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from epc_offboard.common.errors import EpcError
 
@@ -60,13 +61,33 @@ class Transition:
     count: int
 
 
+class DeferredBlob(Protocol):
+    """A model's bytes, built where they are saved (the store process), from copies the
+    loops' thread took (``epc_offboard.common.blobs.Npz``)."""
+
+    def build(self) -> bytes: ...
+
+
+class DeferredText(Protocol):
+    """A text of the fleet's state, built where it is saved (``blobs.ReceivedText``)."""
+
+    def build(self) -> str: ...
+
+
+def blob_bytes(blob: bytes | DeferredBlob) -> bytes:
+    """A model's bytes: ``blob``, or built from the copies a saver took (in the store
+    process, :meth:`LibraryStore.save_snapshot`: not on the loops' thread)."""
+    return blob if isinstance(blob, bytes) else blob.build()
+
+
 @dataclass(frozen=True)
 class SignatureSnapshot:
     """Everything stored under one problem signature."""
 
     controllers: tuple[LibraryEntry, ...] = ()
     transitions: tuple[Transition, ...] = ()
-    models: Mapping[str, bytes] = field(default_factory=dict)  # name -> opaque blob
+    # name -> opaque blob (or what builds it: a snapshot the loops' thread took)
+    models: Mapping[str, bytes | DeferredBlob] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -76,8 +97,8 @@ class LibrarySnapshot:
     signatures: Mapping[str, SignatureSnapshot]
     # the fleet's state beside the library (``FleetSharing.fleet_state``: received
     # controllers not proven yet, high-water marks), opaque texts by name; empty: not
-    # shared, and a save leaves what the file holds
-    fleet: Mapping[str, str] = field(default_factory=dict)
+    # shared, and a save leaves what the file holds (a text may be what builds it)
+    fleet: Mapping[str, str | DeferredText] = field(default_factory=dict)
 
     def counts(self) -> dict[str, int]:
         return {

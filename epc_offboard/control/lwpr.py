@@ -46,6 +46,7 @@ import numpy as np
 import numpy.typing as npt
 
 from epc_offboard.common import jit
+from epc_offboard.common.blobs import Npz
 from epc_offboard.common.errors import EpcError
 from epc_offboard.control import lwpr_kernels as kernels
 
@@ -459,6 +460,13 @@ class LWPR:
 
     def to_bytes(self) -> bytes:
         """The whole model (parameters and learned state) as npz bytes."""
+        return self.to_npz().build()
+
+    def to_npz(self) -> Npz:
+        """:meth:`to_bytes`'s arrays, copied now (a memcpy each, well under a millisecond),
+        zipped later by :meth:`Npz.build`: making the npz here took a saver's slice of the
+        loops' thread up to 13.6 ms (issue 21), and the library store's process makes it
+        now."""
         params = {
             "n_in": self.n_in,
             "n_out": self.n_out,
@@ -478,25 +486,22 @@ class LWPR:
             "cutoff": self.cutoff,
         }
         n = self._n
-        buf = io.BytesIO()
-        np.savez(
-            buf,
-            format=np.array(FORMAT_NAME),
-            version=np.array(FORMAT_VERSION),
-            params=np.array(json.dumps(params)),
-            init_d=self.init_d,
-            init_alpha=self.init_alpha,
-            norm_in=self.norm_in,
-            norm_out=self.norm_out,
-            **{"f_" + name: arr[:n] for name, arr in self._store.items()},  # type: ignore[arg-type]
-            out=self._out[:n],
-            nreg=self._nreg[:n],
-            trusted=self._trusted[:n],
-            n_pruned=self.n_pruned,
-            n_dropped=np.array(self.n_dropped),
-            n_updates=np.array(self.n_updates),
-        )
-        return buf.getvalue()
+        return Npz.of({
+            "format": np.array(FORMAT_NAME),
+            "version": np.array(FORMAT_VERSION),
+            "params": np.array(json.dumps(params)),
+            "init_d": self.init_d,
+            "init_alpha": self.init_alpha,
+            "norm_in": self.norm_in,
+            "norm_out": self.norm_out,
+            **{"f_" + name: arr[:n] for name, arr in self._store.items()},
+            "out": self._out[:n],
+            "nreg": self._nreg[:n],
+            "trusted": self._trusted[:n],
+            "n_pruned": self.n_pruned,
+            "n_dropped": np.array(self.n_dropped),
+            "n_updates": np.array(self.n_updates),
+        })  # fmt: skip
 
     @classmethod
     def from_bytes(cls, data: bytes) -> LWPR:

@@ -35,6 +35,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from epc_offboard.common.blobs import Npz
 from epc_offboard.control.lwpr import LWPR, LwprError, ModelGroup, check_vector
 
 FloatArray = npt.NDArray[np.float64]
@@ -62,6 +63,8 @@ class PerturbationEstimator(Protocol):
     def reset(self) -> None: ...
 
     def to_bytes(self) -> bytes: ...
+
+    def to_npz(self) -> Npz: ...
 
     def load_bytes(self, data: bytes) -> None: ...
 
@@ -262,21 +265,20 @@ def _dims(nx: int, n_z: int) -> tuple[int, int]:
     return nx, n_z
 
 
-def _pack(kind: str, nx: int, n_z: int, arrays: dict[str, Any]) -> bytes:
-    buf = io.BytesIO()
-    np.savez(
-        buf,
-        format=np.array(FORMAT_NAME),
-        version=np.array(FORMAT_VERSION),
-        kind=np.array(kind),
-        dims=np.array([nx, n_z]),
+def _npz(kind: str, nx: int, n_z: int, arrays: dict[str, Any]) -> Npz:
+    """An estimator's state file: its ``arrays`` copied now (a nested :class:`Npz` kept as
+    it is), zipped by :meth:`Npz.build` where it is saved (the library store's process)."""
+    return Npz.of({
+        "format": np.array(FORMAT_NAME),
+        "version": np.array(FORMAT_VERSION),
+        "kind": np.array(kind),
+        "dims": np.array([nx, n_z]),
         **arrays,
-    )
-    return buf.getvalue()
+    })  # fmt: skip
 
 
 def _unpack(data: bytes, kind: str, nx: int, n_z: int) -> dict[str, Any]:
-    """The arrays of a ``_pack`` blob made by the same kind of estimator with the same
+    """The arrays of an ``_npz`` blob made by the same kind of estimator with the same
     dimensions; anything else raises ValueError."""
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
@@ -328,7 +330,10 @@ class NoPerturbation:
         pass
 
     def to_bytes(self) -> bytes:
-        return _pack("none", self.nx, self.n_z, {})
+        return self.to_npz().build()
+
+    def to_npz(self) -> Npz:
+        return _npz("none", self.nx, self.n_z, {})
 
     def load_bytes(self, data: bytes) -> None:
         _unpack(data, "none", self.nx, self.n_z)
@@ -472,20 +477,25 @@ class LwprPerturbation:
         self.filter.reset()
 
     def to_bytes(self) -> bytes:
-        *_, data = self.to_bytes_steps()
-        assert data is not None
-        return data
+        return self.to_npz().build()
 
-    def to_bytes_steps(self) -> Iterator[bytes | None]:
-        """:meth:`to_bytes` in steps, None after each model, the bytes last: a caller on the
-        loops' thread lets them tick in between. The whole took 4-9 ms (three models'
-        npz, ~1.3 ms each, and the outer one), a late attitude tick every save (issue 21).
-        Each model is its state when its step ran, the filter the last step's."""
-        arrays = {}
+    def to_npz(self) -> Npz:
+        *_, npz = self.to_npz_steps()
+        assert npz is not None
+        return npz
+
+    def to_npz_steps(self) -> Iterator[Npz | None]:
+        """The state's arrays in steps, None after each model, the whole last: a caller on
+        the loops' thread lets them tick in between. Each step copies one model's arrays
+        (:meth:`LWPR.to_npz`, a memcpy); the npz files are made by whoever builds the
+        result (the store process): made here, they took 4-14 ms of the loops' thread a
+        save (issue 21). Each model is its state when its step ran, the filter the last
+        step's."""
+        arrays: dict[str, Any] = {}
         for i, m in enumerate(self.models):
-            arrays[f"model_{i}"] = np.frombuffer(m.to_bytes(), dtype=np.uint8)
+            arrays[f"model_{i}"] = m.to_npz()
             yield None
-        yield _pack("lwpr", self.nx, self.n_z, {"filter": self.filter.state, **arrays})
+        yield _npz("lwpr", self.nx, self.n_z, {"filter": self.filter.state, **arrays})
 
     def load_bytes(self, data: bytes) -> None:
         arrays = _unpack(data, "lwpr", self.nx, self.n_z)
@@ -584,7 +594,10 @@ class KalmanPerturbation:
         self.filter.reset()
 
     def to_bytes(self) -> bytes:
-        return _pack(
+        return self.to_npz().build()
+
+    def to_npz(self) -> Npz:
+        return _npz(
             "kf", self.nx, self.n_z, {"x": self.kf.x, "P": self.kf.P, "filter": self.filter.state}
         )
 

@@ -32,7 +32,7 @@ import logging
 import threading
 import time
 from collections import Counter, OrderedDict, deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -83,6 +83,13 @@ class FleetLibrary(Protocol):
     def received(self) -> list[tuple[LibraryEntry, tuple[ActiveSet, ...]]]:
         """Received controllers not in the library, each with its successors (kept on
         disk by a vehicle that restarts)."""
+        ...
+
+    def received_parts(
+        self, per_part: int
+    ) -> Iterator[list[tuple[LibraryEntry, tuple[ActiveSet, ...]]]]:
+        """:meth:`received` in parts of at most ``per_part`` (a saver on the loops' thread
+        lets them tick in between)."""
         ...
 
 

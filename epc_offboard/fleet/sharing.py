@@ -42,12 +42,13 @@ import multiprocessing
 import os
 import time
 from collections import Counter, deque
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from epc_offboard.common.blobs import ReceivedText, received_record
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordReader
 from epc_offboard.common.children import Backoff
 from epc_offboard.common.logsetup import LogConfig
@@ -86,7 +87,7 @@ _MAX_OUTBOX_BYTES = 4 << 20  # frames to the helper waiting in this process, at 
 _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is restarted
 _REFERENCES_PER_READ = 4  # the newest of these is kept
 _HIGH_WATER_BYTES = 1 << 20  # session.HighWater's saved tables (a larger one is not kept)
-_FORMATS_PER_SLICE = 64  # received controllers fleet_state's preparation formats at a time
+_RECORDS_PER_STEP = 64  # received controllers a step of fleet_state_steps takes
 _FRAME_ENTRIES = 512  # controllers in one publish frame: far below the outbox's bound
 _MARKS, _CANDIDATES, _OWN = "marks", "candidates:", "own"  # fleet_state's names
 
@@ -236,8 +237,8 @@ class FleetSharing:
         # ... read this turn, not offered yet (offer_slice)
         self._to_offer: Records = np.zeros(0, dtype=self.candidate_dtype)
         self._marks: list[list[Any]] = []  # [signature, peer, epoch, number]: fleet_state's
-        # per problem: each received controller's JSON text by the entry's id (fleet_state)
-        self._received_text: dict[int, dict[int, tuple[LibraryEntry, str]]] = {}
+        # per problem: each received controller's record by the entry's id (fleet_state)
+        self._received_records: dict[int, dict[int, tuple[LibraryEntry, bytes]]] = {}
         self._marks_text: tuple[object, str] = (None, "")  # (the marks, their JSON)
         self._settled_seen: tuple[bytes, dict[str, Any]] = (b"", {})  # (its text, parsed)
         # fleet_state's: this vehicle's numbering of its library (HighWater's ``own``), as
@@ -483,74 +484,56 @@ class FleetSharing:
 
     def fleet_state(self) -> dict[str, str]:
         """What a vehicle restarted as a new process needs to ask the fleet only for what is
-        new, as texts the library store keeps beside the library (on this task's thread, as
-        the library's snapshot): per problem, every received controller not in the library
-        (yet) with its successors; and the high-water marks up to which they are held
-        (``session.HighWater``). The marks are the helper's settled ones, taken only once
-        this process has read every controller they cover (one still in the helper's inbox
-        or pipe would otherwise be lost by a kill), else the last such. And this vehicle's
-        own numbering of its library, so that after a restart its peers are answered only
-        what they lack of it (``HighWater.former``). {} when not sharing a library."""
+        new, as texts the library store keeps beside the library: :meth:`fleet_state_steps`
+        taken at once, its texts built here (a shutdown's save, tests)."""
+        *_, state = self.fleet_state_steps()
+        assert state is not None
+        return {k: v if isinstance(v, str) else v.build() for k, v in state.items()}
+
+    def fleet_state_steps(
+        self, per_step: int = _RECORDS_PER_STEP
+    ) -> Iterator[dict[str, str | ReceivedText] | None]:
+        """:meth:`fleet_state` in steps on the loops' thread (None between them, the state
+        last), each at most ``per_step`` received controllers: per problem, every received
+        controller not in the library (yet) with its successors, as packed records
+        (:func:`~epc_offboard.common.blobs.received_record`, made once per controller and
+        kept while it is known) that the store process formats (``ReceivedText``: 2,048 of
+        them as text took 8-10 ms of the loops' thread a save, issue 21); and the
+        high-water marks up to which they are held (``session.HighWater``). The marks are
+        the helper's settled ones, taken only once this process has read every controller
+        they cover (one still in the helper's inbox or pipe would otherwise be lost by a
+        kill), else the last such; they are taken first, the lists after them, each
+        origin's at once (``FleetPort.received_parts``). And this vehicle's own numbering
+        of its library, so that after a restart its peers are answered only what they lack
+        of it (``HighWater.former``). {} when not sharing a library."""
         if not self.share_library:
-            return {}
+            yield {}
+            return
         self._settle_marks()
-        out = {}
+        out: dict[str, str | ReceivedText] = {}
         for i, (spec, (_name, library)) in enumerate(zip(self.specs, self._libraries,
                                                          strict=True)):  # fmt: skip
-            out[_CANDIDATES + spec.signature] = self._received_json(i, library.received())
+            before = self._received_records.get(i, {})
+            kept: dict[int, tuple[LibraryEntry, bytes]] = {}
+            parts: list[bytes] = []
+            for received in library.received_parts(per_step):
+                yield None
+                for e, succ in received:
+                    held = before.get(id(e))  # an id is not reused while its entry is kept
+                    if held is None or held[0] is not e:
+                        held = (e, received_record(e.active_set, e.origin, e.importance,
+                                                   e.uses, succ))  # fmt: skip
+                    kept[id(e)] = held
+                    parts.append(held[1])
+            self._received_records[i] = kept
+            out[_CANDIDATES + spec.signature] = ReceivedText(b"".join(parts))
         if self._marks_text[0] is not self._marks:
             self._marks_text = (self._marks, json.dumps({"held": self._marks},
                                                         separators=(",", ":")))  # fmt: skip
         out[_MARKS] = self._marks_text[1]
         if self._own:
             out[_OWN] = self._own
-        return out
-
-    def _received_json(
-        self, i: int, received: list[tuple[LibraryEntry, tuple[tuple[int, ...], ...]]]
-    ) -> str:
-        """``received`` as JSON, each controller formatted once: the list (up to the
-        backlog's 2,048) is rewritten every save, on the loops' thread, and formatting it
-        whole took 20-30 ms there (a position-loop gap every 5 s under a fleet's traffic).
-        Each entry is the same object while it stays known (``CandidatePool.known``), so its
-        text is found by identity (the entry kept beside it: an id is never reused while
-        the entry is alive)."""
-        texts, _left = self._format_received(i, received, len(received))
-        return "[" + ",".join([text for _e, text in texts.values()]) + "]"
-
-    def _format_received(
-        self, i: int, received: list[tuple[LibraryEntry, tuple[tuple[int, ...], ...]]],
-        budget: int,
-    ) -> tuple[dict[int, tuple[LibraryEntry, str]], int]:
-        """Problem ``i``'s texts of ``received``, at most ``budget`` of them formatted now
-        (the rest left out, for a later call); and the budget left."""
-        before = self._received_text.get(i, {})
-        texts: dict[int, tuple[LibraryEntry, str]] = {}
-        for e, succ in received:
-            held = before.get(id(e))
-            if held is None or held[0] is not e:
-                if budget <= 0:
-                    continue
-                budget -= 1
-                held = (e, json.dumps([list(e.active_set), e.origin, e.importance, e.uses,
-                                       [list(a) for a in succ]], separators=(",", ":")))
-            texts[id(e)] = held
-        self._received_text[i] = texts
-        return texts, budget
-
-    def prepare_fleet_state(self, budget: int = _FORMATS_PER_SLICE) -> bool:
-        """Format up to ``budget`` received controllers for the next :meth:`fleet_state`;
-        whether none is left. A saver calls it until it is, letting the loops tick in
-        between: beside a fleet's traffic 800 arrive between two saves, 5-10 ms of
-        formatting that, in one stretch, delayed the loops' ticks every 5 s."""
-        if not self.share_library:
-            return True
-        for i, (_name, library) in enumerate(self._libraries):
-            received = library.received()
-            texts, budget = self._format_received(i, received, budget)
-            if len(texts) < len(received):
-                return False
-        return True
+        yield out
 
     def _settle_marks(self) -> None:
         helper = self._helper

@@ -2,9 +2,12 @@
 saved every ``store.save_period_s`` by the store process, and once more at shutdown.
 
 The library is not thread-safe: the snapshot is taken on the loop's thread
-(:func:`~epc_offboard.store.experience.snapshot`) and handed, pickled, to a process of its
-own (``epc-store``, nice +10) that writes it to SQLite; the loops never wait on the disk nor
-share their interpreter lock with the write. The hand-over never blocks: a store that falls
+(:func:`~epc_offboard.store.experience.snapshot`), in slices of well under a millisecond
+that copy (the estimator's arrays, the fleet's received controllers as packed records:
+:mod:`epc_offboard.common.blobs`), and handed, pickled, to a process of its own
+(``epc-store``, nice +10) that makes the npz files and texts and writes them to SQLite; the
+loops never wait on the disk nor share their interpreter lock with the formatting or the
+write. The hand-over never blocks: a store that falls
 behind refuses the snapshot (counted; the next one carries everything). A failing disk is
 logged and counted, never a reason to stop flying; a store process that dies is restarted.
 SQLite's transactions keep the kill-9 guarantee wherever the write runs: the store process
@@ -16,12 +19,14 @@ process cannot take it).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import multiprocessing
 import time
 from collections import Counter
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterator, Mapping
 from dataclasses import replace
+from functools import partial
 from typing import Any, NoReturn, TypeVar
 
 import numpy as np
@@ -31,7 +36,7 @@ from epc_offboard.common.children import Backoff, spawn_fed
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.cascade import Cascade
-from epc_offboard.control.library_types import LibrarySnapshot
+from epc_offboard.control.library_types import DeferredText, LibrarySnapshot
 from epc_offboard.service.config import StoreConfig
 from epc_offboard.store import experience
 from epc_offboard.store.database import LibraryStore
@@ -44,14 +49,16 @@ log = logging.getLogger("epc_offboard.service")
 _MAX_PENDING_BYTES = 64 << 20  # snapshots waiting for the store process, at most
 _CLOSE_TIMEOUT_S = 30.0
 _T = TypeVar("_T")
-_MAX_PREPARE_SLICES = 64  # the fleet state's slices before a save (a backlog: 32)
+_FLUSH_PERIOD_S = 0.2  # the pipe to the store process written this often between saves
+FleetState = Mapping[str, str | DeferredText]
 
 
 class LibraryKeeper:
     """``published``: whether the fleet publishes new controllers (it then takes them from
-    the controllers' queues); when nobody does, the queues are emptied here. ``fleet_state``:
-    the fleet's state to keep beside the library (``FleetSharing.fleet_state``), saved in
-    the same snapshot; what the file held at :meth:`open` is :attr:`fleet_saved`."""
+    the controllers' queues); when nobody does, the queues are emptied here.
+    ``fleet_steps``: the fleet's state to keep beside the library, taken in steps
+    (``FleetSharing.fleet_state_steps``: None between them, the state last), saved in the
+    same snapshot; what the file held at :meth:`open` is :attr:`fleet_saved`."""
 
     def __init__(
         self,
@@ -60,21 +67,19 @@ class LibraryKeeper:
         counters: Counter[str],
         published: Callable[[], bool],
         log_cfg: LogConfig | None = None,
-        fleet_state: Callable[[], Mapping[str, str]] | None = None,
-        prepare_fleet: Callable[[], bool] | None = None,
+        fleet_steps: Callable[[], Iterator[FleetState | None]] | None = None,
         room: Callable[[], Awaitable[None]] | None = None,
     ) -> None:
         self.cfg = cfg
         self.cascade = cascade
         self.counters = counters
         self._published = published
-        self._fleet_state = fleet_state
-        # a slice of the fleet state's work before it is taken (whether it is all done)
-        self._prepare_fleet = prepare_fleet
+        self._fleet_steps = fleet_steps
         # waits until a slice of the save fits between two ticks (``Loops.room``)
         self._room = room or (lambda: asyncio.sleep(0))
         self.slices = 0  # slices of saves run on the loops' thread
         self.slice_max_s = 0.0  # ... the longest
+        self.slice_max_stage = ""  # ... what it did ("fleet", "model", "library", "hand-over")
         self.fleet_saved: dict[str, str] = {}
         self._log_cfg = log_cfg or LogConfig()
         self._ctx = multiprocessing.get_context("spawn")
@@ -109,7 +114,7 @@ class LibraryKeeper:
     async def run(self) -> NoReturn:
         """The ``library-saver`` task."""
         while True:
-            await asyncio.sleep(self.cfg.save_period_s)
+            await self._flushing(self.cfg.save_period_s)
             if not self._published():
                 # nobody publishes them: the store saves the whole library anyway
                 for _name, ctrl in self.cascade.experience_controllers():
@@ -126,26 +131,45 @@ class LibraryKeeper:
                 self.counters["store_snapshot_errors"] += 1
                 log.error("snapshotting the library failed: %s", exc)
                 continue
-            self._hand_over(snap)
+            await self._slice("hand-over", partial(self._hand_over, snap))  # pickled, written
+
+    async def _flushing(self, wait_s: float) -> None:
+        """Wait ``wait_s``, writing what the pipe takes of the snapshot waiting for the store
+        process every ``_FLUSH_PERIOD_S`` (one ``os.write`` of at most the pipe's 64 KiB):
+        flushed only at the next save, a snapshot larger than the pipe took several save
+        periods to cross, and the frames queued up (2.8 MB waiting at the end of a
+        ``bench --attack`` flight, all of it then written at shutdown)."""
+        deadline = time.monotonic() + wait_s
+        while (left := deadline - time.monotonic()) > 0:
+            await asyncio.sleep(min(left, _FLUSH_PERIOD_S))
+            outbox = self._outbox
+            if outbox is not None and outbox.pending_bytes:
+                with contextlib.suppress(ChannelClosedError):  # the next hand-over sees it
+                    outbox.flush()
 
     async def _sliced_snapshot(self) -> LibrarySnapshot:
         """The snapshot, taken in slices that each start when the next tick is at least
         ``Loops.room``'s room away (the whole took the loops' thread for one stretch, 5-30 ms
         beside a fleet: position gaps and late attitude ticks every 5 s, issue 21; slices
-        separated by ``sleep(0)`` alone ran back to back whenever no tick was due)."""
-        for _slice in range(_MAX_PREPARE_SLICES):  # what is left: in fleet_state
-            if self._prepare_fleet is None or await self._slice(self._prepare_fleet):
-                break
-        fleet = await self._slice(self._fleet_part)
+        separated by ``sleep(0)`` alone ran back to back whenever no tick was due). Each
+        slice copies and the store process formats: the fleet's received controllers a
+        bounded number a slice (``FleetSharing.fleet_state_steps``), the estimator a model a
+        slice (``to_npz_steps``), then the library's entries."""
+        fleet_steps = self._fleet_steps() if self._fleet_steps is not None else iter([{}])
+        fleet = None
+        while fleet is None:
+            fleet = await self._slice("fleet", lambda: next(fleet_steps))
         steps = experience.estimator_model_steps(self.cascade)  # a slice a model: LWPR's
         models = None  # three took 4-9 ms at once, a late attitude tick every save
         while models is None:
-            models = await self._slice(lambda: next(steps))
-        snap = await self._slice(lambda: self._snapshot(fleet, models))
-        await self._room()  # the hand-over pickles and writes the frame
-        return snap
+            models = await self._slice("model", lambda: next(steps))
+        parts = experience.snapshot_steps(self.cascade, models)  # a slice a loop's library
+        snap = None
+        while snap is None:
+            snap = await self._slice("library", lambda: next(parts))
+        return replace(snap, fleet=fleet) if fleet else snap
 
-    async def _slice(self, step: Callable[[], _T]) -> _T:
+    async def _slice(self, stage: str, step: Callable[[], _T]) -> _T:
         """``step`` run once there is room for it between two ticks; timed and counted."""
         await self._room()
         t0 = time.perf_counter()
@@ -153,21 +177,24 @@ class LibraryKeeper:
             return step()
         finally:
             self.slices += 1
-            self.slice_max_s = max(self.slice_max_s, time.perf_counter() - t0)
+            took = time.perf_counter() - t0
+            if took > self.slice_max_s:
+                self.slice_max_s, self.slice_max_stage = took, stage
 
-    def _fleet_part(self) -> dict[str, str]:
-        return dict(self._fleet_state()) if self._fleet_state is not None else {}
+    def _fleet_part(self) -> dict[str, str | DeferredText]:
+        """The fleet's state at once (a shutdown's save)."""
+        if self._fleet_steps is None:
+            return {}
+        *_, state = self._fleet_steps()
+        return dict(state) if state is not None else {}
 
-    def _snapshot(
-        self, fleet: dict[str, str] | None = None, models: dict[str, bytes] | None = None
-    ) -> LibrarySnapshot:
-        """The library and the fleet's state (``fleet``: taken before, else now), on the
-        loops' thread. The fleet's first: a received controller promoted into the library
-        in between is then in both (offered again after a restart, known), never in
-        neither (lost)."""
-        if fleet is None:
-            fleet = self._fleet_part()
-        snap = experience.snapshot(self.cascade, models)
+    def _snapshot(self) -> LibrarySnapshot:
+        """The library and the fleet's state at once, on the loops' thread (a shutdown's
+        save; :meth:`_sliced_snapshot` takes them in the same order). The fleet's first: a
+        received controller promoted into the library in between is then in both (offered
+        again after a restart, known), never in neither (lost)."""
+        fleet = self._fleet_part()
+        snap = experience.snapshot(self.cascade)
         return replace(snap, fleet=fleet) if fleet else snap
 
     def _hand_over(self, snap: LibrarySnapshot) -> bool:
@@ -217,6 +244,8 @@ class LibraryKeeper:
             return
         saved = False
         deadline = time.monotonic() + _CLOSE_TIMEOUT_S
+        if self._outbox is not None:  # this snapshot carries everything the queued ones do
+            self.counters["store_snapshots_dropped"] += self._outbox.drop_pending()
         if self._hand_over(snap):
             try:
                 while self._outbox is not None and self._outbox.pending_bytes:
@@ -256,4 +285,5 @@ class LibraryKeeper:
             dropped=self.counters["store_snapshots_dropped"],
             failures=self.counters["store_failures"], restarts=self.counters["store_restarts"],
             loop_slices=self.slices, loop_slice_max_ms=round(self.slice_max_s * 1e3, 3),
+            loop_slice_max_stage=self.slice_max_stage,
         )  # fmt: skip

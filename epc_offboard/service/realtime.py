@@ -241,20 +241,26 @@ class StepMonitor:
         self._original: Any = None
         self._current_t0 = 0.0
         # a diagnosis, not for flight: EPC_STEP_SAMPLE_MS=N samples the loops' thread's Python
-        # stack (a thread waking every ms) in each step running longer than N ms
+        # stack (a thread waking every ms) in each step running longer than N ms, from
+        # install() to uninstall() (real time only, one thread however many monitors exist)
         self.samples: deque[tuple[float, float, str]] = deque(maxlen=_LONG_STEPS_KEPT)
+        self._sampling: threading.Thread | None = None
+
+    def _start_sampler(self) -> None:
         sample_ms = float(os.environ.get("EPC_STEP_SAMPLE_MS", "0"))
-        if sample_ms > 0:
-            threading.Thread(target=self._sampler, args=(sample_ms * 1e-3,), name="step-sampler",
-                             daemon=True).start()  # fmt: skip
+        if sample_ms <= 0 or (self._sampling is not None and self._sampling.is_alive()):
+            return
+        self._sampling = threading.Thread(target=self._sampler, args=(sample_ms * 1e-3,),
+                                          name="step-sampler", daemon=True)  # fmt: skip
+        self._sampling.start()
 
     def _sampler(self, after_s: float) -> None:
-        """Every ms: the loops' thread's stack, in a step longer than ``after_s`` (the latest
-        sample of each step kept)."""
+        """Every ms while installed: the loops' thread's stack, in a step longer than
+        ``after_s`` (the latest sample of each step kept)."""
         import traceback
 
         main = threading.main_thread().ident
-        while True:
+        while self._original is not None:
             time.sleep(0.001)
             t0 = self._current_t0
             if not t0 or self._original is None or time.perf_counter() - t0 <= after_s:
@@ -287,6 +293,7 @@ class StepMonitor:
                 self._long(h, t0, dt)
 
         handle._run = timed_run  # type: ignore[method-assign,assignment]
+        self._start_sampler()
 
     def uninstall(self) -> None:
         if self._original is not None:

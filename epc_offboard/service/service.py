@@ -170,8 +170,8 @@ class Service:
             cfg.store, self.cascade, self.counters,
             published=lambda: self.sharing is not None and self.sharing.share_library,
             log_cfg=cfg.log,
-            fleet_state=lambda: self.sharing.fleet_state() if self.sharing is not None else {},
-            prepare_fleet=lambda: self.sharing is None or self.sharing.prepare_fleet_state(),
+            fleet_steps=lambda: (self.sharing.fleet_state_steps() if self.sharing is not None
+                                 else iter([{}])),
             room=self.loops.room,
         )  # fmt: skip
 
@@ -302,14 +302,14 @@ class Service:
 
     async def _reload_from(self, config_path: str | Path) -> None:
         try:
-            new = await asyncio.get_running_loop().run_in_executor(
-                self._reload_pool, load_service_config, config_path)  # fmt: skip
+            new, merged = await asyncio.get_running_loop().run_in_executor(
+                self._reload_pool, _reloaded, self.cfg, config_path)  # fmt: skip
         except ConfigError as exc:
             log.error("SIGHUP: config not reloaded: %s", exc)
             return
-        self.cfg = replace(
-            self.cfg, trajectory=new.trajectory, mission=new.mission, offboard=new.offboard
-        )
+        # merged onto the config before any reload that was applied meanwhile: the same
+        # config (a reload is all that changes self.cfg, and it replaces what new replaces)
+        self.cfg = merged
         self.autopilot.cfg = self.cfg
         self.supervisor.reconfigure(self.cfg)
         self.references.reload(new.trajectory, self.clock.now_s())
@@ -509,3 +509,16 @@ def run_service_command(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"epc-offboard: {exc}", file=sys.stderr)
         return 1
+
+
+def _merged(base: ServiceConfig, new: ServiceConfig) -> ServiceConfig:
+    """``base`` with ``new``'s trajectory, mission and offboard settings (what SIGHUP
+    reloads). The copy validates the whole config again, the vehicle file read and parsed
+    among it: 5-30 ms, so it is made in the reader's thread (:func:`_reloaded`)."""
+    return replace(base, trajectory=new.trajectory, mission=new.mission, offboard=new.offboard)
+
+
+def _reloaded(base: ServiceConfig, config_path: str | Path) -> tuple[ServiceConfig, ServiceConfig]:
+    """SIGHUP's work off the loops' thread: the file read and validated, and merged."""
+    new = load_service_config(config_path)
+    return new, _merged(base, new)

@@ -31,10 +31,13 @@ from pathlib import Path
 from epc_offboard.common.errors import EpcError
 from epc_offboard.control.library_types import (
     ActiveSet,
+    DeferredBlob,
+    DeferredText,
     LibraryEntry,
     LibrarySnapshot,
     SignatureSnapshot,
     Transition,
+    blob_bytes,
     parse_active_set,
 )
 
@@ -241,7 +244,9 @@ class LibraryStore:
 
     # -- models ------------------------------------------------------------------------
 
-    def save_model(self, name: str, signature: str, blob: bytes) -> None:
+    def save_model(self, name: str, signature: str, blob: bytes | DeferredBlob) -> None:
+        """``blob``, or what builds it (built here, before the transaction)."""
+        blob = blob_bytes(blob)
         with self._lock, self._conn:
             self._conn.execute(_UPSERT_MODEL, (name, signature, sqlite3.Binary(blob), time.time()))
 
@@ -292,9 +297,11 @@ class LibraryStore:
         if snapshot.fleet:  # after the controllers: it never names one the file lacks
             self.save_fleet_state(snapshot.fleet)
 
-    def save_fleet_state(self, texts: Mapping[str, str]) -> None:
+    def save_fleet_state(self, texts: Mapping[str, str | DeferredText]) -> None:
         """Replace the fleet's state (:attr:`LibrarySnapshot.fleet`) in one transaction: a
-        kill leaves the old one or the new one whole."""
+        kill leaves the old one or the new one whole. A text given as what builds it is
+        built first, outside the transaction."""
+        texts = {k: v if isinstance(v, str) else v.build() for k, v in texts.items()}
         with self._lock, self._conn:
             self._conn.execute("DELETE FROM meta WHERE substr(key, 1, ?) = ?",
                                (len(_FLEET_KEY), _FLEET_KEY))  # fmt: skip
@@ -359,7 +366,8 @@ class LibraryStore:
                 if models:
                     for name, blob in part.models.items():
                         new["models"] += 1
-                        self._conn.execute(_UPSERT_MODEL, (name, sig, sqlite3.Binary(blob), now))
+                        self._conn.execute(_UPSERT_MODEL,
+                                           (name, sig, sqlite3.Binary(blob_bytes(blob)), now))
         return new
 
     # -- which loop a signature belongs to ----------------------------------------------

@@ -11,11 +11,16 @@ signature (also with a PD or MPC position controller, which keep no library).
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import replace
 
 from epc_offboard.control.cascade import Cascade
-from epc_offboard.control.library_types import LibrarySnapshot, SignatureSnapshot, Transition
+from epc_offboard.control.library_types import (
+    DeferredBlob,
+    LibrarySnapshot,
+    SignatureSnapshot,
+    Transition,
+)
 from epc_offboard.store.database import LibraryStore
 
 log = logging.getLogger(__name__)
@@ -25,26 +30,28 @@ def _estimator_key(cascade: Cascade) -> str:
     return f"estimator.{cascade.position.estimator_cfg.kind}"
 
 
-def estimator_models(cascade: Cascade) -> dict[str, bytes]:
-    """The estimator's learned model, serialised now (the part of :func:`snapshot` that costs
-    most: 2-3 ms, taken on its own by a saver that lets the loops tick in between)."""
-    return {_estimator_key(cascade): cascade.position.estimator.to_bytes()}
+def estimator_models(cascade: Cascade) -> dict[str, DeferredBlob]:
+    """The estimator's learned model, copied now (its arrays: ``to_npz``); its bytes are
+    built where it is saved (:meth:`LibraryStore.save_snapshot`, in the store process)."""
+    return {_estimator_key(cascade): cascade.position.estimator.to_npz()}
 
 
-def estimator_model_steps(cascade: Cascade) -> Iterator[dict[str, bytes] | None]:
+def estimator_model_steps(cascade: Cascade) -> Iterator[dict[str, DeferredBlob] | None]:
     """:func:`estimator_models` in steps (None between them, the models last), for a saver
-    that lets the loops tick between steps: an estimator that serialises in parts
-    (``to_bytes_steps``: LWPR, a model a step) is taken a part at a time."""
+    that lets the loops tick between steps: an estimator that copies itself in parts
+    (``to_npz_steps``: LWPR, a model a step) is taken a part at a time."""
     estimator = cascade.position.estimator
-    steps = getattr(estimator, "to_bytes_steps", None)
+    steps = getattr(estimator, "to_npz_steps", None)
     if steps is None:
         yield estimator_models(cascade)
         return
-    for data in steps():
-        yield None if data is None else {_estimator_key(cascade): data}
+    for npz in steps():
+        yield None if npz is None else {_estimator_key(cascade): npz}
 
 
-def snapshot(cascade: Cascade, models: dict[str, bytes] | None = None) -> LibrarySnapshot:
+def snapshot(
+    cascade: Cascade, models: Mapping[str, bytes | DeferredBlob] | None = None
+) -> LibrarySnapshot:
     """Every controller (importance, uses, transitions) and the estimator (``models``: its
     :func:`estimator_models` taken before, else now), copied now.
 
@@ -52,6 +59,16 @@ def snapshot(cascade: Cascade, models: dict[str, bytes] | None = None) -> Librar
     can then be saved (:meth:`LibraryStore.save_snapshot`) from a worker thread while the
     loops fly on.
     """
+    *_, snap = snapshot_steps(cascade, models)
+    assert snap is not None
+    return snap
+
+
+def snapshot_steps(
+    cascade: Cascade, models: Mapping[str, bytes | DeferredBlob] | None = None
+) -> Iterator[LibrarySnapshot | None]:
+    """:func:`snapshot` in steps (None after each loop's library, the snapshot last), for a
+    saver that lets the loops tick in between."""
     parts: dict[str, SignatureSnapshot] = {}
     for _name, ctrl in cascade.experience_controllers():
         entries = ctrl.export_library()
@@ -62,12 +79,13 @@ def snapshot(cascade: Cascade, models: dict[str, bytes] | None = None) -> Librar
                 Transition(sets[a], sets[b], n) for (a, b), n in ctrl.export_transitions().items()
             ),
         )
+        yield None
     pos_sig = cascade.position.problem.signature()
     parts[pos_sig] = replace(
         parts.get(pos_sig, SignatureSnapshot()),
         models=models if models is not None else estimator_models(cascade),
     )
-    return LibrarySnapshot(parts)
+    yield LibrarySnapshot(parts)
 
 
 def loop_names(cascade: Cascade) -> dict[str, str]:

@@ -43,6 +43,7 @@ from epc_offboard.control.library_types import (
     LibrarySnapshot,
     SignatureSnapshot,
     Transition,
+    blob_bytes,
     parse_active_set,
     parse_entry,
 )
@@ -93,7 +94,8 @@ def snapshot_to_json(snapshot: LibrarySnapshot, source: str) -> dict[str, Any]:
                     {"from": list(t.from_set), "to": list(t.to_set), "count": t.count}
                     for t in part.transitions
                 ],
-                "models": {n: base64.b64encode(b).decode("ascii") for n, b in part.models.items()},
+                "models": {n: base64.b64encode(blob_bytes(b)).decode("ascii")
+                           for n, b in part.models.items()},
             }
             for sig, part in snapshot.signatures.items()
         },

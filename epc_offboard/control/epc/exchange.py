@@ -19,7 +19,7 @@ fleet's candidates. None of it runs on the hot path but the candidates' check at
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Literal
 
 import numpy as np
@@ -374,3 +374,9 @@ class FleetPort:
     def received(self) -> list[tuple[LibraryEntry, tuple[ActiveSet, ...]]]:
         """Received controllers not in the library (yet), with their successors."""
         return self._ctrl.candidates.known()
+
+    def received_parts(
+        self, per_part: int
+    ) -> Iterator[list[tuple[LibraryEntry, tuple[ActiveSet, ...]]]]:
+        """:meth:`received` in parts of at most ``per_part``."""
+        return self._ctrl.candidates.known_parts(per_part)
