@@ -231,6 +231,8 @@ async def run(args: argparse.Namespace) -> Counters:
             answer_due_ms=lambda: endpoint.newest_state_stamp_ms,
             announce=endpoint.announce,
         )
+        sim.since_tick_us = clock.since_tick_us
+        sim.setpoints_between_ticks = not args.lockstep
         await clock.run(tick, stop, args.duration)
     counters.lockstep_timeouts = gate.timeouts
     counters.offboard_failsafes = sim.autopilot.failsafe_count
