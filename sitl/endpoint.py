@@ -86,6 +86,7 @@ class Counters:
     lockstep_timeouts: int = 0
     offboard_failsafes: int = 0
     rtl_entered: int = 0  # ArduCopter personality: RTLs selected (PX4's offboard is RTL there)
+    realtime_priority_refused: int = 0  # --realtime-priority: SCHED_FIFO not permitted
 
     def summary(self) -> str:
         return " ".join(f"{f.name}={getattr(self, f.name)}" for f in fields(self))

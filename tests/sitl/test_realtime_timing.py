@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import os
 import statistics
 import time
 
@@ -16,7 +17,13 @@ from sitl.autopilot import OFFBOARD, AttitudeSetpoint
 from sitl.lockstep import Clock, LockstepGate
 from sitl.params import load_sim_config
 from sitl.simulation import Simulation
-from tests.sitl.mavclient import MavClient, start_sitl, state_stamp_ms, stop_sitl
+from tests.sitl.mavclient import (
+    MavClient,
+    counters_from,
+    start_sitl,
+    state_stamp_ms,
+    stop_sitl,
+)
 from tests.sitl.test_endpoint import PEER, Peer, make
 
 PERIOD_S = 0.005
@@ -139,36 +146,61 @@ def test_a_setpoint_reaches_the_rate_loop_at_the_physics_step_its_delay_ends_in(
 
 
 def test_the_sitl_answers_timesync_with_the_time_now_in_real_time():
-    """A real-time SITL process: its TIMESYNC answers lie within 1 ms (the median of 20) of
-    the vehicle time its state messages tell, the least delayed of them mapping the wall
-    clock (it answered with its last tick's time, a tick ahead of its state: 2.5 ms median)."""
+    """A real-time SITL process answers TIMESYNC with the time now, not its last tick's (a
+    multiple of the 5 ms tick, every one): within a tick (median of 20) of the vehicle time
+    its state messages tell about then, the least delayed of those received within 30 ms
+    either side mapping the wall clock. (That mapping carries the link's delay, 1-2 ms at
+    load 12; the in-process tests above hold the time to the microsecond.)"""
     client = MavClient()
     proc = start_sitl(client)
     try:
-        offsets: list[float] = []  # wall clock - vehicle time, per state datagram
 
-        def listen(duration_s: float) -> None:
+        def offsets(duration_s: float) -> list[float]:
+            """wall clock - vehicle time, per state datagram received"""
+            out = []
             end = time.monotonic() + duration_s
             while time.monotonic() < end:
                 msgs = client.poll(end - time.monotonic())
                 wall = time.monotonic()
                 stamps = [s for s in map(state_stamp_ms, msgs) if s is not None]
                 if stamps:
-                    offsets.append(wall - max(stamps) / 1000.0)
+                    out.append(wall - max(stamps) / 1000.0)
+            return out
 
-        listen(1.0)
+        offsets(0.5)
         errors_ms: list[float] = []
+        on_tick = 0  # answers on a tick's time
         for k in range(20):
+            around = offsets(0.03 + 0.0011 * k)  # at another phase of the tick each time
             sent = time.monotonic()
             client.send(client.mav.timesync_encode(0, k + 1))
             answer = client.wait("TIMESYNC", lambda m, k=k: m.ts1 == k + 1, timeout_s=3)
             got = time.monotonic()
-            listen(0.05 + 0.0037 * k)  # at another phase of the tick each time
-            offset = min(offsets)  # the least delayed state: wall = vehicle time + this
-            vehicle_mid_s = (sent + got) / 2.0 - offset
+            around += offsets(0.03)
+            vehicle_mid_s = (sent + got) / 2.0 - min(around)
             errors_ms.append((answer.tc1 / 1e9 - vehicle_mid_s) * 1000.0)
+            on_tick += answer.tc1 % 5_000_000 == 0
     finally:
         rc, _ = stop_sitl(proc)
         client.close()
     assert rc == 0
-    assert abs(statistics.median(errors_ms)) <= 1.0, errors_ms
+    assert on_tick <= 5, errors_ms
+    assert abs(statistics.median(errors_ms)) <= 2.5, errors_ms
+
+
+def test_the_sitl_runs_sched_fifo_where_permitted_and_counts_a_refusal():
+    """``epc-sitl --realtime-priority P`` (what ``sim --realtime`` passes by default): the
+    process runs SCHED_FIFO at P where permitted; a refusal is counted and it runs on."""
+    client = MavClient()
+    proc = start_sitl(client, "--realtime-priority", "1")  # the lowest: competes with none
+    try:
+        client.wait("HEARTBEAT", timeout_s=10)
+        policy = os.sched_getscheduler(proc.pid)
+    finally:
+        rc, err = stop_sitl(proc)
+        client.close()
+    assert rc == 0
+    refused = counters_from(err)["realtime_priority_refused"]
+    assert (policy, refused) in ((os.SCHED_FIFO, 0), (os.SCHED_OTHER, 1))
+    if os.geteuid() == 0:  # permitted here: it took
+        assert policy == os.SCHED_FIFO

@@ -60,6 +60,7 @@ _SITL_WARNINGS = {
     "handler_errors": "SITL message handler errors",
     "nan_setpoints": "non-finite setpoints received by the SITL",
     "rtl_entered": "SITL RTLs entered",
+    "realtime_priority_refused": "SITL real-time priority refused (normal scheduling)",
 }
 
 # -- reading what a flight left behind ----------------------------------------------------------
