@@ -47,6 +47,7 @@ _SERVICE_WARNINGS = {
     "offboard_refused": "offboard requests refused (ArduPilot GUID_OPTIONS)",
     "heartbeats_other_autopilot": "heartbeats of another autopilot than link.autopilot",
     "realtime_priority_refused": "loops' real-time priority refused (normal scheduling)",
+    "unready_entries": "offboard entered before the controller was ready (miss worker)",
 }
 # the state tracker's (stats.json "state"): what it would not believe
 _STATE_WARNINGS = {
