@@ -171,9 +171,11 @@ def _add_sim(sub: _Subparsers) -> None:
         "shares with --vehicles 1 too",
     )
     sim.add_argument(
-        "--realtime-priority", type=int, default=0, metavar="P",
+        "--realtime-priority", type=int, default=None, metavar="P",
         help="each service's loops (loops.realtime_priority) and each SITL SCHED_FIFO at P "
-        "(1..99; needs CAP_SYS_NICE), as an autopilot on hardware of its own; 0: as configured",
+        "(1..99; needs CAP_SYS_NICE: a refusal is said in the report and the flight goes on), "
+        "as an autopilot on hardware of its own; 0: off. Default: with --realtime the "
+        "configured loops.realtime_priority (config/default.toml: 50), in lockstep off",
     )  # fmt: skip
     sim.add_argument(
         "--stagger",

@@ -149,6 +149,8 @@ class ArduCopter(Autopilot):
     sends_odometry = False
     # ArduCopter sends a HEARTBEAT at once on every mode change, besides its 1 Hz ones
     heartbeat_on_mode_change = True
+    # its input shaping steps with the main loop: a setpoint waits for the next tick
+    setpoints_between_ticks = False
 
     def __init__(
         self, vehicle: VehicleParams, params: AutopilotParams, ardupilot: ArduPilotParams

@@ -172,6 +172,9 @@ class Autopilot:
     streams_by_default = True  # PX4 streams its onboard link's messages unasked
     sends_odometry = True
     heartbeat_on_mode_change = False  # PX4's mode shows in its next 1 Hz heartbeat
+    # real time: a setpoint reaches the rate loop at the physics step its delay ends in
+    # (:meth:`apply_due_setpoints`)
+    setpoints_between_ticks = True
     rtl_count = 0  # RTLs entered (PX4's RTL is not modelled: always 0 here)
 
     def __init__(self, vehicle: VehicleParams, params: AutopilotParams) -> None:
@@ -359,6 +362,22 @@ class Autopilot:
         transit = self._in_transit
         while transit and transit[0][0] <= t_s + 1e-9:
             self._apply_setpoint(transit.popleft()[1])
+
+    def setpoints_due(self, t_s: float) -> bool:
+        """Whether a setpoint in transit reaches the controllers by vehicle time ``t_s``."""
+        transit = self._in_transit
+        return bool(transit) and transit[0][0] <= t_s + 1e-9
+
+    def apply_due_setpoints(self, x: FloatArray, t_s: float) -> None:
+        """Between two outer-loop updates (real time): the setpoints due by ``t_s`` reach
+        the controllers now, and an offboard attitude setpoint the rate loop's target, from
+        the state ``x`` (17,) of this physics step. PX4 flies a setpoint from the rate-loop
+        cycle after its delay (1 kHz), not from the next 200 Hz tick."""
+        self._deliver_setpoints(t_s)
+        if self.mode == OFFBOARD and self._att_sp is not None and self._target is not None:
+            sp = self._delayed_attitude(self._att_sp, t_s)
+            q_cmd, rate_cmd, thrust_norm = self._offboard_attitude(x, sp)
+            self._target = (rate_cmd, thrust_norm, q_cmd)
 
     def _apply_setpoint(self, sp: AttitudeSetpoint | PositionSetpoint) -> None:
         if isinstance(sp, AttitudeSetpoint):

@@ -86,6 +86,7 @@ class Counters:
     lockstep_timeouts: int = 0
     offboard_failsafes: int = 0
     rtl_entered: int = 0  # ArduCopter personality: RTLs selected (PX4's offboard is RTL there)
+    realtime_priority_refused: int = 0  # --realtime-priority: SCHED_FIFO not permitted
 
     def summary(self) -> str:
         return " ".join(f"{f.name}={getattr(self, f.name)}" for f in fields(self))
@@ -453,7 +454,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
                 rate_frd_rad_s=(wx, wy, wz),
                 thrust_norm=min(1.0, max(0.0, thrust)),
             )
-            self.sim.autopilot.on_attitude_setpoint(sp, self.sim.time_s)
+            self.sim.autopilot.on_attitude_setpoint(sp, self._arrival_s())
         self._answered(msg.time_boot_ms)
 
     def _answered(self, time_boot_ms: int) -> None:
@@ -480,13 +481,19 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             self.counters.nan_setpoints += 1
         else:
             self.sim.autopilot.on_position_setpoint(
-                PositionSetpoint(pos, vel, yaw, acc), self.sim.time_s
+                PositionSetpoint(pos, vel, yaw, acc), self._arrival_s()
             )
         self._answered(msg.time_boot_ms)
 
+    def _arrival_s(self) -> float:
+        """A setpoint's arrival, on the vehicle's clock: its tick's time in lockstep, the
+        time now in real time (between ticks), as a PX4 stamps what its link receives."""
+        return self.sim.now_us() / 1e6
+
     def _on_timesync(self, msg: Any, addr: Address) -> None:
+        # the time now (PX4 answers with its clock's, not with its last loop cycle's)
         if msg.tc1 == 0:
-            self.send(self.mav.timesync_encode(self.sim.time_us * 1000, msg.ts1), extra=addr)
+            self.send(self.mav.timesync_encode(self.sim.now_us() * 1000, msg.ts1), extra=addr)
 
     def _on_param_request(self, msg: Any, addr: Address) -> None:
         """PARAM_REQUEST_LIST sends all; READ and SET answer one (SET changes what the

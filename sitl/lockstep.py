@@ -23,6 +23,11 @@ and exits at the end of a flight), not a stall, and are not counted.
 
 A peer that sends commands along with its answer must send the answer last: datagrams are
 handled in arrival order, and the answer is what releases the tick.
+
+Real time (no lockstep, or a controller gone) imitates a PX4 on its own clock: a tick is run
+when its vehicle time has come on the wall clock (not a tick early: its state goes out when
+it was measured), and between two ticks the vehicle's time now (:meth:`Clock.since_tick_us`)
+runs on with the monotonic clock, for TIMESYNC and for stamping what arrives.
 """
 
 from __future__ import annotations
@@ -108,29 +113,49 @@ class Clock:
         self.speedup = speedup
         self._answer_due_ms = answer_due_ms
         self._announce = announce
+        self._period_us = round(period_s * 1e6)
+        # real time: the wall-clock (monotonic) time the newest tick's vehicle time was due
+        self._tick_wall_s: float | None = None
+
+    def since_tick_us(self) -> int:
+        """Vehicle time (us) since the newest tick's, by the wall clock: 0 in lockstep (the
+        vehicle's time is its tick's), in real time how far the wall clock has run past the
+        tick's due time, within the tick (so the vehicle's time never runs back at the next
+        tick, nor ahead of a tick not yet run)."""
+        if self._tick_wall_s is None or self.gate.waiting:
+            return 0
+        elapsed_us = int((time.monotonic() - self._tick_wall_s) * self.speedup * 1e6)
+        return min(max(elapsed_us, 0), self._period_us - 1)
 
     async def run(
         self, tick: Callable[[], None], stop: asyncio.Event, duration_s: float | None
     ) -> int:
-        """Returns the number of ticks run."""
+        """Returns the number of ticks run. In lockstep a tick runs, then waits for its
+        answer; in real time a tick waits for its due time on the wall clock, then runs."""
         ticks = 0
         anchor_wall = time.monotonic()
         anchor_ticks = 0
         max_ticks = None if duration_s is None else round(duration_s / self.period_s)
         while not stop.is_set() and (max_ticks is None or ticks < max_ticks):
+            if not self.gate.waiting:
+                target = anchor_wall + (ticks + 1 - anchor_ticks) * self.period_s / self.speedup
+                delay = target - time.monotonic()
+                if delay < -0.5:
+                    # Far behind (loaded machine, debugger): do not sprint to catch up.
+                    anchor_wall, anchor_ticks = time.monotonic(), ticks
+                    target = anchor_wall + self.period_s / self.speedup
+                    delay = self.period_s / self.speedup
+                await asyncio.sleep(max(0.0, delay))
+                if stop.is_set():
+                    break
+                self._tick_wall_s = target
             tick()
             ticks += 1
             if self.gate.waiting:
+                self._tick_wall_s = None
                 await self.gate.wait_for(self._answer_due_ms(), self._announce, stop)
                 # An answer stamped in the future releases ticks without waiting; still let
                 # the loop read datagrams and signals between ticks.
                 await asyncio.sleep(0)
                 anchor_wall, anchor_ticks = time.monotonic(), ticks
-                continue
-            target = anchor_wall + (ticks - anchor_ticks) * self.period_s / self.speedup
-            delay = target - time.monotonic()
-            if delay < -0.5:
-                # Far behind (loaded machine, debugger): do not sprint to catch up.
-                anchor_wall, anchor_ticks = time.monotonic(), ticks
-            await asyncio.sleep(max(0.0, delay))
         return ticks

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import os
 import signal
 import sys
 from pathlib import Path
@@ -88,6 +89,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="sitl.lockstep_timeout_s")  # fmt: skip
     arg("--duration", type=positive_number, metavar="S",
         help="exit after S seconds of vehicle time")  # fmt: skip
+    arg(
+        "--realtime-priority", type=bounded_int(0, 99), default=0, metavar="P",
+        help="run SCHED_FIFO at P (1..99, where permitted: a refusal is said and counted, "
+        "and it runs on), as an autopilot on hardware of its own; 0: normal scheduling",
+    )  # fmt: skip
     return ap
 
 
@@ -170,6 +176,17 @@ def _signing_key(path: Path | None) -> bytes | None:
     return key
 
 
+def _realtime(priority: int, counters: Counters) -> None:
+    """This process SCHED_FIFO at ``priority`` (threads started later inherit it); refused
+    (no CAP_SYS_NICE): said, counted (``realtime_priority_refused``), and the SITL runs on."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        counters.realtime_priority_refused += 1
+        print(f"epc-sitl: SCHED_FIFO {priority} refused ({exc}): normal scheduling",
+              file=sys.stderr, flush=True)  # fmt: skip
+
+
 async def run(args: argparse.Namespace) -> Counters:
     config = load_sim_config(args.config, _overrides(args))
     args.personality = config.sitl.autopilot
@@ -186,6 +203,8 @@ async def run(args: argparse.Namespace) -> Counters:
                 "personality lets you set"
             )
     counters = Counters()
+    if args.realtime_priority:
+        _realtime(args.realtime_priority, counters)
     gate = LockstepGate(
         args.lockstep, config.sitl.lockstep_timeout_s, config.sitl.lockstep_max_timeouts
     )
@@ -231,6 +250,8 @@ async def run(args: argparse.Namespace) -> Counters:
             answer_due_ms=lambda: endpoint.newest_state_stamp_ms,
             announce=endpoint.announce,
         )
+        sim.since_tick_us = clock.since_tick_us
+        sim.setpoints_between_ticks = not args.lockstep
         await clock.run(tick, stop, args.duration)
     counters.lockstep_timeouts = gate.timeouts
     counters.offboard_failsafes = sim.autopilot.failsafe_count

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +58,13 @@ class Simulation:
         # (12,) [pos, vel, attitude, rate] and the tick it was last advanced to
         self._error: FloatArray | None = None
         self._error_tick = -1
+        # real time: the vehicle's time between ticks (us past the newest tick's), which the
+        # runner's clock gives; lockstep: none, the vehicle's time is its tick's
+        self.since_tick_us: Callable[[], int] = lambda: 0
+        # real time: a setpoint whose delay ends between two ticks reaches the rate loop at
+        # that physics step (PX4's rate loop runs at 1 kHz on its own clock), not at the
+        # next tick; lockstep setpoints arrive on ticks and keep the tick's delivery
+        self.setpoints_between_ticks = False
 
     @property
     def time_s(self) -> float:
@@ -66,6 +74,11 @@ class Simulation:
     def time_us(self) -> int:
         """Vehicle time in whole microseconds (MAVLink time_usec): exact, no float drift."""
         return self.tick * round(self.config.sitl.lockstep_period_s * 1e6)
+
+    def now_us(self) -> int:
+        """The vehicle's time now (us): its tick's in lockstep; in real time run on by the
+        wall clock within the tick (TIMESYNC answers it, setpoints are stamped with it)."""
+        return self.time_us + self.since_tick_us()
 
     @property
     def time_ms(self) -> int:
@@ -87,7 +100,11 @@ class Simulation:
         x = self.state.tolist()
         x_before = x
         speeds = self.last_command.rotor_speed_rad_s.tolist()
-        for _ in range(self._steps):
+        between = self.setpoints_between_ticks and ap.setpoints_between_ticks
+        t0_s = self.time_s
+        for k in range(self._steps):
+            if between and k and ap.setpoints_due(t0_s + k * dt_s):
+                ap.apply_due_setpoints(np.array(x), t0_s + k * dt_s)
             speeds = ap.rotor_speeds(x[RATE], dt_s)
             env.advance(dt_s)
             ext = env.surface_force_ned_n(x[POS]).tolist()

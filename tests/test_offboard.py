@@ -536,13 +536,45 @@ def _airborne_px4(cfg: OffboardConfig = AUTO) -> OffboardStateMachine:
     return sm
 
 
-def _holding(sm, t, speed_m_s, vel_down_m_s=0.0, *, main=4, sub=3, heartbeat=None):
+def _holding(sm, t, speed_m_s, vel_down_m_s=0.0, *, main=4, sub=3, heartbeat=None, ready=True):
     """A step at the takeoff's height, moving horizontally at ``speed_m_s``."""
     return sm.step(
         Inputs(t, heartbeat or hb(t, armed=True, main=main, sub=sub), 0.01, pos_down_m=-2.5,
                relative_alt_m=2.5, amsl_m=HOME_AMSL_M + 2.5, vel_down_m_s=vel_down_m_s,
-               speed_horizontal_m_s=speed_m_s)
+               speed_horizontal_m_s=speed_m_s, controller_ready=ready)
     )  # fmt: skip
+
+
+def test_the_first_hand_over_waits_for_the_controller_to_be_ready():
+    """Issue 21: in real time the miss worker came up 7 s after offboard entry at load 16, and
+    every tick until then flew the intermediate controller (3 cm instead of 0.5). The first
+    offboard request waits for it (the vehicle settled meanwhile), streaming."""
+    sm = _airborne_px4()
+    _holding(sm, 1.0, 0.0, ready=False)
+    t = 1.5
+    while t < 6.0:
+        out = _holding(sm, t, 0.0, ready=False)
+        assert out.phase == Phase.STREAMING, t
+        assert "controller" in out.reason
+        assert out.stream_setpoints
+        t += 0.1
+    out = _holding(sm, t, 0.0, ready=True)
+    assert out.phase == Phase.OFFBOARD_REQUESTED
+    assert out.reason == f"requesting offboard (waited {t - 1.5:.1f} s for the controller)"
+    assert sm.unready_entries == 0
+
+
+def test_the_wait_for_the_controller_is_bounded_and_counted():
+    sm = _airborne_px4()
+    _holding(sm, 1.0, 0.0, ready=False)
+    t = 1.5
+    while t < 1.5 + AUTO.controller_ready_timeout_s - 0.01:
+        assert _holding(sm, t, 0.0, ready=False).phase == Phase.STREAMING, t
+        t += 0.25
+    out = _holding(sm, 1.5 + AUTO.controller_ready_timeout_s, 0.0, ready=False)
+    assert out.phase == Phase.OFFBOARD_REQUESTED
+    assert "controller not ready after 20.0 s" in out.reason, out.reason
+    assert sm.unready_entries == 1
 
 
 def test_offboard_is_requested_only_once_the_vehicle_has_settled():

@@ -141,7 +141,7 @@ class Service:
         self.systemd = Systemd(cfg.loops.watchdog_period_s)
         self.supervisor = Supervisor(
             cfg, self.clock, self.tracker, self.autopilot, self.systemd, self.counters,
-            self.loops.stopping, self._write_stats,
+            self.loops.stopping, self._write_stats, lambda: self._controller_ready,
         )  # fmt: skip
         self.references = ReferenceSelector(
             cfg.position, cfg.trajectory, cfg.trajectory_altitude_m, cfg.reference.timeout_s,
@@ -158,6 +158,8 @@ class Service:
         self._position_out: PositionOutput | None = None
         self._processes_at_exit: dict[str, Any] | None = None
         self._signatures_warm = 0  # compiled kernel signatures once warmed (0: numpy twins)
+        # the miss worker up (or failed to start): the flight's first hand-over waits for it
+        self._controller_ready = False
         self.sharing: FleetSharing | None = None
         live = cfg.reference.source == "zenoh"
         if cfg.sharing.enabled or live:
@@ -389,7 +391,7 @@ class Service:
             self._shutdown()
         return 0
 
-    def _miss_worker_up(self, t0: float) -> None:
+    def _miss_worker_up(self, t0: float) -> None:  # (sets _controller_ready)
         """Lockstep: wait for the miss worker's start (every run's first miss meets it up)."""
         self.misses.wait_ready()
         self._miss_worker_started(t0)
@@ -397,7 +399,10 @@ class Service:
     async def _miss_worker_polled(self, t0: float) -> None:
         """Real time: the link does not wait for the worker. Its imports (seconds on a loaded
         computer) overlap the arming and the takeoff, during which no miss is solved; its
-        misses wait for it (``MissSolver.pump``). Polled on the event loop: no thread."""
+        misses wait for it (``MissSolver.pump``), and so does the flight's first hand-over
+        (``offboard.controller_ready_timeout_s``): at load 16 it came up 7 s after entry and
+        every tick until then flew the intermediate controller. Polled on the event loop: no
+        thread."""
         try:
             up = self.misses.poll_ready()
             while not up:
@@ -406,11 +411,12 @@ class Service:
         except Exception as exc:  # the loops fly on: misses stay intermediate
             self.counters["miss_worker_start_failed"] += 1
             log.error("EPC miss worker: %s; misses stay with the intermediate controller", exc)
+            self._controller_ready = True  # nothing more to wait for
             return
         self._miss_worker_started(t0)
 
-    @staticmethod
-    def _miss_worker_started(t0: float) -> None:
+    def _miss_worker_started(self, t0: float) -> None:
+        self._controller_ready = True  # the first hand-over waited for it
         TIMELINE.mark("miss_worker_up")
         log.info("EPC miss worker up in %.2f s", time.perf_counter() - t0)
 

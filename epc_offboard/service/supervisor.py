@@ -58,6 +58,7 @@ class Supervisor:
         counters: Counter[str],
         stopping: asyncio.Event,
         write_stats: Callable[[], None],
+        controller_ready: Callable[[], bool] = lambda: True,
     ) -> None:
         self.cfg = cfg
         self.clock = clock
@@ -67,6 +68,7 @@ class Supervisor:
         self.counters = counters
         self._stopping = stopping
         self._write_stats = write_stats
+        self._controller_ready = controller_ready  # the first hand-over waits for it
         self.sm = OffboardStateMachine(cfg.offboard, land_at_end=cfg.mission.land_at_end)
         self.outputs = Outputs(Phase.WAIT_HEARTBEAT, False, (), "starting")
         # phase transitions on the loop clock, the newest _MAX_PHASE_EVENTS (a flapping link
@@ -120,11 +122,15 @@ class Supervisor:
                 mission_complete=mission_complete,
                 vel_down_m_s=None if vel is None else float(vel[2]),
                 speed_horizontal_m_s=None if vel is None else math.hypot(vel[0], vel[1]),
+                controller_ready=self._controller_ready(),
             )
         )
         if self.sm.unsettled_entries > self.counters["unsettled_entries"]:
             self.counters["unsettled_entries"] = self.sm.unsettled_entries
             log.warning("handing over before the vehicle settled: %s", out.reason)
+        if self.sm.unready_entries > self.counters["unready_entries"]:
+            self.counters["unready_entries"] = self.sm.unready_entries
+            log.warning("handing over before the controller was ready: %s", out.reason)
         for action in out.actions:
             autopilot.do_action(action, out.takeoff, state)
         changed = out.phase != self.outputs.phase

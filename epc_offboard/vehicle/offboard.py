@@ -124,11 +124,20 @@ class OffboardConfig:
     # m/s, still braking). A hold still moving after 5 s is being pushed by gusts it will
     # not stop either.
     settle_timeout_s: float = 5.0
+    # the flight's first hand-over also waits for the controller to be ready (the service's
+    # miss worker up: its start took 7-9 s at load 16 beside two CPU hogs, and until then
+    # every tick flew the intermediate controller: 3 cm instead of 0.5), at most this long
+    # after the hand-over first waited; then it goes, logged and counted. PX4 holds meanwhile.
+    controller_ready_timeout_s: float = 20.0
 
     def __post_init__(self) -> None:
         for name in ("heartbeat_timeout_s", "max_state_age_s", "retry_period_s"):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.controller_ready_timeout_s <= 600.0:
+            raise ValueError(
+                f"controller_ready_timeout_s must be 0..600, got {self.controller_ready_timeout_s}"
+            )
         for name in ("settled_vertical_speed_m_s", "settled_horizontal_speed_m_s"):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -164,6 +173,9 @@ class Inputs:
     mission_complete: bool = False  # the service's trajectory has run its duration
     vel_down_m_s: float | None = None  # NED down velocity of the newest state, if known
     speed_horizontal_m_s: float | None = None  # its horizontal speed (north, east), if known
+    # the service's controller is ready to fly (its miss worker up): the first hand-over
+    # waits for it (OffboardConfig.controller_ready_timeout_s)
+    controller_ready: bool = True
 
 
 @dataclass(frozen=True)
@@ -193,6 +205,8 @@ class _Flight:
     settled_since_s: float | None = None  # under both settle bounds since then (None: moving)
     settle_wait_since_s: float | None = None  # the hand-over first waited for settling then
     settle_timed_out: bool = False  # it waited settle_timeout_s and went (counted once)
+    ready_timed_out: bool = False  # it waited controller_ready_timeout_s and went (counted)
+    ready_waited: bool = False  # it waited for the controller (said with the hand-over)
 
 
 @dataclass
@@ -203,6 +217,7 @@ class OffboardStateMachine:
     takeoffs_sent: int = 0  # over the machine's life (diagnostics, tests)
     flights: int = 0  # flights that ended on the ground
     unsettled_entries: int = 0  # hand-overs made at settle_timeout_s, the vehicle still moving
+    unready_entries: int = 0  # hand-overs made at controller_ready_timeout_s, controller not up
     _phase_since_s: float = 0.0
     # Leaving a failsafe, offboard is confirmed only by a heartbeat received after: the 1 Hz
     # heartbeat that showed offboard may predate the autopilot's own setpoint-loss hold, and
@@ -500,26 +515,40 @@ class OffboardStateMachine:
     def _unsettled(self, inp: Inputs) -> str:
         """Why the flight's first hand-over must wait for the vehicle to settle ("" once it
         has been under both speed bounds for ``settled_for_s``, or after ``settle_timeout_s``
-        of waiting: then counted in ``unsettled_entries``). Later entries (after a failsafe,
-        a pilot) are not held: the vehicle is already flying our setpoints or the pilot's.
+        of waiting: then counted in ``unsettled_entries``), and for the controller to be ready
+        (``Inputs.controller_ready``; at most ``controller_ready_timeout_s``, then counted in
+        ``unready_entries``). Later entries (after a failsafe, a pilot) are not held: the
+        vehicle is already flying our setpoints or the pilot's.
         """
         cfg = self.config
         flight = self._flight
         now = inp.now_s
         since = flight.settled_since_s
-        if flight.offboard_entered or flight.settle_timed_out:
-            return ""
-        if since is not None and now - since >= cfg.settled_for_s:
+        if flight.offboard_entered:
             return ""
         if flight.settle_wait_since_s is None:
             flight.settle_wait_since_s = now
         waited_s = now - flight.settle_wait_since_s
+        if not inp.controller_ready and not flight.ready_timed_out:
+            if waited_s < cfg.controller_ready_timeout_s:
+                flight.ready_waited = True
+                return "airborne: waiting for the controller (its miss worker) to start"
+            flight.ready_timed_out = True  # counted once
+            self.unready_entries += 1
+            self._settle_note += f" (controller not ready after {waited_s:.1f} s)"
+        elif flight.ready_waited:  # said once, with the hand-over
+            flight.ready_waited = False
+            self._settle_note += f" (waited {waited_s:.1f} s for the controller)"
+        if flight.settle_timed_out:
+            return ""
+        if since is not None and now - since >= cfg.settled_for_s:
+            return ""
         vh, vz = inp.speed_horizontal_m_s, inp.vel_down_m_s
         speed = "unknown" if vh is None or vz is None else f"{vh:.2f} m/s, {-vz:.2f} up"
         if waited_s >= cfg.settle_timeout_s:
             flight.settle_timed_out = True  # counted once: nothing more to hold this flight
             self.unsettled_entries += 1
-            self._settle_note = f" (not settled after {waited_s:.1f} s: {speed})"
+            self._settle_note += f" (not settled after {waited_s:.1f} s: {speed})"
             return ""
         return f"airborne: waiting for the vehicle to settle ({speed})"
 

@@ -47,6 +47,7 @@ _SERVICE_WARNINGS = {
     "offboard_refused": "offboard requests refused (ArduPilot GUID_OPTIONS)",
     "heartbeats_other_autopilot": "heartbeats of another autopilot than link.autopilot",
     "realtime_priority_refused": "loops' real-time priority refused (normal scheduling)",
+    "unready_entries": "offboard entered before the controller was ready (miss worker)",
 }
 # the state tracker's (stats.json "state"): what it would not believe
 _STATE_WARNINGS = {
@@ -60,6 +61,7 @@ _SITL_WARNINGS = {
     "handler_errors": "SITL message handler errors",
     "nan_setpoints": "non-finite setpoints received by the SITL",
     "rtl_entered": "SITL RTLs entered",
+    "realtime_priority_refused": "SITL real-time priority refused (normal scheduling)",
 }
 
 # -- reading what a flight left behind ----------------------------------------------------------

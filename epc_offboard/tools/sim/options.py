@@ -16,10 +16,17 @@ from pathlib import Path
 from epc_offboard.common.cliargs import MAX_PORT, WindProfile, parse_wind_profile
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.errors import UsageError
-from epc_offboard.tools.sim.scenario import ScenarioConfig, load_scenario
+from epc_offboard.tools.sim.scenario import CONFIG_DIR, ScenarioConfig, load_scenario
 from epc_offboard.tools.targets import method_name, parse_method
 
 AUTOPILOTS = ("px4", "ardupilot")
+
+
+def configured_realtime_priority() -> int:
+    """The service's configured ``loops.realtime_priority``: config/default.toml's."""
+    from epc_offboard.service.config import load_service_config
+
+    return load_service_config(CONFIG_DIR / "default.toml").loops.realtime_priority
 
 
 @dataclass(frozen=True)
@@ -42,8 +49,9 @@ class SimOptions:
     stagger: bool = False  # vehicle k starts once vehicle k-1 has landed
     fleet_router: str = ""  # share as clients of this Zenoh router ("": peers, fixed ports)
     # > 0: each service's loops and each SITL SCHED_FIFO at this priority (where permitted),
-    # as a vehicle whose autopilot is hardware of its own and whose loops are configured so
-    realtime_priority: int = 0
+    # as a vehicle whose autopilot is hardware of its own and whose loops are configured so;
+    # 0: off; None: as configured (:attr:`fifo_priority`)
+    realtime_priority: int | None = None
     out_dir: Path = Path("out")
     json_path: Path | None = None  # also write the report JSON here
     compare: tuple[str, ...] | None = None  # `--compare`: the methods; None: one flight
@@ -51,11 +59,27 @@ class SimOptions:
 
     def __post_init__(self) -> None:
         _check_vehicles(self.vehicles)
-        if not 0 <= self.realtime_priority <= 99:
+        if self.realtime_priority is not None and not 0 <= self.realtime_priority <= 99:
             raise ValueError(f"realtime_priority must be 0..99, got {self.realtime_priority}")
         parse_method(self.method)  # ValueError naming a bad controller or adaptation
         if self.autopilot not in AUTOPILOTS:
             raise ValueError(f"autopilot must be one of {AUTOPILOTS}, got {self.autopilot!r}")
+
+    @property
+    def fifo_priority(self) -> int:
+        """The SCHED_FIFO priority of each service's loops and each SITL (0: none): the one
+        given; else in real time the service's configured ``loops.realtime_priority`` (the
+        scenario's, or config/default.toml's: 50), as on a vehicle, where a busy companion
+        computer must not starve the loops (sim without it: 64 / 85 Hz, 42 failsafes at load
+        8-13); lockstep none (its flights do not depend on the scheduler)."""
+        if self.realtime_priority is not None:
+            return self.realtime_priority
+        if self.lockstep:
+            return 0
+        loops = self.scenario.service.get("loops", {})
+        if "realtime_priority" in loops:
+            return int(loops["realtime_priority"])
+        return configured_realtime_priority()
 
     @property
     def method(self) -> str:

@@ -114,8 +114,8 @@ def service_config_for(
         "link": {"url": f"udpin://127.0.0.1:{port}", "target_system": vehicle_id,
                  "autopilot": options.autopilot},
         "loops": {"clock": "vehicle" if options.lockstep else "wall",
-                  **({"realtime_priority": options.realtime_priority}
-                     if options.realtime_priority else {})},
+                  **({"realtime_priority": options.fifo_priority}
+                     if options.fifo_priority else {})},
         "position": {"controller": options.controller},
         "estimator": {"kind": options.adaptation},
         "trajectory": traj,
@@ -224,16 +224,6 @@ def service_env() -> dict[str, str]:
     before it marked the cache warm) took a core from the flight, so no compare flight
     ever measured what the README's figures are."""
     return {} if jit.ENV in os.environ else {jit.ENV: "1"}
-
-
-def realtime_sitl(pid: int, priority: int) -> None:
-    """The SITL process SCHED_FIFO at ``priority``, as an autopilot on hardware of its own
-    is never starved by the companion computer's load; a refusal (no CAP_SYS_NICE) is said,
-    and the flight goes on. Its threads started later inherit it."""
-    try:
-        os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError as exc:
-        print(f"SITL (process {pid}) not given SCHED_FIFO {priority}: {exc}", flush=True)
 
 
 def stop_process(proc: subprocess.Popen[bytes] | None, timeout_s: float = 5.0) -> None:
@@ -426,6 +416,8 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
             sitl_cmd += ["--wind-profile", options.wind_profile.text]
         if options.lockstep:
             sitl_cmd.append("--lockstep")
+        if options.fifo_priority:  # (where permitted; a refusal is counted in its report)
+            sitl_cmd += ["--realtime-priority", str(options.fifo_priority)]
         sitl_cmd += ["--autopilot", options.autopilot]
         if options.autopilot == "ardupilot":
             # what the README asks of a real ArduCopter: thrust as throttle, not climb rate
@@ -439,8 +431,6 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
                 service_env(),
             )  # fmt: skip
             run.sitl = _start(sitl_cmd, run.sitl_log)
-        if options.realtime_priority:
-            realtime_sitl(run.sitl.pid, options.realtime_priority)
         print(telemetry_routes(options, k, listen_port, offboard_port), flush=True)
 
     try:  # from the first start: a SIGTERM (sim's SystemExit) anywhere stops what started
