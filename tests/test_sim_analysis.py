@@ -354,7 +354,9 @@ def test_realtime_priority_reaches_the_services_loops_and_the_sitl(tmp_path) -> 
     from epc_offboard.tools.sim.orchestrate import service_config_for
 
     def loops(o: SimOptions) -> dict[str, object]:
-        return service_config_for(o, 1, 14999, tmp_path, tmp_path / "lib.sqlite")["loops"]
+        section = service_config_for(o, 1, 14999, tmp_path, tmp_path / "lib.sqlite")["loops"]
+        assert isinstance(section, dict)
+        return section
 
     o = _options("--scenario", "circle", "--realtime", "--realtime-priority", "20")
     assert o.fifo_priority == loops(o)["realtime_priority"] == 20

@@ -10,6 +10,8 @@ import dataclasses
 import os
 import statistics
 import time
+from collections.abc import Callable
+from typing import Any
 
 import pytest
 
@@ -40,8 +42,12 @@ def test_a_real_time_tick_runs_when_its_time_has_come_not_a_tick_early():
         walls: list[float] = []
         since: list[int] = []
         t0 = time.monotonic()
+        def tick() -> None:
+            walls.append(time.monotonic())
+            since.append(clock.since_tick_us())
+
         await clock.run(
-            lambda: (walls.append(time.monotonic()), since.append(clock.since_tick_us())),
+            tick,
             asyncio.Event(),
             duration_s=20 * PERIOD_S,
         )
@@ -145,6 +151,10 @@ def test_a_setpoint_reaches_the_rate_loop_at_the_physics_step_its_delay_ends_in(
     assert sim.last_command.rate_cmd_frd_rad_s[0] == 0.2
 
 
+def _ts1_is(ts1: int) -> Callable[[Any], bool]:
+    return lambda m: bool(m.ts1 == ts1)
+
+
 def test_the_sitl_answers_timesync_with_the_time_now_in_real_time():
     """A real-time SITL process answers TIMESYNC with the time now, not its last tick's (a
     multiple of the 5 ms tick, every one): within a tick (median of 20) of the vehicle time
@@ -174,7 +184,7 @@ def test_the_sitl_answers_timesync_with_the_time_now_in_real_time():
             around = offsets(0.03 + 0.0011 * k)  # at another phase of the tick each time
             sent = time.monotonic()
             client.send(client.mav.timesync_encode(0, k + 1))
-            answer = client.wait("TIMESYNC", lambda m, k=k: m.ts1 == k + 1, timeout_s=3)
+            answer = client.wait("TIMESYNC", _ts1_is(k + 1), timeout_s=3)
             got = time.monotonic()
             around += offsets(0.03)
             vehicle_mid_s = (sent + got) / 2.0 - min(around)
