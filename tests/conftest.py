@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import fcntl
 import functools
 import hashlib
 import os
-import re
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import pytest
@@ -130,18 +130,29 @@ SLOW_FIRST = (
     "test_cascade", "test_attitude_delay_e2e", "test_neuralfly_e2e", "test_lockstep_determinism",
     "test_lwpr", "test_daemon", "test_layers",
 )
-_MARK = re.compile(r"one_at_a_time\(([^)]*)\)")
+
+
+def marked_groups(nodes: Iterable[ast.AST]) -> set[str]:
+    """The group names of the ``pytest.mark.one_at_a_time("name", ...)`` calls in these
+    syntax trees (decorators, a module's pytestmark, a whole module)."""
+    return {
+        str(arg.value)
+        for tree in nodes
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and node.func.attr == "one_at_a_time"
+        for arg in node.args
+        if isinstance(arg, ast.Constant)
+    }
 
 
 @functools.cache
 def flies_in_real_time(module: Path) -> bool:
-    """Whether a test module marks a test one_at_a_time("alone"), read from its source: xdist's
-    controller schedules node ids, it collects no items (pytest_collection_modifyitems checks
-    this reading against the marks the workers collect)."""
-    return any(
-        any(f'"{name}"' in m.group(1) for name in ALONE)
-        for m in _MARK.finditer(module.read_text())
-    )
+    """Whether a test module marks a test one_at_a_time("alone"), read from its syntax:
+    xdist's controller schedules node ids, it collects no items (pytest_collection_modifyitems
+    checks this reading against the marks the workers collect)."""
+    return bool(marked_groups([ast.parse(module.read_text())]) & set(ALONE))
 
 
 class RealtimeUnit(LoadFileScheduling):  # type: ignore[misc]  # (xdist: untyped)
