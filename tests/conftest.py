@@ -22,10 +22,11 @@ from xdist.scheduler import LoadFileScheduling
 from epc_offboard.common import jit
 
 
-@pytest.fixture(scope="session", autouse=True)
-def warm_kernel_cache() -> None:
-    """Compile the control kernels into numba's cache once, before the first test, when the
-    checkout's cache is cold (a fresh clone, an edited kernel).
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Compile the control kernels into numba's cache once, before collection, when the
+    checkout's cache is cold (a fresh clone, an edited kernel). (Not a session fixture: that
+    ran inside the first test's timeout, which a compile of 4 minutes at load 16 outlasted,
+    failing the first test of each worker.)
 
     On a cold cache every service a test starts flies the numpy twins and starts a background
     compile of its own, which dies with the service: a short flight ends before its compile is
