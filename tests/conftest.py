@@ -2,26 +2,31 @@
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import fcntl
+import functools
 import hashlib
 import os
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import pytest
+from xdist.remote import Producer
+from xdist.scheduler import LoadFileScheduling
 
 from epc_offboard.common import jit
 
 
-@pytest.fixture(scope="session", autouse=True)
-def warm_kernel_cache() -> None:
-    """Compile the control kernels into numba's cache once, before the first test, when the
-    checkout's cache is cold (a fresh clone, an edited kernel).
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Compile the control kernels into numba's cache once, before collection, when the
+    checkout's cache is cold (a fresh clone, an edited kernel). (Not a session fixture: that
+    ran inside the first test's timeout, which a compile of 4 minutes at load 16 outlasted,
+    failing the first test of each worker.)
 
     On a cold cache every service a test starts flies the numpy twins and starts a background
     compile of its own, which dies with the service: a short flight ends before its compile is
@@ -49,13 +54,19 @@ def warm_kernel_cache() -> None:
     print(f"\nkernel cache warmed in {time.monotonic() - t0:.1f} s", file=sys.stderr)
 
 
-# the group whose tests run with nothing else at all beside them, in any worker: the real-time
-# flights judge the loops' timing, which the other worker's flight would load; every other
-# test runs beside any test but these. A test may name several groups (the real-time flights
-# beside CPU hogs: one_at_a_time("alone", "cpu-hogs")); the lockstep determinism flight
-# beside its hogs is "cpu-hogs" only: lockstep judges no timing, so the other worker's
-# lockstep flights run on beside it (slower), where the alone lock idled a core for 29 s
+# the real-time flights' group: they judge the loops' timing, so no two of them ever fly at
+# once (in either worker, nor in another checkout's suite on this machine). They are one
+# xdist work unit (pytest_collection_modifyitems below), flown back to back by one worker
+# while the other runs the rest of the suite beside them: their bounds are safety bounds that
+# hold at load 6 (a lockstep flight beside them is about one core; the suite beside two CPU
+# hogs, load up to 5.7, passed them all), and their loops run at the deployed nice (-5) and,
+# where they judge the attitude loop's timing, at SCHED_FIFO. Beside the other worker's
+# lockstep flights the machine's two cores are both at work, where the exclusive block left
+# one idle for a third of the suite. A test may name several groups (the real-time flights
+# beside CPU hogs: one_at_a_time("alone", "cpu-hogs")); every alone test holds "cpu-hogs"
+# too, so the lockstep determinism flight's two hogs never run beside a real-time flight.
 ALONE = ("alone",)
+CPU_HOGS = "cpu-hogs"
 
 
 @pytest.fixture(autouse=True)
@@ -63,8 +74,7 @@ def one_at_a_time(request: pytest.FixtureRequest) -> Iterator[None]:
     """A test marked ``one_at_a_time(name, ...)`` holds each name's lock while it runs: tests
     that bind the fixed Zenoh ports never run beside another of their kind in the other xdist
     worker (nor in another checkout's suite on this machine: the ports and the cores are the
-    machine's). The :data:`ALONE` group holds the machine's lock exclusively; every other
-    test holds it shared, so a real-time flight runs with no other test beside it."""
+    machine's); two real-time flights (:data:`ALONE`) never fly at once."""
     with holding(_groups(request.node)):
         yield
 
@@ -73,8 +83,9 @@ def one_at_a_time(request: pytest.FixtureRequest) -> Iterator[None]:
 def holding(groups: set[str]) -> Iterator[None]:
     """The locks of ``groups`` (see :func:`one_at_a_time`), for a module fixture that flies
     a flight its tests share: module fixtures are set up before the tests' own locks."""
+    if groups & set(ALONE):
+        groups = groups | {CPU_HOGS}  # no other test's hogs beside a real-time flight
     with contextlib.ExitStack() as stack:
-        stack.enter_context(_machine_lock(exclusive=bool(groups & set(ALONE))))
         for group in sorted(groups):  # one order everywhere: no two tests wait on each other
             stack.enter_context(_lock(f"epc-offboard-tests-{group}.lock"))
         yield
@@ -84,24 +95,6 @@ def _groups(item: pytest.Item) -> set[str]:
     """The names a test's ``one_at_a_time`` mark gives (none: an empty set)."""
     mark = item.get_closest_marker("one_at_a_time")
     return set(mark.args) if mark is not None else set()
-
-
-@contextlib.contextmanager
-def _machine_lock(exclusive: bool) -> Iterator[None]:
-    """A readers-writer lock with a turnstile (flock grants new shared holders while an
-    exclusive one waits, so a worker running short tests back to back could starve it): a
-    writer closes the turnstile while it waits and runs, readers pass through it first."""
-    tmp = Path(tempfile.gettempdir())
-    with (tmp / "epc-offboard-tests-turnstile.lock").open("a") as gate, \
-            (tmp / "epc-offboard-tests-machine.lock").open("a") as machine:  # fmt: skip
-        fcntl.flock(gate, fcntl.LOCK_EX)
-        if exclusive:
-            fcntl.flock(machine, fcntl.LOCK_EX)  # the turnstile stays closed till the end
-            yield
-            return
-        fcntl.flock(gate, fcntl.LOCK_UN)
-        fcntl.flock(machine, fcntl.LOCK_SH)
-        yield
 
 
 def _warm_up_lock() -> contextlib.AbstractContextManager[None]:
@@ -118,28 +111,66 @@ def _lock(name: str) -> Iterator[None]:
         yield
 
 
-# The order the two xdist workers take the modules in: --dist loadfile hands them out in
-# collection order (pyproject's addopts pass --no-loadscope-reorder: by default xdist re-sorts
-# them by their number of tests, which undid this order and put the one-test real-time
-# flights last, strewn among the long lockstep modules).
-# 1. The modules of the ALONE group, back to back. While one worker flies one alone, the
-#    other waits for the lock holding nothing. Strewn among the lockstep modules, each of
-#    them first waited for the other worker's current test to end (a lockstep flight of up
-#    to 40 s) with its own core idle: replayed through xdist's hand-out and this lock, the
-#    suite's measured test times gave the workers 86 s less idle time this way.
-# 2. A module of many short tests (AFTER_ALONE): the worker that leaves the alone block first
-#    then holds nothing long while the other flies the block's last test.
-# 3. The longest modules first, so that neither worker ends on one while the other idles
-#    (the scenarios' compare flights, collected last, once took a minute alone); the light
-#    unit modules fill in at the end. Ranked by the suite's own module times (issue 22).
-AFTER_ALONE = ("test_layers",)
+# The xdist work units and the order the two workers take them in. Each module is a unit
+# (--dist loadfile in pyproject's addopts: a module's tests on one worker, its module
+# fixtures, the compare flights, flown once), but the modules of real-time flights (an ALONE
+# test) are one unit together (RealtimeUnit), so that one worker flies them back to back while
+# the other runs the rest beside them. (Not --dist loadgroup with xdist_group marks: xdist
+# 3.8 names a test's group by rewriting its item's _nodeid, which pytest 9.2 no longer reads.)
+# Units go out in collection order (--no-loadscope-reorder: by default xdist re-sorts them by
+# their number of tests):
+# 1. REALTIME first: the longest unit (6-7 minutes of real-time flights, waits included).
+# 2. The longest modules, so that neither worker ends on one while the other idles (the
+#    scenarios' compare flights, collected last, once took a minute alone); the light unit
+#    modules fill in at the end. Ranked by the suite's own module times (issue 22).
+REALTIME = "realtime-flights"
 SLOW_FIRST = (
     "test_entry_e2e", "test_scenarios", "test_sim_truth_e2e", "test_service_e2e", "test_bench",
     "test_wheel_install", "test_fleet_trust", "test_sharing_e2e", "test_ardupilot_e2e",
     "test_flight_logs_e2e", "test_sharing", "test_fleet_rejoin", "test_miss_solver",
     "test_cascade", "test_attitude_delay_e2e", "test_neuralfly_e2e", "test_lockstep_determinism",
-    "test_lwpr", "test_daemon",
+    "test_lwpr", "test_daemon", "test_layers",
 )
+
+
+def marked_groups(nodes: Iterable[ast.AST]) -> set[str]:
+    """The group names of the ``pytest.mark.one_at_a_time("name", ...)`` calls in these
+    syntax trees (decorators, a module's pytestmark, a whole module)."""
+    return {
+        str(arg.value)
+        for tree in nodes
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and node.func.attr == "one_at_a_time"
+        for arg in node.args
+        if isinstance(arg, ast.Constant)
+    }
+
+
+@functools.cache
+def flies_in_real_time(module: Path) -> bool:
+    """Whether a test module marks a test one_at_a_time("alone"), read from its syntax:
+    xdist's controller schedules node ids, it collects no items (pytest_collection_modifyitems
+    checks this reading against the marks the workers collect)."""
+    return bool(marked_groups([ast.parse(module.read_text())]) & set(ALONE))
+
+
+class RealtimeUnit(LoadFileScheduling):  # type: ignore[misc]  # (xdist: untyped)
+    """--dist loadfile, with the modules of real-time flights in one unit (see above)."""
+
+    def __init__(self, config: pytest.Config, log: Producer | None = None) -> None:
+        super().__init__(config, log)
+        self.root = config.rootpath
+
+    def _split_scope(self, nodeid: str) -> str:
+        module = super()._split_scope(nodeid)
+        return REALTIME if flies_in_real_time(self.root / module) else module
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Producer) -> RealtimeUnit | None:
+    return RealtimeUnit(config, log) if config.getvalue("dist") == "loadfile" else None
 
 
 def _alone(item: pytest.Item) -> bool:
@@ -149,12 +180,16 @@ def _alone(item: pytest.Item) -> bool:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     alone = {item.path for item in items if _alone(item)}
     rank = {name: k for k, name in enumerate(SLOW_FIRST)}
+    for path in {item.path for item in items}:
+        if (path in alone) != flies_in_real_time(path):
+            raise pytest.UsageError(
+                f"{path.name}: its one_at_a_time marks and their reading from its source "
+                "disagree (write the group's name as a literal: \"alone\")"
+            )
 
     def key(item: pytest.Item) -> tuple[int, int]:
         if item.path in alone:
             return (0, 0)
-        if item.path.stem in AFTER_ALONE:
-            return (1, 0)
-        return (2, rank.get(item.path.stem, len(rank)))
+        return (1, rank.get(item.path.stem, len(rank)))
 
     items.sort(key=key)  # stable: a module's tests keep their order

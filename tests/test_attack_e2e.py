@@ -9,7 +9,7 @@ for ~2 s and a vehicle hovering at 2.5 m fell to 0.7 m. Safety bounds only (they
 loaded 2-core machine); the figures live in the closing report.
 
 Two flights carry the four attacks, one after another with calm between (each takeoff is
-7-9 s of real time with the machine's lock held): a MAVLink fuzz then the Zenoh flood, and
+7-9 s of real time with the real-time lock held): a MAVLink fuzz then the Zenoh flood, and
 replayed messages then liveliness flaps. Each test judges the loops and the vehicle over
 its own attack's window, and the counters it reads are ones the other attack of its flight
 leaves at zero (the Zenoh attacks send no MAVLink, the fuzz nothing over Zenoh; replay

@@ -17,7 +17,7 @@ pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone", "cpu-
 
 
 def test_random_faults_never_cause_a_takeoff_in_the_air_a_nan_or_a_lockout(tmp_path):
-    # ends holding: the autopilot's landing (9 s of real time with the machine's lock held)
+    # ends holding: the autopilot's landing (9 s of real time with the real-time lock held)
     # judges none of the invariants; the full form lands
     result = run_soak(tmp_path, duration_s=16.0, seed=3, land_at_end=False)
     assert sum(result.faults.values()) >= 3, result.faults

@@ -10,7 +10,7 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-from tests.conftest import ALONE
+from tests.conftest import ALONE, REALTIME, RealtimeUnit, flies_in_real_time, marked_groups
 
 TESTS = Path(__file__).resolve().parent
 _SIM = re.compile(r'(?:"-m",\s*"epc_offboard(?:\.cli)?"|"epc-offboard"),\s*"sim"')
@@ -38,20 +38,6 @@ def test_every_sim_a_test_starts_streams_to_no_ground_station_port() -> None:
     assert not offenders, f"sim without --gcs-port 0: {offenders}"
 
 
-def _groups(decorators: list[ast.expr]) -> set[str]:
-    """The names of the ``pytest.mark.one_at_a_time("name", ...)`` marks among ``decorators``."""
-    return {
-        str(arg.value)
-        for deco in decorators
-        for node in ast.walk(deco)
-        if isinstance(node, ast.Call)
-        and isinstance(node.func, ast.Attribute)
-        and node.func.attr == "one_at_a_time"
-        for arg in node.args
-        if isinstance(arg, ast.Constant)
-    }
-
-
 # what a test's own source does -> the group it must be in (pyproject's addopts run the suite
 # on two xdist workers; tests/conftest.py runs a group's tests one at a time)
 _NEEDS_GROUP: dict[str, Callable[[str], bool]] = {
@@ -75,12 +61,12 @@ def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> Non
             if isinstance(node, ast.Assign) and any(
                 isinstance(t, ast.Name) and t.id == "pytestmark" for t in node.targets
             ):
-                module_groups |= _groups([node.value])
+                module_groups |= marked_groups([node.value])
         for node in tree.body:
             if not (isinstance(node, ast.FunctionDef) and node.name.startswith("test_")):
                 continue
             source = ast.get_source_segment(text, node) or ""
-            groups = module_groups | _groups(node.decorator_list)
+            groups = module_groups | marked_groups(node.decorator_list)
             offenders += [
                 f"{path.name}::{node.name} not in one_at_a_time({group!r})"
                 for group, needs in _NEEDS_GROUP.items()
@@ -90,3 +76,17 @@ def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> Non
             if "lockstep=" + "False" in text and not groups & set(ALONE):  # run alone
                 offenders.append(f"{path.name}::{node.name} flies in real time: not alone")
     assert not offenders, offenders
+
+
+def test_the_real_time_flights_are_one_work_unit_and_the_rest_one_per_module() -> None:
+    """xdist's controller hands out RealtimeUnit's scopes: every module of a real-time
+    flight in one (one worker flies them back to back, never two at once, beside the other
+    worker's tests), every other module its own (its module fixtures flown once)."""
+    units = RealtimeUnit.__new__(RealtimeUnit)  # (only the scope reading: no controller)
+    units.root = TESTS.parent
+    realtime = [p.name for p in sorted(TESTS.glob("test_*.py")) if flies_in_real_time(p)]
+    assert {"test_attack_e2e.py", "test_soak.py", "test_coldstart_e2e.py"} <= set(realtime)
+    for name in realtime:
+        assert units._split_scope(f"tests/{name}::test_x[a::b]") == REALTIME, name
+    for name in ("test_scenarios.py", "test_entry_e2e.py", "test_lockstep_determinism.py"):
+        assert units._split_scope(f"tests/{name}::test_y") == f"tests/{name}"
