@@ -399,9 +399,16 @@ def test_a_peer_replaying_messages_or_flapping_tokens_neither_stops_the_loops_no
     assert all(r["phase"] == "offboard" for r in rows), {r["phase"] for r in rows}
     assert flight.code == 0, flight.log
     assert summary["sent"] >= 0.5 * RATE_PER_S * PEER_ATTACK_S, summary  # a real attack
-    # it reached the victim (the flight's counters: the other attack leaves this one at 0)
-    reached = "messages_received" if kind == "replay" else "peer_joins"
-    assert stats["sharing"][reached] > 50, stats["sharing"]
+    # it reached the victim (the flight's counters: the other attack leaves these at 0).
+    # replay: the recorded batches came again, their entries known already (the fleet
+    # process, at its lower priority, sheds what it cannot take: 48 of 6,000 handled at load
+    # 5.7 beside a lockstep flight, the rest dropped at its bounded queue); flap: arrivals
+    if kind == "replay":
+        sharing = stats["sharing"]
+        assert sharing["messages_received"] > 2 * summary["payloads"], sharing
+        assert sharing["entries_duplicate"] > 0, sharing
+    else:
+        assert stats["sharing"]["peer_joins"] > 50, stats["sharing"]
     if kind == "flap":  # every arrival counted; queries and log lines within the fleet budget
         budget = 20 + 10.0 * (PEER_ATTACK_S + 10.0)  # burst + 10/s over the attack and after
         assert stats["sharing"]["queries_sent"] <= budget, stats["sharing"]
