@@ -18,9 +18,10 @@ never gains: each receiver rebuilds the controller from its own problem.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from array import array
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, overload
 
 from epc_offboard.common.errors import EpcError
 
@@ -80,12 +81,104 @@ def blob_bytes(blob: bytes | DeferredBlob) -> bytes:
     return blob if isinstance(blob, bytes) else blob.build()
 
 
+def text_of(text: str | DeferredText) -> str:
+    """A fleet state's text: ``text``, or built from the records a saver took (where it is
+    saved or exported, as :func:`blob_bytes` a model's bytes)."""
+    return text if isinstance(text, str) else text.build()
+
+
+def _same(packed: Sequence[object], other: object) -> bool:
+    """A packed sequence equals any sequence of the same values (a tuple the store read
+    back, say)."""
+    if not isinstance(other, Sequence) or isinstance(other, str | bytes):
+        return False
+    return len(packed) == len(other) and all(a == b for a, b in zip(packed, other, strict=True))
+
+
+@dataclass(frozen=True, eq=False)
+class PackedEntries(Sequence[LibraryEntry]):
+    """A library's entries as the loops' thread copies them for the store: flat arrays, no
+    Python object per entry (a library of 400 took one young collection a save on the
+    loops' thread, issue 21); a :class:`LibraryEntry` is made when one is read (the store
+    process). ``rows``: every entry's active set, one after another, entry ``i`` ending at
+    ``ends[i]``; ``origins``: the entries' origin strings (shared, not copied)."""
+
+    rows: array[int]  # 'q'
+    ends: array[int]  # 'q'
+    importance: array[float]  # 'd'
+    uses: array[int]  # 'q'
+    origins: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return len(self.ends)
+
+    def active_set(self, i: int) -> ActiveSet:
+        return tuple(self.rows[self.ends[i - 1] if i else 0 : self.ends[i]])
+
+    @overload
+    def __getitem__(self, i: int) -> LibraryEntry: ...
+    @overload
+    def __getitem__(self, i: slice) -> tuple[LibraryEntry, ...]: ...
+    def __getitem__(self, i: int | slice) -> LibraryEntry | tuple[LibraryEntry, ...]:
+        if isinstance(i, slice):
+            return tuple(self[k] for k in range(*i.indices(len(self))))
+        if i < 0:
+            i += len(self)
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        return LibraryEntry(self.active_set(i), self.importance[i], self.uses[i],
+                            self.origins[i])  # fmt: skip
+
+    def __iter__(self) -> Iterator[LibraryEntry]:
+        return (self[i] for i in range(len(self)))
+
+    def __eq__(self, other: object) -> bool:
+        return _same(self, other)
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+@dataclass(frozen=True, eq=False)
+class PackedTransitions(Sequence[Transition]):
+    """A library's transition counts, packed as :class:`PackedEntries`: ``triples`` holds
+    (from, to, count) one after another, from and to indices into ``entries``."""
+
+    entries: PackedEntries
+    triples: array[int]  # 'q'
+
+    def __len__(self) -> int:
+        return len(self.triples) // 3
+
+    @overload
+    def __getitem__(self, i: int) -> Transition: ...
+    @overload
+    def __getitem__(self, i: slice) -> tuple[Transition, ...]: ...
+    def __getitem__(self, i: int | slice) -> Transition | tuple[Transition, ...]:
+        if isinstance(i, slice):
+            return tuple(self[k] for k in range(*i.indices(len(self))))
+        if i < 0:
+            i += len(self)
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        a, b, n = self.triples[3 * i : 3 * i + 3]
+        return Transition(self.entries.active_set(a), self.entries.active_set(b), n)
+
+    def __iter__(self) -> Iterator[Transition]:
+        return (self[i] for i in range(len(self)))
+
+    def __eq__(self, other: object) -> bool:
+        return _same(self, other)
+
+    __hash__ = None  # type: ignore[assignment]
+
+
 @dataclass(frozen=True)
 class SignatureSnapshot:
-    """Everything stored under one problem signature."""
+    """Everything stored under one problem signature (the entries and transitions as tuples,
+    or packed as the loops' thread hands them over: :class:`PackedEntries`)."""
 
-    controllers: tuple[LibraryEntry, ...] = ()
-    transitions: tuple[Transition, ...] = ()
+    controllers: Sequence[LibraryEntry] = ()
+    transitions: Sequence[Transition] = ()
     # name -> opaque blob (or what builds it: a snapshot the loops' thread took)
     models: Mapping[str, bytes | DeferredBlob] = field(default_factory=dict)
 

@@ -56,7 +56,7 @@ from epc_offboard.common.procstats import process_report
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.epc import MAX_SUCCESSORS, ExperienceController
 from epc_offboard.control.epc.exchange import FleetPort
-from epc_offboard.control.library_types import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry, text_of
 from epc_offboard.fleet import keys
 from epc_offboard.fleet.config import SharingConfig
 from epc_offboard.fleet.exchange import (
@@ -488,7 +488,7 @@ class FleetSharing:
         taken at once, its texts built here (a shutdown's save, tests)."""
         *_, state = self.fleet_state_steps()
         assert state is not None
-        return {k: v if isinstance(v, str) else v.build() for k, v in state.items()}
+        return {k: text_of(v) for k, v in state.items()}
 
     def fleet_state_steps(
         self, per_step: int = _RECORDS_PER_STEP

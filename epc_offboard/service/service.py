@@ -517,14 +517,11 @@ def run_service_command(args: argparse.Namespace) -> int:
         return 1
 
 
-def _merged(base: ServiceConfig, new: ServiceConfig) -> ServiceConfig:
-    """``base`` with ``new``'s trajectory, mission and offboard settings (what SIGHUP
-    reloads). The copy validates the whole config again, the vehicle file read and parsed
-    among it: 5-30 ms, so it is made in the reader's thread (:func:`_reloaded`)."""
-    return replace(base, trajectory=new.trajectory, mission=new.mission, offboard=new.offboard)
-
-
 def _reloaded(base: ServiceConfig, config_path: str | Path) -> tuple[ServiceConfig, ServiceConfig]:
-    """SIGHUP's work off the loops' thread: the file read and validated, and merged."""
+    """SIGHUP's work off the loops' thread (the reader's): the file read and validated, and
+    ``base`` with its trajectory, mission and offboard settings (what SIGHUP reloads). The
+    copy validates the whole config again, the vehicle file read and parsed among it: 5-30
+    ms, not for the loops' thread."""
     new = load_service_config(config_path)
-    return new, _merged(base, new)
+    return new, replace(base, trajectory=new.trajectory, mission=new.mission,
+                        offboard=new.offboard)  # fmt: skip

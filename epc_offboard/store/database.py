@@ -39,6 +39,7 @@ from epc_offboard.control.library_types import (
     Transition,
     blob_bytes,
     parse_active_set,
+    text_of,
 )
 
 log = logging.getLogger(__name__)
@@ -288,20 +289,25 @@ class LibraryStore:
 
     def save_snapshot(self, snapshot: LibrarySnapshot) -> None:
         """Save this vehicle's own library: :meth:`save_controllers`, :meth:`save_transitions`
-        and :meth:`save_model` for every signature of ``snapshot`` (any thread)."""
+        and :meth:`save_model` for every signature of ``snapshot`` (any thread). What is
+        given as what builds it (models, fleet texts: the store process's work) is built
+        first, before any transaction: none holds the write lock while a model zips."""
+        models = {sig: {name: blob_bytes(blob) for name, blob in part.models.items()}
+                  for sig, part in snapshot.signatures.items()}  # fmt: skip
+        fleet = {k: text_of(v) for k, v in snapshot.fleet.items()}
         for sig, part in snapshot.signatures.items():
             self.save_controllers(sig, part.controllers)
             self.save_transitions(sig, {(t.from_set, t.to_set): t.count for t in part.transitions})
-            for name, blob in part.models.items():
+            for name, blob in models[sig].items():
                 self.save_model(name, sig, blob)
-        if snapshot.fleet:  # after the controllers: it never names one the file lacks
-            self.save_fleet_state(snapshot.fleet)
+        if fleet:  # after the controllers: it never names one the file lacks
+            self.save_fleet_state(fleet)
 
     def save_fleet_state(self, texts: Mapping[str, str | DeferredText]) -> None:
         """Replace the fleet's state (:attr:`LibrarySnapshot.fleet`) in one transaction: a
         kill leaves the old one or the new one whole. A text given as what builds it is
         built first, outside the transaction."""
-        texts = {k: v if isinstance(v, str) else v.build() for k, v in texts.items()}
+        texts = {k: text_of(v) for k, v in texts.items()}
         with self._lock, self._conn:
             self._conn.execute("DELETE FROM meta WHERE substr(key, 1, ?) = ?",
                                (len(_FLEET_KEY), _FLEET_KEY))  # fmt: skip
@@ -333,6 +339,8 @@ class LibraryStore:
         """
         now = time.time()
         new = {"controllers": 0, "transitions": 0, "models": 0}
+        built = {sig: {name: blob_bytes(blob) for name, blob in part.models.items()}
+                 for sig, part in snapshot.signatures.items()} if models else {}  # fmt: skip
         with self._lock, self._conn:
             for sig, part in snapshot.signatures.items():
                 for c in part.controllers:
@@ -363,11 +371,9 @@ class LibraryStore:
                         "count = max(count, excluded.count)",
                         (sig, a, b, int(t.count)),
                     )
-                if models:
-                    for name, blob in part.models.items():
-                        new["models"] += 1
-                        self._conn.execute(_UPSERT_MODEL,
-                                           (name, sig, sqlite3.Binary(blob_bytes(blob)), now))
+                for name, blob in built.get(sig, {}).items():  # built before the transaction
+                    new["models"] += 1
+                    self._conn.execute(_UPSERT_MODEL, (name, sig, sqlite3.Binary(blob), now))
         return new
 
     # -- which loop a signature belongs to ----------------------------------------------

@@ -19,7 +19,6 @@ from epc_offboard.control.library_types import (
     DeferredBlob,
     LibrarySnapshot,
     SignatureSnapshot,
-    Transition,
 )
 from epc_offboard.store.database import LibraryStore
 
@@ -71,14 +70,9 @@ def snapshot_steps(
     saver that lets the loops tick in between."""
     parts: dict[str, SignatureSnapshot] = {}
     for _name, ctrl in cascade.experience_controllers():
-        entries = ctrl.export_library()
-        sets = [e.active_set for e in entries]
-        parts[ctrl.problem.signature()] = SignatureSnapshot(
-            tuple(entries),  # their origin travels with them (the store writes "" as solved)
-            tuple(
-                Transition(sets[a], sets[b], n) for (a, b), n in ctrl.export_transitions().items()
-            ),
-        )
+        # packed: no object per entry on the loops' thread (the store process makes them);
+        # their origin travels with them (the store writes "" as solved)
+        parts[ctrl.problem.signature()] = SignatureSnapshot(*ctrl.export_packed())
         yield None
     pos_sig = cascade.position.problem.signature()
     parts[pos_sig] = replace(

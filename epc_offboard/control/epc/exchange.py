@@ -30,7 +30,7 @@ from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.epc.candidates import CandidatePool
 from epc_offboard.control.epc.library import Entry, Library
 from epc_offboard.control.epc.maps import ActiveSetMap, MapBuilder
-from epc_offboard.control.library_types import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry, PackedEntries, PackedTransitions
 from epc_offboard.control.qp import MpcProblem
 
 logger = logging.getLogger(__name__)
@@ -96,6 +96,11 @@ class LibraryExchange:
     def export_transitions(self) -> dict[tuple[int, int], int]:
         """Transition counts ``(from, to) -> count`` over indices into :meth:`export_library`."""
         return self.library.export_transitions()
+
+    def export_packed(self) -> tuple[PackedEntries, PackedTransitions]:
+        """:meth:`export_library` and :meth:`export_transitions` packed, for the library
+        saver on the loops' thread (:meth:`Library.export_packed`)."""
+        return self.library.export_packed()
 
     def contains(self, active_set: tuple[int, ...]) -> bool:
         """Whether the library holds this active set (a cheap test before an import)."""

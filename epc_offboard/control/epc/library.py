@@ -20,9 +20,11 @@ that list.
 from __future__ import annotations
 
 import logging
+from array import array
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from itertools import accumulate, chain
 
 import numpy as np
 import numpy.typing as npt
@@ -31,7 +33,7 @@ from epc_offboard.common.frames import FloatArray
 from epc_offboard.control import kernels
 from epc_offboard.control.epc.maps import ActiveSetMap, DependentActiveSetError
 from epc_offboard.control.kernels import new_map_lists, query_maps, store_map
-from epc_offboard.control.library_types import LibraryEntry
+from epc_offboard.control.library_types import LibraryEntry, PackedEntries, PackedTransitions
 
 logger = logging.getLogger(__name__)
 
@@ -281,6 +283,34 @@ class Library:
             for b, n in succ.items()
             if b in index
         }
+
+    def export_packed(self) -> tuple[PackedEntries, PackedTransitions]:
+        """:meth:`export` and :meth:`export_transitions` as flat arrays (the same values, in
+        the same order): what the library saver copies on the loops' thread, a few objects
+        for the whole library where those make one (or two) per entry and transition, and
+        a young collection a save."""
+        ordered = self._ordered()
+        entries = PackedEntries(
+            array("q", chain.from_iterable(e.map.active for e in ordered)),
+            array("q", accumulate(len(e.map.active) for e in ordered)),
+            array("d", [e.importance for e in ordered]),
+            array("q", [e.uses for e in ordered]),
+            tuple([e.origin for e in ordered]),
+        )
+        index = {e.key: i for i, e in enumerate(ordered)}
+        triples = array("q")
+        put = triples.append
+        for a, succ in self._succ.items():
+            ia = index.get(a)
+            if ia is None:
+                continue
+            for b, n in succ.items():
+                ib = index.get(b)
+                if ib is not None:
+                    put(ia)
+                    put(ib)
+                    put(n)
+        return entries, PackedTransitions(entries, triples)
 
     def add_transitions(self, keys: Mapping[int, int],
                         transitions: Mapping[tuple[int, int], int]) -> None:
