@@ -21,11 +21,12 @@ import math
 from array import array
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, overload
+from typing import Protocol, TypeVar, overload
 
 from epc_offboard.common.errors import EpcError
 
 ActiveSet = tuple[int, ...]
+_T = TypeVar("_T")
 
 # how much of a rejected value an error message shows (the value may come from the network)
 _SHOWN_CHARS = 60
@@ -87,21 +88,43 @@ def text_of(text: str | DeferredText) -> str:
     return text if isinstance(text, str) else text.build()
 
 
-def _same(packed: Sequence[object], other: object) -> bool:
-    """A packed sequence equals any sequence of the same values (a tuple the store read
-    back, say)."""
-    if not isinstance(other, Sequence) or isinstance(other, str | bytes):
-        return False
-    return len(packed) == len(other) and all(a == b for a, b in zip(packed, other, strict=True))
+class _Packed(Sequence[_T]):
+    """A sequence of values made when read (:meth:`_at`), equal to any sequence of the same
+    values (a tuple the store read back, say)."""
+
+    def _at(self, i: int) -> _T:
+        raise NotImplementedError
+
+    @overload
+    def __getitem__(self, i: int) -> _T: ...
+    @overload
+    def __getitem__(self, i: slice) -> tuple[_T, ...]: ...
+    def __getitem__(self, i: int | slice) -> _T | tuple[_T, ...]:
+        n = len(self)
+        if isinstance(i, slice):
+            return tuple(self._at(k) for k in range(*i.indices(n)))
+        if not -n <= i < n:
+            raise IndexError(i)
+        return self._at(i % n)
+
+    def __iter__(self) -> Iterator[_T]:
+        return (self._at(i) for i in range(len(self)))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Sequence) or isinstance(other, str | bytes):
+            return False
+        return len(self) == len(other) and all(a == b for a, b in zip(self, other, strict=True))
+
+    __hash__ = None  # type: ignore[assignment]
 
 
 @dataclass(frozen=True, eq=False)
-class PackedEntries(Sequence[LibraryEntry]):
+class PackedEntries(_Packed[LibraryEntry]):
     """A library's entries as the loops' thread copies them for the store: flat arrays, no
-    Python object per entry (a library of 400 took one young collection a save on the
-    loops' thread, issue 21); a :class:`LibraryEntry` is made when one is read (the store
-    process). ``rows``: every entry's active set, one after another, entry ``i`` ending at
-    ``ends[i]``; ``origins``: the entries' origin strings (shared, not copied)."""
+    Python object per entry (a library of 400 made one young collection a save on the
+    loops' thread, issue 21); a :class:`LibraryEntry` is made when one is read (in the
+    store process). ``rows``: every entry's active set, one after another, entry ``i``
+    ending at ``ends[i]``; ``origins``: the entries' origin strings (shared, not copied)."""
 
     rows: array[int]  # 'q'
     ends: array[int]  # 'q'
@@ -115,31 +138,13 @@ class PackedEntries(Sequence[LibraryEntry]):
     def active_set(self, i: int) -> ActiveSet:
         return tuple(self.rows[self.ends[i - 1] if i else 0 : self.ends[i]])
 
-    @overload
-    def __getitem__(self, i: int) -> LibraryEntry: ...
-    @overload
-    def __getitem__(self, i: slice) -> tuple[LibraryEntry, ...]: ...
-    def __getitem__(self, i: int | slice) -> LibraryEntry | tuple[LibraryEntry, ...]:
-        if isinstance(i, slice):
-            return tuple(self[k] for k in range(*i.indices(len(self))))
-        if i < 0:
-            i += len(self)
-        if not 0 <= i < len(self):
-            raise IndexError(i)
+    def _at(self, i: int) -> LibraryEntry:
         return LibraryEntry(self.active_set(i), self.importance[i], self.uses[i],
                             self.origins[i])  # fmt: skip
 
-    def __iter__(self) -> Iterator[LibraryEntry]:
-        return (self[i] for i in range(len(self)))
-
-    def __eq__(self, other: object) -> bool:
-        return _same(self, other)
-
-    __hash__ = None  # type: ignore[assignment]
-
 
 @dataclass(frozen=True, eq=False)
-class PackedTransitions(Sequence[Transition]):
+class PackedTransitions(_Packed[Transition]):
     """A library's transition counts, packed as :class:`PackedEntries`: ``triples`` holds
     (from, to, count) one after another, from and to indices into ``entries``."""
 
@@ -149,27 +154,9 @@ class PackedTransitions(Sequence[Transition]):
     def __len__(self) -> int:
         return len(self.triples) // 3
 
-    @overload
-    def __getitem__(self, i: int) -> Transition: ...
-    @overload
-    def __getitem__(self, i: slice) -> tuple[Transition, ...]: ...
-    def __getitem__(self, i: int | slice) -> Transition | tuple[Transition, ...]:
-        if isinstance(i, slice):
-            return tuple(self[k] for k in range(*i.indices(len(self))))
-        if i < 0:
-            i += len(self)
-        if not 0 <= i < len(self):
-            raise IndexError(i)
+    def _at(self, i: int) -> Transition:
         a, b, n = self.triples[3 * i : 3 * i + 3]
         return Transition(self.entries.active_set(a), self.entries.active_set(b), n)
-
-    def __iter__(self) -> Iterator[Transition]:
-        return (self[i] for i in range(len(self)))
-
-    def __eq__(self, other: object) -> bool:
-        return _same(self, other)
-
-    __hash__ = None  # type: ignore[assignment]
 
 
 @dataclass(frozen=True)

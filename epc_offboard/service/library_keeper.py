@@ -4,7 +4,9 @@ saved every ``store.save_period_s`` by the store process, and once more at shutd
 The library is not thread-safe: the snapshot is taken on the loop's thread
 (:func:`~epc_offboard.store.experience.snapshot`), in slices of well under a millisecond
 that copy (the estimator's arrays, the fleet's received controllers as packed records:
-:mod:`epc_offboard.common.blobs`), and handed, pickled, to a process of its own
+:mod:`epc_offboard.common.blobs`; the library's entries and transitions as flat arrays,
+``library_types.PackedEntries``: no Python object per entry, so no collection a save), and
+handed, pickled, to a process of its own
 (``epc-store``, nice +10) that makes the npz files and texts and writes them to SQLite; the
 loops never wait on the disk nor share their interpreter lock with the formatting or the
 write. The hand-over never blocks: a store that falls

@@ -14,7 +14,8 @@ whatever the library's size (a stored controller beyond the bound is a miss this
 Exchange: entries leave as :class:`~epc_offboard.control.library_types.LibraryEntry` values (the
 active set as sorted row indices into the problem's layout, importance, uses, origin), most
 important first; transition counts are exported separately, keyed by pairs of indices into
-that list.
+that list; the library saver takes both packed (:meth:`Library.export_packed`: flat arrays,
+the same values, no object per entry on the loops' thread).
 """
 
 from __future__ import annotations
