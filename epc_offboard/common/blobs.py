@@ -19,7 +19,7 @@ import io
 import json
 import math
 import struct
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,41 +29,55 @@ import numpy as np
 # and the int32 counts of its active set and successors, then those (see received_record)
 _HEAD = struct.Struct("<dqHHH")
 _INT64_MAX = (1 << 63) - 1
+_FIELD, _RECORD = "\x1f", "\x1e"  # Npz.layout's separators (ASCII unit and record)
 
 
 @dataclass(frozen=True)
 class Npz:
-    """An npz file's arrays, copied on the loops' thread into one buffer (``data``, laid out
-    by ``layout``: name, dtype, shape, offset; a nested file's name with its :class:`Npz` in
-    ``nested``), zipped by :meth:`build` (in the store process). One buffer, so that the
-    hand-over pickles a few objects, not sixty arrays (each array pickled costs ~10 us of
-    the loops' thread). A nested file is stored as its built bytes (uint8), as the
-    estimators keep one model's file in another's."""
+    """An npz file's arrays, copied on the loops' thread into one buffer (``data``), zipped
+    by :meth:`build` (in the store process). One buffer, so that the hand-over pickles a
+    few objects, not sixty arrays (each array pickled costs ~10 us of the loops' thread).
+    ``layout``: one text, a record an array (name, dtype, shape, offset; a nested file's
+    offset -1, its :class:`Npz` in ``nested``), not a tuple an array: a save's models then
+    leave no object per array for the collector (issue 21: the save's objects made a young
+    collection on the loops' thread every save). A nested file is stored as its built
+    bytes (uint8), as the estimators keep one model's file in another's."""
 
-    layout: tuple[tuple[str, str, tuple[int, ...], int], ...]
+    layout: str
     data: bytes
     nested: Mapping[str, Npz]
 
     @classmethod
     def of(cls, arrays: Mapping[str, Any]) -> Npz:
         """``arrays`` (name -> array, or a nested :class:`Npz`) copied, in this order."""
-        layout, parts, nested, at = [], [], {}, 0
+        layout: list[str] = []
+        parts: list[bytes] = []
+        nested: dict[str, Npz] = {}
+        at = 0
         for name, a in arrays.items():
+            if _FIELD in name or _RECORD in name:
+                raise ValueError(f"an npz array's name may not hold \\x1e or \\x1f: {name!r}")
             if isinstance(a, Npz):
                 nested[name] = a
-                layout.append((name, "", (), -1))
+                layout.append(f"{name}{_FIELD}{_FIELD}{_FIELD}-1")
                 continue
             arr = np.asarray(a)
             raw = arr.tobytes()  # the copy (C order)
-            layout.append((name, arr.dtype.str, arr.shape, at))
+            shape = ",".join(map(str, arr.shape))
+            layout.append(f"{name}{_FIELD}{arr.dtype.str}{_FIELD}{shape}{_FIELD}{at}")
             parts.append(raw)
             at += len(raw)
-        return cls(tuple(layout), b"".join(parts), nested)
+        return cls(_RECORD.join(layout), b"".join(parts), nested)
+
+    def _records(self) -> Iterator[tuple[str, str, tuple[int, ...], int]]:
+        for record in self.layout.split(_RECORD) if self.layout else ():
+            name, dtype, shape, at = record.split(_FIELD)
+            yield name, dtype, tuple(int(n) for n in shape.split(",") if n), int(at)
 
     def arrays(self) -> dict[str, Any]:
         """The arrays by name, in order (a nested file as its npz bytes, uint8)."""
         out: dict[str, Any] = {}
-        for name, dtype, shape, at in self.layout:
+        for name, dtype, shape, at in self._records():
             if at < 0:
                 out[name] = np.frombuffer(self.nested[name].build(), dtype=np.uint8)
                 continue

@@ -238,7 +238,9 @@ class FleetSharing:
         self._to_offer: Records = np.zeros(0, dtype=self.candidate_dtype)
         self._marks: list[list[Any]] = []  # [signature, peer, epoch, number]: fleet_state's
         # per problem: each received controller's record by the entry's id (fleet_state)
-        self._received_records: dict[int, dict[int, tuple[LibraryEntry, bytes]]] = {}
+        # per problem: id(entry) -> (the entry, its record), in two dicts (a tuple a record
+        # was an object a new received controller, every save, for the collector)
+        self._received_records: dict[int, tuple[dict[int, LibraryEntry], dict[int, bytes]]] = {}
         self._marks_text: tuple[object, str] = (None, "")  # (the marks, their JSON)
         self._settled_seen: tuple[bytes, dict[str, Any]] = (b"", {})  # (its text, parsed)
         # fleet_state's: this vehicle's numbering of its library (HighWater's ``own``), as
@@ -513,19 +515,22 @@ class FleetSharing:
         out: dict[str, str | ReceivedText] = {}
         for i, (spec, (_name, library)) in enumerate(zip(self.specs, self._libraries,
                                                          strict=True)):  # fmt: skip
-            before = self._received_records.get(i, {})
-            kept: dict[int, tuple[LibraryEntry, bytes]] = {}
+            entries_before, records_before = self._received_records.get(i, ({}, {}))
+            entries: dict[int, LibraryEntry] = {}
+            records: dict[int, bytes] = {}
             parts: list[bytes] = []
             for received in library.received_parts(per_step):
                 yield None
                 for e, succ in received:
-                    held = before.get(id(e))  # an id is not reused while its entry is kept
-                    if held is None or held[0] is not e:
-                        held = (e, received_record(e.active_set, e.origin, e.importance,
-                                                   e.uses, succ))  # fmt: skip
-                    kept[id(e)] = held
-                    parts.append(held[1])
-            self._received_records[i] = kept
+                    key = id(e)  # an id is not reused while its entry is kept
+                    record = records_before.get(key)
+                    if record is None or entries_before.get(key) is not e:
+                        record = received_record(e.active_set, e.origin, e.importance, e.uses,
+                                                 succ)  # fmt: skip
+                    entries[key] = e
+                    records[key] = record
+                    parts.append(record)
+            self._received_records[i] = (entries, records)
             out[_CANDIDATES + spec.signature] = ReceivedText(b"".join(parts))
         if self._marks_text[0] is not self._marks:
             self._marks_text = (self._marks, json.dumps({"held": self._marks},
