@@ -145,18 +145,20 @@ class PackedEntries(_Packed[LibraryEntry]):
 
 @dataclass(frozen=True, eq=False)
 class PackedTransitions(_Packed[Transition]):
-    """A library's transition counts, packed as :class:`PackedEntries`: ``triples`` holds
-    (from, to, count) one after another, from and to indices into ``entries``."""
+    """A library's transition counts, packed as :class:`PackedEntries`: transition ``i`` is
+    ``counts[i]`` from entry ``froms[i]`` to entry ``tos[i]`` (indices into ``entries``)."""
 
     entries: PackedEntries
-    triples: array[int]  # 'q'
+    froms: array[int]  # 'q'
+    tos: array[int]  # 'q'
+    counts: array[int]  # 'q'
 
     def __len__(self) -> int:
-        return len(self.triples) // 3
+        return len(self.counts)
 
     def _at(self, i: int) -> Transition:
-        a, b, n = self.triples[3 * i : 3 * i + 3]
-        return Transition(self.entries.active_set(a), self.entries.active_set(b), n)
+        return Transition(self.entries.active_set(self.froms[i]),
+                          self.entries.active_set(self.tos[i]), self.counts[i])  # fmt: skip
 
 
 @dataclass(frozen=True)
