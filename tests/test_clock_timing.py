@@ -320,9 +320,9 @@ def test_a_stall_says_how_much_of_the_threads_cpu_was_the_kernels():
     assert "system_cpu_ms" in kernel.as_dict()
 
 
-async def _two_loops(slow_every: int) -> tuple[list[tuple[str, float]], Counter[str]]:
-    """The service's two real-time loops (100 and 200 Hz), the position loop yielding to the
-    attitude loop; every ``slow_every``-th position tick works 7 ms (a library miss)."""
+async def _two_loops(slow_every: int, first: str) -> tuple[list[tuple[str, float]], Counter[str]]:
+    """The service's two real-time loops (100 and 200 Hz), the other loop yielding to loop
+    ``first``; every ``slow_every``-th position tick works 7 ms (a library miss)."""
     counters: Counter[str] = Counter()
     loops = Loops(WallClock(), counters, LogGate())
     order: list[tuple[str, float]] = []
@@ -341,31 +341,34 @@ async def _two_loops(slow_every: int) -> tuple[list[tuple[str, float]], Counter[
         return True
 
     results = await asyncio.gather(
-        loops.periodic("position", LoopTiming(0.01), position, yield_to=lambda: "attitude"),
-        loops.periodic("attitude", LoopTiming(0.005), attitude),
+        loops.periodic("position", LoopTiming(0.01), position,
+                       yield_to=lambda: "attitude" if first == "attitude" else None),
+        loops.periodic("attitude", LoopTiming(0.005), attitude,
+                       yield_to=lambda: "position" if first == "position" else None),
         return_exceptions=True,
     )  # fmt: skip
     assert all(isinstance(r, Stop) for r in results)
     return order, counters
 
 
-def test_real_time_the_attitude_tick_due_with_a_position_tick_runs_first():
+@pytest.mark.parametrize("first", ["attitude", "position"])
+def test_real_time_the_loop_asked_to_runs_first_at_a_shared_tick(first: str):
     """Issue 21 (quaternion mode): the position loop's step ran first and the attitude tick
     due at the same time waited for all of it, so a 5-15 ms position step was a late
     attitude tick (most of ``bench --attack``'s attitude deadline misses). The loops now tick
     on one grid and the attitude tick due with a position tick runs before it, a slow one
-    too. Safety bounds: a position tick that waited its bound for it is counted, and only
-    those may come first."""
-    order, counters = asyncio.run(_two_loops(slow_every=3))
+    too; with body rates the position tick runs first (the attitude EPC flies the newest
+    target), as the service asks. Safety bounds: a tick that waited its bound for the other
+    is counted, and only those may come first."""
+    order, counters = asyncio.run(_two_loops(slow_every=3, first=first))
+    other = "position" if first == "attitude" else "attitude"
     key = {k: round(t_s / 0.005) for k, (_, t_s) in enumerate(order)}  # the grid's ticks
-    attitude_at = {key[k]: k for k, (name, _) in enumerate(order) if name == "attitude"}
-    together = after = 0
-    for k, (name, _) in enumerate(order):
-        if name == "position" and key[k] in attitude_at:  # (a late loop skips ticks)
-            together += 1
-            after += attitude_at[key[k]] > k
-    assert together >= 12  # one grid: the 100 Hz ticks fall on 200 Hz ones
-    assert after <= counters["attitude_ticks_not_awaited"]
+    first_at = {key[k]: k for k, (name, _) in enumerate(order) if name == first}
+    other_at = {key[k]: k for k, (name, _) in enumerate(order) if name == other}
+    shared = [g for g in first_at if g in other_at]  # (a late loop skips ticks)
+    assert len(shared) >= 12  # one grid: the 100 Hz ticks fall on 200 Hz ones
+    after = sum(first_at[g] > other_at[g] for g in shared)
+    assert after <= counters[f"{first}_ticks_not_awaited"]
 
 
 def test_a_stall_names_the_event_loops_longest_step_in_it():

@@ -226,9 +226,13 @@ class Service:
         """Real time: the attitude tick due with a position tick runs first while the
         autopilot flies the attitude (quaternion mode: the attitude tick relays the newest
         position command; first, a long position step no longer makes it late, and the
-        command it relays is one attitude period older). With body rates the position tick
-        goes first, as in lockstep: the attitude EPC flies the newest target."""
+        command it relays is one attitude period older)."""
         return "attitude" if self._attitude_path[1] == "autopilot" else None
+
+    def _attitude_yields_to(self) -> str | None:
+        """... and with body rates the position tick runs first, as in lockstep: the
+        attitude EPC flies the newest target."""
+        return None if self._attitude_path[1] == "autopilot" else "position"
 
     def _use_attitude_path(self, autopilot: str, mode: AttitudeMode) -> None:
         self._attitude_path = (autopilot, mode)
@@ -383,7 +387,8 @@ class Service:
                     name="position-loop",
                 )
                 tg.create_task(
-                    loops.periodic("attitude", self.attitude_timing, self._attitude_step),
+                    loops.periodic("attitude", self.attitude_timing, self._attitude_step,
+                                   yield_to=self._attitude_yields_to),
                     name="attitude-loop",
                 )
                 if not self.clock.vehicle_time:  # the worker's start overlaps the flight's
