@@ -426,4 +426,49 @@ def _compile_theta() -> Callable[..., bool] | None:
 
 
 stack_theta = _compile_theta()
+_stack = cast(Callable[..., bool], stack_theta)  # (called by theta_check where compiled)
 
+
+
+# -- θ and the last controller's check in one call ------------------------------------------
+
+
+def _theta_check_jit(
+    x0: FloatArray,
+    refs: FloatArray,
+    u_p: FloatArray,
+    c: FloatArray,
+    perturbation: FloatArray,
+    theta_aug: FloatArray,
+    cols: IntArray,
+    theta_cols: FloatArray,
+    M: FloatArray,
+    width: FloatArray,
+    n_check: int,
+    u_out: FloatArray,
+    u_min: FloatArray,
+    u_max: FloatArray,
+) -> int:
+    """:func:`stack_theta`, then the last controller's KKT check at its columns
+    (:func:`apply_map`, the same compiled check: the same bits) in one compiled call: the
+    position tick's EPC hit path entered once instead of twice (each entry is a machinery
+    a cold tick pays for; issue 21). -1: the shapes do not fit, nothing written; 0: θ
+    stacked, the check failed or was not asked (``n_check`` < 0: no last controller); 1: θ
+    stacked and the check passed, its first input written to ``u_out``."""
+    if not _stack(x0, refs, u_p, c, perturbation, theta_aug, cols, theta_cols):
+        return -1
+    if n_check < 0:
+        return 0
+    if _apply_jit(M, width, theta_cols, n_check, u_out, u_min, u_max):
+        return 1
+    return 0
+
+
+def _compile_theta_check() -> Callable[..., int] | None:
+    """The compiled θ stack and check (None on the numpy twins)."""
+    if _NUMBA is None or stack_theta is None:
+        return None
+    return jit.njit_cached(cast(Callable[..., int], _theta_check_jit))  # (the GIL kept: above)
+
+
+theta_check = _compile_theta_check()

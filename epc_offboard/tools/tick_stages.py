@@ -148,7 +148,7 @@ def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES,
     from epc_offboard.control.epc import controller as epc
 
     if isinstance(controller, epc.ExperienceController) and kernels.stack_theta is not None:
-        stages.wrap(epc, "stack_theta", "epc.theta")  # (the compiled stack, issue 21)
+        stages.wrap(controller, "theta_compiled", "epc.theta")  # (the compiled stack, issue 21)
     else:
         stages.wrap(controller.problem, "theta", "epc.theta")
     if hasattr(controller, "library"):
