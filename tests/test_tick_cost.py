@@ -147,9 +147,28 @@ def test_the_estimators_kernels_unbox_few_arrays_a_call():
     cascade, tick = _figure8_ticks()
     for k in range(50):  # the models have fields: both kernels run
         tick(k)
-    estimator = cascade.position.estimator
+    loop = cascade.position
+    estimator = loop.estimator
     assert isinstance(estimator, LwprPerturbation)
     group = estimator._model_group()
+    fused = loop._lwpr_plan
+    fused_arrays: list[int] = []
+    if fused is not None:
+        # the tick's query runs the prediction inside the compiled plan (kernels.lwpr_plan):
+        # the models' fields packed there too; then the group's own kernel, the plan off
+        def counting_plan(*args: Any, _kernel: Any = fused) -> Any:
+            fused_arrays.append(_arrays_in(args))
+            return _kernel(*args)
+
+        loop._lwpr_plan = counting_plan
+        for k in range(50, 55):
+            tick(k)
+        # its own arrays (the state, points, filter, plan and x0: 15), not the models' ~40
+        assert fused_arrays
+        assert max(fused_arrays) <= 15, fused_arrays
+        loop._lwpr_plan = None
+        for k in range(55, 57):
+            tick(k)
     arrays: dict[str, list[int]] = {"update": [], "predict": []}
     for name, attr in (("update", "_update_kernel"), ("predict", "_kernel")):
         kernel = getattr(group, attr)
@@ -160,7 +179,7 @@ def test_the_estimators_kernels_unbox_few_arrays_a_call():
             return _kernel(*args)
 
         setattr(group, attr, counting)
-    for k in range(50, 60):
+    for k in range(60, 70):
         tick(k)
     assert arrays["update"]
     assert arrays["predict"]
@@ -561,54 +580,57 @@ def test_the_attitude_from_an_acceleration_is_the_array_forms_to_the_last_bit():
 def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
     """On the EPC's hit path θ and the last controller's KKT check are one compiled call
     (``kernels.theta_check``): the check's own entry (``apply_map``, a second machinery a
-    cold tick paid for; issue 21) is not called, and the decisions are the two calls' to
-    the last bit (the same ticks flown with the fused call refused)."""
+    cold tick paid for; issue 21) is not called. And LWPR's query, the filter's step, the
+    plan and x0 are one compiled call (``kernels.lwpr_plan``). The commands are the
+    separate calls' to the last bit: the same ticks flown with either fused call refused
+    (its old path) give the same sources, commands, quaternions and estimates."""
     from epc_offboard.control import kernels
     from epc_offboard.control.epc import maps
 
     if not kernels.HAVE_NUMBA:
         pytest.skip("numba is not in use: the numpy code is all there is")
-    runs: dict[bool, list[tuple[str, np.ndarray, np.ndarray]]] = {}
-    for fused in (True, False):
+    traj = Trajectory(TrajectoryConfig(shape="figure8", ramp_s=1.0, period_s=8.0),
+                      np.array([0.0, 0.0, -2.5]))  # fmt: skip
+    runs: dict[str, list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]] = {}
+    for variant in ("fused", "theta refused", "plan refused"):
         cascade, _tick = _figure8_ticks()
-        controller: Any = cascade.position.controller
-        if not fused:
+        loop = cascade.position
+        controller: Any = loop.controller
+        if variant == "theta refused":
             controller._theta_check = None
-        outs: list[tuple[str, np.ndarray, np.ndarray]] = []
+        outs: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
+        for k in range(500):
+            if k == 400:
+                checks: list[int] = []
+                real = maps.apply_map
 
-        def flown(k: int, cascade: Any = cascade, outs: list[Any] = outs) -> None:
-            loop = cascade.position
+                def counting(*args: Any, _real: Any = real, _checks: list[int] = checks) -> Any:
+                    _checks.append(1)
+                    return _real(*args)
+
+                monkeypatch.setattr(maps, "apply_map", counting)
+            if variant == "plan refused" and k >= 1:
+                loop._lwpr_plan = None  # (made with the plan at the first tick: refused)
             t_s = 1.0 + k * _DT_S
-            traj = Trajectory(TrajectoryConfig(shape="figure8", ramp_s=1.0, period_s=8.0),
-                              np.array([0.0, 0.0, -2.5]))  # fmt: skip
             now = traj.sample(t_s - (k % 2) * _DT_S)
             state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
                            now.acc_ned_m_s2)  # fmt: skip
             reference = traj.reference(t_s, loop.config.dt_s, loop.config.horizon, 0.0)
             out = cascade.position_tick(state, reference, learn=True)
-            outs.append((out.source, out.acc_cmd_ned_m_s2.copy(), out.q_target.copy()))
-
-        for k in range(400):
-            flown(k)
-        checks: list[int] = []
-        real = maps.apply_map
-
-        def counting(*args: Any, _real: Any = real, _checks: list[int] = checks) -> Any:
-            _checks.append(1)
-            return _real(*args)
-
-        monkeypatch.setattr(maps, "apply_map", counting)
-        for k in range(400, 500):
-            flown(k)
+            outs.append((out.source, out.acc_cmd_ned_m_s2.copy(), out.q_target.copy(),
+                         out.p_hat_ned_m_s2.copy()))  # fmt: skip
         monkeypatch.undo()
-        hits = sum(source == "hit" for source, _, _ in outs[400:])
+        hits = sum(o[0] == "hit" for o in outs[400:])
         assert hits > 50
-        if fused:
-            assert not checks, f"apply_map called {len(checks)} times on {hits} hits"
-        else:
+        if variant == "theta refused":
             assert len(checks) >= hits - 1  # (the refused path checks the last as before)
-        runs[fused] = outs
-    for k, (a, b) in enumerate(zip(runs[True], runs[False], strict=True)):
-        assert a[0] == b[0], k
-        assert np.array_equal(a[1].view(np.uint64), b[1].view(np.uint64)), k
-        assert np.array_equal(a[2].view(np.uint64), b[2].view(np.uint64)), k
+        else:
+            assert not checks, f"apply_map called {len(checks)} times on {hits} hits"
+        if variant == "fused":
+            assert loop._lwpr_plan is not None
+        runs[variant] = outs
+    for variant in ("theta refused", "plan refused"):
+        for k, (a, b) in enumerate(zip(runs["fused"], runs[variant], strict=True)):
+            assert a[0] == b[0], (variant, k)
+            for x, y in zip(a[1:], b[1:], strict=True):
+                assert np.array_equal(x.view(np.uint64), y.view(np.uint64)), (variant, k)
