@@ -501,22 +501,10 @@ _stack = cast(Callable[..., bool], stack_theta)  # (called by theta_check where 
 # -- θ and the last controller's check in one call ------------------------------------------
 
 
-def _theta_check_jit(
-    x0: FloatArray,
-    refs: FloatArray,
-    u_p: FloatArray,
-    c: FloatArray,
-    perturbation: FloatArray,
-    theta_aug: FloatArray,
-    cols: IntArray,
-    theta_cols: FloatArray,
-    M: FloatArray,
-    width: FloatArray,
-    n_check: int,
-    u_out: FloatArray,
-    u_min: FloatArray,
-    u_max: FloatArray,
-) -> int:
+def _theta_check_jit(x0: FloatArray, refs: FloatArray, u_p: FloatArray, c: FloatArray,
+                     perturbation: FloatArray, theta_aug: FloatArray, cols: IntArray,
+                     theta_cols: FloatArray, M: FloatArray, width: FloatArray, n_check: int,
+                     u_out: FloatArray, u_min: FloatArray, u_max: FloatArray) -> int:
     """:func:`stack_theta`, then the last controller's KKT check at its columns
     (:func:`apply_map`, the same compiled check: the same bits) in one compiled call: the
     position tick's EPC hit path entered once instead of twice (each entry is a machinery
