@@ -147,9 +147,28 @@ def test_the_estimators_kernels_unbox_few_arrays_a_call():
     cascade, tick = _figure8_ticks()
     for k in range(50):  # the models have fields: both kernels run
         tick(k)
-    estimator = cascade.position.estimator
+    loop = cascade.position
+    estimator = loop.estimator
     assert isinstance(estimator, LwprPerturbation)
     group = estimator._model_group()
+    fused = loop._lwpr_plan
+    fused_arrays: list[int] = []
+    if fused is not None:
+        # the tick's query runs the prediction inside the compiled plan (kernels.lwpr_plan):
+        # the models' fields packed there too; then the group's own kernel, the plan off
+        def counting_plan(*args: Any, _kernel: Any = fused) -> Any:
+            fused_arrays.append(_arrays_in(args))
+            return _kernel(*args)
+
+        loop._lwpr_plan = counting_plan
+        for k in range(50, 55):
+            tick(k)
+        # its own arrays (the state, points, filter, plan and x0: 15), not the models' ~40
+        assert fused_arrays
+        assert max(fused_arrays) <= 15, fused_arrays
+        loop._lwpr_plan = None
+        for k in range(55, 57):
+            tick(k)
     arrays: dict[str, list[int]] = {"update": [], "predict": []}
     for name, attr in (("update", "_update_kernel"), ("predict", "_kernel")):
         kernel = getattr(group, attr)
@@ -160,7 +179,7 @@ def test_the_estimators_kernels_unbox_few_arrays_a_call():
             return _kernel(*args)
 
         setattr(group, attr, counting)
-    for k in range(50, 60):
+    for k in range(60, 70):
         tick(k)
     assert arrays["update"]
     assert arrays["predict"]
@@ -520,3 +539,98 @@ def test_the_stage_tool_times_every_stage_of_the_tick():
                      "epc.query", "estimate_along", "attitude_target", "observe"):
             assert stages[name]["ticks"] == 6, (mode, name)
     assert "position_tick" in format_report(report)
+
+
+def _accel_to_attitude_array(acc: np.ndarray, yaw_rad: float,
+                             hover: float) -> tuple[float, float, float, float]:
+    """``models.accel_to_attitude`` as it was written on arrays (before stop 36): the oracle
+    of its float form."""
+    f = acc - np.array([0.0, 0.0, frames.GRAVITY_M_S2])
+    mag = frames.vector_norm(f)
+    if mag < 1e-9:
+        return 0.0, 0.0, yaw_rad, 0.0
+    fx, fy, fz = f.tolist()
+    zx, zy, bz = -fx / mag, -fy / mag, -fz / mag
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    bx = cy * zx + sy * zy
+    by = -sy * zx + cy * zy
+    return (math.atan2(-by, math.hypot(bx, bz)), math.atan2(bx, bz), yaw_rad,
+            hover * mag / frames.GRAVITY_M_S2)  # fmt: skip
+
+
+def test_the_attitude_from_an_acceleration_is_the_array_forms_to_the_last_bit():
+    """``accel_to_attitude`` on a (3,) command computes on its floats (no numpy subtraction
+    or dot product: a cold tick's machinery, issue 21): the array form's bits, free fall,
+    NaN and -0.0 included, so the lockstep flights stay bit-identical."""
+    rng = np.random.default_rng(23)
+    cases = [np.array([0.0, 0.0, frames.GRAVITY_M_S2]), np.array([-0.0, -0.0, 0.0])]
+    for case in range(20000):
+        acc = rng.normal(size=3) * (1e-3, 0.5, 3.0, 30.0)[case % 4]
+        if case % 101 == 0:
+            acc[case % 3] = np.nan
+        cases.append(acc)
+    for k, acc in enumerate(cases):
+        yaw = float(rng.normal()) * 3.0
+        want = np.array(_accel_to_attitude_array(acc, yaw, 0.5))
+        att = accel_to_attitude(acc, yaw, 0.5)
+        got = np.array([att.roll_rad, att.pitch_rad, att.yaw_rad, att.thrust_norm])
+        assert np.array_equal(want.view(np.uint64), got.view(np.uint64)), (k, acc)
+
+
+def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
+    """On the EPC's hit path θ and the last controller's KKT check are one compiled call
+    (``kernels.theta_check``): the check's own entry (``apply_map``, a second machinery a
+    cold tick paid for; issue 21) is not called. And LWPR's query, the filter's step, the
+    plan and x0 are one compiled call (``kernels.lwpr_plan``). The commands are the
+    separate calls' to the last bit: the same ticks flown with either fused call refused
+    (its old path) give the same sources, commands, quaternions and estimates."""
+    from epc_offboard.control import kernels
+    from epc_offboard.control.epc import maps
+
+    if not kernels.HAVE_NUMBA:
+        pytest.skip("numba is not in use: the numpy code is all there is")
+    traj = Trajectory(TrajectoryConfig(shape="figure8", ramp_s=1.0, period_s=8.0),
+                      np.array([0.0, 0.0, -2.5]))  # fmt: skip
+    runs: dict[str, list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]] = {}
+    for variant in ("fused", "theta refused", "plan refused"):
+        cascade, _tick = _figure8_ticks()
+        loop = cascade.position
+        controller: Any = loop.controller
+        if variant == "theta refused":
+            controller._theta_check = None
+        outs: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
+        for k in range(500):
+            if k == 400:
+                checks: list[int] = []
+                real = kernels.apply_map  # what maps calls (its own import of it)
+
+                def counting(*args: Any, _real: Any = real, _checks: list[int] = checks) -> Any:
+                    _checks.append(1)
+                    return _real(*args)
+
+                monkeypatch.setattr(maps, "apply_map", counting)
+            if variant == "plan refused" and k >= 1:
+                loop._lwpr_plan = None  # (made with the plan at the first tick: refused)
+            t_s = 1.0 + k * _DT_S
+            now = traj.sample(t_s - (k % 2) * _DT_S)
+            state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
+                           now.acc_ned_m_s2)  # fmt: skip
+            reference = traj.reference(t_s, loop.config.dt_s, loop.config.horizon, 0.0)
+            out = cascade.position_tick(state, reference, learn=True)
+            outs.append((out.source, out.acc_cmd_ned_m_s2.copy(), out.q_target.copy(),
+                         out.p_hat_ned_m_s2.copy()))  # fmt: skip
+        monkeypatch.undo()
+        hits = sum(o[0] == "hit" for o in outs[400:])
+        assert hits > 50
+        if variant == "theta refused":
+            assert len(checks) >= hits - 1  # (the refused path checks the last as before)
+        else:
+            assert not checks, f"apply_map called {len(checks)} times on {hits} hits"
+        if variant == "fused":
+            assert loop._lwpr_plan is not None
+        runs[variant] = outs
+    for variant in ("theta refused", "plan refused"):
+        for k, (a, b) in enumerate(zip(runs["fused"], runs[variant], strict=True)):
+            assert a[0] == b[0], (variant, k)
+            for x, y in zip(a[1:], b[1:], strict=True):
+                assert np.array_equal(x.view(np.uint64), y.view(np.uint64)), (variant, k)

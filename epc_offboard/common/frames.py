@@ -137,7 +137,14 @@ def euler_to_quat(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArr
     x = sr * cp * cy - cr * sp * sy
     y = cr * sp * cy + sr * cp * sy
     z = cr * cp * sy - sr * sp * cy
-    return quat_normalize([w, x, y, z])
+    # quat_normalize's bits on the floats (its norm, a (4,) dot product, is BLAS's sequential
+    # sum): no array made from a list, no dot or tolist call (a position tick's machinery,
+    # each paid cold; issue 21)
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not 1e-12 <= n < math.inf:
+        return quat_normalize([w, x, y, z])  # (raises its error)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([-w, -x, -y, -z] if w < 0.0 else [w, x, y, z])
 
 
 def quat_to_euler(q: npt.ArrayLike) -> tuple[float, float, float]:

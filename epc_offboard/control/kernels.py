@@ -327,6 +327,74 @@ def _compile_filtered_plan() -> Callable[..., None] | None:
 
 
 filtered_plan = _compile_filtered_plan()
+_filtered = cast(Callable[..., None], filtered_plan)  # (called by lwpr_plan where compiled)
+
+
+def _lwpr_plan_jit(vel: FloatArray, stages: FloatArray, origin_is_vel: bool, refs: FloatArray,
+                   ns: Any, packed: Any, z: FloatArray, raw: FloatArray, pos: FloatArray,
+                   vel0: FloatArray, achieved: FloatArray, d_last: FloatArray, age_s: float,
+                   d_hat: FloatArray, state: FloatArray, consts: FloatArray, u_p: FloatArray,
+                   refs_out: FloatArray, x0: FloatArray) -> bool:
+    """The position tick's LWPR query and plan in one compiled call (issue 21: each numpy
+    call and each compiled entry is a machinery a cold tick pays for), the same operations
+    in the same order as the Python code it stands for, so the same bits:
+
+    * the query points ``z`` (N + 2, 3): ``vel`` (the velocity the disturbance is looked up
+      at), the variation's origin (``stages``' row 0 velocity, or ``vel`` when
+      ``origin_is_vel``), the window ``refs``' velocities;
+    * LWPR's predictions there into ``raw`` (zeroed first: the columns no model writes stay
+      0), :func:`~epc_offboard.control.lwpr_kernels.predict_groups_packed` on ``ns`` and
+      ``packed`` (``ModelGroup.predict_args``);
+    * the filter's step and the plan, :func:`filtered_plan` (``d_hat``, ``state``,
+      ``consts``, ``u_p``, ``refs_out`` as it writes them);
+    * ``x0`` (9,) = [p, v, a]: ``pos`` and ``vel0`` carried ``age_s`` on by the model's
+      acceleration ``achieved + d_last`` (when ``age_s`` > 0), then ``achieved``.
+
+    False (a query point or a normalised input not finite): only ``z`` and ``raw`` were
+    written; the caller takes the models one by one."""
+    n = refs.shape[0]
+    for i in range(3):
+        z[0, i] = vel[i]
+        z[1, i] = vel[i] if origin_is_vel else stages[0, 3 + i]
+    for k in range(n):
+        for i in range(3):
+            z[k + 2, i] = refs[k, 3 + i]
+    for k in range(raw.shape[0]):
+        for i in range(raw.shape[1]):
+            raw[k, i] = 0.0
+    if not _predict_packed(z, raw, ns, packed):
+        return False
+    _filtered(raw, refs, d_hat, state, consts, u_p, refs_out)
+    if age_s > 0.0:
+        c = 0.5 * age_s * age_s
+        for i in range(3):
+            a = achieved[i] + d_last[i]
+            x0[i] = pos[i] + c * a
+            x0[3 + i] = vel0[i] + a * age_s
+    else:
+        for i in range(3):
+            x0[i] = pos[i]
+            x0[3 + i] = vel0[i]
+    for i in range(3):
+        x0[6 + i] = achieved[i]
+    return True
+
+
+def _compile_lwpr_plan() -> Callable[..., bool] | None:
+    """The compiled LWPR query and plan (None on the numpy twins: the caller's code)."""
+    if _NUMBA is None or filtered_plan is None:
+        return None
+    from epc_offboard.control import lwpr_kernels
+
+    if not lwpr_kernels.HAVE_NUMBA:
+        return None
+    global _predict_packed
+    _predict_packed = lwpr_kernels.predict_groups_packed
+    return jit.njit_cached(cast(Callable[..., bool], _lwpr_plan_jit))  # (the GIL kept)
+
+
+_predict_packed: Any = None
+lwpr_plan = _compile_lwpr_plan()
 
 
 # -- the position tick's tilt limit -------------------------------------------------------------
@@ -426,4 +494,37 @@ def _compile_theta() -> Callable[..., bool] | None:
 
 
 stack_theta = _compile_theta()
+_stack = cast(Callable[..., bool], stack_theta)  # (called by theta_check where compiled)
 
+
+
+# -- θ and the last controller's check in one call ------------------------------------------
+
+
+def _theta_check_jit(x0: FloatArray, refs: FloatArray, u_p: FloatArray, c: FloatArray,
+                     perturbation: FloatArray, theta_aug: FloatArray, cols: IntArray,
+                     theta_cols: FloatArray, M: FloatArray, width: FloatArray, n_check: int,
+                     u_out: FloatArray, u_min: FloatArray, u_max: FloatArray) -> int:
+    """:func:`stack_theta`, then the last controller's KKT check at its columns
+    (:func:`apply_map`, the same compiled check: the same bits) in one compiled call: the
+    position tick's EPC hit path entered once instead of twice (each entry is a machinery
+    a cold tick pays for; issue 21). -1: the shapes do not fit, nothing written; 0: θ
+    stacked, the check failed or was not asked (``n_check`` < 0: no last controller); 1: θ
+    stacked and the check passed, its first input written to ``u_out``."""
+    if not _stack(x0, refs, u_p, c, perturbation, theta_aug, cols, theta_cols):
+        return -1
+    if n_check < 0:
+        return 0
+    if _apply_jit(M, width, theta_cols, n_check, u_out, u_min, u_max):
+        return 1
+    return 0
+
+
+def _compile_theta_check() -> Callable[..., int] | None:
+    """The compiled θ stack and check (None on the numpy twins)."""
+    if _NUMBA is None or stack_theta is None:
+        return None
+    return jit.njit_cached(cast(Callable[..., int], _theta_check_jit))  # (the GIL kept: above)
+
+
+theta_check = _compile_theta_check()

@@ -1166,15 +1166,24 @@ class ModelGroup:
                 model.n_updates += 1
         return True
 
+    def predict_args(self) -> tuple[tuple[int, ...], Any] | None:
+        """The compiled prediction's arguments after the points and the output (each
+        model's field count, the packed fields: ``lwpr_kernels.predict_groups_packed``), up
+        to date; None: not compiled."""
+        if not self.compiled:
+            return None
+        if self._epoch != _reallocations:
+            self._field_args()
+        return tuple(map(_FIELDS_IN_USE, self.models)), self._predict_packed
+
     def predict_many(self, zs: FloatArray) -> FloatArray | None:
         """(m, n_y) predictions at the rows of ``zs`` (m, n_z) float64, C-contiguous; the
         columns no model writes are 0. None: ask the models one by one."""
-        if not self.compiled:
+        packed = self.predict_args()
+        if packed is None:
             return None
         raw = np.zeros((zs.shape[0], self.n_y))
-        if self._epoch != _reallocations:
-            self._field_args()
-        args = (zs, raw, tuple(map(_FIELDS_IN_USE, self.models)), self._predict_packed)
+        args = (zs, raw, *packed)
         kernel = self._kernel
         if kernel is None:  # (the types are fixed: zs is checked by the caller)
             kernel = self._kernel = jit.entry_point(kernels.predict_groups_packed, *args)

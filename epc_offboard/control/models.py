@@ -239,13 +239,20 @@ def accel_to_attitude(
     ``pitch = -(a_n cos(yaw) + a_e sin(yaw)) / g``.
     """
     a = np.asarray(accel_ned_m_s2, dtype=np.float64)
-    f = a - _GRAVITY_NED_M_S2  # = -(T/m) R e_z
-    # (vector_norm's bits: a (3,) vector is its own ravel; one call fewer, issue 21)
-    mag = math.sqrt(f.dot(f)) if f.ndim == 1 else frames.vector_norm(f)
+    if a.shape == (3,):
+        # f's floats: a - g e_z element by element, and vector_norm's bits (a (3,) dot
+        # product is BLAS's sequential sum) without numpy's subtraction and dot (each a
+        # machinery a cold position tick paid for; issue 21)
+        fx, fy, fz = a.tolist()
+        fx, fy, fz = fx - 0.0, fy - 0.0, fz - GRAVITY_M_S2
+        mag = math.sqrt(fx * fx + fy * fy + fz * fz)
+    else:
+        f = a - _GRAVITY_NED_M_S2  # = -(T/m) R e_z
+        mag = frames.vector_norm(f)
+        fx, fy, fz = f.tolist()
     if mag < 1e-9:
         # free fall: attitude is arbitrary, keep level
         return AttitudeThrust(0.0, 0.0, yaw_rad, 0.0)
-    fx, fy, fz = f.tolist()
     zx, zy, bz = -fx / mag, -fy / mag, -fz / mag  # R e_z, the body z axis (down) in NED
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
     bx = cy * zx + sy * zy  # Rz(-yaw) R e_z

@@ -426,6 +426,17 @@ class LwprPerturbation:
             )  # fmt: skip
         return group
 
+    def prediction_args(self) -> tuple[tuple[int, ...], Any, object] | None:
+        """The compiled prediction's arguments for every model at once after the points and
+        the output (``ModelGroup.predict_args``), and the group they are for (their types
+        are fixed while it is the same: an entry point made for them stays valid); None: not
+        compiled."""
+        group = self._group
+        if group is None or group.models is not self.models:
+            group = self._model_group()
+        args = group.predict_args()
+        return None if args is None else (*args, group)
+
     def predict_raw(self, z: npt.ArrayLike) -> FloatArray:
         """The unfiltered LWPR prediction of p at z, shape (nx,)."""
         zv = check_vector(z, self.n_z, "z")

@@ -47,7 +47,7 @@ from epc_offboard.control.dead_time import (
 )
 from epc_offboard.control.decision import Controller, Decision
 from epc_offboard.control.epc import budgeted_controller
-from epc_offboard.control.kernels import disturbance_plan, filtered_plan, tilt_reach
+from epc_offboard.control.kernels import disturbance_plan, filtered_plan, lwpr_plan, tilt_reach
 from epc_offboard.control.models import (
     LAG_ACC_STATES,
     AccelLimits,
@@ -286,6 +286,17 @@ def _pairwise_sum(values: list[float]) -> float:
     return res
 
 
+def _vec3s(a: Any, b: Any, c: Any) -> bool:
+    """Each a (3,) C-contiguous float64 array: what a compiled entry point takes as one
+    (the state's vectors; the tick's own, ``achieved`` and the last ``d_hat``, are made so).
+    One call, no generator (each of its steps is a Python-level call)."""
+    return (type(a) is np.ndarray and type(b) is np.ndarray and type(c) is np.ndarray
+            and a.dtype is _F64 and b.dtype is _F64 and c.dtype is _F64
+            and a.shape == (3,) and b.shape == (3,) and c.shape == (3,)
+            and a.flags.c_contiguous and b.flags.c_contiguous
+            and c.flags.c_contiguous)  # fmt: skip
+
+
 def position_problem(cfg: PositionControlConfig, limits: AccelLimits) -> MpcProblem:
     """The position QP: the lagged model over ``cfg.horizon`` steps of ``cfg.dt_s``, the
     velocity bounds (tightened by ``cfg.vel_margin_m_s``) and the geofence as state
@@ -440,10 +451,18 @@ class PositionLoop:
             tilt_reach, np.zeros(3), lim.u_min, lim.u_max, lim.P, lim.p, np.empty(3))
         # the disturbance estimate of the last tick: the state filter's model acceleration
         self._d_hat_last = np.zeros(3)
+        # the last _limit_tilt only clipped (far inside the tilt polygon: limiting its answer
+        # again is the same clip)
+        self._tilt_clipped_only = False
         # the compiled filtered plan (its entry point, the filter's state, its constants)
         # and the estimator it was made for (_filtered_plan)
         self._plan: tuple[Any, FloatArray, FloatArray] | None = None
         self._plan_for: object = None
+        # the LWPR query, plan and x0 in one compiled call (kernels.lwpr_plan's entry point,
+        # made with the plan), its query points' and predictions' buffers
+        self._lwpr_plan: Any = None
+        self._lwpr_plan_for: object = None  # the LWPR model group it was made for
+        self._raw = np.zeros((cfg.horizon + 2, 3))
 
     def _filtered_plan(self) -> tuple[Any, FloatArray, FloatArray] | None:
         """:func:`~epc_offboard.control.kernels.filtered_plan`'s entry point for the
@@ -452,7 +471,7 @@ class PositionLoop:
         wrapped), or LWPR with the residual observer (its estimate joins LWPR's between
         the filter and the plan)."""
         estimator = self._plan_for = self.estimator
-        self._plan = None
+        self._plan = self._lwpr_plan = None
         if (filtered_plan is not None and type(estimator) is LwprPerturbation
                 and self._residual is None):  # fmt: skip
             filt, n = estimator.filter, self.config.horizon
@@ -461,6 +480,14 @@ class PositionLoop:
             kernel = jit.entry_point(filtered_plan, np.zeros((n + 2, 3)), np.zeros((n, 9)),
                                      np.empty(3), filt.state, consts, self._u_p, self._refs)
             self._plan = (kernel, filt.state, consts)
+            args = estimator.prediction_args()
+            if lwpr_plan is not None and args is not None:
+                v3 = np.zeros(3)
+                self._lwpr_plan_for = args[2]
+                self._lwpr_plan = jit.entry_point(
+                    lwpr_plan, v3, np.zeros((n + 1, 9)), False, self._refs, *args[:2],
+                    self._z_stages, self._raw, v3, v3, v3, v3, 0.0, np.empty(3), filt.state,
+                    consts, self._u_p, self._refs, self._x0)  # fmt: skip
         return self._plan
 
     def use_attitude_path(self, autopilot: str, attitude_mode: str) -> None:
@@ -797,15 +824,8 @@ class PositionLoop:
         else:
             self.observe(state, ours=learn, thrust_axis_ned=axis)
         age_s = state.position_age_s
-        if age_s > 0.0:
-            # The sample is age_s old (real time: 1-11 ms at 100 Hz, the loop not in phase
-            # with it; lockstep: 0) and the tracker predicts it on at constant velocity: the
-            # velocity flown from lagged the vehicle's by age x acceleration (6.6-10.7 ms x a
-            # in the windy figure-8: the turns cut, 1.5-1.8 x lockstep's error, issue 21).
-            # The model's acceleration carries the QP's initial state on to the tick.
-            acc_model = achieved + self._d_hat_last
-            vel_x0 = vel_x0 + acc_model * age_s
-            pos_x0 = pos_x0 + (0.5 * age_s * age_s) * acc_model
+        x0 = self._x0
+        x0_made = False  # (the compiled LWPR plan wrote x0)
         d_max = self._d_max
         if not self._nominal_feedforward:
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
@@ -829,11 +849,33 @@ class PositionLoop:
             # origin: the reference's there lost the drag's turn over ArduPilot's 0.2 s
             # (circle max 0.90 -> 2.0-4.4 cm)
             z_stages = self._z_stages
-            z_stages[0] = vel_est
-            z_stages[1] = reference.stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
-            z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
             plan = self._plan if self._plan_for is self.estimator else self._filtered_plan()
-            if plan is not None and refs.dtype is _F64 and refs.flags.c_contiguous:
+            fused = self._lwpr_plan
+            stages = reference.stages
+            if (fused is not None and refs.dtype is _F64 and refs.flags.c_contiguous
+                    and refs.shape[0] == self.config.horizon and stages.dtype is _F64
+                    and stages.flags.c_contiguous
+                    and _vec3s(vel_est, pos_x0, vel_x0)):  # fmt: skip
+                # the types its entry point takes: the query points, LWPR's prediction,
+                # the filter's step, the plan and x0 in one compiled call, the same bits
+                # (issue 21); False: a point not finite, the models one by one below
+                args: Any = self.estimator.prediction_args()  # type: ignore[union-attr]
+                if args[2] is not self._lwpr_plan_for:  # models replaced: their types may differ
+                    plan = self._filtered_plan()
+                    fused = self._lwpr_plan
+                if fused is not None and plan is not None:
+                    _, filter_state, consts = plan
+                    d_hat = np.empty(3)
+                    x0_made = fused(vel_est, stages, dead_time.dead_time_s > 0.0, refs, args[0],
+                                    args[1], z_stages, self._raw, pos_x0, vel_x0, achieved,
+                                    self._d_hat_last, age_s, d_hat, filter_state, consts,
+                                    self._u_p, self._refs, x0)  # fmt: skip
+            if x0_made:
+                u_p, refs = self._u_p, self._refs
+            elif plan is not None and refs.dtype is _F64 and refs.flags.c_contiguous:
+                z_stages[0] = vel_est
+                z_stages[1] = stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
+                z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
                 # LWPR's estimate_along (its filter stepped, the variation) and the plan
                 # below in one compiled call after the prediction, the same bits (issue 21)
                 kernel, filter_state, consts = plan
@@ -842,6 +884,9 @@ class PositionLoop:
                 kernel(raw, refs, d_hat, filter_state, consts, self._u_p, self._refs)
                 u_p, refs = self._u_p, self._refs
             else:
+                z_stages[0] = vel_est
+                z_stages[1] = stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
+                z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
                 p_hat, d_var = self.estimator.estimate_along(z_stages)
                 if self._residual is not None:
                     p_hat = p_hat + self._residual.estimate(vel_est)
@@ -864,17 +909,31 @@ class PositionLoop:
                     # a shift of the references the model's state is held to (see
                     # disturbance_drift)
                     refs = refs - self.disturbance_drift(d_var)
-        x0 = self._x0
-        x0[0:3] = pos_x0
-        x0[3:6] = vel_x0
-        x0[6:9] = achieved
+        if not x0_made:
+            if age_s > 0.0:
+                # The sample is age_s old (real time: 1-11 ms at 100 Hz, the loop not in
+                # phase with it; lockstep: 0) and the tracker predicts it on at constant
+                # velocity: the velocity flown from lagged the vehicle's by age x
+                # acceleration (6.6-10.7 ms x a in the windy figure-8: the turns cut, 1.5-1.8
+                # x lockstep's error, issue 21). The model's acceleration carries the QP's
+                # initial state on to the tick.
+                acc_model = achieved + self._d_hat_last
+                vel_x0 = vel_x0 + acc_model * age_s
+                pos_x0 = pos_x0 + (0.5 * age_s * age_s) * acc_model
+            x0[0:3] = pos_x0
+            x0[3:6] = vel_x0
+            x0[6:9] = achieved
         self._d_hat_last = d_hat
         if dead_time.steps:
             x0[:] = dead_time.ahead(x0, d_hat, state.time_s)
         decision: Decision = controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
         acc = self._limit_tilt(np.asarray(decision.u, dtype=np.float64))
-        acc = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
-        acc = self._limit_tilt(acc)
+        clipped_only = self._tilt_clipped_only
+        ramped = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)
+        if ramped is not acc or not clipped_only:
+            # (not ramped and only clipped: the limit again is the same clip, the same bits;
+            # its compiled entry a machinery less for a cold tick, issue 21)
+            acc = self._limit_tilt(ramped)
         dead_time.sent(state.time_s, acc)
         out = self._attitude_target(
             acc, float(reference.yaw_rad[0]), d_hat, decision.source, t0, axis_down
@@ -892,7 +951,9 @@ class PositionLoop:
             # the compiled ratio's rounding differs from BLAS's by ~1e-16 of the reach: far
             # below 1, the clip alone is the answer either way
             if self._tilt_reach(acc, lim.u_min, lim.u_max, lim.P, lim.p, out) < _TILT_EXACT_BELOW:
+                self._tilt_clipped_only = True
                 return out
+        self._tilt_clipped_only = False
         return limit_tilt(acc, self.acc_limits)
 
     def _attitude_target(

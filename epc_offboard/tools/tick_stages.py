@@ -141,6 +141,8 @@ def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES,
     stages.wrap(loop, "observe", "observe")
     if loop._filtered_plan() is None:
         stages.wrap(loop.estimator, "estimate_along", "estimate_along")
+    elif loop._lwpr_plan is not None:  # LWPR's prediction, its filter's step, the plan
+        stages.wrap(loop, "_lwpr_plan", "estimate_along")  # and x0: one compiled call
     else:  # LWPR's prediction along the horizon; its filter's step is in the compiled plan
         stages.wrap(loop.estimator, "predict_raw_many", "estimate_along")
     controller: Any = loop.controller
@@ -148,7 +150,7 @@ def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES,
     from epc_offboard.control.epc import controller as epc
 
     if isinstance(controller, epc.ExperienceController) and kernels.stack_theta is not None:
-        stages.wrap(epc, "stack_theta", "epc.theta")  # (the compiled stack, issue 21)
+        stages.wrap(controller, "theta_compiled", "epc.theta")  # (the compiled stack, issue 21)
     else:
         stages.wrap(controller.problem, "theta", "epc.theta")
     if hasattr(controller, "library"):

@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from epc_offboard.common import jit
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.control.decision import Controller, Decision, elapsed_us
 from epc_offboard.control.epc.candidates import CandidatePool
@@ -25,10 +27,12 @@ from epc_offboard.control.epc.exchange import LibraryExchange
 from epc_offboard.control.epc.learner import IntermediateQp, Learner
 from epc_offboard.control.epc.library import Entry, Library
 from epc_offboard.control.epc.maps import MapBuilder
-from epc_offboard.control.kernels import stack_theta
+from epc_offboard.control.kernels import stack_theta, theta_check
 from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.control.models import LinearModel
 from epc_offboard.control.qp import MpcProblem
+
+_F64 = np.dtype(np.float64)  # (an array's dtype is this object: the fused call's check)
 
 
 @dataclass(frozen=True)
@@ -135,6 +139,19 @@ class ExperienceController(LibraryExchange, Controller):
         self._theta_aug[-1] = 1.0
         self._theta_cols = self.builder.compact(self._theta_aug)  # what the maps read of it
         self._cols_stacked = False  # theta_compiled wrote _theta_cols for this tick
+        # theta_compiled's check of the last controller (the tick's u, its answer: None,
+        # not made) for decide, and the fused kernel's entry point for this problem's sizes
+        self._u_checked: FloatArray | None = None
+        self._last_hit: bool | None = None
+        self._theta_check: Any = None
+        if theta_check is not None:
+            p = problem
+            self._no_map = (np.zeros((1, 1)), np.zeros(1))
+            self._theta_check = jit.entry_point(
+                theta_check, np.zeros(p.nx), np.zeros((p.horizon, p.nx)),
+                np.zeros((p.horizon, p.nu)), p.model.c, np.zeros(p.nx), self._theta_aug,
+                self.builder.geom.cols, self._theta_cols, *self._no_map, 0, np.empty(p.nu),
+                p.u_min, p.u_max)  # fmt: skip
         self._intermediate_qp = IntermediateQp(problem, self._int_horizon, self._slack_weight)
 
     def set_model(self, model: LinearModel) -> None:
@@ -170,8 +187,28 @@ class ExperienceController(LibraryExchange, Controller):
                 and type(x0) is np.ndarray and type(refs) is np.ndarray
                 and type(perturbation) is np.ndarray):  # fmt: skip
             return None
-        if not stack_theta(x0, refs, u_p, self.problem.model.c, perturbation, self._theta_aug,
-                           self.builder.geom.cols, self._theta_cols):  # fmt: skip
+        fused = self._theta_check
+        if (fused is not None and x0.dtype is _F64 and refs.dtype is _F64
+                and u_p.dtype is _F64 and perturbation.dtype is _F64 and x0.ndim == 1
+                and refs.ndim == 2 and perturbation.ndim == 1 and x0.flags.c_contiguous
+                and refs.flags.c_contiguous and u_p.flags.c_contiguous
+                and perturbation.flags.c_contiguous):  # fmt: skip
+            # the types its entry point was compiled for: θ and the last controller's
+            # check (the query's first try) in one compiled call (issue 21)
+            p = self.problem
+            last = self.library.last
+            amap = None if last is None else last.map
+            M, width = self._no_map if amap is None else (amap.M, amap.width)
+            u = np.empty(p.nu)
+            hit = fused(x0, refs, u_p, p.model.c, perturbation, self._theta_aug,
+                        self.builder.geom.cols, self._theta_cols, M, width,
+                        -1 if amap is None else amap.n_check, u, p.u_min, p.u_max)
+            if hit < 0:
+                return None  # (arrays of another shape: problem.theta raises its error)
+            if amap is not None:
+                self._u_checked, self._last_hit = u, hit == 1
+        elif not stack_theta(x0, refs, u_p, self.problem.model.c, perturbation,
+                             self._theta_aug, self.builder.geom.cols, self._theta_cols):
             return None  # (arrays of another shape: problem.theta raises its error)
         self._cols_stacked = True
         return self._theta_aug[:-1]
@@ -182,12 +219,16 @@ class ExperienceController(LibraryExchange, Controller):
         th_aug = self._theta_aug
         p = self.problem
         self.library.tick += 1
-        u = np.empty(p.nu)
         th_cols = self._theta_cols
         if not self._cols_stacked:
             th_aug.take(self.builder.geom.cols, out=th_cols)
         self._cols_stacked = False
-        entry = self.library.query(th_cols, u, p.u_min, p.u_max)
+        u, last_hit = self._u_checked, self._last_hit
+        if u is None:
+            u = np.empty(p.nu)
+        else:
+            self._u_checked = self._last_hit = None
+        entry = self.library.query(th_cols, u, p.u_min, p.u_max, last_hit=last_hit)
         if entry is not None:
             return self._hit(entry, u, th_aug, t0)
         if len(self.candidates):

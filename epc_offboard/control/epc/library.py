@@ -230,10 +230,12 @@ class Library:
         return self._order
 
     def query(self, theta_cols: FloatArray, u_out: FloatArray, u_min: FloatArray,
-              u_max: FloatArray) -> Entry | None:
+              u_max: FloatArray, last_hit: bool | None = None) -> Entry | None:
         """The first entry in query order that passes the KKT check at ``theta_cols`` (the
         columns of ``[theta; 1]`` the maps read: ``MapBuilder.compact``; its first input
-        written to ``u_out``), within ``max_checks`` checks; None: a miss."""
+        written to ``u_out``), within ``max_checks`` checks; None: a miss. ``last_hit``:
+        the answer of :attr:`last`'s check at ``theta_cols``, already made (its input
+        written to ``u_out`` if it passed); None: this query makes it."""
         last = self._last
         budget = len(self._entries) if self.max_checks is None else self.max_checks
         checked = 0
@@ -242,7 +244,8 @@ class Library:
             e = self._entries.get(last)
             if e is not None:
                 checked = 1
-                if e.map.check(theta_cols, u_out, u_min, u_max):
+                if last_hit if last_hit is not None else e.map.check(theta_cols, u_out,
+                                                                     u_min, u_max):
                     self.last_query_checks = 1
                     self.checks += 1
                     return e
