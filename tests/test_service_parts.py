@@ -16,7 +16,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import pytest
@@ -605,49 +605,3 @@ def test_sighups_config_is_merged_off_the_loops_thread(tmp_path, monkeypatch):
     assert service.cfg.trajectory.period_s == 17.0
     assert airframe_read_in  # the file and the merge validated...
     assert threading.main_thread() not in airframe_read_in  # ... none of it on the loops'
-
-
-@pytest.mark.parametrize(("autopilot", "mode", "sends"), [
-    ("px4", "autopilot", True),  # quaternion mode: the autopilot flies the attitude
-    ("px4", "epc", False),  # body rates: the attitude tick after it flies the new target
-])
-def test_in_real_time_a_quaternion_position_tick_sends_its_new_command_at_once(
-    autopilot: str, mode: Literal["epc", "autopilot"], sends: bool
-):
-    """Issue 21 (quaternion mode, real time): the attitude tick due with a position tick runs
-    first (its deadline kept: it relays the last command); the position step then sends its
-    new command itself, so the command goes out as soon as it is computed, not an attitude
-    period later (+7-9 % figure-8 error measured when it waited). With body rates the
-    attitude tick runs after the position tick and flies its target: no extra send."""
-    from epc_offboard.service.loop import Tick
-    from epc_offboard.service.service import Service
-
-    cfg = dataclasses.replace(
-        CFG, link=dataclasses.replace(CFG.link, autopilot="auto"),
-        attitude=dataclasses.replace(CFG.attitude, mode=mode),
-        log=dataclasses.replace(CFG.log, flight_log_path="", tlog_path=""),
-    )  # fmt: skip
-    service = Service(cfg)
-    codec = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    kind = {"ardupilot": mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, "px4": mavlink.MAV_AUTOPILOT_PX4}
-    frame = codec.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, kind[autopilot], 0, 4,
-                                   mavlink.MAV_STATE_STANDBY).pack(codec)  # fmt: skip
-    service.autopilot.on_message(codec.decode(bytearray(frame)))
-    assert not service.clock.vehicle_time  # real time
-    sent: list[Any] = []
-
-    def send(msg: Any) -> bool:
-        sent.append(msg)
-        return True
-
-    service.link.send = send  # type: ignore[method-assign]
-    service.supervisor.outputs = Outputs(Phase.OFFBOARD, True, (), "flying")
-    state = _state()
-    service._state_at = lambda now_s: state  # type: ignore[method-assign]
-    asyncio.run(service._position_step(Tick(10.0, 10.0, 0.01)))
-    attitude = [m for m in sent if m.get_type() == "SET_ATTITUDE_TARGET"]
-    assert service._position_out is not None
-    assert len(attitude) == (1 if sends else 0)
-    if sends:
-        q = np.array(attitude[0].q)
-        assert np.allclose(np.abs(q @ service._position_out.q_target), 1.0, atol=1e-6)

@@ -218,10 +218,6 @@ class Service:
         self.misses.pump(wait=self.clock.vehicle_time)
         if self.outputs.stream_setpoints and state is not None:
             self._position_out = self._position_tick(state, tick.start_s)
-            if self._sends_at_once():
-                # real time, quaternion mode: the attitude tick due with this one ran first
-                # and relayed the last command; the new one goes out now, not a period later
-                self._send_attitude(state, tick)
             self.misses.hand_over(wait=self.clock.vehicle_time)  # its misses, solved by the next
             self.systemd.control_ticked()
         return self.outputs.stream_setpoints  # ticks that control are timed, not idle ones
@@ -229,8 +225,8 @@ class Service:
     def _position_yields_to(self) -> str | None:
         """Real time: the attitude tick due with a position tick runs first while the
         autopilot flies the attitude (quaternion mode: the attitude tick relays the newest
-        position command; first, a long position step no longer makes it late; the position
-        step sends its new command itself, at once)."""
+        position command; first, a long position step no longer makes it late, and the
+        command it relays is one attitude period older)."""
         return "attitude" if self._attitude_path[1] == "autopilot" else None
 
     def _attitude_yields_to(self) -> str | None:
@@ -275,23 +271,6 @@ class Service:
             self.logs.flight_row(pack_row(t_s, self.outputs.phase.value, state, reference, out))
         return out
 
-    def _sends_at_once(self) -> bool:
-        """Whether the position step sends its new attitude command itself (real time, the
-        attitude tick relaying ours ran first: ``_position_yields_to``)."""
-        return (
-            not self.clock.vehicle_time
-            and self._position_yields_to() is not None
-            and not self.cascade.flies_reference
-            and not self.autopilot.offboard_refusal()
-        )
-
-    def _send_attitude(self, state: VehicleState, tick: Tick) -> None:
-        """The attitude setpoint for the newest position command, sent."""
-        target = self._position_out or self.cascade.hover(state)
-        late = late_tick(tick.start_s - tick.scheduled_s, state.attitude_age_s, tick.period_s)
-        offboard = self.outputs.phase == Phase.OFFBOARD
-        self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard)
-
     async def _attitude_step(self, tick: Tick) -> bool:
         state = self._state_at(tick.start_s)
         if self.clock.vehicle_time:
@@ -303,7 +282,10 @@ class Service:
         if streaming and state is not None and self.cascade.flies_reference:
             self.setpoints.position_target(state, self.references.now(state, tick.start_s))
         elif streaming and state is not None:
-            self._send_attitude(state, tick)
+            target = self._position_out or self.cascade.hover(state)
+            late = late_tick(tick.start_s - tick.scheduled_s, state.attitude_age_s, tick.period_s)
+            offboard = self.outputs.phase == Phase.OFFBOARD
+            self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard)
         elif self.clock.vehicle_time and state is not None:
             # lockstep: the simulator advances only on an answer for each tick; when no
             # setpoint streams (before takeoff, landing) the answer is a SYSTEM_TIME
