@@ -140,10 +140,15 @@ async def _timed_ticks() -> LoopReport:
         if kind is None:
             loops.stopping.set()
             return False
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         if kind == "block":
             time.sleep(0.02)  # noqa: ASYNC251 - the thread blocks, as on a lock
-        while time.perf_counter() - t0 < 0.02:
+            return True
+        # 20 ms and at least 12 ms of it on the CPU, however loaded the machine (at load
+        # 6-20 a 20 ms spin got 1.7 ms of CPU); at most 2 s
+        while time.perf_counter() - t0 < 0.02 or (
+            time.thread_time() - cpu0 < 0.012 and time.perf_counter() - t0 < 2.0
+        ):
             pass
         return True
 
@@ -159,8 +164,8 @@ def test_a_tick_s_wall_time_is_split_into_its_cpu_time_and_its_waits():
     rep = asyncio.run(_timed_ticks())
     assert rep.ticks == 6
     assert rep.compute_us_median >= 19_000
-    # the three busy ticks ran on the CPU most of their 20 ms (safety bound: a loaded machine
-    # preempts them; the blocking ones ran < 1 ms of it)
+    # the three busy ticks ran at least 12 ms on the CPU (they spin until they have; the
+    # blocking ones ran < 1 ms of their 20)
     assert rep.compute_cpu_us_p99 > 5_000
     assert rep.compute_cpu_us_median < rep.compute_us_median
     assert rep.ticks_blocked >= 3
@@ -318,57 +323,6 @@ def test_a_stall_says_how_much_of_the_threads_cpu_was_the_kernels():
     assert kernel.system_cpu_ms > 0.6 * kernel.thread_cpu_ms
     assert user.system_cpu_ms < 0.4 * user.thread_cpu_ms
     assert "system_cpu_ms" in kernel.as_dict()
-
-
-async def _two_loops(slow_every: int, first: str) -> tuple[list[tuple[str, float]], Counter[str]]:
-    """The service's two real-time loops (100 and 200 Hz), the other loop yielding to loop
-    ``first``; every ``slow_every``-th position tick works 7 ms (a library miss)."""
-    counters: Counter[str] = Counter()
-    loops = Loops(WallClock(), counters, LogGate())
-    order: list[tuple[str, float]] = []
-
-    async def position(t: Tick) -> bool:
-        order.append(("position", t.scheduled_s))
-        done = sum(1 for name, _ in order if name == "position")
-        if done % slow_every == 0:
-            _spin(0.007)
-        if done == 24:
-            loops.stopping.set()
-        return True
-
-    async def attitude(t: Tick) -> bool:
-        order.append(("attitude", t.scheduled_s))
-        return True
-
-    results = await asyncio.gather(
-        loops.periodic("position", LoopTiming(0.01), position,
-                       yield_to=lambda: "attitude" if first == "attitude" else None),
-        loops.periodic("attitude", LoopTiming(0.005), attitude,
-                       yield_to=lambda: "position" if first == "position" else None),
-        return_exceptions=True,
-    )  # fmt: skip
-    assert all(isinstance(r, Stop) for r in results)
-    return order, counters
-
-
-@pytest.mark.parametrize("first", ["attitude", "position"])
-def test_real_time_the_loop_asked_to_runs_first_at_a_shared_tick(first: str):
-    """Issue 21 (quaternion mode): the position loop's step ran first and the attitude tick
-    due at the same time waited for all of it, so a 5-15 ms position step was a late
-    attitude tick (most of ``bench --attack``'s attitude deadline misses). The loops now tick
-    on one grid and the attitude tick due with a position tick runs before it, a slow one
-    too; with body rates the position tick runs first (the attitude EPC flies the newest
-    target), as the service asks. Safety bounds: a tick that waited its bound for the other
-    is counted, and only those may come first."""
-    order, counters = asyncio.run(_two_loops(slow_every=3, first=first))
-    other = "position" if first == "attitude" else "attitude"
-    key = {k: round(t_s / 0.005) for k, (_, t_s) in enumerate(order)}  # the grid's ticks
-    first_at = {key[k]: k for k, (name, _) in enumerate(order) if name == first}
-    other_at = {key[k]: k for k, (name, _) in enumerate(order) if name == other}
-    shared = [g for g in first_at if g in other_at]  # (a late loop skips ticks)
-    assert len(shared) >= 12  # one grid: the 100 Hz ticks fall on 200 Hz ones
-    after = sum(first_at[g] > other_at[g] for g in shared)
-    assert after <= counters[f"{first}_ticks_not_awaited"]
 
 
 def test_a_stall_names_the_event_loops_longest_step_in_it():

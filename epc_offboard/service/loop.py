@@ -30,11 +30,6 @@ log = logging.getLogger("epc_offboard.service")
 # Loop times closer than this are the same vehicle time (the vehicle clock's resolution is
 # 1 ms; the loops' schedules add up float periods).
 _SAME_TIME_S = 1e-9
-# Real time: a tick of the loop another one yields to (``periodic(yield_to=)``) due within
-# this of the yielding loop's tick is the same tick time, and runs first; the yielding tick
-# waits at most AFTER_TIMEOUT_S for it (a loop that stopped ticking holds nothing up).
-SAME_TICK_S = 5e-4
-AFTER_TIMEOUT_S = 0.002
 
 
 class Stop(Exception):  # noqa: N818 - control flow, not an error
@@ -143,7 +138,6 @@ class Loops:
         self.stopping = asyncio.Event()
         self.stalls: deque[Stall] = deque(maxlen=STALLS_KEPT)
         self._next_due: dict[str, float] = {}  # per loop: when its next tick is due
-        self._epoch_s: float | None = None  # real time: the loops' common tick grid starts
         self._ticked: asyncio.Future[None] | None = None  # set when a tick has run
 
     async def room(self, room_s: float = ROOM_S, timeout_s: float = 0.05) -> None:
@@ -208,29 +202,18 @@ class Loops:
         name: str,
         timing: LoopTiming,
         tick: Callable[[Tick], Awaitable[bool]],
-        yield_to: Callable[[], str | None] | None = None,
     ) -> NoReturn:
         """Run ``tick`` every ``timing.period_s`` of loop time, forever. ``tick`` returns
         whether it controlled (setpoints stream): only those ticks are timed, and only their
-        skips counted (``{name}_ticks_skipped``); before that the loops idle.
-
-        Real time: every loop ticks on one grid (from the first loop's start), so a 100 Hz
-        tick falls on a 200 Hz one; ``yield_to()`` names the loop whose tick due at the same
-        time runs first (None: none, now). The position loop's step was first and the
-        attitude tick due with it waited for all of it: a 5-15 ms position step (rare) was
-        a late attitude tick (``bench --attack``: most of the attitude deadline misses).
-        Lockstep keeps its own order: the attitude tick's answer releases the simulator."""
+        skips counted (``{name}_ticks_skipped``); before that the loops idle."""
         period = timing.period_s
-        t_next = self._first_tick(period)
+        t_next = self.clock.now_s()
         before: _Mark | None = None
         loop = asyncio.get_running_loop()  # once: each call is a getpid (CPython 3.11)
         with contextlib.closing(_RunqueueClock()) as runqueue:
             stall_s = min(STALL_S, 2.0 * period)  # the attitude loop's: a deadline miss
             while True:
                 await self.wait(t_next, until_reached=True, loop=loop)
-                first = None if yield_to is None or self.clock.vehicle_time else yield_to()
-                if first is not None:
-                    await self._after(first, t_next)
                 start = self.clock.now_s()
                 # the thread's CPU time and context switches (the rusage's CPU time lags by
                 # up to a scheduler tick; the thread clock does not), outside the wall time
@@ -268,32 +251,6 @@ class Loops:
                 self._next_due[name] = t_next
                 if self._ticked is not None and not self._ticked.done():
                     self._ticked.set_result(None)  # work waiting for room() may check now
-
-    def _first_tick(self, period: float) -> float:
-        """The loop's first tick time: now (lockstep); real time, on the grid of the loop
-        that started first."""
-        now = self.clock.now_s()
-        if self.clock.vehicle_time:
-            return now
-        if self._epoch_s is None:
-            self._epoch_s = now
-        return self._epoch_s + math.ceil((now - self._epoch_s) / period) * period
-
-    async def _after(self, other: str, t_s: float) -> None:
-        """Until loop ``other``'s tick due at ``t_s`` (or earlier) has run, at most
-        ``AFTER_TIMEOUT_S`` (then counted, ``{other}_ticks_not_awaited``)."""
-        loop = asyncio.get_running_loop()
-        end = loop.time() + AFTER_TIMEOUT_S
-        while self._next_due.get(other, math.inf) <= t_s + SAME_TICK_S:
-            left = end - loop.time()
-            if left <= 0.0:
-                self.counters[f"{other}_ticks_not_awaited"] += 1
-                return
-            if self._ticked is None or self._ticked.done():
-                self._ticked = loop.create_future()
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(left):
-                    await asyncio.shield(self._ticked)
 
     def _stall(self, name: str, t_s: float, a: _Mark, b: _Mark) -> None:
         """Counted (``{name}_stalls``) and kept: the interval from tick ``a`` to ``b``."""

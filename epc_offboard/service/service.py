@@ -222,18 +222,6 @@ class Service:
             self.systemd.control_ticked()
         return self.outputs.stream_setpoints  # ticks that control are timed, not idle ones
 
-    def _position_yields_to(self) -> str | None:
-        """Real time: the attitude tick due with a position tick runs first while the
-        autopilot flies the attitude (quaternion mode: the attitude tick relays the newest
-        position command; first, a long position step no longer makes it late, and the
-        command it relays is one attitude period older)."""
-        return "attitude" if self._attitude_path[1] == "autopilot" else None
-
-    def _attitude_yields_to(self) -> str | None:
-        """... and with body rates the position tick runs first, as in lockstep: the
-        attitude EPC flies the newest target."""
-        return None if self._attitude_path[1] == "autopilot" else "position"
-
     def _use_attitude_path(self, autopilot: str, mode: AttitudeMode) -> None:
         self._attitude_path = (autopilot, mode)
         self._rates_suspended = False
@@ -382,13 +370,11 @@ class Service:
             async with asyncio.TaskGroup() as tg:
                 tg.create_task(self._supervise(), name="supervisor")
                 tg.create_task(
-                    loops.periodic("position", self.position_timing, self._position_step,
-                                   yield_to=self._position_yields_to),
+                    loops.periodic("position", self.position_timing, self._position_step),
                     name="position-loop",
                 )
                 tg.create_task(
-                    loops.periodic("attitude", self.attitude_timing, self._attitude_step,
-                                   yield_to=self._attitude_yields_to),
+                    loops.periodic("attitude", self.attitude_timing, self._attitude_step),
                     name="attitude-loop",
                 )
                 if not self.clock.vehicle_time:  # the worker's start overlaps the flight's
