@@ -154,15 +154,10 @@ def fuzz_then_zenoh_flood(tmp_path_factory: pytest.TempPathFactory) -> SharedFli
     # a long mission: ended by SIGTERM once the last window is over (the service commands
     # Hold and writes its stats)
     overrides = hover_overrides(port, FLEET, 120.0)
-    # at the deployed priorities, as the peers' flight below (at normal priority a 108 ms gap
-    # came once at load 4-5 beside two hogs: the scheduler's, not the fuzz's)
-    overrides["loops"] = {"realtime_priority": 50}  # config/default.toml's, where permitted
     with (
         holding({"alone"}),
         Rig(tmp, lockstep=False, speedup=1.0, service_overrides=overrides) as rig,
     ):
-        assert rig.sitl is not None
-        autopilot_priority(rig.sitl.pid)
         cfg = load_service_config(rig.config_path)
         problem = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01).position.problem
         ready, go, stop, sent = threading.Event(), threading.Event(), threading.Event(), [0]
