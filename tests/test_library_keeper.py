@@ -390,3 +390,21 @@ def test_a_saves_library_slices_make_no_python_object_per_entry(tmp_path):
         got_transitions = store.load_transitions(sig)
     assert sorted(got, key=lambda e: e.active_set) == sorted(entries, key=lambda e: e.active_set)
     assert got_transitions == {(sets[a], sets[b]): n for (a, b), n in transitions.items()}
+
+
+def test_a_packed_export_leaves_out_a_count_naming_an_entry_no_longer_held():
+    """``Library.export_packed``'s transitions are :meth:`Library.export_transitions`'s, a
+    count whose entry is gone (not expected: ``_remove`` drops them) left out as there."""
+    from epc_offboard.control.cascade import Cascade
+
+    cfg = load_service_config(SITL_SERVICE_CONFIG)
+    cascade = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01)
+    lib = _filled_library(cascade, 20).library
+    a = next(iter(lib._succ))
+    lib._succ[a][-1] = 5  # a key no entry has
+    lib._succ[-2] = {a: 3}
+    expected = lib.export_transitions()
+    _, packed = lib.export_packed()
+    assert len(packed) == len(expected) > 0
+    assert list(zip(packed.froms, packed.tos, packed.counts, strict=True)) == [
+        (f, t, n) for (f, t), n in expected.items()]  # fmt: skip

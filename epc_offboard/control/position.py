@@ -870,12 +870,13 @@ class PositionLoop:
                                     args[1], z_stages, self._raw, pos_x0, vel_x0, achieved,
                                     self._d_hat_last, age_s, d_hat, filter_state, consts,
                                     self._u_p, self._refs, x0)  # fmt: skip
-            if x0_made:
-                u_p, refs = self._u_p, self._refs
-            elif plan is not None and refs.dtype is _F64 and refs.flags.c_contiguous:
+            if not x0_made:  # (the compiled LWPR plan fills them itself)
                 z_stages[0] = vel_est
                 z_stages[1] = stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
                 z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
+            if x0_made:
+                u_p, refs = self._u_p, self._refs
+            elif plan is not None and refs.dtype is _F64 and refs.flags.c_contiguous:
                 # LWPR's estimate_along (its filter stepped, the variation) and the plan
                 # below in one compiled call after the prediction, the same bits (issue 21)
                 kernel, filter_state, consts = plan
@@ -884,9 +885,6 @@ class PositionLoop:
                 kernel(raw, refs, d_hat, filter_state, consts, self._u_p, self._refs)
                 u_p, refs = self._u_p, self._refs
             else:
-                z_stages[0] = vel_est
-                z_stages[1] = stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
-                z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
                 p_hat, d_var = self.estimator.estimate_along(z_stages)
                 if self._residual is not None:
                     p_hat = p_hat + self._residual.estimate(vel_est)

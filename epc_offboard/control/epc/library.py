@@ -313,11 +313,10 @@ class Library:
                 array("q", map(at, chain.from_iterable(succ.values()))),
                 array("q", chain.from_iterable(map(dict.values, succ.values()))),
             )
-        except KeyError:  # a count naming an entry no longer held (not expected): left out
-            kept = [(index[a], index[b], n) for a, s in succ.items() if a in index
-                    for b, n in s.items() if b in index]  # fmt: skip
-            triples = (array("q", [k[0] for k in kept]), array("q", [k[1] for k in kept]),
-                       array("q", [k[2] for k in kept]))  # fmt: skip
+        except KeyError:  # a count naming an entry no longer held (not expected): left out,
+            kept = self.export_transitions()  # as there
+            triples = (array("q", [a for a, _ in kept]), array("q", [b for _, b in kept]),
+                       array("q", kept.values()))  # fmt: skip
         return entries, PackedTransitions(entries, *triples)
 
     def add_transitions(self, keys: Mapping[int, int],
