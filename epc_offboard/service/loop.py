@@ -58,7 +58,9 @@ class Stall:
     thread_cpu_ms: float  # the loops' thread's CPU time in the interval
     # ... its share in the kernel (the rusage's system time, sampled at the scheduler's tick):
     # a stall of CPU with no event-loop step over 1 ms in it ran no Python; this says
-    # whether it was system calls and interrupts in the thread's time or user code
+    # whether it was system calls and interrupts in the thread's time or user code; the
+    # kernel adjusts its user/system split over the thread's whole life (cputime_adjust),
+    # so over one short interval this is a hint blurred by the thread's past
     system_cpu_ms: float
     runqueue_ms: float  # ... time it was runnable but waited for a CPU (NaN: not Linux)
     gc_ms: float  # the collections' time in the interval (any thread)
