@@ -107,15 +107,22 @@ def _figure8_ticks() -> tuple[Cascade, Any]:
                       np.array([0.0, 0.0, -2.5]))  # fmt: skip
 
     def tick(k: int) -> None:
-        t_s = 1.0 + k * _DT_S
-        now = traj.sample(t_s - (k % 2) * _DT_S)  # the position sample, 0 or 10 ms old
-        state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
-                       now.acc_ned_m_s2)  # fmt: skip
-        reference = traj.reference(t_s, loop.config.dt_s, loop.config.horizon, 0.0)
+        state, reference = _figure8_inputs(traj, loop, k)
         out = cascade.position_tick(state, reference, learn=True)
-        pack_row(t_s, "offboard", state, reference, out)
+        pack_row(state.time_s, "offboard", state, reference, out)
 
     return cascade, tick
+
+
+def _figure8_inputs(traj: Trajectory, loop: Any, k: int,
+                    steps: int | None = None) -> tuple[VehicleState, Any]:
+    """The figure-8's tick k: the state (its position sample 0 or 10 ms old, a new one every
+    other tick as at 50 Hz) and the reference over ``steps`` stages (unset: the horizon)."""
+    t_s = 1.0 + k * _DT_S
+    now = traj.sample(t_s - (k % 2) * _DT_S)
+    state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
+                   now.acc_ned_m_s2)  # fmt: skip
+    return state, traj.reference(t_s, loop.config.dt_s, steps or loop.config.horizon, 0.0)
 
 
 def test_a_position_tick_makes_few_python_calls():
@@ -615,11 +622,7 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
                 monkeypatch.setattr(maps, "apply_map", counting)
             if variant == "plan refused" and k >= 1:
                 loop._lwpr_plan = None  # (made with the plan at the first tick: refused)
-            t_s = 1.0 + k * _DT_S
-            now = traj.sample(t_s - (k % 2) * _DT_S)
-            state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
-                           now.acc_ned_m_s2)  # fmt: skip
-            reference = traj.reference(t_s, loop.config.dt_s, loop.config.horizon, 0.0)
+            state, reference = _figure8_inputs(traj, loop, k)
             out = cascade.position_tick(state, reference, learn=True)
             outs.append((out.source, out.acc_cmd_ned_m_s2.copy(), out.q_target.copy(),
                          out.p_hat_ned_m_s2.copy()))  # fmt: skip
@@ -667,11 +670,7 @@ def _captured_ticks(variant: str, position: Any, path: tuple[str, str] | None,
     for k in range(ticks):
         if variant == "refused" and k >= 1:
             loop._lwpr_plan = None
-        t_s = 1.0 + k * _DT_S
-        now = traj.sample(t_s - (k % 2) * _DT_S)
-        state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
-                       now.acc_ned_m_s2)  # fmt: skip
-        reference = traj.reference(t_s, loop.config.dt_s, loop.config.reference_steps, 0.0)
+        state, reference = _figure8_inputs(traj, loop, k, loop.config.reference_steps)
         out = cascade.position_tick(state, reference, learn=True)
         outs.append((out.source, *given[-1], out.acc_cmd_ned_m_s2.copy(), out.q_target.copy(),
                      out.p_hat_ned_m_s2.copy()))  # fmt: skip
