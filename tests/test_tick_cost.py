@@ -46,11 +46,13 @@ _DT_S = 0.01  # the position loop's period
 # disturbance plan, ~25 numpy calls, in one compiled call); now 67 and 121.5 (the tilt limit
 # and θ's stack each in one compiled call); then 67 and 121.5 on main c8cc5a5; now 56 and
 # 118.5 (LWPR's filter step and variation in the plan's compiled call, the attitude
-# target's quaternion from its floats, the LWPR group's field counts read in C). The
-# bounds leave room for a small change, not for the old cost (they fail on the code
-# before).
-MAX_PYTHON_CALLS = 58
-MAX_C_CALLS = 120
+# target's quaternion from its floats, the LWPR group's field counts read in C); then 54
+# and 108.5 on main e4a2479 (55 and 112.5 with PX4 quaternion's dead time); now 52.5 and
+# 108.5 (109.5): the reference window, the dead time's carry and E d_hat in the compiled
+# plan. The bounds leave room for a small change, not for the old cost (they fail on the
+# code before).
+MAX_PYTHON_CALLS = 56
+MAX_C_CALLS = 116
 
 
 def _state(
@@ -105,15 +107,22 @@ def _figure8_ticks() -> tuple[Cascade, Any]:
                       np.array([0.0, 0.0, -2.5]))  # fmt: skip
 
     def tick(k: int) -> None:
-        t_s = 1.0 + k * _DT_S
-        now = traj.sample(t_s - (k % 2) * _DT_S)  # the position sample, 0 or 10 ms old
-        state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
-                       now.acc_ned_m_s2)  # fmt: skip
-        reference = traj.reference(t_s, loop.config.dt_s, loop.config.horizon, 0.0)
+        state, reference = _figure8_inputs(traj, loop, k)
         out = cascade.position_tick(state, reference, learn=True)
-        pack_row(t_s, "offboard", state, reference, out)
+        pack_row(state.time_s, "offboard", state, reference, out)
 
     return cascade, tick
+
+
+def _figure8_inputs(traj: Trajectory, loop: Any, k: int,
+                    steps: int | None = None) -> tuple[VehicleState, Any]:
+    """The figure-8's tick k: the state (its position sample 0 or 10 ms old, a new one every
+    other tick as at 50 Hz) and the reference over ``steps`` stages (unset: the horizon)."""
+    t_s = 1.0 + k * _DT_S
+    now = traj.sample(t_s - (k % 2) * _DT_S)
+    state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
+                   now.acc_ned_m_s2)  # fmt: skip
+    return state, traj.reference(t_s, loop.config.dt_s, steps or loop.config.horizon, 0.0)
 
 
 def test_a_position_tick_makes_few_python_calls():
@@ -163,7 +172,9 @@ def test_the_estimators_kernels_unbox_few_arrays_a_call():
         loop._lwpr_plan = counting_plan
         for k in range(50, 55):
             tick(k)
-        # its own arrays (the state, points, filter, plan and x0: 15), not the models' ~40
+        # its own arrays (the state, points, filter, plan, x0 and the dead time's commands:
+        # 15; the window shares the plan's buffer, the perturbation x0's, the dead time's
+        # matrices the plan's constants), not the models' ~40
         assert fused_arrays
         assert max(fused_arrays) <= 15, fused_arrays
         loop._lwpr_plan = None
@@ -611,11 +622,7 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
                 monkeypatch.setattr(maps, "apply_map", counting)
             if variant == "plan refused" and k >= 1:
                 loop._lwpr_plan = None  # (made with the plan at the first tick: refused)
-            t_s = 1.0 + k * _DT_S
-            now = traj.sample(t_s - (k % 2) * _DT_S)
-            state = _state(t_s, now.pos_ned_m + 0.01, now.vel_ned_m_s * 0.98, (k % 2) * _DT_S,
-                           now.acc_ned_m_s2)  # fmt: skip
-            reference = traj.reference(t_s, loop.config.dt_s, loop.config.horizon, 0.0)
+            state, reference = _figure8_inputs(traj, loop, k)
             out = cascade.position_tick(state, reference, learn=True)
             outs.append((out.source, out.acc_cmd_ned_m_s2.copy(), out.q_target.copy(),
                          out.p_hat_ned_m_s2.copy()))  # fmt: skip
@@ -634,3 +641,125 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
             assert a[0] == b[0], (variant, k)
             for x, y in zip(a[1:], b[1:], strict=True):
                 assert np.array_equal(x.view(np.uint64), y.view(np.uint64)), (variant, k)
+
+
+def _captured_ticks(variant: str, position: Any, path: tuple[str, str] | None,
+                    ticks: int) -> list[tuple[Any, ...]]:
+    """The figure-8's ticks with ``position``'s config and ``path``'s dead time, the plan
+    compiled (``fused``) or refused from the second tick (``refused``: the Python path,
+    the window, BLAS's products); per tick what the EPC step was given and the output."""
+    cfg = load_service_config(_CONFIG)
+    cascade = Cascade(position, cfg.attitude, cfg.estimator, _DT_S, learn_on_miss=True,
+                      airframe=cfg.vehicle)  # fmt: skip
+    cascade.warm_up()
+    loop = cascade.position
+    if path is not None:
+        loop.use_attitude_path(*path)
+    controller: Any = loop.controller
+    given: list[tuple[np.ndarray, ...]] = []
+    real_step = controller.step
+
+    def step(x0: Any, refs: Any, u_p: Any, *, perturbation: Any) -> Any:
+        given.append((np.array(x0), np.array(refs), np.array(u_p), np.array(perturbation)))
+        return real_step(x0, refs, u_p, perturbation=perturbation)
+
+    controller.step = step
+    traj = Trajectory(TrajectoryConfig(shape="figure8", ramp_s=1.0, period_s=8.0),
+                      np.array([0.0, 0.0, -2.5]))  # fmt: skip
+    outs: list[tuple[Any, ...]] = []
+    for k in range(ticks):
+        if variant == "refused" and k >= 1:
+            loop._lwpr_plan = None
+        state, reference = _figure8_inputs(traj, loop, k, loop.config.reference_steps)
+        out = cascade.position_tick(state, reference, learn=True)
+        outs.append((out.source, *given[-1], out.acc_cmd_ned_m_s2.copy(), out.q_target.copy(),
+                     out.p_hat_ned_m_s2.copy()))  # fmt: skip
+    if variant == "fused":
+        assert loop._lwpr_plan is not None
+    return outs
+
+
+@pytest.mark.parametrize("case", ["px4 quaternion", "px4 body rates", "fractional",
+                                  "no dead time"])
+def test_the_compiled_plan_carries_x0_over_the_dead_time_as_the_python_path(case):
+    """The position tick's compiled plan (``kernels.lwpr_plan``) makes the reference window,
+    carries x0 over the command dead time and makes the perturbation ``E d_hat`` itself
+    (issue 21: the window's indexing and three BLAS products were machineries a cold tick
+    paid for). Against the Python path (``DeadTimePredictor.window`` and ``ahead``, numpy's
+    ``E @ d_hat``), tick by tick over a figure-8 (whole and fractional leads, commands in
+    flight and missing at entry): the window and the plan bit for bit, x0, the
+    perturbation and the commands within 1e-12 relative (the products summed in order,
+    not in BLAS's blocks), the same sources."""
+    from dataclasses import replace
+
+    from epc_offboard.control import kernels
+
+    if kernels.lwpr_plan is None:
+        pytest.skip("numba is not in use: the Python path is all there is")
+    cfg = load_service_config(_CONFIG)
+    position, path = cfg.position, None
+    if case == "px4 quaternion":
+        path = ("px4", "autopilot")  # 0.15 s: 3 whole stages of the window, 15 commands
+    elif case == "px4 body rates":
+        path = ("px4", "epc")  # 0.05 s: 1 stage, 5 commands
+    elif case == "fractional":  # 0.4 of a stage past 2; a command in flight half a tick
+        position = replace(position, command_dead_time_s=0.12, state_latency_s=0.015)
+    else:
+        position = replace(position, command_dead_time_s=0.0)
+    fused = _captured_ticks("fused", position, path, 300)
+    refused = _captured_ticks("refused", position, path, 300)
+    worst = 0.0
+    for k, (a, b) in enumerate(zip(fused, refused, strict=True)):
+        assert a[0] == b[0], (k, a[0], b[0])
+        x0_a, refs_a, u_p_a, pert_a, *out_a = a[1:]
+        x0_b, refs_b, u_p_b, pert_b, *out_b = b[1:]
+        if k < 2:  # before any command differs in its last bits: the window and plan exact
+            assert np.array_equal(refs_a, refs_b), k
+            assert np.array_equal(u_p_a, u_p_b), k
+        for x, y in ((x0_a, x0_b), (pert_a, pert_b), (refs_a, refs_b), (u_p_a, u_p_b),
+                     *zip(out_a, out_b, strict=True)):  # fmt: skip
+            scale = max(float(np.max(np.abs(y))), 1e-300)
+            worst = max(worst, float(np.max(np.abs(x - y))) / scale)
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12 * scale, err_msg=str(k))
+    assert sum(o[0] == "hit" for o in fused) > 100
+    if case == "no dead time":
+        assert worst == 0.0  # (3-term products: the sums BLAS takes too)
+
+
+def test_a_tick_touches_neither_the_dead_time_in_python_nor_numbas_unpickler(monkeypatch):
+    """On the compiled path the tick calls no ``DeadTimePredictor.window`` or ``ahead``
+    (their work is in the compiled plan), and no compiled call unboxes a numba typed list:
+    numba unboxes one by calling back into Python (``numba.core.serialize._numba_unpickle``,
+    ~45 us of a cold tick, issue 21); the LWPR kernels take the list's memory handle."""
+    from epc_offboard.control import kernels
+    from epc_offboard.control.dead_time import DeadTimePredictor
+
+    if kernels.lwpr_plan is None:
+        pytest.skip("numba is not in use")
+    cascade, tick = _figure8_ticks()
+    cascade.position.use_attitude_path("px4", "autopilot")
+    for k in range(60):
+        tick(k)
+    called: Counter[str] = Counter()
+    for name in ("window", "ahead"):
+        real = getattr(DeadTimePredictor, name)
+
+        def counting(*args: Any, _real: Any = real, _name: str = name) -> Any:
+            called[_name] += 1
+            return _real(*args)
+
+        monkeypatch.setattr(DeadTimePredictor, name, counting)
+
+    def profile(frame: Any, event: str, arg: Any) -> None:
+        if event == "call":
+            called[frame.f_code.co_name] += 1
+
+    sys.setprofile(profile)
+    try:
+        for k in range(60, 80):
+            tick(k)
+    finally:
+        sys.setprofile(None)
+    made = (called["window"], called["ahead"], called["_numba_unpickle"])
+    assert made == (0, 0, 0), f"window, ahead, _numba_unpickle calls: {made}"
+    assert called["position_tick"] >= 20  # (the profile saw the ticks)

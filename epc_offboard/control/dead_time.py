@@ -162,6 +162,30 @@ class DeadTimePredictor:
         self._in_flight = min(self._in_flight + 1, self.steps)
         self._last_sent_s = t_s
 
+    def matrices(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(Phi (9, 9), W (9, 3 steps), Wd (9, 3)): :meth:`ahead` is ``Phi x0 + W sent +
+        Wd d``, ``sent`` the commands in flight flattened, oldest first."""
+        return self._phi, self._w, self._wd
+
+    def flight(self, t_s: float) -> tuple[FloatArray, int]:
+        """The commands sent (steps, 3; oldest first, the ring itself: read it, do not
+        write into it) and how many of its oldest rows were not flown by us at tick ``t_s``
+        (:meth:`ahead` takes the acceleration flown now for them)."""
+        n = self.steps
+        if t_s - self._last_sent_s > 3.0 * self.period_s:
+            return self._sent, n
+        return self._sent, n - self._in_flight
+
+    def lead(self, step_s: float) -> tuple[int, float]:
+        """:meth:`window`'s rows as (base, frac): stages ``base + 1 + k``, ``frac`` of the
+        way to the next (0: none)."""
+        lead_stages = self.dead_time_s / step_s
+        if lead_stages <= 0.0:
+            return 0, 0.0
+        base = math.floor(lead_stages + 1e-9)
+        frac = max(lead_stages - base, 0.0)
+        return base, (0.0 if frac < 1e-9 else frac)
+
     def ahead(self, x0: FloatArray, d_ned_m_s2: FloatArray, t_s: float) -> FloatArray:
         """The state (9,) ``dead_time_s`` after ``x0`` measured at ``t_s``, driven by the
         commands in flight (one a tick). Commands sent before a gap of more than three ticks

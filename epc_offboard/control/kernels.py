@@ -330,42 +330,69 @@ filtered_plan = _compile_filtered_plan()
 _filtered = cast(Callable[..., None], filtered_plan)  # (called by lwpr_plan where compiled)
 
 
-def _lwpr_plan_jit(vel: FloatArray, stages: FloatArray, origin_is_vel: bool, refs: FloatArray,
-                   ns: Any, packed: Any, z: FloatArray, raw: FloatArray, pos: FloatArray,
-                   vel0: FloatArray, achieved: FloatArray, d_last: FloatArray, age_s: float,
-                   d_hat: FloatArray, state: FloatArray, consts: FloatArray, u_p: FloatArray,
-                   refs_out: FloatArray, x0: FloatArray) -> bool:
-    """The position tick's LWPR query and plan in one compiled call (issue 21: each numpy
-    call and each compiled entry is a machinery a cold tick pays for), the same operations
-    in the same order as the Python code it stands for, so the same bits:
+def _lwpr_plan_jit(vel: FloatArray, stages: FloatArray, origin_is_vel: bool, lead_base: int,
+                   lead_frac: float, ns: Any, packed: Any, packed_type: Any, z: FloatArray,
+                   raw: FloatArray, pos: FloatArray, vel0: FloatArray, achieved: FloatArray,
+                   d_last: FloatArray, age_s: float, d_hat: FloatArray, state: FloatArray,
+                   consts: FloatArray, u_p: FloatArray, refs: FloatArray, x0: FloatArray,
+                   sent: FloatArray, missing: int) -> bool:
+    """The position tick's numerics before the EPC step, in one compiled call over the
+    tick's preallocated buffers (issue 21: each numpy call and each compiled entry is a
+    machinery a cold tick pays for, and each array a compiled call unboxes a few cold cache
+    lines). Its stages, in the order the Python code they stand for ran them:
 
-    * the query points ``z`` (N + 2, 3): ``vel`` (the velocity the disturbance is looked up
-      at), the variation's origin (``stages``' row 0 velocity, or ``vel`` when
-      ``origin_is_vel``), the window ``refs``' velocities;
-    * LWPR's predictions there into ``raw`` (zeroed first: the columns no model writes stay
-      0), :func:`~epc_offboard.control.lwpr_kernels.predict_groups_packed` on ``ns`` and
-      ``packed`` (``ModelGroup.predict_args``);
-    * the filter's step and the plan, :func:`filtered_plan` (``d_hat``, ``state``,
-      ``consts``, ``u_p``, ``refs_out`` as it writes them);
-    * ``x0`` (9,) = [p, v, a]: ``pos`` and ``vel0`` carried ``age_s`` on by the model's
-      acceleration ``achieved + d_last`` (when ``age_s`` > 0), then ``achieved``.
+    1. **the reference window**, rows N..2N-1 of ``refs`` (2N, 9), from ``stages`` (M + 1,
+       9) (``DeadTimePredictor.window``): rows ``lead_base + 1 + k`` (the last row held past
+       the end), and ``lead_frac`` of the way to the next when it is not 0 (``lo + frac
+       (hi - lo)`` as it computes it: the same bits);
+    2. **the query points** ``z`` (N + 2, 3): ``vel`` (the velocity the disturbance is looked
+       up at), the variation's origin (``stages``' row 0 velocity, or ``vel`` when
+       ``origin_is_vel``), the window's velocities;
+    3. **LWPR's predictions** there into ``raw`` (zeroed first: the columns no model writes
+       stay 0), :func:`~epc_offboard.control.lwpr_kernels.predict_groups_packed` on ``ns``,
+       ``packed`` and ``packed_type`` (``ModelGroup.predict_args``);
+    4. **the filter's step and the plan**, :func:`filtered_plan` on the window (``d_hat``,
+       ``state``, ``consts``' first 9, ``u_p`` as it writes them; its references into rows
+       0..N-1 of ``refs``);
+    5. **x0**, ``x0[0:9]`` = [p, v, a]: ``pos`` and ``vel0`` carried ``age_s`` on by the
+       model's acceleration ``achieved + d_last`` (when ``age_s`` > 0), then ``achieved``;
+    6. **the command dead time** (``DeadTimePredictor.ahead``, when ``sent`` has rows):
+       ``x0 <- Phi x0 + W sent + Wd d_hat``, the oldest ``missing`` rows of ``sent`` taken
+       as x0's acceleration (not flown by us); ``consts[9:]`` = [Phi (9x9), W (9 x 3n),
+       Wd (9x3), E (9x3)] row-major (:func:`dead_time_constants`);
+    7. **the perturbation** the QP's model carries, ``E d_hat``, into ``x0[9:18]``.
 
-    False (a query point or a normalised input not finite): only ``z`` and ``raw`` were
-    written; the caller takes the models one by one."""
-    n = refs.shape[0]
-    for i in range(3):
+    Stages 1-5 are the same bits as the Python code; 6 and 7 sum each row's products in
+    order where numpy's matrix-vector products are BLAS's (blocked, by machine): they
+    differ in the last bits (``tests/test_tick_cost.py`` holds them to 1e-12 relative).
+
+    False (a query point or a normalised input not finite): only the window, ``z`` and
+    ``raw`` were written; the caller takes the models one by one."""
+    n = refs.shape[0] // 2
+    window = refs[n:]
+    last = stages.shape[0] - 1
+    for k in range(n):  # 1. the reference window
+        lo = min(lead_base + 1 + k, last)
+        if lead_frac < 1e-9:
+            for i in range(9):
+                window[k, i] = stages[lo, i]
+        else:
+            hi = min(lo + 1, last)
+            for i in range(9):
+                window[k, i] = (stages[hi, i] - stages[lo, i]) * lead_frac + stages[lo, i]
+    for i in range(3):  # 2. the query points
         z[0, i] = vel[i]
         z[1, i] = vel[i] if origin_is_vel else stages[0, 3 + i]
     for k in range(n):
         for i in range(3):
-            z[k + 2, i] = refs[k, 3 + i]
-    for k in range(raw.shape[0]):
+            z[k + 2, i] = window[k, 3 + i]
+    for k in range(raw.shape[0]):  # 3. LWPR's predictions
         for i in range(raw.shape[1]):
             raw[k, i] = 0.0
-    if not _predict_packed(z, raw, ns, packed):
+    if not _predict_packed(z, raw, ns, packed, packed_type):
         return False
-    _filtered(raw, refs, d_hat, state, consts, u_p, refs_out)
-    if age_s > 0.0:
+    _filtered(raw, window, d_hat, state, consts, u_p, refs[:n])  # 4. the filter, the plan
+    if age_s > 0.0:  # 5. x0 carried over the sample's age
         c = 0.5 * age_s * age_s
         for i in range(3):
             a = achieved[i] + d_last[i]
@@ -377,7 +404,43 @@ def _lwpr_plan_jit(vel: FloatArray, stages: FloatArray, origin_is_vel: bool, ref
             x0[3 + i] = vel0[i]
     for i in range(3):
         x0[6 + i] = achieved[i]
+    steps = sent.shape[0]
+    phi0 = 9  # consts: the plan's 9, Phi (81), W (27 steps), Wd (27), E (27)
+    w0 = phi0 + 81
+    wd0 = w0 + 27 * steps
+    e0 = wd0 + 27
+    if steps:  # 6. the command dead time
+        ahead = np.empty(9)
+        for r in range(9):
+            s_phi = 0.0
+            for j in range(9):
+                s_phi += consts[phi0 + r * 9 + j] * x0[j]
+            s_w = 0.0
+            for j in range(steps):
+                for i in range(3):
+                    u = x0[6 + i] if j < missing else sent[j, i]
+                    s_w += consts[w0 + r * 3 * steps + 3 * j + i] * u
+            s_d = 0.0
+            for i in range(3):
+                s_d += consts[wd0 + r * 3 + i] * d_hat[i]
+            ahead[r] = s_phi + s_w + s_d
+        for r in range(9):
+            x0[r] = ahead[r]
+    for r in range(9):  # 7. the perturbation
+        s_e = 0.0
+        for i in range(3):
+            s_e += consts[e0 + r * 3 + i] * d_hat[i]
+        x0[9 + r] = s_e
     return True
+
+
+def dead_time_constants(plan: FloatArray, phi: FloatArray, w: FloatArray, wd: FloatArray,
+                        e_dist: FloatArray) -> FloatArray:
+    """:func:`lwpr_plan`'s ``consts``: the plan's (9,), the dead time's matrices
+    (``DeadTimePredictor.matrices``) and the disturbance's input ``e_dist`` (9, 3), flat,
+    row-major, contiguous."""
+    parts = [np.ravel(a).astype(np.float64) for a in (plan, phi, w, wd, e_dist)]
+    return np.ascontiguousarray(np.concatenate(parts))
 
 
 def _compile_lwpr_plan() -> Callable[..., bool] | None:

@@ -1107,8 +1107,12 @@ class ModelGroup:
         # predictions by argument (a tuple of every model's c, then D, ...); for the update,
         # each model's activations and prediction buffers and its store
         self._fields: tuple[tuple[npt.NDArray[Any], ...], ...] = ()
-        self._update_packed: Any = None  # the update's arguments after ns, packed
-        self._predict_packed: Any = None  # the prediction's arguments after ns, packed
+        # the update's and the prediction's arguments after ns, packed (kept alive), and
+        # what the kernels are handed of them: (memory handle, type), lwpr_kernels.handle
+        self._update_packed: Any = None
+        self._predict_packed: Any = None
+        self._update_handle: tuple[Any, Any] = (None, None)
+        self._predict_handle: tuple[Any, Any] = (None, None)
         self._status = np.zeros(len(models), dtype=np.int64)  # update_groups' results
         self._kernel: Any = None  # predict_groups for these argument types
         self._update_kernel: Any = None  # update_groups for these argument types
@@ -1118,7 +1122,8 @@ class ModelGroup:
         lists do not copy, and a copy's would be the original's arrays. They are packed
         again from the copy's models at its first call."""
         state = self.__dict__.copy()
-        state.update(_update_packed=None, _predict_packed=None, _epoch=-1)
+        state.update(_update_packed=None, _predict_packed=None, _update_handle=(None, None),
+                     _predict_handle=(None, None), _epoch=-1)
         return state
 
     def _field_args(self) -> tuple[tuple[npt.NDArray[Any], ...], ...]:
@@ -1138,6 +1143,8 @@ class ModelGroup:
             # cold start's background compile; a start on a warm cache is unchanged
             self._update_packed = kernels.packed((*self._static, *update_fields, self._status))
             self._predict_packed = kernels.packed((*self._static, *self._fields))
+            self._update_handle = kernels.handle(self._update_packed)
+            self._predict_handle = kernels.handle(self._predict_packed)
         return self._fields
 
     def update(self, z: FloatArray, p: FloatArray) -> bool:
@@ -1152,10 +1159,11 @@ class ModelGroup:
             self._field_args()
         ns = tuple(map(_FIELDS_IN_USE, models))
         kernel = self._update_kernel
+        handle, handle_type = self._update_handle
         if kernel is None:  # (the types are fixed: z and p are checked by the caller)
             kernel = self._update_kernel = jit.entry_point(
-                kernels.update_groups_packed, z, p, ns, self._update_packed)
-        kernel(z, p, ns, self._update_packed)
+                kernels.update_groups_packed, z, p, ns, handle, handle_type)
+        kernel(z, p, ns, handle, handle_type)
         for g, status in enumerate(self._status.tolist()):
             model = models[g]
             if status:  # the rare work in Python (a field to add, prune or drop)
@@ -1166,15 +1174,15 @@ class ModelGroup:
                 model.n_updates += 1
         return True
 
-    def predict_args(self) -> tuple[tuple[int, ...], Any] | None:
+    def predict_args(self) -> tuple[tuple[int, ...], Any, Any] | None:
         """The compiled prediction's arguments after the points and the output (each
-        model's field count, the packed fields: ``lwpr_kernels.predict_groups_packed``), up
-        to date; None: not compiled."""
+        model's field count, the packed fields' handle and type:
+        ``lwpr_kernels.predict_groups_packed``), up to date; None: not compiled."""
         if not self.compiled:
             return None
         if self._epoch != _reallocations:
             self._field_args()
-        return tuple(map(_FIELDS_IN_USE, self.models)), self._predict_packed
+        return tuple(map(_FIELDS_IN_USE, self.models)), *self._predict_handle
 
     def predict_many(self, zs: FloatArray) -> FloatArray | None:
         """(m, n_y) predictions at the rows of ``zs`` (m, n_z) float64, C-contiguous; the

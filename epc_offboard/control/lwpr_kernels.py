@@ -669,11 +669,24 @@ def update_groups(
 # 5 us a call warm and 48 us when the caches were cold, as they are 10 ms after the last
 # tick in real time (issue 21), for a kernel whose work is a few us. Packed once into a
 # one-element typed list (the arrays inside it are the same memory: the kernel's writes are
-# the model's), a call unboxes one object.
+# the model's), a call unboxes one object. Not the list itself, though: numba unboxes a typed
+# list by calling back into Python (``numba.core.serialize._numba_unpickle``, for the class
+# it checks the object against), ~45 us of a cold tick. The kernels take the list's memory
+# handle (``handle``: its ``_opaque`` MemInfo, unboxed in C) and its type (a TypeRef: nothing
+# to unbox) and rebuild the list inside (``listobject._from_meminfo``, numba's own way back
+# from a handle): in isolation, a cold call 24-32 -> 9-16 us.
 
 
 def _packed_numpy(args: Any) -> Any:
     return [args]
+
+
+def _handle_numpy(packed_args: Any) -> tuple[Any, Any]:
+    return packed_args, None
+
+
+def _unpack_numpy(handle: Any, list_type: Any) -> Any:
+    return handle[0]
 
 
 def _packed_jit(args: Any) -> Any:
@@ -682,26 +695,44 @@ def _packed_jit(args: Any) -> Any:
     return out
 
 
+def _unpack_jit(handle: Any, list_type: Any) -> Any:
+    return listobject._from_meminfo(handle, list_type)[0]  # type: ignore[call-arg]
+
+
+def _handle_jit(packed_args: Any) -> tuple[Any, Any]:
+    return packed_args._opaque, numba.typeof(packed_args)  # type: ignore[no-untyped-call]
+
+
 if numba is not None:
-    from numba.typed import List
+    from numba.typed import List, listobject
 
     packed = _jit(_packed_jit)
     """``args`` (a tuple) as a one-element numba typed list, made inside a cached compiled
     function (a typed list's own methods called from Python compile in every process)."""
+    handle = _handle_jit
+    """What a kernel taking ``packed(args)`` is handed: (its memory handle, its type). Keep
+    the list alive while the handle is used (the handle holds its memory too)."""
+    _unpack = _jit(_unpack_jit)
 else:
     packed = _packed_numpy
+    handle = _handle_numpy
+    _unpack = _unpack_numpy
 
 
 @_jit
-def update_groups_packed(z: FloatArray, p: FloatArray, ns: Any, args: Any) -> None:
-    """:func:`update_groups` with its arguments after ``ns`` in ``packed(args)``."""
-    a = args[0]
+def update_groups_packed(z: FloatArray, p: FloatArray, ns: Any, args: Any,
+                         args_type: Any) -> None:
+    """:func:`update_groups` with its arguments after ``ns`` in ``packed(args)``, handed as
+    ``handle(packed(args))``."""
+    a = _unpack(args, args_type)
     update_groups(z, p, ns, a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
 
 
 @_jit
-def predict_groups_packed(zs: FloatArray, raw: FloatArray, ns: Any, args: Any) -> bool:
-    """:func:`predict_groups` with its arguments after ``ns`` in ``packed(args)``."""
-    a = args[0]
+def predict_groups_packed(zs: FloatArray, raw: FloatArray, ns: Any, args: Any,
+                          args_type: Any) -> bool:
+    """:func:`predict_groups` with its arguments after ``ns`` in ``packed(args)``, handed as
+    ``handle(packed(args))``."""
+    a = _unpack(args, args_type)
     return predict_groups(zs, raw, ns, a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8],
                           a[9], a[10], a[11])

@@ -426,7 +426,7 @@ class LwprPerturbation:
             )  # fmt: skip
         return group
 
-    def prediction_args(self) -> tuple[tuple[int, ...], Any, object] | None:
+    def prediction_args(self) -> tuple[tuple[int, ...], Any, Any, object] | None:
         """The compiled prediction's arguments for every model at once after the points and
         the output (``ModelGroup.predict_args``), and the group they are for (their types
         are fixed while it is the same: an entry point made for them stays valid); None: not

@@ -47,7 +47,13 @@ from epc_offboard.control.dead_time import (
 )
 from epc_offboard.control.decision import Controller, Decision
 from epc_offboard.control.epc import budgeted_controller
-from epc_offboard.control.kernels import disturbance_plan, filtered_plan, lwpr_plan, tilt_reach
+from epc_offboard.control.kernels import (
+    dead_time_constants,
+    disturbance_plan,
+    filtered_plan,
+    lwpr_plan,
+    tilt_reach,
+)
 from epc_offboard.control.models import (
     LAG_ACC_STATES,
     AccelLimits,
@@ -430,14 +436,19 @@ class PositionLoop:
         # the tick's scratch arrays (not kept by anything the tick returns)
         # estimator query: v now, the variation's origin, the reference's v at x_1..x_N
         self._z_stages = np.empty((cfg.horizon + 2, 3))
-        self._x0 = np.empty(9)  # [p_ned, v_ned, a_ned]
+        # [p_ned, v_ned, a_ned], then the perturbation E d_hat (the compiled plan's x0)
+        self._x0_perturbation = np.empty(18)
+        self._x0 = self._x0_perturbation[:9]
+        self._perturbation = self._x0_perturbation[9:]
         self._a_stages = np.empty((cfg.horizon + 1, 3))  # feedforward: a of x_0..x_N
         # the varying disturbance's drift of x_1..x_N (disturbance_drift); a stays 0
         self._drift = np.zeros((cfg.horizon, 9))
         # the compiled disturbance plan's outputs: the QP's nominal inputs and references
         # (read into θ by the controller's step, kept by nothing)
         self._u_p = np.empty((cfg.horizon, 3))
-        self._refs = np.empty((cfg.horizon, 9))
+        # (and the compiled plan's reference window after them)
+        self._refs_window = np.empty((2 * cfg.horizon, 9))
+        self._refs = self._refs_window[: cfg.horizon]
         # the command dead time flown (use_attitude_path sets the measured default once the
         # autopilot and the attitude mode are known; until then the configured one, or 0)
         self._path: tuple[str, str] | None = None
@@ -463,6 +474,10 @@ class PositionLoop:
         self._lwpr_plan: Any = None
         self._lwpr_plan_for: object = None  # the LWPR model group it was made for
         self._raw = np.zeros((cfg.horizon + 2, 3))
+        # its constants with the dead time's (dead_time_constants), the window's lead, and
+        # the predictor they are for
+        self._dead: tuple[FloatArray, int, float] | None = None
+        self._dead_for: object = None
 
     def _filtered_plan(self) -> tuple[Any, FloatArray, FloatArray] | None:
         """:func:`~epc_offboard.control.kernels.filtered_plan`'s entry point for the
@@ -471,7 +486,7 @@ class PositionLoop:
         wrapped), or LWPR with the residual observer (its estimate joins LWPR's between
         the filter and the plan)."""
         estimator = self._plan_for = self.estimator
-        self._plan = self._lwpr_plan = None
+        self._plan = self._lwpr_plan = self._dead_for = None
         if (filtered_plan is not None and type(estimator) is LwprPerturbation
                 and self._residual is None):  # fmt: skip
             filt, n = estimator.filter, self.config.horizon
@@ -483,12 +498,23 @@ class PositionLoop:
             args = estimator.prediction_args()
             if lwpr_plan is not None and args is not None:
                 v3 = np.zeros(3)
-                self._lwpr_plan_for = args[2]
+                self._lwpr_plan_for = args[3]
                 self._lwpr_plan = jit.entry_point(
-                    lwpr_plan, v3, np.zeros((n + 1, 9)), False, self._refs, *args[:2],
+                    lwpr_plan, v3, np.zeros((n + 1, 9)), False, 0, 0.0, *args[:3],
                     self._z_stages, self._raw, v3, v3, v3, v3, 0.0, np.empty(3), filt.state,
-                    consts, self._u_p, self._refs, self._x0)  # fmt: skip
+                    consts, self._u_p, self._refs_window, self._x0_perturbation,
+                    np.zeros((1, 3)), 0)  # fmt: skip
         return self._plan
+
+    def _dead_args(self, consts: FloatArray) -> tuple[FloatArray, int, float]:
+        """The compiled plan's arguments for the dead time flown: the plan's ``consts``,
+        the dead time's matrices and the disturbance's input flat
+        (``kernels.dead_time_constants``), and the window's lead (made again when the
+        predictor or the plan is replaced)."""
+        dead_time = self._dead_for = self.dead_time
+        self._dead = (dead_time_constants(consts, *dead_time.matrices(), self._e_dist),
+                      *dead_time.lead(self.config.dt_s))  # fmt: skip
+        return self._dead
 
     def use_attitude_path(self, autopilot: str, attitude_mode: str) -> None:
         """Fly the command dead time of ``autopilot`` ("px4", "ardupilot") in
@@ -800,8 +826,6 @@ class PositionLoop:
             return self.hover(state)
         t0 = time.perf_counter()
         dead_time = self.dead_time
-        # the QP's window starts where the command chosen now starts to act
-        refs = dead_time.window(reference.stages, self.config.dt_s, self.config.horizon)
         axis = attitude_to_axis_xyz(*state.euler_rad)  # once: three steps below read it
         axis_down = axis[2]
         self._advance_thrust(learn, self._balance_thrust_norm(axis_down))
@@ -828,6 +852,8 @@ class PositionLoop:
         x0_made = False  # (the compiled LWPR plan wrote x0)
         d_max = self._d_max
         if not self._nominal_feedforward:
+            # the QP's window starts where the command chosen now starts to act
+            refs = dead_time.window(reference.stages, self.config.dt_s, self.config.horizon)
             # thesis A.1: PD takes its acceleration feedforward from the reference horizon
             # itself; the nominal input only cancels the disturbance
             p_est = self.estimator.estimate(vel_est)
@@ -852,25 +878,34 @@ class PositionLoop:
             plan = self._plan if self._plan_for is self.estimator else self._filtered_plan()
             fused = self._lwpr_plan
             stages = reference.stages
-            if (fused is not None and refs.dtype is _F64 and refs.flags.c_contiguous
-                    and refs.shape[0] == self.config.horizon and stages.dtype is _F64
-                    and stages.flags.c_contiguous
+            if (fused is not None and stages.dtype is _F64 and stages.ndim == 2
+                    and stages.shape[1] == 9 and stages.flags.c_contiguous
                     and _vec3s(vel_est, pos_x0, vel_x0)):  # fmt: skip
-                # the types its entry point takes: the query points, LWPR's prediction,
-                # the filter's step, the plan and x0 in one compiled call, the same bits
-                # (issue 21); False: a point not finite, the models one by one below
+                # the types its entry point takes: the reference window, the query points,
+                # LWPR's prediction, the filter's step, the plan, x0 carried over the
+                # sample's age and the dead time, and the perturbation in one compiled call
+                # (issue 21; its stages named in kernels.lwpr_plan); False: a point not
+                # finite, the models one by one below
                 args: Any = self.estimator.prediction_args()  # type: ignore[union-attr]
-                if args[2] is not self._lwpr_plan_for:  # models replaced: their types may differ
+                if args[3] is not self._lwpr_plan_for:  # models replaced: their types may differ
                     plan = self._filtered_plan()
                     fused = self._lwpr_plan
                 if fused is not None and plan is not None:
                     _, filter_state, consts = plan
+                    dead_args = self._dead
+                    if dead_args is None or self._dead_for is not dead_time:
+                        dead_args = self._dead_args(consts)
+                    dead, lead_base, lead_frac = dead_args
+                    sent, missing = dead_time.flight(state.time_s)
                     d_hat = np.empty(3)
-                    x0_made = fused(vel_est, stages, dead_time.dead_time_s > 0.0, refs, args[0],
-                                    args[1], z_stages, self._raw, pos_x0, vel_x0, achieved,
-                                    self._d_hat_last, age_s, d_hat, filter_state, consts,
-                                    self._u_p, self._refs, x0)  # fmt: skip
+                    x0_made = fused(vel_est, stages, dead_time.dead_time_s > 0.0, lead_base,
+                                    lead_frac, args[0], args[1], args[2], z_stages, self._raw,
+                                    pos_x0, vel_x0, achieved, self._d_hat_last, age_s, d_hat,
+                                    filter_state, dead, self._u_p, self._refs_window,
+                                    self._x0_perturbation, sent, missing)  # fmt: skip
             if not x0_made:  # (the compiled LWPR plan fills them itself)
+                # the QP's window starts where the command chosen now starts to act
+                refs = dead_time.window(stages, self.config.dt_s, self.config.horizon)
                 z_stages[0] = vel_est
                 z_stages[1] = stages[0, 3:6] if dead_time.dead_time_s <= 0.0 else z_stages[0]
                 z_stages[2:] = refs[:, 3:6]  # the reference's v at x_1..x_N
@@ -922,9 +957,13 @@ class PositionLoop:
             x0[3:6] = vel_x0
             x0[6:9] = achieved
         self._d_hat_last = d_hat
-        if dead_time.steps:
-            x0[:] = dead_time.ahead(x0, d_hat, state.time_s)
-        decision: Decision = controller.step(x0, refs, u_p, perturbation=self._e_dist @ d_hat)
+        if x0_made:  # (the compiled plan carried x0 over the dead time, and made E d_hat)
+            perturbation = self._perturbation
+        else:
+            if dead_time.steps:
+                x0[:] = dead_time.ahead(x0, d_hat, state.time_s)
+            perturbation = self._e_dist @ d_hat
+        decision: Decision = controller.step(x0, refs, u_p, perturbation=perturbation)
         acc = self._limit_tilt(np.asarray(decision.u, dtype=np.float64))
         clipped_only = self._tilt_clipped_only
         ramped = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)

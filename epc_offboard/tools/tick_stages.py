@@ -85,6 +85,8 @@ def _wrap_fine(stages: _Stages, loop: Any) -> None:
     for name in ("attitude_to_axis_xyz", "limit_tilt", "disturbance_plan"):
         if getattr(position, name, None) is not None:
             stages.wrap(position, name, name)
+    # (on the compiled plan's path the window and the carry over the dead time run inside
+    # it, kernels.lwpr_plan: these two then show nothing)
     stages.wrap(loop.dead_time, "window", "dead_time.window")
     stages.wrap(loop.dead_time, "ahead", "dead_time.ahead")
     stages.wrap(loop.dead_time, "sent", "dead_time.sent")
