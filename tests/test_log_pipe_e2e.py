@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import itertools
 import os
 import select
 import signal
@@ -69,10 +70,14 @@ class Stderr:
         self.reading.clear()
         assert self._idle.wait(5.0)
         filled = 0
-        os.set_blocking(self.write_fd, False)
-        with contextlib.suppress(BlockingIOError):
-            while True:
-                filled += os.write(self.write_fd, _FILL)
+        # a description of its own: O_NONBLOCK on write_fd would be the service's stderr's too
+        fd = os.open(f"/proc/self/fd/{self.write_fd}", os.O_WRONLY | os.O_NONBLOCK)
+        try:
+            with contextlib.suppress(BlockingIOError):
+                while True:
+                    filled += os.write(fd, _FILL)
+        finally:
+            os.close(fd)
         return filled
 
     def close(self) -> None:
@@ -101,14 +106,27 @@ class Held:
     code: int
     text: str  # everything the service wrote to stderr (the filling taken out)
     filled: int  # bytes the pipe took before it was full
-    ticks_s: list[float]  # position ticks (flight rows) while stderr was held
-    held_s: float
+    rows_s: list[float]  # every position tick (flight rows)
+    held_from_s: float
+    held_to_s: float
     stats: dict[str, Any]
 
     @property
+    def held_s(self) -> float:
+        return self.held_to_s - self.held_from_s
+
+    @property
+    def ticks_s(self) -> list[float]:
+        """The position ticks while stderr was held."""
+        return [t for t in self.rows_s if self.held_from_s <= t <= self.held_to_s]
+
+    @property
     def gap_s(self) -> float:
-        return max((b - a for a, b in zip(self.ticks_s, self.ticks_s[1:], strict=False)),
-                   default=float("inf"))  # fmt: skip
+        """The largest interval between position ticks from the hold's start to the first
+        tick after it (a loop blocked through it: the whole hold, or more)."""
+        after = [t for t in self.rows_s if t > self.held_to_s][:1]
+        ticks = [t for t in self.rows_s if t < self.held_from_s][-1:] + self.ticks_s + after
+        return max((b - a for a, b in itertools.pairwise(ticks)), default=float("inf"))
 
 
 def fly_with_stderr_held(tmp: Path, hold_s: float, sighups: int, hogs: int = 0) -> Held:
@@ -148,10 +166,8 @@ def fly_with_stderr_held(tmp: Path, hold_s: float, sighups: int, hogs: int = 0) 
             hog.wait()
         rig.__exit__()
         err.close()
-    rows = _positions_s(tmp / "flight.csv")
     return Held(code, err.text().replace(_FILL.decode(), ""), filled,
-                [t for t in rows if held_from_s <= t <= held_to_s], held_to_s - held_from_s,
-                rig.stats())  # fmt: skip
+                _positions_s(tmp / "flight.csv"), held_from_s, held_to_s, rig.stats())  # fmt: skip
 
 
 def test_a_full_unread_stderr_never_stalls_the_position_loop(tmp_path):
