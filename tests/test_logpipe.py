@@ -5,6 +5,7 @@ waiting."""
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -165,3 +166,31 @@ def test_the_root_loggers_level_still_decides(tmp_path):
     os.close(write_fd)
     with os.fdopen(read_fd, "rb") as fh:
         assert fh.read().decode().splitlines() == ["shown"]
+
+
+def test_pipe_stderr_takes_the_root_loggers_stream_and_pythons_warnings(tmp_path):
+    """``pipe_stderr`` (the run command's): the root's StreamHandler replaced, its format
+    kept, and a Python warning (printed to stderr by a blocking write) logged through the
+    pump instead."""
+    import subprocess
+    import sys
+
+    code = (
+        "import logging, warnings\n"
+        "from epc_offboard.common.logsetup import LogConfig, setup_logging\n"
+        "from epc_offboard.common import logpipe\n"
+        "setup_logging(LogConfig(format='json'))\n"
+        "handler = logpipe.pipe_stderr()\n"
+        "assert logging.getLogger().handlers == [handler]\n"
+        "logging.getLogger('x').info('hello')\n"
+        "warnings.warn('careful', RuntimeWarning)\n"
+        "print(handler.pid())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, check=True)  # fmt: skip
+    pump_pid = int(out.stdout.strip())
+    lines = [json.loads(line) for line in out.stderr.splitlines()]
+    assert (lines[0]["logger"], lines[0]["msg"]) == ("x", "hello")
+    assert lines[1]["logger"] == "py.warnings"
+    assert "careful" in lines[1]["msg"]
+    assert pump_pid != 0

@@ -248,6 +248,9 @@ def pipe_stderr() -> PipeHandler | None:
     for h in old:
         root.removeHandler(h)
     root.addHandler(handler)
+    # Python's warnings (a numpy RuntimeWarning in a tick) are printed to stderr by
+    # ``warnings.showwarning``, a blocking write: through the pump too, once per place
+    logging.captureWarnings(True)
     return handler
 
 
