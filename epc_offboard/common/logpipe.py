@@ -181,7 +181,10 @@ class PipeHandler(logging.Handler):
 
     def _write_direct(self, data: bytes) -> bool:
         if self._direct is None:
-            self._direct = DirectStderr(self._stderr_fd)
+            try:
+                self._direct = DirectStderr(self._stderr_fd)
+            except OSError:  # no stderr at all (closed): the line is dropped, counted
+                return False
         return self._direct.write(data)
 
     def _pump_died(self) -> None:
@@ -192,7 +195,7 @@ class PipeHandler(logging.Handler):
         if self._proc is not None:
             self._proc.poll()
         pid = self.pid()
-        # through this handler (the lock is ours, re-entrant): straight to stderr now
+        # formatted as every line is, written straight to stderr (the pump is gone)
         line = logging.LogRecord(
             "epc_offboard.service", logging.WARNING, __file__, 0,
             "log pump (process %s) died: log lines go straight to stderr now, never waiting "
