@@ -34,6 +34,8 @@ class JsonFormatter(logging.Formatter):
 
 
 def setup_logging(cfg: LogConfig) -> None:
+    """Lines to stderr, written by the thread that logs them (the helper processes'; the
+    control process's ``run`` then hands them to a pump: ``logpipe.pipe_stderr``)."""
     handler = logging.StreamHandler(sys.stderr)
     if cfg.format == "json":
         handler.setFormatter(JsonFormatter())

@@ -26,8 +26,10 @@ import json
 import logging
 import os
 import queue
+import struct
 import threading
 import time
+import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -126,7 +128,9 @@ class HighWater:
     number for goes too), not the whole library again.
     """
 
-    def __init__(self, problems: int, saved: bytes = b"") -> None:
+    def __init__(self, problems: int, saved: bytes = b"", signatures: Sequence[str] = ()) -> None:
+        # the problems' signatures, for the texts the store keeps (:meth:`save`'s ``texts``)
+        self.signatures = list(signatures) or [str(i) for i in range(problems)]
         state = {}
         with contextlib.suppress(ValueError, UnicodeDecodeError):
             state = json.loads(saved.rstrip(b"\0") or b"{}")
@@ -265,10 +269,18 @@ class HighWater:
                 self.settled = (rows, taken)
                 self.dirty = True
 
-    def save(self, buf: Any) -> None:
-        """Into the shared buffer (a restarted helper reads it); too large: left empty."""
+    def save(self, buf: Any, texts: Any = None) -> None:
+        """Into the shared buffer (a restarted helper reads it); too large: left empty. And
+        into ``texts`` (:func:`write_texts`), the control process's: this numbering of the
+        library and the settled marks as the texts the store keeps, made here, so that a
+        save takes the control process's loops' thread a header and a copy, not a parse
+        and a rebuild growing with the peers heard (issue 21: the rotate attack's)."""
         with self._lock:
             self.dirty = False
+            # this numbering of the library, for the store
+            own = {"epoch": self.epoch, "numbers": [
+                [[*a, n[a]] for a in sets if a in n]
+                for sets, n in zip(self.library, self.numbers, strict=True)]}  # fmt: skip
             data = _attachment({
                 "epoch": self.epoch,
                 "numbers": [[[*k, v] for k, v in n.items()] for n in self.numbers],
@@ -277,17 +289,62 @@ class HighWater:
                                "numbers": [[[*a, n] for a, n in f.items()]
                                            for f in self.former[1]]}}
                    if self.former is not None else {}),
-                # this numbering of the library, for the store (FleetSharing.fleet_state
-                # cuts it out between its name and "settled": keep them in this order)
-                "own": {"epoch": self.epoch, "numbers": [
-                    [[*a, n[a]] for a in sets if a in n]
-                    for sets, n in zip(self.library, self.numbers, strict=True)]},
-                **({"settled": self.settled[0], "taken": self.settled[1], "pid": os.getpid()}
-                   if self.settled is not None else {}),
+                "own": own,
             })  # fmt: skip
+            settled = self.settled
         if len(data) >= len(buf):
             data = b""
         buf[: len(data) + 1] = data + b"\0"
+        if texts is None:
+            return
+        sigs = self.signatures
+        own_text = _attachment(own)[:-1] + b',"signatures":' + json.dumps(sigs).encode() + b"}"
+        marks = b""
+        taken = -1
+        if settled is not None:
+            rows, taken = settled
+            marks = _attachment({"held": [[sigs[i], str(p), int(e), int(n)]
+                                          for i, p, e, n in rows]})  # fmt: skip
+        write_texts(texts, os.getpid(), taken, own_text, marks)
+
+
+# The texts of HighWater.save for the control process, in a shared buffer: a header (CRC-32 of
+# the rest, the writing helper's pid, the records it had handed out when the marks settled,
+# -1: none settled; the two texts' lengths), then the texts. The reader (written meanwhile,
+# no lock) believes a copy whose CRC matches.
+TEXTS_HEADER = struct.Struct("<Iqqii")
+
+
+def write_texts(buf: Any, pid: int, taken: int, own: bytes, marks: bytes) -> bool:
+    """``own`` and ``marks`` into ``buf`` after their header; False (left as it was) when
+    they do not fit."""
+    end = TEXTS_HEADER.size + len(own) + len(marks)
+    if end > len(buf):
+        return False
+    head = TEXTS_HEADER.pack(0, pid, taken, len(own), len(marks))[4:]
+    crc = zlib.crc32(marks, zlib.crc32(own, zlib.crc32(head)))
+    view = memoryview(buf).cast("B")
+    view[TEXTS_HEADER.size : end] = own + marks
+    view[: TEXTS_HEADER.size] = TEXTS_HEADER.pack(crc, pid, taken, len(own), len(marks))
+    return True
+
+
+def read_texts(buf: Any, last_crc: int) -> tuple[int, int, int, bytes, bytes] | None:
+    """(crc, pid, taken, own, marks) written by :func:`write_texts`, if new since the copy
+    whose CRC was ``last_crc`` and whole (None: nothing new, none written, or caught
+    mid-write). One header read when nothing is new; else one copy of the texts, bounded
+    by the buffer."""
+    view = memoryview(buf).cast("B")
+    crc, _, _, own_n, marks_n = TEXTS_HEADER.unpack_from(view, 0)
+    end = TEXTS_HEADER.size + own_n + marks_n
+    if crc == last_crc or crc == 0 or own_n < 0 or marks_n < 0 or end > len(view):
+        return None
+    raw = bytes(view[:end])
+    crc, pid, taken, own_n2, marks_n2 = TEXTS_HEADER.unpack_from(raw, 0)
+    if (own_n2, marks_n2) != (own_n, marks_n) or zlib.crc32(raw[4:]) != crc:
+        return None  # written meanwhile: the next save reads it whole
+    own_at = TEXTS_HEADER.size
+    return crc, pid, taken, raw[own_at : own_at + own_n], raw[own_at + own_n :]
 
 
 class Counters:
@@ -360,7 +417,8 @@ class FleetSession:
         saved: bytes = b"",
     ) -> None:
         self.cfg = cfg
-        self.high_water = HighWater(len(specs), saved)  # ``saved``: a previous helper's
+        # ``saved``: a previous helper's
+        self.high_water = HighWater(len(specs), saved, [s.signature for s in specs])
         self.vehicle_id = cfg.vehicle_id
         self.share_library = share_library
         self.subscribe_reference = reference
@@ -721,7 +779,7 @@ def _read_frames(fd: int, tasks: queue.Queue[tuple[Any, ...]], stop: threading.E
 
 
 def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: Any,
-                frames_fd: Any, saved: Any) -> None:  # fmt: skip
+                frames_fd: Any, saved: Any, texts: Any = None) -> None:  # fmt: skip
     """The fleet helper process: the session, its forwarders, and the main thread's turns
     until the control process closes the frames pipe (or dies)."""
     die_with_parent(args.parent_pid)
@@ -767,7 +825,7 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
             session.query_arrivals()
             session.high_water.settle(session.inbox.drained)
             if session.high_water.dirty:
-                session.high_water.save(saved)
+                session.high_water.save(saved, texts)
             try:
                 task = session.tasks.get(timeout=_TURN_S)
             except queue.Empty:

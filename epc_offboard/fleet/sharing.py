@@ -74,7 +74,7 @@ from epc_offboard.fleet.records import (
     Records,
     reference_of,
 )
-from epc_offboard.fleet.session import HelperArgs, helper_main, numbering
+from epc_offboard.fleet.session import HelperArgs, helper_main, numbering, read_texts
 from epc_offboard.fleet.wire import ControllerMessage, ReferenceMessage
 
 __all__ = ["FleetSharing", "LiveReference", "SharingConfig", "open_or_fly_alone"]
@@ -90,6 +90,7 @@ _HIGH_WATER_BYTES = 1 << 20  # session.HighWater's saved tables (a larger one is
 _RECORDS_PER_STEP = 64  # received controllers a step of fleet_state_steps takes
 _FRAME_ENTRIES = 512  # controllers in one publish frame: far below the outbox's bound
 _MARKS, _CANDIDATES, _OWN = "marks", "candidates:", "own"  # fleet_state's names
+_NO_MARKS = '{"held":[]}'
 
 
 @dataclass(frozen=True)
@@ -226,6 +227,8 @@ class FleetSharing:
         self._slots = np.frombuffer(self._slots_raw, dtype=np.int64)
         # the helper's high-water marks (session.HighWater), kept for the next helper
         self._high_water_raw = self._ctx.RawArray("c", _HIGH_WATER_BYTES)
+        # ... and what of them the store keeps, as its texts (session.write_texts)
+        self._texts_raw = self._ctx.RawArray("c", _HIGH_WATER_BYTES)
         self._helper: _Helper | None = None
         self._restarts = Backoff(1.0, cfg.helper_restart_max_s)
         self._budget = float(self._per_turn())
@@ -236,16 +239,16 @@ class FleetSharing:
         self._read = 0  # candidate records read from the running helper
         # ... read this turn, not offered yet (offer_slice)
         self._to_offer: Records = np.zeros(0, dtype=self.candidate_dtype)
-        self._marks: list[list[Any]] = []  # [signature, peer, epoch, number]: fleet_state's
+        self._marks_text = _NO_MARKS  # fleet_state's: the marks held, as the store keeps them
+        # the helper's texts last read (session.read_texts): (crc, pid, taken, marks)
+        self._texts_seen: tuple[int, int, int, str] = (0, 0, -1, "")
         # per problem: each received controller's record by the entry's id (fleet_state)
         # per problem: id(entry) -> (the entry, its record), in two dicts (a tuple a record
         # was an object a new received controller, every save, for the collector)
         self._received_records: dict[int, tuple[dict[int, LibraryEntry], dict[int, bytes]]] = {}
-        self._marks_text: tuple[object, str] = (None, "")  # (the marks, their JSON)
-        self._settled_seen: tuple[bytes, dict[str, Any]] = (b"", {})  # (its text, parsed)
         # fleet_state's: this vehicle's numbering of its library (HighWater's ``own``), as
-        # the store keeps it and as the helper's buffer last held it
-        self._own, self._own_raw = "", b""
+        # the store keeps it
+        self._own = ""
 
     def _per_turn(self) -> int:
         return max(1, math.ceil(self.cfg.candidates_per_s * _TURN_S))
@@ -298,7 +301,8 @@ class FleetSharing:
         self._read = 0
         proc = self._ctx.Process(
             target=helper_main,
-            args=(args, self._slots_raw, cand_w, ref_w, frames_r, self._high_water_raw),
+            args=(args, self._slots_raw, cand_w, ref_w, frames_r, self._high_water_raw,
+                  self._texts_raw),
             name="epc-fleet", daemon=True,
         )  # fmt: skip
         proc.start()
@@ -532,55 +536,35 @@ class FleetSharing:
                     parts.append(record)
             self._received_records[i] = (entries, records)
             out[_CANDIDATES + spec.signature] = ReceivedText(b"".join(parts))
-        if self._marks_text[0] is not self._marks:
-            self._marks_text = (self._marks, json.dumps({"held": self._marks},
-                                                        separators=(",", ":")))  # fmt: skip
-        out[_MARKS] = self._marks_text[1]
+        out[_MARKS] = self._marks_text
         if self._own:
             out[_OWN] = self._own
         yield out
 
     def _settle_marks(self) -> None:
-        helper = self._helper
-        # only the settled part (HighWater.save writes it last): the numbering before it can
-        # be large, and this runs on the loops' thread
-        # up to the first NUL (HighWater.save ends its text with one): stripping the 1 MB
-        # buffer's trailing NULs took 1-3 ms of the loops' thread every save, and a shorter
-        # save leaves a longer one's end behind that NUL
-        raw = self._high_water_raw.value
-        at = raw.rfind(b',"settled":')
-        self._read_own(raw, at if at >= 0 else len(raw) - 1)
-        tail = raw[at + 1 :] if at >= 0 else b""
-        if tail != self._settled_seen[0]:  # parsed only when the helper saved new marks
+        """The helper's settled marks and its numbering of the library, as the store keeps
+        them. The helper makes the texts (``HighWater.save``); here, on the loops' thread,
+        a save reads a header and, when the helper wrote new ones, copies them (bounded by
+        the buffer): parsing the marks and rebuilding them with their signatures here grew
+        with the peers heard (rotating ids: every save, issue 21). The marks are taken only
+        from the running helper, and once this process has read every controller they
+        cover (one still in its inbox or pipe would be lost by a kill), else the last
+        such stay; the numbering from any helper (a restart keeps the one it restored
+        until a helper writes one)."""
+        new = read_texts(self._texts_raw, self._texts_seen[0])
+        if new is not None:
+            crc, pid, taken, own, marks = new
             try:
-                self._settled_seen = (tail, json.loads(b"{" + tail) if tail else {})
-            except (ValueError, UnicodeDecodeError):
+                self._texts_seen = (crc, pid, taken, marks.decode())
+                if own:
+                    self._own = own.decode()
+            except UnicodeDecodeError:
                 return
-        state = self._settled_seen[1]
-        settled, taken = state.get("settled") or [], state.get("taken")
-        if (helper is None or state.get("pid") != helper.process.pid
-                or not isinstance(taken, int) or self._read < taken):  # fmt: skip
-            return
-        with contextlib.suppress(ValueError, TypeError, IndexError):
-            marks = [[self.specs[i].signature, str(p), int(e), int(n)]
-                     for i, p, e, n in settled]  # fmt: skip
-            if marks != self._marks:  # the same list: fleet_state reuses its text
-                self._marks = marks
-
-    def _read_own(self, raw: bytes, end: int) -> None:
-        """This vehicle's numbering of its library, cut out of the helper's buffer as text
-        (it ends at ``end``, before the settled marks): parsed only by a restart's
-        :meth:`restore`, and kept until a helper writes one (a restart keeps the one it
-        restored)."""
-        at = raw.rfind(b',"own":{', 0, end)
-        if at < 0:
-            return
-        own = raw[at + 7 : end]
-        if own != self._own_raw:
-            self._own_raw = own
-            with contextlib.suppress(UnicodeDecodeError):
-                sigs = json.dumps([spec.signature for spec in self.specs])
-                self._own = f'{own.decode()[:-1]},"signatures":{sigs}}}'
+        _crc, pid, taken, marks_text = self._texts_seen
+        helper = self._helper
+        if (marks_text and helper is not None and pid == helper.process.pid
+                and 0 <= taken <= self._read):  # fmt: skip
+            self._marks_text = marks_text
 
     def restore(self, saved: Mapping[str, str]) -> int:
         """Before :meth:`open`: offer the received controllers a previous process kept
@@ -608,10 +592,12 @@ class FleetSharing:
             marks = [[str(sig), str(p), int(e), int(n)]
                      for sig, p, e, n in json.loads(saved[_MARKS])["held"]
                      if sig in index]  # fmt: skip
-        self._marks = marks if whole else []
+        if not whole:
+            marks = []
+        self._marks_text = json.dumps({"held": marks}, separators=(",", ":"))
         self.counters["restored_candidates"] += offered
-        self.counters["restored_marks"] += len(self._marks)
-        held = [[index[sig], p, e, n] for sig, p, e, n in self._marks]
+        self.counters["restored_marks"] += len(marks)
+        held = [[index[sig], p, e, n] for sig, p, e, n in marks]
         # a new epoch (numbers handed out after the last save may have reached a peer),
         # the old one's numbering of the library beside it: HighWater.former
         state: dict[str, Any] = {"epoch": int.from_bytes(os.urandom(6), "little"),

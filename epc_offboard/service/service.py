@@ -50,7 +50,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from epc_offboard.common import jit
+from epc_offboard.common import jit, logpipe
 from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
@@ -457,7 +457,7 @@ class Service:
                 "position": self.position_timing.report().as_dict(),
                 "attitude": self.attitude_timing.report().as_dict(),
             },
-            "counters": dict(self.counters),
+            "counters": self._counters(),
             # what the control loops run: compiled kernels, or their numpy twins (cold cache)
             "kernels": {
                 "mode": "compiled" if jit.enabled() and self._signatures_warm > 0 else "numpy",
@@ -475,14 +475,23 @@ class Service:
             "processes": self._processes_at_exit or self._process_stats(),
         }
 
+    def _counters(self) -> dict[str, int]:
+        out = dict(self.counters)
+        lines = logpipe.installed()  # the log lines' pump (`run`): lines it could not take
+        if lines is not None:
+            out["log_lines_dropped"] = lines.dropped
+        return out
+
     def _process_stats(self) -> dict[str, Any]:
         """Who holds what, and what it costs (issue 21): CPU, queues, drops, restarts."""
+        lines = logpipe.installed()
         return {
             "control": process_report(os.getpid()),
             "miss_worker": self.misses.process_stats(),
             **({"fleet": self.sharing.process_stats()} if self.sharing is not None else {}),
             **({"logs": self.logs.process_stats()} if self.logs is not None else {}),
             **({"store": self.library.process_stats()} if self.cfg.store.path else {}),
+            **({"log_lines": logpipe.stats(lines)} if lines is not None else {}),
         }
 
     def _write_stats(self) -> None:
@@ -504,6 +513,9 @@ def run_service_command(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from exc
     TIMELINE.mark("config")
     setup_logging(cfg.log)
+    # from here the log lines go through a pump process, never blocking the loops' thread
+    # on stderr (common/logpipe.py); what went before (a config error) went straight there
+    logpipe.pipe_stderr()
     try:
         service = Service(cfg, args.config)
     except (ConfigError, OSError) as exc:

@@ -1,0 +1,338 @@
+"""The control process's log lines, written to stderr by a process of their own (issue 21).
+
+A ``logging.StreamHandler(sys.stderr)`` formats each line on the thread that logs it and
+writes it with a blocking ``write(2)``: on the loops' thread that write waits whenever
+stderr does. Under systemd stderr is a stream socket to journald, which stops reading while
+journald is slow, restarting or waiting on its disk (coreos/bugs#990, systemd#20473: services
+blocked in their log writes); under a bench or a supervisor it may be a pipe nobody drains.
+One such write held the loops' thread 107 ms (stop 36: asleep after one voluntary switch).
+
+:class:`PipeHandler` (a ``logging.Handler``: the level, format and JSON configuration, and
+SIGHUP's level change on the root logger, are unchanged) formats the line and writes it to a
+pipe, never blocking: a line is sent in chunks of at most ``PIPE_BUF`` bytes, each written
+whole (atomic) or not at all; when the pipe is full the line is dropped and counted
+(``dropped``), and a line cut after its first chunk is dropped whole by the reader. The
+reader is the pump (:func:`pump`, ``python -m epc_offboard.common.logpipe``): a small process
+of the standard library alone (no numpy, no service imports: up in tens of ms) that copies
+whole lines to the real stderr, blocking there as long as stderr blocks, ``nice`` +10. The
+pipe is enlarged to 1 MiB where permitted: seconds of logs wait in it while stderr is held.
+
+The pump ends at EOF, after writing every line the pipe held: when the service closes its
+end at exit (:meth:`PipeHandler.close`, from ``logging.shutdown``: it waits a bounded time
+for the pump), or dies (SIGKILL included). It ignores SIGTERM and SIGINT, which a stop sends
+to the whole group. If the pump dies, lines go straight to stderr, never blocking (a new
+non-blocking open of the same pipe or tty, ``MSG_DONTWAIT`` on a socket; a regular file as
+it is), dropped and counted when it is full; said once in a log line, and the loops fly on.
+Before :func:`pipe_stderr` (the start-up, a config error) lines go to stderr as they always
+did. Lines of the helper processes still go to stderr directly: none of them runs the loops.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import logging
+import os
+import select
+import signal
+import socket
+import stat
+import struct
+import subprocess
+import sys
+import termios
+from typing import Any
+
+PIPE_BUF = select.PIPE_BUF  # writes up to this size are atomic
+_CHUNK = struct.Struct("<HB")  # payload bytes, flags
+_FIRST, _LAST = 1, 2
+_BODY = PIPE_BUF - _CHUNK.size  # the most of a line one atomic write carries
+_PIPE_BYTES = 1 << 20
+_F_SETPIPE_SZ = 1031  # <linux/fcntl.h>
+_NICE = 10
+_CLOSE_WAIT_S = 2.0  # at exit, the pump's time to write out what is queued (stderr may hold it)
+
+
+class DirectStderr:
+    """Stderr written without ever blocking, for when the pump is gone: a line is written
+    whole or dropped (the caller counts). A pipe, FIFO or tty is opened anew, non-blocking
+    (``O_NONBLOCK`` on fd 2 itself would change it for every process sharing it); a socket
+    (journald) is sent to with ``MSG_DONTWAIT``; a regular file is written as it is."""
+
+    def __init__(self, fd: int = 2) -> None:
+        self._fd = fd
+        self._own_fd: int | None = None
+        self._sock: socket.socket | None = None
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISSOCK(mode):
+            self._sock = socket.socket(fileno=os.dup(fd))
+        elif not stat.S_ISREG(mode):
+            with contextlib.suppress(OSError):  # no /proc: poll before each write instead
+                self._own_fd = os.open(f"/proc/self/fd/{fd}",
+                                       os.O_WRONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # fmt: skip
+        self._regular = stat.S_ISREG(mode)
+
+    def write(self, data: bytes) -> bool:
+        """All of ``data`` written now (True), or none of it and False. A line over
+        ``PIPE_BUF`` may be cut when the reader falls behind in it (then a newline ends it)."""
+        try:
+            if self._sock is not None:
+                sent = self._sock.send(data, socket.MSG_DONTWAIT)
+            elif self._regular:
+                sent = os.write(self._fd, data)
+            elif self._own_fd is not None:
+                sent = os.write(self._own_fd, data)
+            else:
+                _, ready, _ = select.select([], [self._fd], [], 0.0)
+                if not ready:
+                    return False
+                sent = os.write(self._fd, data[:PIPE_BUF])
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError:  # stderr closed, or gone (EPIPE): nothing to write to
+            return False
+        if sent < len(data):  # a partial write of a long line: end it where it stopped
+            if sent:
+                self.write(b" [cut]\n")
+            return False
+        return True
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+        if self._own_fd is not None:
+            os.close(self._own_fd)
+            self._own_fd = None
+
+
+class PipeHandler(logging.Handler):
+    """Log lines formatted here and written to the pump's pipe, never blocking (module
+    docstring). Counts: ``lines`` written to the pipe (or to stderr directly after the
+    pump's death), ``dropped`` lines lost to a full pipe or stderr."""
+
+    def __init__(self, stderr_fd: int = 2, pipe_bytes: int = _PIPE_BYTES) -> None:
+        super().__init__()
+        self._stderr_fd = stderr_fd
+        self._pipe_bytes = pipe_bytes
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._fd: int | None = None  # the pipe's writing end (non-blocking)
+        self._direct: DirectStderr | None = None
+        self.lines = 0
+        self.dropped = 0
+        self.pump_failed = False
+
+    def start(self) -> None:
+        """Start the pump (OSError if it cannot be started: then stay with stderr)."""
+        read, write = os.pipe()
+        with contextlib.suppress(OSError):  # above the system's ceiling: the default 64 KiB
+            fcntl.fcntl(write, _F_SETPIPE_SZ, self._pipe_bytes)
+        try:
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "epc_offboard.common.logpipe"], stdin=read,
+                stdout=subprocess.DEVNULL, stderr=self._stderr_fd, close_fds=True,
+            )  # fmt: skip
+        except BaseException:
+            os.close(write)
+            raise
+        finally:
+            os.close(read)
+        os.set_blocking(write, False)
+        self._fd = write
+
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            data = (self.format(record) + "\n").encode("utf-8", "backslashreplace")
+        except RecursionError:
+            raise
+        except Exception:
+            self.handleError(record)
+            return
+        if self._write(data):
+            self.lines += 1
+        else:
+            self.dropped += 1
+
+    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 (logging's name)
+        """A line that could not be formatted is dropped and counted: logging's default
+        prints a traceback to stderr, a blocking write."""
+        self.dropped += 1
+
+    def _write(self, data: bytes) -> bool:
+        fd = self._fd
+        if fd is None:
+            return self._write_direct(data)
+        last = len(data) - 1
+        for at in range(0, len(data), _BODY):  # a long line (a traceback) in atomic chunks
+            piece = data[at : at + _BODY]
+            flags = (_FIRST if at == 0 else 0) | (_LAST if at + _BODY > last else 0)
+            try:
+                os.write(fd, _CHUNK.pack(len(piece), flags) + piece)
+            except BlockingIOError:  # the pump fell behind: drop (a cut line: whole)
+                return False
+            except OSError:  # EPIPE: the pump is gone
+                self._pump_died()
+                return self._write_direct(data)
+        return True
+
+    def _write_direct(self, data: bytes) -> bool:
+        if self._direct is None:
+            try:
+                self._direct = DirectStderr(self._stderr_fd)
+            except OSError:  # no stderr at all (closed): the line is dropped, counted
+                return False
+        return self._direct.write(data)
+
+    def _pump_died(self) -> None:
+        assert self._fd is not None
+        os.close(self._fd)
+        self._fd = None
+        self.pump_failed = True
+        if self._proc is not None:
+            self._proc.poll()
+        pid = self.pid()
+        # formatted as every line is, written straight to stderr (the pump is gone)
+        line = logging.LogRecord(
+            "epc_offboard.service", logging.WARNING, __file__, 0,
+            "log pump (process %s) died: log lines go straight to stderr now, never waiting "
+            "for it (dropped and counted when it is full); flying on", (pid,), None,
+        )  # fmt: skip
+        self._write_direct((self.format(line) + "\n").encode("utf-8", "backslashreplace"))
+
+    def queued_bytes(self) -> int | None:
+        """Bytes waiting in the pipe for the pump (FIONREAD on the writing end)."""
+        if self._fd is None:
+            return None
+        with contextlib.suppress(OSError):
+            raw = fcntl.ioctl(self._fd, termios.FIONREAD, b"\0\0\0\0")
+            return int(struct.unpack("i", raw)[0])
+        return None
+
+    def close(self) -> None:
+        """At exit (``logging.shutdown``): EOF to the pump, which writes out every line the
+        pipe holds; waited for at most ``_CLOSE_WAIT_S`` (a stderr that blocks keeps it
+        writing after we are gone)."""
+        self.acquire()
+        try:
+            fd, self._fd = self._fd, None
+            if fd is not None:
+                os.close(fd)
+            if self._proc is not None:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    self._proc.wait(_CLOSE_WAIT_S)
+            if self._direct is not None:
+                self._direct.close()
+                self._direct = None
+        finally:
+            self.release()
+        super().close()
+
+
+def pipe_stderr() -> PipeHandler | None:
+    """The root logger's stderr handler replaced by a :class:`PipeHandler` with its
+    formatter, and the pump started (the control process, after ``setup_logging``). None,
+    and stderr kept, if the pump cannot start (said in a log line)."""
+    root = logging.getLogger()
+    handler = PipeHandler()
+    old = [h for h in root.handlers if isinstance(h, logging.StreamHandler)]
+    if old:
+        handler.setFormatter(old[0].formatter)
+    try:
+        handler.start()
+    except OSError as exc:
+        logging.getLogger("epc_offboard.service").warning(
+            "log pump not started (%s): log lines written to stderr directly", exc
+        )
+        return None
+    for h in old:
+        root.removeHandler(h)
+    root.addHandler(handler)
+    # Python's warnings (a numpy RuntimeWarning in a tick) are printed to stderr by
+    # ``warnings.showwarning``, a blocking write: through the pump too, once per place
+    logging.captureWarnings(True)
+    return handler
+
+
+def installed() -> PipeHandler | None:
+    """The root logger's :class:`PipeHandler`, if :func:`pipe_stderr` put one there."""
+    return next((h for h in logging.getLogger().handlers if isinstance(h, PipeHandler)), None)
+
+
+def stats(handler: PipeHandler | None) -> dict[str, Any]:
+    """The pump as ``stats.processes`` gives it (pid, CPU, the pipe's queue, lines, drops)."""
+    from epc_offboard.common.procstats import process_report
+
+    if handler is None:
+        return {}
+    return process_report(handler.pid(), queued_bytes=handler.queued_bytes(),
+                          lines=handler.lines, dropped=handler.dropped,
+                          pump_failed=handler.pump_failed)  # fmt: skip
+
+
+# -- the pump ----------------------------------------------------------------------------
+
+
+def pump(fd_in: int = 0, fd_out: int = 2) -> None:
+    """Whole lines from the pipe to stderr until EOF, blocking on stderr as long as it
+    blocks; a line whose later chunk was dropped is dropped whole."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a stop of the group: EOF ends us
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(OSError):
+        os.nice(_NICE)
+    buf = bytearray()
+    line = bytearray()
+    open_line = False
+    while True:
+        try:
+            chunk = os.read(fd_in, 1 << 16)
+        except InterruptedError:
+            continue
+        if not chunk:
+            break
+        buf += chunk
+        out = bytearray()
+        at = 0
+        while len(buf) - at >= _CHUNK.size:
+            n, flags = _CHUNK.unpack_from(buf, at)
+            if len(buf) - at < _CHUNK.size + n:
+                break
+            piece = buf[at + _CHUNK.size : at + _CHUNK.size + n]
+            at += _CHUNK.size + n
+            if flags & _FIRST:
+                line.clear()  # one left open: its rest was dropped
+                open_line = True
+            if open_line:
+                line += piece
+                if flags & _LAST:
+                    out += line
+                    line.clear()
+                    open_line = False
+        del buf[:at]
+        if out and not _write_all(fd_out, bytes(out)):
+            break
+    os._exit(0)
+
+
+def _write_all(fd: int, data: bytes) -> bool:
+    """Blocking write of all of ``data``; False when stderr is gone."""
+    view = memoryview(data)
+    while view:
+        try:
+            view = view[os.write(fd, view) :]
+        except BlockingIOError:  # someone made it non-blocking: wait for room
+            select.select([], [fd], [])
+        except InterruptedError:
+            continue
+        except OSError as exc:
+            if exc.errno in (errno.EPIPE, errno.EBADF, errno.EIO, errno.ENOSPC):
+                return False
+            raise
+    return True
+
+
+if __name__ == "__main__":
+    pump()

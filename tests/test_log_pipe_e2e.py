@@ -1,0 +1,221 @@
+"""A stderr nobody reads never stalls the control loops (issue 21), end to end in REAL TIME.
+
+The service's stderr is a pipe this test holds: read while the vehicle takes off, then not
+read and filled to the brim. Every SIGHUP makes the loops' thread log a line ("SIGHUP: ...
+reloaded"). With logging's StreamHandler that write blocked until the pipe was read again:
+the position loop stopped for as long (seconds). Through the log pump (common/logpipe.py)
+the loops keep their period, the lines wait in the pump's pipe and all arrive once stderr
+is read again, and none is dropped (counted in stats).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import itertools
+import os
+import select
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
+from tests.rig import Rig, cpu_hog, deployed_priority
+
+pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone")]
+
+HOLD_S = 3.0  # stderr full and unread this long
+SIGHUPS = 5
+GAP_BOUND_S = 0.1  # loose (load 6); a blocked write held the loop for all of HOLD_S
+_RELOADED = "SIGHUP: trajectory, mission and offboard settings reloaded"
+_FILL = b"#" * 4095 + b"\n"
+
+
+class Stderr:
+    """The service's stderr: a pipe read by a thread while ``reading`` is set."""
+
+    def __init__(self) -> None:
+        self.read_fd, self.write_fd = os.pipe()
+        self.data = bytearray()
+        self.reading = threading.Event()
+        self.reading.set()
+        self._idle = threading.Event()  # the thread is between reads (not reading)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if not self.reading.is_set():
+                self._idle.set()
+                time.sleep(0.01)
+                continue
+            self._idle.clear()
+            ready, _, _ = select.select([self.read_fd], [], [], 0.05)
+            if ready:
+                chunk = os.read(self.read_fd, 1 << 16)
+                if not chunk:
+                    return
+                self.data += chunk
+
+    def stop_reading_and_fill(self) -> int:
+        """Stop reading and fill the pipe to the brim; returns the bytes written."""
+        self.reading.clear()
+        assert self._idle.wait(5.0)
+        filled = 0
+        # a description of its own: O_NONBLOCK on write_fd would be the service's stderr's too
+        fd = os.open(f"/proc/self/fd/{self.write_fd}", os.O_WRONLY | os.O_NONBLOCK)
+        try:
+            with contextlib.suppress(BlockingIOError):
+                while True:
+                    filled += os.write(fd, _FILL)
+        finally:
+            os.close(fd)
+        return filled
+
+    def close(self) -> None:
+        """Our writing end closed; read to EOF (every other holder gone)."""
+        os.close(self.write_fd)
+        self.reading.set()
+        self._thread.join(timeout=30.0)
+        self._stop.set()
+        os.close(self.read_fd)
+
+    def text(self) -> str:
+        return bytes(self.data).decode(errors="replace")
+
+
+def _positions_s(path: Path) -> list[float]:
+    if not path.exists():
+        return []
+    with path.open() as fh:
+        return [float(row["t_s"]) for row in csv.DictReader(fh)]
+
+
+@dataclass
+class Held:
+    """What a flight with its stderr held full showed."""
+
+    code: int
+    text: str  # everything the service wrote to stderr (the filling taken out)
+    filled: int  # bytes the pipe took before it was full
+    rows_s: list[float]  # every position tick (flight rows)
+    held_from_s: float
+    held_to_s: float
+    stats: dict[str, Any]
+
+    @property
+    def held_s(self) -> float:
+        return self.held_to_s - self.held_from_s
+
+    @property
+    def ticks_s(self) -> list[float]:
+        """The position ticks while stderr was held."""
+        return [t for t in self.rows_s if self.held_from_s <= t <= self.held_to_s]
+
+    @property
+    def gap_s(self) -> float:
+        """The largest interval between position ticks from the hold's start to the first
+        tick after it (a loop blocked through it: the whole hold, or more)."""
+        after = [t for t in self.rows_s if t > self.held_to_s][:1]
+        ticks = [t for t in self.rows_s if t < self.held_from_s][-1:] + self.ticks_s + after
+        return max((b - a for a, b in itertools.pairwise(ticks)), default=float("inf"))
+
+
+def fly_with_stderr_held(tmp: Path, hold_s: float, sighups: int, hogs: int = 0) -> Held:
+    """Hover in real time; once hovering, stderr is not read and filled for ``hold_s`` while
+    ``sighups`` SIGHUPs (a log line each, on the loops' thread) come; then read again."""
+    overrides = {
+        "mission": {"duration_s": 120.0 + hold_s, "land_at_end": True},
+        "trajectory": {"shape": "hover"},
+    }
+    rig = Rig(tmp, lockstep=False, speedup=1.0, service_overrides=overrides)
+    err = Stderr()
+    hog_procs: list[subprocess.Popen[bytes]] = []
+    try:
+        rig.start_sitl()
+        rig.service = subprocess.Popen(
+            [sys.executable, "-m", "epc_offboard.cli", "run", "--config", str(rig.config_path)],
+            stdout=(tmp / "service.log").open("ab"), stderr=err.write_fd,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=deployed_priority,
+        )  # fmt: skip
+        rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=120)
+        hog_procs = [cpu_hog(hold_s + 4.0) for _ in range(hogs)]
+        time.sleep(2.0)  # hovering
+        filled = err.stop_reading_and_fill()
+        held_from_s = time.monotonic()
+        for _ in range(sighups):  # each: a log line on the loops' thread
+            rig.service.send_signal(signal.SIGHUP)
+            time.sleep(hold_s / sighups)
+        held_to_s = time.monotonic()
+        err.reading.set()  # stderr read again: what waited arrives
+        deadline = time.monotonic() + 20.0
+        while err.text().count(_RELOADED) < sighups and time.monotonic() < deadline:
+            time.sleep(0.1)
+        code, _ = rig.stop_service(timeout_s=30.0)
+    finally:
+        for hog in hog_procs:
+            hog.kill()
+            hog.wait()
+        rig.__exit__()
+        err.close()
+    return Held(code, err.text().replace(_FILL.decode(), ""), filled,
+                _positions_s(tmp / "flight.csv"), held_from_s, held_to_s, rig.stats())  # fmt: skip
+
+
+def test_a_full_unread_stderr_never_stalls_the_position_loop(tmp_path):
+    held = fly_with_stderr_held(tmp_path, HOLD_S, SIGHUPS)
+    tail = held.text[-3000:]
+    assert held.filled >= 4096, held.filled
+    assert held.code == 0, tail
+    # the loops kept their period while stderr was full (flight rows: one a position tick)
+    print(f"largest position gap while stderr was full: {1000 * held.gap_s:.1f} ms")
+    assert len(held.ticks_s) >= 0.5 * held.held_s * 100, (len(held.ticks_s), tail)
+    assert held.gap_s < GAP_BOUND_S, f"position loop stalled {held.gap_s:.3f} s:\n{tail}"
+    # nothing logged meanwhile was lost: every line arrived once stderr was read, whole
+    assert held.text.count(_RELOADED) == SIGHUPS, tail
+    assert "stopped: " in held.text, tail  # the last line, flushed at exit
+    assert held.stats["counters"]["log_lines_dropped"] == 0
+    pump = held.stats["processes"]["log_lines"]
+    assert pump["lines"] >= SIGHUPS, pump
+    assert pump["dropped"] == 0, pump
+    assert not pump["pump_failed"], pump
+
+
+def main() -> int:
+    """The measurement: ``python -m tests.test_log_pipe_e2e --hold 30 --hogs 2`` (under the
+    measurement lock): the largest position gap while stderr is held full."""
+    import argparse
+    import json
+    import tempfile
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--hold", type=float, default=30.0)
+    parser.add_argument("--sighups", type=int, default=60)
+    parser.add_argument("--hogs", type=int, default=2)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        held = fly_with_stderr_held(Path(tmp), args.hold, args.sighups, args.hogs)
+    stalls = held.stats.get("stalls", [])
+    print(json.dumps({
+        "exit": held.code, "held_s": round(held.held_s, 1), "ticks": len(held.ticks_s),
+        "largest_gap_ms": round(1000 * held.gap_s, 1),
+        "reloaded_lines": held.text.count(_RELOADED),
+        "log_lines_dropped": held.stats["counters"].get("log_lines_dropped"),
+        "position_stalls": held.stats["counters"].get("position_stalls", 0),
+        "longest_stall_ms": max((s["interval_ms"] for s in stalls if s["loop"] == "position"),
+                                default=0),
+        "phases": [e["phase"] for e in held.stats["phase_events"]],
+    }))  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

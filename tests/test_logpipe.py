@@ -1,0 +1,196 @@
+"""The log lines' pump (common/logpipe.py) with a real pump process and a real stderr pipe:
+a log call never waits for stderr, every line is written whole or dropped and counted, what
+was not dropped arrives, and a dead pump leaves lines going straight to stderr, never
+waiting."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import threading
+import time
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from epc_offboard.common.logpipe import PIPE_BUF, PipeHandler
+
+EMIT_BOUND_S = 0.1  # a log call's wall time, at most (load 6); a blocked write: the pauses'
+
+
+class SlowReader:
+    """The real stderr: a pipe read by a thread that pauses as ``pauses_s`` says."""
+
+    def __init__(self, pauses_s: list[float]) -> None:
+        self.read_fd, self.write_fd = os.pipe()
+        self.data = bytearray()
+        self._pauses = list(pauses_s)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            if self._pauses:
+                time.sleep(self._pauses.pop(0))
+            chunk = os.read(self.read_fd, 8192)
+            if not chunk:
+                return
+            self.data += chunk
+
+    def finish(self, timeout_s: float = 30.0) -> list[bytes]:
+        """Every line, once the last writer is gone (EOF)."""
+        self._thread.join(timeout_s)
+        assert not self._thread.is_alive(), "stderr never reached EOF"
+        os.close(self.read_fd)
+        return bytes(self.data).splitlines()
+
+
+def _logger(handler: logging.Handler, name: str) -> logging.Logger:
+    log = logging.getLogger(name)
+    log.handlers[:] = [handler]
+    log.propagate = False
+    log.setLevel(logging.DEBUG)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    return log
+
+
+def _line(k: int, length: int) -> str:
+    head = f"L{k:06d} "
+    return head + "x" * max(0, length - len(head))
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    bursts=st.lists(st.tuples(st.integers(1, 120), st.integers(1, 3 * PIPE_BUF)),
+                    min_size=1, max_size=5),
+    pauses_s=st.lists(st.floats(0.0, 0.4), min_size=1, max_size=6),
+    gaps_s=st.lists(st.floats(0.0, 0.05), min_size=5, max_size=5),
+)  # fmt: skip
+def test_a_log_call_never_waits_and_lines_arrive_whole_or_are_counted(bursts, pauses_s, gaps_s):
+    """Random bursts of lines (some longer than PIPE_BUF, sent in chunks), a reader of
+    random speed: no log call waits longer than the bound; every line the reader gets is
+    one that was sent, whole, in order; the reader gets exactly sent - dropped."""
+    stderr = SlowReader(pauses_s)
+    handler = PipeHandler(stderr_fd=stderr.write_fd, pipe_bytes=65536)
+    handler.start()
+    os.close(stderr.write_fd)  # the pump holds it now: EOF when the pump ends
+    log = _logger(handler, "test.logpipe.property")
+    sent: list[str] = []
+    slowest_s = 0.0
+    for (count, length), gap_s in zip(bursts, gaps_s, strict=False):
+        for _ in range(count):
+            line = _line(len(sent), length)
+            t0 = time.perf_counter()
+            log.info(line)
+            slowest_s = max(slowest_s, time.perf_counter() - t0)
+            sent.append(line)
+        time.sleep(gap_s)
+    handler.close()  # EOF to the pump: it writes what it holds and ends
+    got = [g.decode() for g in stderr.finish()]
+    assert slowest_s < EMIT_BOUND_S, slowest_s
+    assert handler.lines + handler.dropped == len(sent)
+    assert len(got) == handler.lines, (len(got), handler.lines, handler.dropped)
+    index = {line: k for k, line in enumerate(sent)}
+    order = [index[g] for g in got]  # KeyError: a line cut or garbled
+    assert order == sorted(order)  # in order, each once
+
+
+def test_lines_beyond_the_pipe_are_dropped_and_counted_then_the_rest_arrives():
+    """Stderr not read at all while 4 MB of lines are logged: the calls return at once,
+    what the pipes cannot hold is dropped and counted, and when stderr is read again
+    every line not dropped arrives."""
+    stderr = SlowReader([1.0])  # nothing read for a second
+    handler = PipeHandler(stderr_fd=stderr.write_fd, pipe_bytes=65536)
+    handler.start()
+    os.close(stderr.write_fd)
+    log = _logger(handler, "test.logpipe.full")
+    t0 = time.perf_counter()
+    for k in range(4000):
+        log.warning(_line(k, 1000))
+    spent_s = time.perf_counter() - t0
+    assert spent_s < 0.9, spent_s  # well inside the reader's pause: nothing waited for it
+    assert handler.dropped > 0
+    handler.close()
+    got = stderr.finish()
+    assert len(got) == handler.lines == 4000 - handler.dropped
+
+
+def test_a_dead_pump_leaves_lines_going_straight_to_stderr_never_waiting():
+    """The pump SIGKILLed: the next line is written to stderr directly (a non-blocking
+    open of the same pipe), with one warning saying so; a full stderr then drops lines,
+    counted, and the call still returns at once."""
+    read_fd, write_fd = os.pipe()
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536)
+    handler.start()
+    log = _logger(handler, "test.logpipe.dead")
+    log.info("before")
+    pid = handler.pid()
+    assert pid is not None
+    time.sleep(0.5)  # the pump has written "before"
+    os.kill(pid, signal.SIGKILL)
+    assert handler._proc is not None
+    handler._proc.wait(timeout=10)
+    log.info("after")  # EPIPE: straight to stderr
+    assert handler.pump_failed
+    os.set_blocking(read_fd, False)
+    lines = os.read(read_fd, 1 << 16).decode().splitlines()
+    assert lines[0] == "before"
+    assert lines[-1] == "after"
+    assert sum("log pump (process" in line and "died" in line for line in lines) == 1, lines
+    # nobody reads stderr now: lines fill it, then drop; no call waits
+    t0 = time.perf_counter()
+    for k in range(300):
+        log.info(_line(k, 1000))
+    assert time.perf_counter() - t0 < 0.9
+    assert handler.dropped > 0
+    assert handler.lines + handler.dropped == 302
+    handler.close()
+    os.close(write_fd)
+    os.close(read_fd)
+
+
+def test_the_root_loggers_level_still_decides(tmp_path):
+    """SIGHUP sets the root logger's level (service._reload_from): the handler passes what
+    the level lets through, as StreamHandler did."""
+    read_fd, write_fd = os.pipe()
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536)
+    handler.start()
+    log = _logger(handler, "test.logpipe.level")
+    log.setLevel(logging.INFO)
+    log.debug("hidden")
+    log.setLevel(logging.DEBUG)
+    log.debug("shown")
+    handler.close()
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as fh:
+        assert fh.read().decode().splitlines() == ["shown"]
+
+
+def test_pipe_stderr_takes_the_root_loggers_stream_and_pythons_warnings(tmp_path):
+    """``pipe_stderr`` (the run command's): the root's StreamHandler replaced, its format
+    kept, and a Python warning (printed to stderr by a blocking write) logged through the
+    pump instead."""
+    import subprocess
+    import sys
+
+    code = (
+        "import logging, warnings\n"
+        "from epc_offboard.common.logsetup import LogConfig, setup_logging\n"
+        "from epc_offboard.common import logpipe\n"
+        "setup_logging(LogConfig(format='json'))\n"
+        "handler = logpipe.pipe_stderr()\n"
+        "assert logging.getLogger().handlers == [handler]\n"
+        "logging.getLogger('x').info('hello')\n"
+        "warnings.warn('careful', RuntimeWarning)\n"
+        "print(handler.pid())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, check=True)  # fmt: skip
+    pump_pid = int(out.stdout.strip())
+    lines = [json.loads(line) for line in out.stderr.splitlines()]
+    assert (lines[0]["logger"], lines[0]["msg"]) == ("x", "hello")
+    assert lines[1]["logger"] == "py.warnings"
+    assert "careful" in lines[1]["msg"]
+    assert pump_pid != 0
