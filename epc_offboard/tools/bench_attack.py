@@ -414,7 +414,11 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "stats_counters": counters,
         "stats_gc": stats.get("gc", {}),
         "stats_stalls": stats.get("stalls", []),
+        "stats_misses": stats.get("misses", []),
         "steal": steal,
+        # every position-loop gap over 12 ms and every deadline miss, with its verdict
+        "attribution": analysis.attribution(record.get("steal", {}), record["windows"],
+                                            stats.get("stalls", []), stats.get("misses", [])),
         "lockstep_rmse_m": lockstep_rmse_m,
         "figure8_rmse_m": analysis.figure8_rmse_m(windows),
     }  # fmt: skip
