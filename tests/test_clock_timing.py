@@ -7,6 +7,7 @@ import os
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 
 import pytest
 
@@ -282,25 +283,36 @@ def _syscalls(cpu_s: float) -> None:
         os.urandom(1 << 18)
 
 
-async def _kernel_and_user_stalls() -> Loops:
-    """A 100 Hz real-time loop held 40 ms of the thread's CPU twice: in user code, then in
-    the kernel."""
+async def _scripted(actions: dict[int, Callable[[], object]], stop_at: int,
+                    name: str = "position") -> tuple[Loops, LoopTiming]:  # fmt: skip
+    """A 100 Hz real-time loop whose tick n runs ``actions[n]``; the tick ``stop_at`` stops it."""
     loops = Loops(WallClock(), Counter(), LogGate())
+    timing = LoopTiming(0.01)
     ticks = 0
 
     async def tick(t: Tick) -> bool:
         nonlocal ticks
         ticks += 1
-        if ticks == 3:
-            asyncio.get_running_loop().call_soon(_user_work, 0.04)
-        if ticks == 6:
-            asyncio.get_running_loop().call_soon(_syscalls, 0.04)
-        if ticks == 9:
+        if ticks in actions:
+            actions[ticks]()
+        if ticks == stop_at:
             loops.stopping.set()
         return True
 
     with pytest.raises(Stop):
-        await loops.periodic("position", LoopTiming(0.01), tick)
+        await loops.periodic(name, timing, tick)
+    return loops, timing
+
+
+def _soon(fn: Callable[..., object], *args: object) -> Callable[[], object]:
+    """``fn(*args)`` on the event loop right after the tick (it holds the loop meanwhile)."""
+    return lambda: asyncio.get_running_loop().call_soon(fn, *args)
+
+
+async def _kernel_and_user_stalls() -> Loops:
+    """A 100 Hz real-time loop held 40 ms of the thread's CPU twice: in user code, then in
+    the kernel."""
+    loops, _ = await _scripted({3: _soon(_user_work, 0.04), 6: _soon(_syscalls, 0.04)}, 9)
     return loops
 
 
@@ -500,24 +512,7 @@ def test_a_real_time_tick_asks_for_the_event_loop_and_the_rusage_only_when_neede
 async def _missed_ticks() -> tuple[Loops, LoopTiming]:
     """A 100 Hz real-time loop whose tick 4 starts 20 ms late (the event loop held by a
     blocking sleep after tick 3) and whose tick 6 computes 20 ms of its thread's CPU."""
-    loops = Loops(WallClock(), Counter(), LogGate())
-    timing = LoopTiming(0.01)
-    ticks = 0
-
-    async def tick(t: Tick) -> bool:
-        nonlocal ticks
-        ticks += 1
-        if ticks == 3:
-            asyncio.get_running_loop().call_soon(time.sleep, 0.03)
-        if ticks == 6:
-            _spin(0.02)
-        if ticks == 9:
-            loops.stopping.set()
-        return True
-
-    with pytest.raises(Stop):
-        await loops.periodic("attitude", timing, tick)
-    return loops, timing
+    return await _scripted({3: _soon(time.sleep, 0.03), 6: lambda: _spin(0.02)}, 9, "attitude")
 
 
 def test_each_deadline_miss_is_traced_from_the_previous_tick_to_its_own_end():
@@ -540,22 +535,13 @@ def test_each_deadline_miss_is_traced_from_the_previous_tick_to_its_own_end():
 async def _stall_beside_a_busy_thread() -> Loops:
     """A 100 Hz real-time loop whose thread waits (a join) for another thread of the process
     running 30 ms of Python."""
-    loops = Loops(WallClock(), Counter(), LogGate())
-    ticks = 0
 
-    async def tick(t: Tick) -> bool:
-        nonlocal ticks
-        ticks += 1
-        if ticks == 3:
-            other = threading.Thread(target=_spin, args=(0.03,))
-            other.start()
-            asyncio.get_running_loop().call_soon(other.join)
-        if ticks == 6:
-            loops.stopping.set()
-        return True
+    def start_and_join() -> None:
+        other = threading.Thread(target=_spin, args=(0.03,))
+        other.start()
+        asyncio.get_running_loop().call_soon(other.join)
 
-    with pytest.raises(Stop):
-        await loops.periodic("position", LoopTiming(0.01), tick)
+    loops, _ = await _scripted({3: start_and_join}, 6)
     return loops
 
 
