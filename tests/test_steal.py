@@ -117,6 +117,7 @@ def _event(**fields: Any) -> dict[str, Any]:
     ({"longest_step_ms": 9.0, "thread_cpu_ms": 11.0, "steps_ms": 10.5}, "our step"),
     ({"thread_cpu_ms": 14.0, "steps_ms": 2.5}, "our step"),  # CPU outside every step
     ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steal_thread_cpu_ms": 12.0}, "steal"),
+    ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steps_ms": 16.0}, "steal"),  # unticked
     ({"other_threads_cpu_ms": 9.0}, "GIL wait"),
     ({}, "unattributed"),
     ({"steal_thread_cpu_ms": 2.0}, "unattributed"),  # 2 ms of a 10 ms excess

@@ -240,8 +240,11 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
     over one period; a miss's lateness or its compute over one period). Each cause's share of
     the interval, in ms:
 
-    * ``steal``: the hypervisor ran something else on the loops' virtual CPU (``/proc/stat``,
-      in 10 ms ticks, interpolated: a single event's figure is within ~10 ms);
+    * ``steal``: the hypervisor ran something else on the loops' virtual CPU: its steal in
+      ``/proc/stat`` (in 10 ms ticks, interpolated: a single event's figure is within
+      ~10 ms), or, if more, the event-loop steps' wall time beyond the thread's CPU time
+      (the thread's clock leaves steal out; a SCHED_FIFO thread is not preempted in a step,
+      and no other thread of ours held the interpreter lock when ``GIL wait`` is 0);
     * ``run-queue at FIFO``: the SCHED_FIFO thread runnable and not run (the kernel's
       schedstat; a wake-up queued on a virtual CPU the hypervisor holds counts here too);
     * ``collection``: the cyclic collector's pauses;
@@ -263,8 +266,9 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
                      float(event.get("compute_ms", 0.0)) - period_ms)  # fmt: skip
     else:
         excess = interval - period_ms
-    stolen = float(event.get("steal_thread_cpu_ms") or 0.0)
     cpu = float(event["thread_cpu_ms"])
+    in_steps = max(0.0, float(event.get("steps_ms") or 0.0) - cpu)
+    stolen = max(float(event.get("steal_thread_cpu_ms") or 0.0), in_steps)
     queued = float(event["runqueue_ms"])
     gc_ms = float(event["gc_ms"])
     step = float(event.get("longest_step_ms") or 0.0)
@@ -285,6 +289,7 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
         "t_s": event["t_s"], "interval_ms": round(interval, 3), "excess_ms": round(excess, 3),
         "late_ms": event.get("late_ms"), "compute_ms": event.get("compute_ms"),
         "steal_loops_cpu_ms": event.get("steal_thread_cpu_ms"),
+        "steps_beyond_cpu_ms": round(in_steps, 3),
         "steal_machine_ms": event.get("steal_ms"), "runqueue_ms": queued, "gc_ms": gc_ms,
         "thread_cpu_ms": cpu, "asleep_ms": round(asleep, 3),
         "other_threads_cpu_ms": event.get("other_threads_cpu_ms"),
