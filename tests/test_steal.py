@@ -115,7 +115,8 @@ def _event(**fields: Any) -> dict[str, Any]:
     ({"gc_ms": 7.0, "longest_step_ms": 8.0, "thread_cpu_ms": 10.0, "steps_ms": 9.0},
      "collection"),
     ({"longest_step_ms": 9.0, "thread_cpu_ms": 11.0, "steps_ms": 10.5}, "our step"),
-    ({"thread_cpu_ms": 14.0, "steps_ms": 2.5}, "our step"),  # CPU outside every step
+    ({"thread_cpu_ms": 14.0, "usual_cpu_share": 0.15}, "our step"),  # beyond its usual CPU
+    ({"thread_cpu_ms": 4.0, "usual_cpu_share": 0.15}, "unattributed"),
     ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steal_thread_cpu_ms": 12.0}, "steal"),
     ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steps_ms": 16.0}, "steal"),  # unticked
     ({"other_threads_cpu_ms": 9.0}, "GIL wait"),

@@ -250,8 +250,9 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
     * ``collection``: the cyclic collector's pauses;
     * ``our step``: the longest event-loop step's time, no more than the thread's own CPU
       time in the interval (a step stretched by steal or a wait is not work), less the
-      collections; or, if more, the thread's CPU time outside every timed step (the event
-      loop's own work between steps), less the collections;
+      collections; or, if more, the thread's CPU time beyond its usual share of the
+      interval (``usual_cpu_share``: its CPU time over the windows, a fraction of the
+      wall; work no step timed, the event loop's own), less the collections;
     * ``GIL wait``: the thread off its CPU and not queued for it while the process's other
       threads ran (their CPU time, no more than that off-CPU time).
 
@@ -278,7 +279,7 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
         RUNQUEUE: queued,
         COLLECTION: gc_ms,
         OUR_STEP: max(0.0, (min(step, cpu) if step > 0.0 else 0.0) - gc_ms,
-                      cpu - float(event.get("steps_ms") or cpu) - gc_ms),
+                      cpu - float(event.get("usual_cpu_share") or 1.0) * interval - gc_ms),
         GIL_WAIT: min(float(event.get("other_threads_cpu_ms") or 0.0), asleep),
     }
     verdict = max(shares, key=lambda k: shares[k])  # the first of equals: the machine's
@@ -309,9 +310,14 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
     samples) and its verdict (:func:`attribute`), the window it fell in ("phase kind", or
     "" outside them), and counted by verdict: over the flight and in the attack windows."""
     cols = steal.Columns.of(record)
+    share = None
+    if cols is not None and wins:
+        usual = cols.stretch(max(wins[0].t0_s, float(cols.t_s[0])),
+                             min(wins[-1].t1_s, float(cols.t_s[-1])))  # fmt: skip
+        share = None if usual is None or not usual["ms"] else usual["thread_cpu_ms"] / usual["ms"]
     events = []
     for ev in [*(s for s in stalls if s["loop"] == "position"), *misses]:
-        out = attribute(_stall_steal(cols, ev))
+        out = attribute(dict(_stall_steal(cols, ev), usual_cpu_share=share))
         out["window"] = next((f"{w.phase} {w.kind}" for w in wins
                               if w.t0_s <= ev["t_s"] <= w.t1_s), "")  # fmt: skip
         out["attack"] = bool(out["window"]) and not out["window"].endswith("calm")
@@ -330,7 +336,8 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
                         "ours": sum(e["cause"] == "ours" for e in mine)}  # fmt: skip
         return out
 
-    return {"sampled": cols is not None, "events": events, "flight": count(events),
+    return {"sampled": cols is not None, "usual_cpu_share": share, "events": events,
+            "flight": count(events),
             "attack_windows": count([e for e in events if e["attack"]])}  # fmt: skip
 
 
