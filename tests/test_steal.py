@@ -167,7 +167,8 @@ def test_the_bench_attributes_every_position_stall_and_every_miss_by_window() ->
         ("position", "gap", "collection", "hover calm"),
     ]
     assert att["flight"]["position_gaps"] == dict(
-        {v: 0 for v in aa.VERDICTS}, total=2, steal=1, collection=1, machine=1, ours=1)
+        {v: 0 for v in aa.VERDICTS}, total=2, steal=1, collection=1, machine=1, ours=1,
+        our_step_a_tick=0)
     assert att["attack_windows"]["position_gaps"]["total"] == 1
     assert att["attack_windows"]["attitude_misses"]["steal"] == 1
     summary = aa.attribution_summary({"attribution": att})

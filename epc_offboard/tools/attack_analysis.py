@@ -231,6 +231,7 @@ MACHINE_VERDICTS = (STEAL, RUNQUEUE)  # the hypervisor's, the machine's other re
 OUR_VERDICTS = (COLLECTION, OUR_STEP, GIL_WAIT)  # what the code can still cut
 VERDICTS = (*MACHINE_VERDICTS, *OUR_VERDICTS, UNATTRIBUTED)
 _DEFAULT_PERIOD_MS = {"position": 10.0, "attitude": 5.0}  # records without ``period_ms``
+_TICK_STEPS = ("task position-loop ", "task attitude-loop ")  # the loops' own steps
 
 
 def attribute(event: dict[str, Any]) -> dict[str, Any]:
@@ -295,6 +296,9 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
         "thread_cpu_ms": cpu, "asleep_ms": round(asleep, 3),
         "other_threads_cpu_ms": event.get("other_threads_cpu_ms"),
         "longest_step_ms": step, "longest_step": event.get("longest_step", ""),
+        # a loop's own tick (0.1-1 ms of CPU as a rule): a long one ran what a lockstep tick
+        # runs in < 8 ms (stop 36), so its CPU clock ran on a slow virtual CPU, or it was not
+        "step_is_tick": str(event.get("longest_step", "")).startswith(_TICK_STEPS),
         "shares_ms": {k: round(v, 3) for k, v in shares.items()},
         "verdict": verdict,
         "cause": "machine" if verdict in MACHINE_VERDICTS else (
@@ -333,7 +337,9 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
             out[key] = {"total": len(mine), **{v: sum(e["verdict"] == v for e in mine)
                                                for v in VERDICTS},
                         "machine": sum(e["cause"] == "machine" for e in mine),
-                        "ours": sum(e["cause"] == "ours" for e in mine)}  # fmt: skip
+                        "ours": sum(e["cause"] == "ours" for e in mine),
+                        "our_step_a_tick": sum(e["verdict"] == OUR_STEP and e["step_is_tick"]
+                                               for e in mine)}  # fmt: skip
         return out
 
     return {"sampled": cols is not None, "usual_cpu_share": share, "events": events,
@@ -353,7 +359,9 @@ def attribution_summary(report: dict[str, Any]) -> str:
                            ("attitude_misses", "attitude misses"),
                            ("position_misses", "position misses")):  # fmt: skip
             c = att[scope][key]
-            by = ", ".join(f"{v} {c[v]}" for v in VERDICTS if c[v])
+            by = ", ".join(f"{v} {c[v]}" + (f" ({c['our_step_a_tick']} a loop's own tick)"
+                                            if v == OUR_STEP and c["our_step_a_tick"] else "")
+                           for v in VERDICTS if c[v])  # fmt: skip
             parts.append(f"{label} {c['total']}" + (f" ({by})" if by else ""))
         lines.append(f"attributed, {name}: " + "; ".join(parts))
     if not att["sampled"]:
