@@ -117,6 +117,20 @@
   whenever one step of the thread's runs past the tick it is due (``ROOM_S`` before), which
   a cooperative loop on one thread cannot prevent: the position tick's 0.3-0.5 ms cannot,
   its rare 5-24 ms (above) can.
+* **Collections in the loops' slack** (:class:`SlackCollector`, ``loops.collect_in_slack``,
+  stop 37). After the start-up freeze the loops' thread still ran 33-37 young collections a
+  ``bench --attack`` flight (one every ~5.6 s), 1-4 ms each beside two hogs, wherever an
+  allocation crossed the threshold. A census of the young generation at each collection's
+  start (a lockstep figure-8, ``gc.callbacks``): 350-480 objects, ~120 tuples held by
+  closures' cells, 60-90 asyncio timer handles with their contexts, buffers, coroutines;
+  what crossed the threshold was a generator in the rate model's ``excited`` or a state
+  sample's admission: the event loop's own machinery and ordinary work, no one site to
+  cut. So the collections run where they cost no tick instead (0.1 ms each in lockstep;
+  1.1-1.6 ms in real time beside two hogs, in the slack).
+* **Every miss attributed** (``loop.py``'s ``misses``; ``bench --attack``'s
+  ``attribution``): each gap over 12 ms and each deadline miss gets one verdict from its
+  interval's steal on the loops' CPU, run-queue wait, collections, the thread's CPU, the
+  process's other threads' CPU and the longest event-loop step (``attack_analysis.attribute``).
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
