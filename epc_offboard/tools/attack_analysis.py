@@ -248,7 +248,7 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
       and no other thread of ours held the interpreter lock when ``GIL wait`` is 0);
     * ``run-queue at FIFO``: the SCHED_FIFO thread runnable and not run (the kernel's
       schedstat; a wake-up queued on a virtual CPU the hypervisor holds counts here too);
-    * ``collection``: the cyclic collector's pauses;
+    * ``collection``: the cyclic collector's pauses, no more than the thread's CPU time;
     * ``our step``: the longest event-loop step's time, no more than the thread's own CPU
       time in the interval (a step stretched by steal or a wait is not work), less the
       collections; or, if more, the thread's CPU time beyond its usual share of the
@@ -278,7 +278,7 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
     shares = {
         STEAL: stolen,
         RUNQUEUE: queued,
-        COLLECTION: gc_ms,
+        COLLECTION: min(gc_ms, cpu),  # (a collection stretched by steal is no longer)
         OUR_STEP: max(0.0, (min(step, cpu) if step > 0.0 else 0.0) - gc_ms,
                       cpu - float(event.get("usual_cpu_share") or 1.0) * interval - gc_ms),
         GIL_WAIT: min(float(event.get("other_threads_cpu_ms") or 0.0), asleep),
