@@ -159,8 +159,10 @@ def test_the_bench_attributes_every_position_stall_and_every_miss_by_window() ->
     misses = [_event(loop="attitude", t_s=0.305, period_ms=5.0, deadline_miss=True,
                      interval_ms=30.0, late_ms=20.0, compute_ms=0.3,
                      steal_thread_cpu_ms=None)]  # fmt: skip
-    att = aa.attribution(record, wins, stalls, misses)
+    flight = {"t_s": np.array([0.28, 0.30, 0.69]), "compute_us": np.array([400.0, 6000.0, 300.0])}
+    att = aa.attribution(record, wins, stalls, misses, flight)
     assert att["sampled"]
+    assert [e["position_tick_max_ms"] for e in att["events"]] == [6.0, 6.0, 0.3]
     assert [(e["loop"], e["kind"], e["verdict"], e["window"]) for e in att["events"]] == [
         ("attitude", "miss", "steal", "hover flood"),
         ("position", "gap", "steal", "hover flood"),

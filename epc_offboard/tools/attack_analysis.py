@@ -308,11 +308,14 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
 
 def attribution(record: dict[str, Any], wins: Sequence[Window],
                 stalls: Sequence[dict[str, Any]], misses: Sequence[dict[str, Any]],
-                ) -> dict[str, Any]:  # fmt: skip
+                flight: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
     """Every position-loop gap over ``STALL_S`` (the service's position stalls) and every
     deadline miss (its ``misses``), each with the steal in it (``record``: the steal
     samples) and its verdict (:func:`attribute`), the window it fell in ("phase kind", or
-    "" outside them), and counted by verdict: over the flight and in the attack windows."""
+    "" outside them), and counted by verdict: over the flight and in the attack windows.
+    ``flight``: the flight log's columns; each event then gives the longest position tick
+    it holds (``position_tick_max_ms``, the log's ``compute_us``: the controller's tick
+    alone, so a long position step with a short tick in it spent its time elsewhere)."""
     cols = steal.Columns.of(record)
     share = None
     if cols is not None and wins:
@@ -322,6 +325,13 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
     events = []
     for ev in [*(s for s in stalls if s["loop"] == "position"), *misses]:
         out = attribute(dict(_stall_steal(cols, ev), usual_cpu_share=share))
+        if flight is not None:
+            end_s = ev["t_s"] + (1e-3 * ev.get("compute_ms", 0.0) if ev.get("deadline_miss")
+                                 else 0.0)  # fmt: skip
+            t = flight["t_s"]
+            inside = (t >= end_s - 1e-3 * ev["interval_ms"]) & (t <= end_s)
+            out["position_tick_max_ms"] = (round(float(np.max(flight["compute_us"][inside]))
+                                           * 1e-3, 3) if inside.any() else None)  # fmt: skip
         out["window"] = next((f"{w.phase} {w.kind}" for w in wins
                               if w.t0_s <= ev["t_s"] <= w.t1_s), "")  # fmt: skip
         out["attack"] = bool(out["window"]) and not out["window"].endswith("calm")

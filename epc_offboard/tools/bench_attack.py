@@ -445,7 +445,8 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "steal": steal,
         # every position-loop gap over 12 ms and every deadline miss, with its verdict
         "attribution": analysis.attribution(record.get("steal", {}), record["windows"],
-                                            stats.get("stalls", []), stats.get("misses", [])),
+                                            stats.get("stalls", []), stats.get("misses", []),
+                                            flight),
         "lockstep_rmse_m": lockstep_rmse_m,
         "figure8_rmse_m": analysis.figure8_rmse_m(windows),
     }  # fmt: skip
