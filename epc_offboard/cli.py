@@ -267,6 +267,10 @@ def _add_bench(sub: _Subparsers) -> None:
         help="with --attack: the service's loops pinned to CPU (loops.cpu_affinity)",
     )  # fmt: skip
     bench.add_argument(
+        "--sitl-cpu", type=bounded_int(0), default=None, metavar="CPU",
+        help="with --attack: the SITL (the autopilot) pinned to CPU",
+    )  # fmt: skip
+    bench.add_argument(
         "--fleet",
         action="store_true",
         help="instead: N light vehicles (the real sharing stack, no physics) through one "

@@ -76,19 +76,19 @@ def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
     from epc_offboard.cli import main
     from epc_offboard.tools import bench_attack
 
-    seen: list[tuple[str | None, int, str, int | None]] = []
+    seen: list[tuple[str | None, int, str, int | None, int | None]] = []
 
-    def fake_run(json_path: str | None, hogs: int, mode: str,
-                 loops_cpu: int | None = None) -> int:  # fmt: skip
-        seen.append((json_path, hogs, mode, loops_cpu))
+    def fake_run(json_path: str | None, hogs: int, mode: str, loops_cpu: int | None = None,
+                 sitl_cpu: int | None = None) -> int:  # fmt: skip
+        seen.append((json_path, hogs, mode, loops_cpu, sitl_cpu))
         return 0
 
     monkeypatch.setattr(bench_attack, "run_attack_bench", fake_run)
     assert main(["bench", "--attack", "--hogs", "2", "--attitude-mode", "rates",
-                 "--json", "a.json", "--loops-cpu", "1"]) == 0  # fmt: skip
+                 "--json", "a.json", "--loops-cpu", "1", "--sitl-cpu", "0"]) == 0  # fmt: skip
     assert main(["bench", "--attack"]) == 0
-    assert seen == [("a.json", 2, "rates", 1), (None, 0, "quaternion", None)]
-    for bad in (["--hogs", "-1"], ["--loops-cpu", "-1"]):
+    assert seen == [("a.json", 2, "rates", 1, 0), (None, 0, "quaternion", None, None)]
+    for bad in (["--hogs", "-1"], ["--loops-cpu", "-1"], ["--sitl-cpu", "-1"]):
         with pytest.raises(SystemExit) as exc:
             main(["bench", "--attack", *bad])
         assert exc.value.code == 2

@@ -7,6 +7,7 @@ import os
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 
 import pytest
 
@@ -282,25 +283,36 @@ def _syscalls(cpu_s: float) -> None:
         os.urandom(1 << 18)
 
 
-async def _kernel_and_user_stalls() -> Loops:
-    """A 100 Hz real-time loop held 40 ms of the thread's CPU twice: in user code, then in
-    the kernel."""
+async def _scripted(actions: dict[int, Callable[[], object]], stop_at: int,
+                    name: str = "position") -> tuple[Loops, LoopTiming]:  # fmt: skip
+    """A 100 Hz real-time loop whose tick n runs ``actions[n]``; the tick ``stop_at`` stops it."""
     loops = Loops(WallClock(), Counter(), LogGate())
+    timing = LoopTiming(0.01)
     ticks = 0
 
     async def tick(t: Tick) -> bool:
         nonlocal ticks
         ticks += 1
-        if ticks == 3:
-            asyncio.get_running_loop().call_soon(_user_work, 0.04)
-        if ticks == 6:
-            asyncio.get_running_loop().call_soon(_syscalls, 0.04)
-        if ticks == 9:
+        if ticks in actions:
+            actions[ticks]()
+        if ticks == stop_at:
             loops.stopping.set()
         return True
 
     with pytest.raises(Stop):
-        await loops.periodic("position", LoopTiming(0.01), tick)
+        await loops.periodic(name, timing, tick)
+    return loops, timing
+
+
+def _soon(fn: Callable[..., object], *args: object) -> Callable[[], object]:
+    """``fn(*args)`` on the event loop right after the tick (it holds the loop meanwhile)."""
+    return lambda: asyncio.get_running_loop().call_soon(fn, *args)
+
+
+async def _kernel_and_user_stalls() -> Loops:
+    """A 100 Hz real-time loop held 40 ms of the thread's CPU twice: in user code, then in
+    the kernel."""
+    loops, _ = await _scripted({3: _soon(_user_work, 0.04), 6: _soon(_syscalls, 0.04)}, 9)
     return loops
 
 
@@ -495,3 +507,53 @@ def test_a_real_time_tick_asks_for_the_event_loop_and_the_rusage_only_when_neede
     # main's code: 3-4 and 2.0 a tick; this code: none, and 1 plus the ticks preempted
     assert asked[0] < n / 10, asked[0]
     assert read[0] < 1.5 * n, read[0]
+
+
+async def _missed_ticks() -> tuple[Loops, LoopTiming]:
+    """A 100 Hz real-time loop whose tick 4 starts 20 ms late (the event loop held by a
+    blocking sleep after tick 3) and whose tick 6 computes 20 ms of its thread's CPU."""
+    return await _scripted({3: _soon(time.sleep, 0.03), 6: lambda: _spin(0.02)}, 9, "attitude")
+
+
+def test_each_deadline_miss_is_traced_from_the_previous_tick_to_its_own_end():
+    """Issue 21: every deadline miss is kept (``misses``) with how late its tick started, how
+    long it computed, and what the loops' thread did from the previous tick's start to the
+    end of the missed tick, so each can be attributed. Safety bounds: a loaded machine can
+    only add misses and lengthen them."""
+    loops, timing = asyncio.run(_missed_ticks())
+    assert len(loops.misses) == timing.deadline_misses >= 2
+    assert all(m.deadline_miss and m.period_ms == pytest.approx(10.0) for m in loops.misses)
+    assert not any(s.deadline_miss for s in loops.stalls)
+    late = [m for m in loops.misses if m.late_ms > 10.0]
+    assert late  # the tick after the blocking sleep
+    long = [m for m in loops.misses if m.compute_ms > 10.0 and m.thread_cpu_ms >= 15.0]
+    assert long  # the spin is inside the miss's interval: it ends with the tick
+    assert long[0].interval_ms >= long[0].compute_ms
+    assert "late_ms" in long[0].as_dict()
+
+
+async def _stall_beside_a_busy_thread() -> Loops:
+    """A 100 Hz real-time loop whose thread waits (a join) for another thread of the process
+    running 30 ms of Python."""
+
+    def start_and_join() -> None:
+        other = threading.Thread(target=_spin, args=(0.03,))
+        other.start()
+        asyncio.get_running_loop().call_soon(other.join)
+
+    loops, _ = await _scripted({3: start_and_join}, 6)
+    return loops
+
+
+def test_a_stall_counts_the_cpu_the_processs_other_threads_ran_in_it():
+    """Issue 21: a stall in which the loops' thread was off its CPU while another thread of
+    the process ran Python may be an interpreter-lock wait: their CPU time in the interval
+    (``other_threads_cpu_ms``) says so; a stall of the loops' thread's own work has none."""
+    loops = asyncio.run(_stall_beside_a_busy_thread())
+    waited = [s for s in loops.stalls if s.interval_ms >= 30.0]
+    assert waited
+    assert waited[0].other_threads_cpu_ms >= 20.0
+    assert waited[0].thread_cpu_ms < 10.0
+    alone, _ = asyncio.run(_stalled_loop())
+    busy = [s for s in alone.stalls if s.gc_ms == pytest.approx(7.0)]
+    assert busy[0].other_threads_cpu_ms < 0.5 * busy[0].thread_cpu_ms

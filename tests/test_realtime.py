@@ -206,3 +206,46 @@ def test_a_refused_affinity_is_counted_and_the_loops_go_on():
     gc.unfreeze()  # prepare froze this test process's objects
     assert done == {"ok": True}
     assert counters["cpu_affinity_refused"] == 1
+
+
+@pytest.mark.parametrize("text", ['"yes"', "1"])
+def test_collect_in_slack_must_be_a_boolean(tmp_path, text):
+    path = tmp_path / "service.toml"
+    path.write_text(
+        f'[link]\nurl = "udpin://127.0.0.1:14540"\n[loops]\ncollect_in_slack = {text}\n'
+    )
+    with pytest.raises(ConfigError, match=r"loops.*collect_in_slack"):
+        load_service_config(path)
+    assert load_service_config("config/default.toml").loops.collect_in_slack is True
+
+
+def test_the_slack_collector_collects_after_a_tick_only_with_room_or_far_overdue():
+    """Issue 21: in real time the young collections (1-4 ms each beside two hogs) ran wherever
+    an allocation crossed the threshold, inside a tick or just before one. Once started,
+    the automatic collections are off and the due one runs after a tick of the loops when
+    the next is far enough; with no room for ten thresholds, at once (memory bounded)."""
+    counters: Counter[str] = Counter()
+    collector = realtime.SlackCollector(counters)
+    threshold = gc.get_threshold()[0]
+    assert gc.isenabled()
+    collector.after_tick(1.0)  # not started (lockstep): nothing
+    collector.start()
+    try:
+        assert not gc.isenabled()
+        # tracked containers, kept alive
+        young: list[list[int]] = [[] for _ in range(threshold + 100)]
+        assert gc.get_count()[0] > threshold  # the interpreter did not collect them
+        collector.after_tick(0.5 * realtime.SLACK_YOUNG_S)  # the next tick too near
+        assert gc.get_count()[0] > threshold
+        assert counters["gc_collections_in_slack"] == 0
+        collector.after_tick(realtime.SLACK_YOUNG_S)
+        assert gc.get_count()[0] < threshold
+        assert counters["gc_collections_in_slack"] == 1
+        many: list[list[int]] = [[] for _ in range(11 * threshold)]
+        collector.after_tick(0.0)  # no room, but ten thresholds over
+        assert counters["gc_collections_forced"] == 1
+        assert gc.get_count()[0] < threshold
+        del young, many
+    finally:
+        collector.stop()
+    assert gc.isenabled()

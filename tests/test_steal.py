@@ -8,6 +8,7 @@ import time
 from typing import Any
 
 import numpy as np
+import pytest
 
 from epc_offboard.tools import attack_analysis as aa
 from epc_offboard.tools import steal
@@ -94,3 +95,83 @@ def test_the_bench_reports_steal_per_window_and_in_its_gaps():
     assert out["attitude_late"]["gaps"] == []
     report = {"steal": out}
     assert "position-loop gaps > 12 ms: 1, 1 with steal" in aa.steal_summary(report)
+
+
+def _event(**fields: Any) -> dict[str, Any]:
+    """A position stall of 20 ms (a 10 ms period) in which the loops' thread ran its ticks
+    (3 ms of CPU) and nothing else is counted; ``fields`` change it."""
+    event = {"loop": "position", "t_s": 0.5, "interval_ms": 20.0, "thread_cpu_ms": 3.0,
+             "runqueue_ms": 0.0, "gc_ms": 0.0, "steps_ms": 2.5, "longest_step_ms": 0.0,
+             "longest_step": "", "other_threads_cpu_ms": 0.0, "period_ms": 10.0,
+             "late_ms": 10.0, "compute_ms": 0.4, "deadline_miss": False,
+             "steal_thread_cpu_ms": 0.0, "steal_ms": 0.0}  # fmt: skip
+    event.update(fields)
+    return event
+
+
+@pytest.mark.parametrize(("fields", "verdict"), [
+    ({"steal_thread_cpu_ms": 9.0, "runqueue_ms": 8.0}, "steal"),
+    ({"runqueue_ms": 8.0, "steal_thread_cpu_ms": None}, "run-queue at FIFO"),
+    ({"gc_ms": 7.0, "longest_step_ms": 8.0, "thread_cpu_ms": 10.0, "steps_ms": 9.0},
+     "collection"),
+    ({"longest_step_ms": 9.0, "thread_cpu_ms": 11.0, "steps_ms": 10.5}, "our step"),
+    ({"thread_cpu_ms": 14.0, "usual_cpu_share": 0.15}, "our step"),  # beyond its usual CPU
+    ({"thread_cpu_ms": 4.0, "usual_cpu_share": 0.15}, "unattributed"),
+    ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steal_thread_cpu_ms": 12.0}, "steal"),
+    ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steps_ms": 16.0}, "steal"),  # unticked
+    ({"other_threads_cpu_ms": 9.0}, "GIL wait"),
+    ({}, "unattributed"),
+    ({"steal_thread_cpu_ms": 2.0}, "unattributed"),  # 2 ms of a 10 ms excess
+])  # fmt: skip
+def test_each_gap_and_miss_gets_the_verdict_of_its_largest_cause(
+    fields: dict[str, Any], verdict: str
+) -> None:
+    """Issue 21: a gap over 12 ms or a deadline miss is the machine's (steal, a run-queue
+    wait at FIFO) or ours (a collection, a step of ours, an interpreter-lock wait): the
+    largest share, if it covers half the excess over the period, else unattributed."""
+    out = aa.attribute(_event(**fields))
+    assert out["verdict"] == verdict
+    assert out["cause"] == ("machine" if verdict in aa.MACHINE_VERDICTS else "ours"
+                            if verdict in aa.OUR_VERDICTS else "unattributed")  # fmt: skip
+    assert out["excess_ms"] == pytest.approx(10.0)
+
+
+def test_a_miss_is_judged_on_its_lateness_or_its_compute_over_the_period() -> None:
+    late = _event(loop="attitude", period_ms=5.0, deadline_miss=True, interval_ms=12.0,
+                  late_ms=6.0, compute_ms=0.3, steal_thread_cpu_ms=4.0)  # fmt: skip
+    assert aa.attribute(late)["excess_ms"] == pytest.approx(6.0)
+    assert aa.attribute(late)["verdict"] == "steal"
+    long = dict(late, late_ms=0.2, compute_ms=9.0, steal_thread_cpu_ms=0.0,
+                longest_step_ms=9.0, thread_cpu_ms=10.0)  # fmt: skip
+    assert aa.attribute(long)["excess_ms"] == pytest.approx(4.0)
+    assert aa.attribute(long)["verdict"] == "our step"
+
+
+def test_the_bench_attributes_every_position_stall_and_every_miss_by_window() -> None:
+    cols = _columns({0.30: 20.0})
+    record = {"t_s": list(cols.t_s), "steal_s": cols.steal_s.tolist(),
+              "thread_cpu_s": list(cols.thread_cpu_s), "thread_wait_s": list(cols.thread_wait_s),
+              "thread_on_cpu": [1] * cols.t_s.size}  # fmt: skip
+    wins = [aa.Window("hover", "flood", 0.2, 0.5, {}), aa.Window("hover", "calm", 0.6, 0.8, {})]
+    stalls = [_event(t_s=0.31, interval_ms=40.0, steal_thread_cpu_ms=None),  # steal from cols
+              _event(t_s=0.7, gc_ms=9.0, longest_step_ms=9.5, thread_cpu_ms=12.0),
+              _event(loop="attitude", t_s=0.31, interval_ms=11.0)]  # a miss's own record
+    misses = [_event(loop="attitude", t_s=0.305, period_ms=5.0, deadline_miss=True,
+                     interval_ms=30.0, late_ms=20.0, compute_ms=0.3,
+                     steal_thread_cpu_ms=None)]  # fmt: skip
+    flight = {"t_s": np.array([0.28, 0.30, 0.69]), "compute_us": np.array([400.0, 6000.0, 300.0])}
+    att = aa.attribution(record, wins, stalls, misses, flight)
+    assert att["sampled"]
+    assert [e["position_tick_max_ms"] for e in att["events"]] == [6.0, 6.0, 0.3]
+    assert [(e["loop"], e["kind"], e["verdict"], e["window"]) for e in att["events"]] == [
+        ("attitude", "miss", "steal", "hover flood"),
+        ("position", "gap", "steal", "hover flood"),
+        ("position", "gap", "collection", "hover calm"),
+    ]
+    assert att["flight"]["position_gaps"] == dict(
+        {v: 0 for v in aa.VERDICTS}, total=2, steal=1, collection=1, machine=1, ours=1,
+        our_step_a_tick=0)
+    assert att["attack_windows"]["position_gaps"]["total"] == 1
+    assert att["attack_windows"]["attitude_misses"]["steal"] == 1
+    summary = aa.attribution_summary({"attribution": att})
+    assert "position gaps > 12 ms 2 (steal 1, collection 1)" in summary

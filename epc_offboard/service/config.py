@@ -59,11 +59,18 @@ class LoopsConfig:
     # kernel's isolcpus= keeping other work off them, its caches stay its own
     # (service/realtime.py); a CPU this machine does not offer is logged and ignored
     cpu_affinity: tuple[int, ...] = ()
+    # real time: the cyclic collector's collections run after a tick, when the next is far
+    # enough, not wherever an allocation crosses a threshold (service/realtime.py's
+    # SlackCollector); false: the interpreter's automatic collections
+    collect_in_slack: bool = True
 
     def __post_init__(self) -> None:
         prio = self.realtime_priority
         if isinstance(prio, bool) or not isinstance(prio, int) or not 0 <= prio <= 99:
             raise ValueError(f"realtime_priority must be an integer 0..99, got {prio!r}")
+        if not isinstance(self.collect_in_slack, bool):
+            raise ValueError(f"collect_in_slack must be true or false, got "
+                             f"{self.collect_in_slack!r}")  # fmt: skip
         cpus = self.cpu_affinity
         if any(isinstance(c, bool) or not isinstance(c, int) or c < 0 for c in cpus):
             raise ValueError(f"cpu_affinity must list CPU numbers >= 0, got {list(cpus)!r}")

@@ -22,7 +22,7 @@ from typing import NamedTuple, NoReturn
 
 from epc_offboard.common.logsetup import LogGate
 from epc_offboard.service.clock import Clock, WallClock, sleep_until
-from epc_offboard.service.realtime import StepMark, StepMonitor
+from epc_offboard.service.realtime import SlackCollector, StepMark, StepMonitor
 from epc_offboard.service.timing import LoopTiming
 
 log = logging.getLogger("epc_offboard.service")
@@ -73,13 +73,23 @@ class Stall:
     steps_ms: float  # ... their time, the ticks' own included
     longest_step_ms: float  # the longest of them (over 1 ms; else 0)
     longest_step: str  # ... what it ran: a task, its coroutine and its await; a callback
+    # the process's other threads' CPU time in the interval: Python they ran held the
+    # interpreter lock the loops' thread may have waited for (0: no interpreter-lock wait)
+    other_threads_cpu_ms: float = 0.0
+    period_ms: float = 0.0  # the loop's period
+    late_ms: float = 0.0  # how late the tick started against its schedule
+    compute_ms: float = 0.0  # the tick's own wall time
+    # a deadline miss (the tick started more than a period late or computed longer than
+    # one, ``timing.LoopTiming``): its interval runs from the previous tick's start to the
+    # end of this tick, so that the lateness and the compute are both inside it
+    deadline_miss: bool = False
 
     def as_dict(self) -> dict[str, float | int | str]:
         return {k: round(v, 3) if isinstance(v, float) else v for k, v in vars(self).items()}
 
 
 STALL_S = 0.012  # issue 21's bound on the position loop's gap (or two periods, if less)
-STALLS_KEPT = 64  # the latest stalls, in the stats
+STALLS_KEPT = 256  # the latest stalls (and, apart, deadline misses), in the stats
 # Work beside the loops on their thread (``Loops.room``) starts only this long before the
 # next tick is due: a slice of it that fits runs between two ticks, not across one.
 ROOM_S = 0.002
@@ -94,6 +104,7 @@ class _Mark(NamedTuple):
     rusage: resource.struct_rusage  # the thread's faults and switches
     runqueue_s: float  # its run-queue wait
     steps: StepMark  # the event loop's steps
+    process_cpu_s: float  # the whole process's CPU time (its other threads' = this - cpu_s)
 
 
 class _RunqueueClock:
@@ -131,14 +142,18 @@ class Loops:
 
     def __init__(self, clock: Clock, counters: Counter[str], log_gate: LogGate,
                  gc_pause_s: Callable[[], float] = lambda: 0.0,
-                 steps: StepMonitor | None = None) -> None:  # fmt: skip
+                 steps: StepMonitor | None = None,
+                 collector: SlackCollector | None = None) -> None:  # fmt: skip
         self.clock = clock
         self.counters = counters
         self._log_gate = log_gate
         self._gc_pause_s = gc_pause_s
         self.steps = steps if steps is not None else StepMonitor()
+        # real time: the young collections run after a tick, when the next is far enough
+        self.collector = collector
         self.stopping = asyncio.Event()
         self.stalls: deque[Stall] = deque(maxlen=STALLS_KEPT)
+        self.misses: deque[Stall] = deque(maxlen=STALLS_KEPT)  # the deadline misses traced
         self._next_due: dict[str, float] = {}  # per loop: when its next tick is due
         self._ticked: asyncio.Future[None] | None = None  # set when a tick has run
 
@@ -224,24 +239,33 @@ class Loops:
                 # a stall is real time's (in lockstep the vehicle's clock waits for the tick)
                 now = None if self.clock.vehicle_time else _Mark(
                     start, cpu0, self._gc_pause_s(), use0, runqueue.read_s(),
-                    self.steps.mark())
-                if before is not None and now is not None and start - before[0] > stall_s:
-                    self._stall(name, start, before, now)
+                    self.steps.mark(), time.process_time())
+                a_stall = (before, now) if before is not None and now is not None and (
+                    start - before[0] > stall_s) else None  # fmt: skip
+                what = Tick(start, t_next, period)
                 wall0 = time.perf_counter()
-                controlled = await tick(Tick(start, t_next, period))
+                controlled = await tick(what)
                 wall = time.perf_counter() - wall0
-                before = now if controlled else None
+                if a_stall is not None:  # kept once the tick's own time is known
+                    self._stall(name, what, *a_stall, wall)
                 if controlled:
                     cpu = time.thread_time() - cpu0
                     # A tick the thread never left took no more wall time than CPU time
                     # (the wall's span lies inside the CPU's): only one that did is asked
                     # how it switched out, a system call a tick saved (~9 us here).
                     use = resource.getrusage(resource.RUSAGE_THREAD) if wall > cpu else use0
-                    timing.record(
+                    missed = timing.record(
                         start, wall, scheduled_s=t_next, cpu_s=cpu,
                         blocked=use.ru_nvcsw > use0.ru_nvcsw,
                         preempted=use.ru_nivcsw > use0.ru_nivcsw,
                     )  # fmt: skip
+                    if missed and now is not None:  # traced from the previous tick's start
+                        end = self.clock.now_s()
+                        self._stall(name, what, before or now, _Mark(
+                            end, time.thread_time(), self._gc_pause_s(),
+                            resource.getrusage(resource.RUSAGE_THREAD), runqueue.read_s(),
+                            self.steps.mark(), time.process_time()), wall, miss=True)
+                before = now if controlled else None
                 # In lockstep the next tick is planned from the vehicle time the tick ran
                 # at, not the clock now: the tick's answer has released the simulator, and
                 # whether its next datagrams were read by now is the scheduler's doing, not
@@ -251,22 +275,31 @@ class Loops:
                     ran_at_s=start if self.clock.vehicle_time else None,
                 )  # fmt: skip
                 self._next_due[name] = t_next
+                if self.collector is not None and controlled and now is not None:
+                    due = min(self._next_due.values())
+                    self.collector.after_tick(due - self.clock.now_s())
                 if self._ticked is not None and not self._ticked.done():
                     self._ticked.set_result(None)  # work waiting for room() may check now
 
-    def _stall(self, name: str, t_s: float, a: _Mark, b: _Mark) -> None:
-        """Counted (``{name}_stalls``) and kept: the interval from tick ``a`` to ``b``."""
+    def _stall(self, name: str, tick: Tick, a: _Mark, b: _Mark, compute_s: float,
+               miss: bool = False) -> None:  # fmt: skip
+        """Kept: the interval from tick ``a`` to ``b``; a stall counted (``{name}_stalls``),
+        a deadline miss (``miss``) kept apart (``misses``)."""
         ua, ub = a.rusage, b.rusage
-        self.counters[f"{name}_stalls"] += 1
+        if not miss:
+            self.counters[f"{name}_stalls"] += 1
         longest_s, longest = self.steps.longest_since(a.steps)
-        self.stalls.append(Stall(
-            name, t_s, (b.start_s - a.start_s) * 1e3, (b.cpu_s - a.cpu_s) * 1e3,
+        (self.misses if miss else self.stalls).append(Stall(
+            name, tick.start_s, (b.start_s - a.start_s) * 1e3, (b.cpu_s - a.cpu_s) * 1e3,
             (ub.ru_stime - ua.ru_stime) * 1e3, (b.runqueue_s - a.runqueue_s) * 1e3,
             (b.gc_s - a.gc_s) * 1e3,
             ub.ru_minflt - ua.ru_minflt, ub.ru_majflt - ua.ru_majflt,
             ub.ru_nvcsw - ua.ru_nvcsw, ub.ru_nivcsw - ua.ru_nivcsw,
             b.steps.count - a.steps.count, (b.steps.total_s - a.steps.total_s) * 1e3,
             longest_s * 1e3, longest,
+            max(0.0, (b.process_cpu_s - a.process_cpu_s) - (b.cpu_s - a.cpu_s)) * 1e3,
+            tick.period_s * 1e3, (tick.start_s - tick.scheduled_s) * 1e3, compute_s * 1e3,
+            miss,
         ))  # fmt: skip
 
     def _next_tick(

@@ -117,6 +117,20 @@
   whenever one step of the thread's runs past the tick it is due (``ROOM_S`` before), which
   a cooperative loop on one thread cannot prevent: the position tick's 0.3-0.5 ms cannot,
   its rare 5-24 ms (above) can.
+* **Collections in the loops' slack** (:class:`SlackCollector`, ``loops.collect_in_slack``,
+  stop 37). After the start-up freeze the loops' thread still ran 33-37 young collections a
+  ``bench --attack`` flight (one every ~5.6 s), 1-4 ms each beside two hogs, wherever an
+  allocation crossed the threshold. A census of the young generation at each collection's
+  start (a lockstep figure-8, ``gc.callbacks``): 350-480 objects, ~120 tuples held by
+  closures' cells, 60-90 asyncio timer handles with their contexts, buffers, coroutines;
+  what crossed the threshold was a generator in the rate model's ``excited`` or a state
+  sample's admission: the event loop's own machinery and ordinary work, no one site to
+  cut. So the collections run where they cost no tick instead (0.1 ms each in lockstep;
+  1.1-1.6 ms in real time beside two hogs, in the slack).
+* **Every miss attributed** (``loop.py``'s ``misses``; ``bench --attack``'s
+  ``attribution``): each gap over 12 ms and each deadline miss gets one verdict from its
+  interval's steal on the loops' CPU, run-queue wait, collections, the thread's CPU, the
+  process's other threads' CPU and the longest event-loop step (``attack_analysis.attribute``).
 * **Work beside the loops on their thread** (the library saver, the fleet's candidates) runs
   in slices of a few ms with the loops' due ticks between them: one stretch of it is a
   late attitude tick and a position-loop gap (``library_keeper.py``).
@@ -373,6 +387,74 @@ def _awaits_at(coro: Any) -> str:
             where = f"{os.path.basename(code.co_filename)}:{frame.f_lineno} {code.co_name}"
         coro = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
     return where
+
+
+# Room a collection needs before the next tick of the loops: a young one took 1-4 ms of
+# the loops' thread in real time beside two CPU hogs (stop 36/37 benches), an older one
+# (generation 1, all the young generation's survivors since) up to 5.4 ms.
+SLACK_YOUNG_S = 0.002
+SLACK_OLDER_S = 0.004
+# A collection due this many thresholds over runs whatever the room: a flight whose ticks
+# leave no room still collects (memory bounded), as late as the interpreter would.
+_FORCE_FACTOR = 10
+
+
+class SlackCollector:
+    """Real time: the cyclic collector's collections in the loops' slack, not wherever an
+    allocation crosses the young generation's threshold. Once :meth:`start`-ed the automatic
+    collections are off (:func:`gc.disable`); after each tick of the loops
+    (:meth:`after_tick`) the collection the interpreter would have run by now (the same
+    thresholds, the oldest generation due; the long-lived share rule of generation 2
+    aside) runs when the next tick of either loop is at least ``SLACK_YOUNG_S`` away
+    (``SLACK_OLDER_S`` for an older generation). The practice of real-time and
+    game loops in garbage-collected languages: automatic collection off around the
+    time-critical work, ``gc.collect`` at a moment the program chooses (Martelli, *Python in a
+    Nutshell*, module ``gc``: "when you can't afford the delay of a cyclic garbage
+    collection run at some crucial time ... suspend automatic garbage collection by calling
+    ``gc.disable()`` ... To control when the time needed for collection is spent, you can
+    call ``gc.collect()``"). The young collections on the loops' thread (33-36 a
+    bench flight, 1-4 ms each beside two hogs) otherwise start inside a tick or just before
+    one: a due attitude tick waits for them. Counted: ``gc_collections_in_slack``,
+    ``gc_collections_forced`` (no room for ``_FORCE_FACTOR`` thresholds)."""
+
+    def __init__(self, counters: Counter[str]) -> None:
+        self.counters = counters
+        self.active = False
+
+    def start(self) -> None:
+        gc.disable()
+        self.active = True
+
+    def stop(self) -> None:
+        """The automatic collections back (the service ending: its shutdown allocates)."""
+        if self.active:
+            self.active = False
+            gc.enable()
+
+    @staticmethod
+    def due() -> tuple[int, bool]:
+        """(the generation to collect, -1 if none; whether it is overdue by ``_FORCE_FACTOR``)."""
+        c0, c1, c2 = gc.get_count()
+        t0, t1, t2 = gc.get_threshold()
+        if t0 <= 0 or c0 <= t0:
+            return -1, False
+        generation = 2 if c2 > t2 else 1 if c1 > t1 else 0
+        return generation, c0 > _FORCE_FACTOR * t0
+
+    def after_tick(self, room_s: float) -> None:
+        """A tick of the loops has just run and the next of either is ``room_s`` away."""
+        if not self.active:
+            return
+        generation, overdue = self.due()
+        if generation < 0:
+            return
+        if room_s >= (SLACK_YOUNG_S if generation == 0 else SLACK_OLDER_S):
+            self.counters["gc_collections_in_slack"] += 1
+        elif overdue:
+            self.counters["gc_collections_forced"] += 1
+        else:
+            return
+        gc.collect(generation)
 
 
 def freeze_startup_objects() -> int:

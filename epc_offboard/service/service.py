@@ -121,9 +121,10 @@ class Service:
         # ... in a thread started at start-up: one started by the first SIGHUP began at
         # normal priority, and the loops' thread waited 46 ms (load 20) for it to run
         self._reload_pool = ThreadPoolExecutor(1, thread_name_prefix="config-reload")
+        self.collector = realtime.SlackCollector(self.counters)  # started in real time
         self.loops = Loops(self.clock, self.counters, log_gate,
                            gc_pause_s=lambda: self.gc_monitor.pause_total_s,
-                           steps=self.step_monitor)  # fmt: skip
+                           steps=self.step_monitor, collector=self.collector)  # fmt: skip
         self.logs: LogWriter | None = None
         if cfg.log.flight_log_path or cfg.log.tlog_path:
             self.logs = LogWriter(cfg.log.flight_log_path, cfg.log.tlog_path, cfg.log,
@@ -354,6 +355,8 @@ class Service:
         TIMELINE.mark("gc_frozen")
         if not self.clock.vehicle_time:  # a stall's longest step named (real time only)
             self.step_monitor.install()
+            if loops_cfg.collect_in_slack:
+                self.collector.start()
         await self.link.open()
         TIMELINE.mark("link_open")
         loop = asyncio.get_running_loop()
@@ -388,6 +391,7 @@ class Service:
         except* Stop:
             pass
         finally:
+            self.collector.stop()
             self._shutdown()
         return 0
 
@@ -467,6 +471,8 @@ class Service:
             "gc": self.gc_monitor.stats(),
             # real time: ticks later than the loops' bound, and what their thread did meanwhile
             "stalls": [stall.as_dict() for stall in self.loops.stalls],
+            # ... and each deadline miss, from the previous tick's start to its own end
+            "misses": [miss.as_dict() for miss in self.loops.misses],
             "event_loop_steps": self.step_monitor.stats(),  # ... and the long steps by name
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),

@@ -83,9 +83,10 @@ class LoopTiming:
         cpu_s: float | None = None,
         blocked: bool = False,
         preempted: bool = False,
-    ) -> None:
+    ) -> bool:
         """``cpu_s``: the CPU time the loops' thread used in the tick (None: not measured);
-        ``blocked`` / ``preempted``: it switched out during the tick, voluntarily / not."""
+        ``blocked`` / ``preempted``: it switched out during the tick, voluntarily / not.
+        Returns whether the tick was a deadline miss."""
         self.ticks += 1
         self.ticks_blocked += blocked
         self.ticks_preempted += preempted
@@ -97,13 +98,14 @@ class LoopTiming:
             self._first_start_s = start_s
         self._last_start_s = start_s
         late = 0.0 if scheduled_s is None else start_s - scheduled_s
-        if compute_s > self.period_s or late > self.period_s:
-            self.deadline_misses += 1
+        missed = compute_s > self.period_s or late > self.period_s
+        self.deadline_misses += missed
         self._starts.append(start_s)
         self._compute.append(compute_s)
         if len(self._starts) > self.window:
             self._starts.popleft()
             self._compute.popleft()
+        return missed
 
     def report(self) -> LoopReport:
         if self.ticks < 2:

@@ -208,10 +208,175 @@ def steal_figures(
     }
 
 
-def _stall_steal(cols: steal.Columns, stall: dict[str, Any]) -> dict[str, Any]:
-    s = cols.stretch(stall["t_s"] - 1e-3 * stall["interval_ms"], stall["t_s"])
+def _stall_steal(cols: steal.Columns | None, stall: dict[str, Any]) -> dict[str, Any]:
+    """``stall`` with the steal in its interval: the machine's (``steal_ms``) and the loops'
+    CPU's (``steal_thread_cpu_ms``: the CPUs the loops' thread was seen on); None outside
+    the samples. A deadline miss's interval ends with its tick (``loop.Stall``)."""
+    end_s = stall["t_s"] + (1e-3 * stall.get("compute_ms", 0.0) if stall.get("deadline_miss")
+                            else 0.0)  # fmt: skip
+    s = None if cols is None else cols.stretch(end_s - 1e-3 * stall["interval_ms"], end_s)
     return dict(stall, steal_ms=None if s is None else s["steal_ms"],
                 steal_thread_cpu_ms=None if s is None else s["steal_thread_cpu_ms"])  # fmt: skip
+
+
+# -- every gap over 12 ms and every deadline miss, attributed ---------------------------------
+
+STEAL = "steal"
+RUNQUEUE = "run-queue at FIFO"
+COLLECTION = "collection"
+OUR_STEP = "our step"
+GIL_WAIT = "GIL wait"
+UNATTRIBUTED = "unattributed"
+MACHINE_VERDICTS = (STEAL, RUNQUEUE)  # the hypervisor's, the machine's other real-time work
+OUR_VERDICTS = (COLLECTION, OUR_STEP, GIL_WAIT)  # what the code can still cut
+VERDICTS = (*MACHINE_VERDICTS, *OUR_VERDICTS, UNATTRIBUTED)
+_DEFAULT_PERIOD_MS = {"position": 10.0, "attitude": 5.0}  # records without ``period_ms``
+_TICK_STEPS = ("task position-loop ", "task attitude-loop ")  # the loops' own steps
+
+
+def attribute(event: dict[str, Any]) -> dict[str, Any]:
+    """One stall or deadline miss (``loop.Stall``'s fields, with the steal on the loops'
+    CPU in its interval, ``steal_thread_cpu_ms``; None: not sampled, taken as 0) and its
+    single verdict. ``excess_ms``: what it took beyond the loop's period (a stall's interval
+    over one period; a miss's lateness or its compute over one period). Each cause's share of
+    the interval, in ms:
+
+    * ``steal``: the hypervisor ran something else on the loops' virtual CPU: its steal in
+      ``/proc/stat`` (in 10 ms ticks, interpolated: a single event's figure is within
+      ~10 ms), or, if more, the event-loop steps' wall time beyond the thread's CPU time
+      (the thread's clock leaves steal out; a SCHED_FIFO thread is not preempted in a step,
+      and no other thread of ours held the interpreter lock when ``GIL wait`` is 0);
+    * ``run-queue at FIFO``: the SCHED_FIFO thread runnable and not run (the kernel's
+      schedstat; a wake-up queued on a virtual CPU the hypervisor holds counts here too);
+    * ``collection``: the cyclic collector's pauses, no more than the thread's CPU time;
+    * ``our step``: the longest event-loop step's time, no more than the thread's own CPU
+      time in the interval (a step stretched by steal or a wait is not work), less the
+      collections; or, if more, the thread's CPU time beyond its usual share of the
+      interval (``usual_cpu_share``: its CPU time over the windows, a fraction of the
+      wall; work no step timed, the event loop's own), less the collections;
+    * ``GIL wait``: the thread off its CPU and not queued for it while the process's other
+      threads ran (their CPU time, no more than that off-CPU time).
+
+    The verdict is the largest share if it covers at least half the excess (and 0.5 ms),
+    ties to the machine; else ``unattributed`` (e.g. the thread asleep past its timer with
+    nothing counted, or steal the 10 ms ticks did not catch)."""
+    loop = event["loop"]
+    period_ms = event.get("period_ms") or _DEFAULT_PERIOD_MS.get(loop, 10.0)
+    interval = float(event["interval_ms"])
+    if event.get("deadline_miss"):
+        excess = max(float(event.get("late_ms", 0.0)),
+                     float(event.get("compute_ms", 0.0)) - period_ms)  # fmt: skip
+    else:
+        excess = interval - period_ms
+    cpu = float(event["thread_cpu_ms"])
+    in_steps = max(0.0, float(event.get("steps_ms") or 0.0) - cpu)
+    stolen = max(float(event.get("steal_thread_cpu_ms") or 0.0), in_steps)
+    queued = float(event["runqueue_ms"])
+    gc_ms = float(event["gc_ms"])
+    step = float(event.get("longest_step_ms") or 0.0)
+    asleep = max(0.0, interval - cpu - queued - stolen)
+    shares = {
+        STEAL: stolen,
+        RUNQUEUE: queued,
+        COLLECTION: min(gc_ms, cpu),  # (a collection stretched by steal is no longer)
+        OUR_STEP: max(0.0, (min(step, cpu) if step > 0.0 else 0.0) - gc_ms,
+                      cpu - float(event.get("usual_cpu_share") or 1.0) * interval - gc_ms),
+        GIL_WAIT: min(float(event.get("other_threads_cpu_ms") or 0.0), asleep),
+    }
+    verdict = max(shares, key=lambda k: shares[k])  # the first of equals: the machine's
+    if shares[verdict] < max(0.5, 0.5 * excess):
+        verdict = UNATTRIBUTED
+    return {
+        "loop": loop, "kind": "miss" if event.get("deadline_miss") else "gap",
+        "t_s": event["t_s"], "interval_ms": round(interval, 3), "excess_ms": round(excess, 3),
+        "late_ms": event.get("late_ms"), "compute_ms": event.get("compute_ms"),
+        "steal_loops_cpu_ms": event.get("steal_thread_cpu_ms"),
+        "steps_beyond_cpu_ms": round(in_steps, 3),
+        "steal_machine_ms": event.get("steal_ms"), "runqueue_ms": queued, "gc_ms": gc_ms,
+        "thread_cpu_ms": cpu, "asleep_ms": round(asleep, 3),
+        "other_threads_cpu_ms": event.get("other_threads_cpu_ms"),
+        "longest_step_ms": step, "longest_step": event.get("longest_step", ""),
+        # a loop's own tick (0.1-1 ms of CPU as a rule): a long one ran what a lockstep tick
+        # runs in < 8 ms (stop 36), so its CPU clock ran on a slow virtual CPU, or it was not
+        "step_is_tick": str(event.get("longest_step", "")).startswith(_TICK_STEPS),
+        "shares_ms": {k: round(v, 3) for k, v in shares.items()},
+        "verdict": verdict,
+        "cause": "machine" if verdict in MACHINE_VERDICTS else (
+            "ours" if verdict in OUR_VERDICTS else UNATTRIBUTED),
+    }  # fmt: skip
+
+
+def attribution(record: dict[str, Any], wins: Sequence[Window],
+                stalls: Sequence[dict[str, Any]], misses: Sequence[dict[str, Any]],
+                flight: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
+    """Every position-loop gap over ``STALL_S`` (the service's position stalls) and every
+    deadline miss (its ``misses``), each with the steal in it (``record``: the steal
+    samples) and its verdict (:func:`attribute`), the window it fell in ("phase kind", or
+    "" outside them), and counted by verdict: over the flight and in the attack windows.
+    ``flight``: the flight log's columns; each event then gives the longest position tick
+    it holds (``position_tick_max_ms``, the log's ``compute_us``: the controller's tick
+    alone, so a long position step with a short tick in it spent its time elsewhere)."""
+    cols = steal.Columns.of(record)
+    share = None
+    if cols is not None and wins:
+        usual = cols.stretch(max(wins[0].t0_s, float(cols.t_s[0])),
+                             min(wins[-1].t1_s, float(cols.t_s[-1])))  # fmt: skip
+        share = None if usual is None or not usual["ms"] else usual["thread_cpu_ms"] / usual["ms"]
+    events = []
+    for ev in [*(s for s in stalls if s["loop"] == "position"), *misses]:
+        out = attribute(dict(_stall_steal(cols, ev), usual_cpu_share=share))
+        if flight is not None:
+            end_s = ev["t_s"] + (1e-3 * ev.get("compute_ms", 0.0) if ev.get("deadline_miss")
+                                 else 0.0)  # fmt: skip
+            t = flight["t_s"]
+            inside = (t >= end_s - 1e-3 * ev["interval_ms"]) & (t <= end_s)
+            out["position_tick_max_ms"] = (round(float(np.max(flight["compute_us"][inside]))
+                                           * 1e-3, 3) if inside.any() else None)  # fmt: skip
+        out["window"] = next((f"{w.phase} {w.kind}" for w in wins
+                              if w.t0_s <= ev["t_s"] <= w.t1_s), "")  # fmt: skip
+        out["attack"] = bool(out["window"]) and not out["window"].endswith("calm")
+        events.append(out)
+    events.sort(key=lambda e: e["t_s"])
+    groups = {"position_gaps": ("position", "gap"), "attitude_misses": ("attitude", "miss"),
+              "position_misses": ("position", "miss")}  # fmt: skip
+
+    def count(pick: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
+        out = {}
+        for key, (loop, kind) in groups.items():
+            mine = [e for e in pick if e["loop"] == loop and e["kind"] == kind]
+            out[key] = {"total": len(mine), **{v: sum(e["verdict"] == v for e in mine)
+                                               for v in VERDICTS},
+                        "machine": sum(e["cause"] == "machine" for e in mine),
+                        "ours": sum(e["cause"] == "ours" for e in mine),
+                        "our_step_a_tick": sum(e["verdict"] == OUR_STEP and e["step_is_tick"]
+                                               for e in mine)}  # fmt: skip
+        return out
+
+    return {"sampled": cols is not None, "usual_cpu_share": share, "events": events,
+            "flight": count(events),
+            "attack_windows": count([e for e in events if e["attack"]])}  # fmt: skip
+
+
+def attribution_summary(report: dict[str, Any]) -> str:
+    """The gaps over 12 ms and the deadline misses by verdict (the report's ``attribution``)."""
+    att = report.get("attribution")
+    if not att:
+        return "attribution: none (no stalls or misses traced by this service)"
+    lines = []
+    for scope, name in (("flight", "whole flight"), ("attack_windows", "attack windows")):
+        parts = []
+        for key, label in (("position_gaps", "position gaps > 12 ms"),
+                           ("attitude_misses", "attitude misses"),
+                           ("position_misses", "position misses")):  # fmt: skip
+            c = att[scope][key]
+            by = ", ".join(f"{v} {c[v]}" + (f" ({c['our_step_a_tick']} a loop's own tick)"
+                                            if v == OUR_STEP and c["our_step_a_tick"] else "")
+                           for v in VERDICTS if c[v])  # fmt: skip
+            parts.append(f"{label} {c['total']}" + (f" ({by})" if by else ""))
+        lines.append(f"attributed, {name}: " + "; ".join(parts))
+    if not att["sampled"]:
+        lines.append("(steal not sampled: none counted)")
+    return "\n".join(lines)
 
 
 def error_series(
@@ -357,6 +522,7 @@ def format_table(report: dict[str, Any]) -> str:
                  f"{'SCHED_FIFO' if report.get('sitl_fifo') else 'normal scheduling'}")  # fmt: skip
     lines.append(stall_summary(report))
     lines.append(steal_summary(report))
+    lines.append(attribution_summary(report))
     lines.append(f"{'issue 21 target':62s} {'verdict':9s} measured")
     for v in judge(report):
         verdict = "n/a" if v.met is None else ("met" if v.met else "NOT MET")
@@ -444,6 +610,23 @@ def write_figure(report: dict[str, Any], series: dict[str, FloatArray], path: An
                        alpha=0.25, lw=0)  # fmt: skip
         ax_gap.text((w["t0_s"] + w["t1_s"]) / 2 - t_zero, ax_gap.get_ylim()[1], w["kind"],
                     ha="center", va="top", fontsize=7)  # fmt: skip
+    marks = {STEAL: ("tab:red", "v"), RUNQUEUE: ("tab:orange", "v"),
+             COLLECTION: ("tab:green", "o"), OUR_STEP: ("tab:blue", "o"),
+             GIL_WAIT: ("tab:purple", "o"), UNATTRIBUTED: ("k", "x")}  # fmt: skip
+    events = (report.get("attribution") or {}).get("events", [])
+    for verdict, (colour, marker) in marks.items():
+        for ax, loop, kind in ((ax_gap, "position", "gap"), (ax_att, "attitude", "miss")):
+            mine = [e for e in events
+                    if e["verdict"] == verdict and e["loop"] == loop and e["kind"] == kind]
+            if mine:
+                ax.scatter([e["t_s"] - t_zero for e in mine],
+                           [e["interval_ms"] for e in mine], s=14, color=colour,
+                           marker=marker, zorder=3,
+                           label=f"{verdict} ({len(mine)})")  # fmt: skip
+    for ax in (ax_gap, ax_att):
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6, loc="lower right", ncol=3, title_fontsize=6,
+                      title="gaps > 12 ms" if ax is ax_gap else "deadline misses")  # fmt: skip
     split = [w["t0_s"] for w in report["windows"] if w["phase"] == "figure8"]
     if split:
         for ax in (ax_gap, ax_att, ax_err):

@@ -314,7 +314,8 @@ def run_bench_command(args: argparse.Namespace) -> int:
 
         try:
             return run_attack_bench(args.json, int(args.hogs), str(args.attitude_mode),
-                                    loops_cpu=getattr(args, "loops_cpu", None))
+                                    loops_cpu=getattr(args, "loops_cpu", None),
+                                    sitl_cpu=getattr(args, "sitl_cpu", None))
         except AttackBenchError as exc:
             print(f"epc-offboard bench --attack: {exc}", file=sys.stderr)
             return 1

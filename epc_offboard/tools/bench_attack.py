@@ -88,6 +88,19 @@ def _deployed_priority() -> None:
         os.nice(DEPLOYED_NICE)
 
 
+def _autopilot_scheduling(cpu: int | None) -> Any:
+    """The SITL's ``preexec_fn``: its priority (:func:`_autopilot_priority`) and, with
+    ``cpu``, pinned to that CPU (``--sitl-cpu``; a CPU not offered: left unpinned)."""
+
+    def scheduling() -> None:
+        _autopilot_priority()
+        if cpu is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setaffinity(0, {cpu})
+
+    return scheduling
+
+
 def _autopilot_priority() -> None:
     """The SITL stands in for an autopilot on a processor of its own: SCHED_FIFO below the
     service's loops where permitted (else the deployed nice). At normal priority beside two
@@ -144,6 +157,15 @@ def _stat(pid: int) -> tuple[float, float] | None:
     tick = os.sysconf("SC_CLK_TCK")
     rss_mb = int(fields[21]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     return (int(fields[11]) + int(fields[12])) / tick, rss_mb
+
+
+def _pinned(pid: int, cpu: int | None) -> bool:
+    """Whether ``pid`` runs on ``cpu`` alone (False without a ``cpu``)."""
+    if cpu is None:
+        return False
+    with contextlib.suppress(OSError):
+        return os.sched_getaffinity(pid) == {cpu}
+    return False
 
 
 def _is_fifo(pid: int) -> bool:
@@ -279,7 +301,8 @@ def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 10.0) -> int 
     return None if proc is None else proc.returncode
 
 
-def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> dict[str, Any]:
+def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
+        sitl_cpu: int | None = None) -> dict[str, Any]:  # fmt: skip
     """The flight and its windows; returns the raw record (windows, samples, ports)."""
     port, sitl_port = free_port(), free_port()
     zenoh_port = free_port()
@@ -299,7 +322,7 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> di
     sampler: Sampler | None = None
     stealer: steal_time.StealSampler | None = None
     windows: list[analysis.Window] = []
-    sitl_fifo = False
+    sitl_fifo = sitl_pinned = False
     load_start = os.getloadavg()
     try:
         service = subprocess.Popen(
@@ -309,9 +332,10 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> di
         )  # fmt: skip
         sitl = subprocess.Popen(
             sitl_cmd, stdout=(run_dir / "sitl.log").open("wb"), stderr=subprocess.STDOUT,
-            preexec_fn=_autopilot_priority,
+            preexec_fn=_autopilot_scheduling(sitl_cpu),
         )  # fmt: skip
         sitl_fifo = _is_fifo(sitl.pid)
+        sitl_pinned = _pinned(sitl.pid, sitl_cpu)
         attackers = Attackers(zenoh_port, config_path, run_dir)
         hog_procs = start_hogs(hogs)
         sampler = Sampler(service.pid)
@@ -354,7 +378,8 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None) -> di
             "service_exit": code, "load_avg": {"start": load_start, "end": load_end},
             "steal": stealer.record() if stealer else {},
             "fifo_priority": REALTIME_PRIORITY, "sitl_fifo": sitl_fifo,
-            "loops_cpu": loops_cpu}  # fmt: skip
+            "loops_cpu": loops_cpu, "sitl_cpu": sitl_cpu,
+            "sitl_cpu_applied": sitl_pinned}  # fmt: skip
 
 
 # -- the report -------------------------------------------------------------------------------
@@ -395,6 +420,8 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "loops_cpu": record.get("loops_cpu"),
         "loops_cpu_applied": (record.get("loops_cpu") is not None
                               and counters.get("cpu_affinity_refused", 0) == 0),
+        "sitl_cpu": record.get("sitl_cpu"),
+        "sitl_cpu_applied": record.get("sitl_cpu_applied", False),
         "window_s": WINDOW_S, "zenoh_rate_per_s": ZENOH_RATE_PER_S, "fuzz_rate_hz": FUZZ_RATE_HZ,
         "load_avg": {k: [round(x, 2) for x in v] for k, v in record["load_avg"].items()},
         "service_exit": record["service_exit"],
@@ -414,7 +441,12 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "stats_counters": counters,
         "stats_gc": stats.get("gc", {}),
         "stats_stalls": stats.get("stalls", []),
+        "stats_misses": stats.get("misses", []),
         "steal": steal,
+        # every position-loop gap over 12 ms and every deadline miss, with its verdict
+        "attribution": analysis.attribution(record.get("steal", {}), record["windows"],
+                                            stats.get("stalls", []), stats.get("misses", []),
+                                            flight),
         "lockstep_rmse_m": lockstep_rmse_m,
         "figure8_rmse_m": analysis.figure8_rmse_m(windows),
     }  # fmt: skip
@@ -443,7 +475,8 @@ def lockstep_rmse_m() -> float | None:
 
 
 def run_attack_bench(json_path: str | None, hogs: int, mode: str,
-                     loops_cpu: int | None = None) -> int:  # fmt: skip
+                     loops_cpu: int | None = None, sitl_cpu: int | None = None,
+                     ) -> int:  # fmt: skip
     if hogs < 0:
         raise AttackBenchError("--hogs must be >= 0")
     out = Path(json_path) if json_path else None
@@ -454,7 +487,7 @@ def run_attack_bench(json_path: str | None, hogs: int, mode: str,
                       "steal.json"):
             (run_dir / stale).unlink(missing_ok=True)
         unix_minus_monotonic_s = time.time() - time.monotonic()
-        record = fly(run_dir, hogs, mode, loops_cpu)
+        record = fly(run_dir, hogs, mode, loops_cpu, sitl_cpu)
         lockstep = lockstep_rmse_m() if mode == "rates" else None
         report, series = analyse(run_dir, record, hogs, mode, unix_minus_monotonic_s,
                                  lockstep)  # fmt: skip
