@@ -154,10 +154,16 @@ def fuzz_then_zenoh_flood(tmp_path_factory: pytest.TempPathFactory) -> SharedFli
     # a long mission: ended by SIGTERM once the last window is over (the service commands
     # Hold and writes its stats)
     overrides = hover_overrides(port, FLEET, 120.0)
+    # at the deployed priorities, as the peers' flight below: at normal priority the loops
+    # competed with two CPU hogs and the fuzzer (at the service's nice) on equal terms, and
+    # the scheduler alone stopped the position loop for 108 ms (about 1 run in 6 at load 4-5)
+    overrides["loops"] = {"realtime_priority": 50}  # config/default.toml's, where permitted
     with (
         holding({"alone"}),
         Rig(tmp, lockstep=False, speedup=1.0, service_overrides=overrides) as rig,
     ):
+        assert rig.sitl is not None
+        autopilot_priority(rig.sitl.pid)
         cfg = load_service_config(rig.config_path)
         problem = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01).position.problem
         ready, go, stop, sent = threading.Event(), threading.Event(), threading.Event(), [0]
@@ -215,7 +221,13 @@ def test_a_hostile_peer_flooding_at_1000_per_s_neither_stops_the_loops_nor_moves
     assert flight.code == 0, flight.log
     # a real flood (a put waits while the victim's Zenoh does not read: counted once sent)
     assert sent >= 0.5 * RATE_PER_S * ATTACK_S, sent
-    assert stats["sharing"]["messages_received"] > 100, stats["sharing"]  # reached the victim
+    # it reached the victim, more than the fleet process takes: that process, below the
+    # loops, filled its bounded inbox and shed the rest there. (How many messages it took in
+    # is its CPU share's measure, not the attack's: 39 to 92 of 6,000 beside two hogs, 2.9 %
+    # of a core; "> 100 received" failed on a loaded machine however well the loops flew.)
+    sharing = stats["sharing"]
+    assert sharing["messages_received"] > 0, sharing
+    assert sharing["dropped_queue_full"] > 0, sharing
     assert stats["library"]["position"]["received_shared"] == 0  # nothing useless joined
 
 
