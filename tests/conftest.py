@@ -23,7 +23,8 @@ from epc_offboard.common import jit
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
-    _write_bytecode()
+    if not hasattr(session.config, "workerinput"):  # xdist's controller, before its workers
+        _write_bytecode()
     _warm_kernels()
 
 
