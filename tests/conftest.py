@@ -37,9 +37,9 @@ def _write_bytecode() -> None:
     """Write the checkout's bytecode (``__pycache__``, ignored by git) where the interpreter
     will not (PYTHONDONTWRITEBYTECODE, set on this session's machines): the suite starts
     some 300 Python processes, and each one compiled the ~100 modules of ours it imports from
-    source again, 0.2-0.3 CPU-s a process, about 1.3 CPU-s of a lockstep flight's 9.8
-    (service, miss worker, log and store helpers, SITL, `sim`). The bytecode is what the
-    interpreter writes itself on any other machine; nothing a test runs changes."""
+    source again, 0.05-0.3 CPU-s a process (service, miss worker, log and store helpers,
+    SITL, `sim`; docs/MEASUREMENTS.md, stop 37). The bytecode is what the interpreter writes
+    itself on any other machine; nothing a test runs changes."""
     if not sys.dont_write_bytecode:
         return
     import compileall
