@@ -23,6 +23,33 @@ from epc_offboard.common import jit
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
+    if not hasattr(session.config, "workerinput"):  # xdist's controller, before its workers
+        _write_bytecode()
+    _warm_kernels()
+
+
+# the checkout's packages that the suite's processes import (its services, SITLs, helpers and
+# the test modules run as processes: tests.fleet_vehicle)
+_PACKAGES = ("epc_offboard", "sitl", "tests")
+
+
+def _write_bytecode() -> None:
+    """Write the checkout's bytecode (``__pycache__``, ignored by git) where the interpreter
+    will not (PYTHONDONTWRITEBYTECODE, set on this session's machines): the suite starts
+    some 300 Python processes, and each one compiled the ~100 modules of ours it imports from
+    source again, 0.05-0.3 CPU-s a process (service, miss worker, log and store helpers,
+    SITL, `sim`; docs/MEASUREMENTS.md, stop 37). The bytecode is what the interpreter writes
+    itself on any other machine; nothing a test runs changes."""
+    if not sys.dont_write_bytecode:
+        return
+    import compileall
+
+    root = Path(__file__).resolve().parent.parent
+    for package in _PACKAGES:
+        compileall.compile_dir(root / package, quiet=2)
+
+
+def _warm_kernels() -> None:
     """Compile the control kernels into numba's cache once, before collection, when the
     checkout's cache is cold (a fresh clone, an edited kernel). (Not a session fixture: that
     ran inside the first test's timeout, which a compile of 4 minutes at load 16 outlasted,

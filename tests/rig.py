@@ -157,7 +157,7 @@ class Rig:
             [
                 sys.executable,
                 "-m",
-                "epc_offboard.cli",
+                "epc_offboard",  # (as `sim` starts it: its helpers import no main module again)
                 "run",
                 "--config",
                 str(config_path or self.config_path),

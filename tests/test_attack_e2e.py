@@ -154,10 +154,16 @@ def fuzz_then_zenoh_flood(tmp_path_factory: pytest.TempPathFactory) -> SharedFli
     # a long mission: ended by SIGTERM once the last window is over (the service commands
     # Hold and writes its stats)
     overrides = hover_overrides(port, FLEET, 120.0)
+    # at the deployed priorities, as the peers' flight below: at normal priority the loops
+    # competed with two CPU hogs and the fuzzer (at the service's nice) on equal terms, and
+    # the scheduler alone stopped the position loop for 108 ms (about 1 run in 6 at load 4-5)
+    overrides["loops"] = {"realtime_priority": 50}  # config/default.toml's, where permitted
     with (
         holding({"alone"}),
         Rig(tmp, lockstep=False, speedup=1.0, service_overrides=overrides) as rig,
     ):
+        assert rig.sitl is not None
+        autopilot_priority(rig.sitl.pid)
         cfg = load_service_config(rig.config_path)
         problem = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01).position.problem
         ready, go, stop, sent = threading.Event(), threading.Event(), threading.Event(), [0]
@@ -207,7 +213,8 @@ def test_a_hostile_peer_flooding_at_1000_per_s_neither_stops_the_loops_nor_moves
     err = _hover_error_m(rows, flight.truth)
     (flight.tmp / "attack.json").write_text(json.dumps(
         {"t0_s": t0, "t1_s": t1, "max_gap_s": gap_s, "max_error_m": err, "sent": sent,
-         "phases": sorted({r["phase"] for r in rows})}
+         "phases": sorted({r["phase"] for r in rows}), "sharing": stats["sharing"],
+         "load_avg": os.getloadavg()}
     ))  # fmt: skip
     assert gap_s < 0.100, f"the position loop stopped for {gap_s * 1e3:.0f} ms"
     assert err < 0.3, f"{err:.3f} m off the hover point during the attack"
@@ -215,7 +222,14 @@ def test_a_hostile_peer_flooding_at_1000_per_s_neither_stops_the_loops_nor_moves
     assert flight.code == 0, flight.log
     # a real flood (a put waits while the victim's Zenoh does not read: counted once sent)
     assert sent >= 0.5 * RATE_PER_S * ATTACK_S, sent
-    assert stats["sharing"]["messages_received"] > 100, stats["sharing"]  # reached the victim
+    # it reached the victim: the fleet process took batches in. How many is that process's
+    # CPU share, not the attack's: it runs below the loops and beside two CPU hogs it took
+    # 39-92 of 6,000 (2.9 % of a core; the rest dropped at the sender's Zenoh, or at its own
+    # bounded inbox), so "> 100 received" failed on a loaded machine however well the loops
+    # flew. An attacker that reaches nobody fails here (0 received).
+    sharing = stats["sharing"]
+    assert sharing["messages_received"] > 0, sharing
+    assert sharing["entries_received"] > 0, sharing
     assert stats["library"]["position"]["received_shared"] == 0  # nothing useless joined
 
 

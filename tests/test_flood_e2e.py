@@ -97,14 +97,22 @@ def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path
         flooder.join(timeout=10)
         flood_wall_s = time.monotonic() - t_flood
         code = rig.wait_exit(timeout_s=120)
+        heard_s = time.monotonic() - t_flood  # the most the helper can have heard it for
         log = rig.log()
         stats = rig.stats()
     assert code == 0, log
     assert sent[0] > 1000, sent  # a real flood: tens of thousands of controllers
     sharing = stats["sharing"]
     assert sharing.get("messages_received", 0) > 100, sharing
-    # most of it was dropped before decoding, by the fleet-wide limit
-    assert sharing.get("fleet_rate_limited", 0) > sharing.get("entries_offered", 0) / 20, sharing
+    # what passed the fleet-wide limit (before decoding) is within it: its burst and its rate
+    # over the time the helper could hear the flood. (Not "most was rate-limited": the
+    # helper runs below the loops, and on a loaded machine it took in 878 in a run, no more
+    # than the limit lets through, so the limit dropped none: the sender's Zenoh did.)
+    fleet = cfg.sharing
+    admitted = (sharing["messages_received"] - sharing["own_ignored"]
+                - sharing["rejected_oversized"] - sharing["fleet_rate_limited"])  # fmt: skip
+    limit = fleet.fleet_burst_messages + fleet.fleet_messages_per_s * heard_s
+    assert admitted <= limit, (admitted, limit, sharing)
     # nothing useless entered the library: it holds only what this vehicle solved itself
     assert stats["library"]["position"]["received_shared"] == 0
     # the loops kept running through the flood (a safety bound: MIN_RATE_FRACTION)

@@ -247,10 +247,27 @@ def test_a_shipped_map_is_checked_here_and_refused_for_another_model(solver_and_
     assert ctrl.stats.size == 1
 
 
-def test_fleet_candidates_are_screened_in_the_worker_and_survive_its_death(solver_and_ctrl):
+@pytest.fixture
+def unhurried_solver_and_ctrl():
+    """As :func:`solver_and_ctrl`, with a slice that builds the whole small pool at once: the
+    slice's budget is read on the wall clock (``CandidatePool.build``'s ``perf_counter``),
+    and beside two CPU hogs the restarted worker, below the loops, was preempted through its
+    5 ms slice before it reached the newest candidate (the one optimal here), so the miss was
+    QP-solved (``candidates_found`` 0, load 7-11). What is judged here is the pool surviving
+    the worker's death, not how much a slice builds."""
+    ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl}, slice_s=5.0)
+    solver.start()
+    yield solver, ctrl
+    solver.close()
+
+
+def test_fleet_candidates_are_screened_in_the_worker_and_survive_its_death(
+    unhurried_solver_and_ctrl,
+):
     """A received controller is found by the worker for the miss it is optimal at (no QP
     solve), also after the worker was killed (the new one gets the pool again)."""
-    solver, ctrl = solver_and_ctrl
+    solver, ctrl = unhurried_solver_and_ctrl
     p = ctrl.problem
     x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
     teacher = ExperienceController(p)

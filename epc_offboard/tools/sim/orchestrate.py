@@ -424,8 +424,12 @@ def fly(options: SimOptions, out_dir: Path) -> list[VehicleRun]:
             sitl_cmd += ["--param", "GUID_OPTIONS=8"]
         runs.append(run)  # before its processes: a SIGTERM from here on stops them
         with signals_deferred():
+            # `-m epc_offboard` (its __main__), not `-m epc_offboard.cli`: each helper the
+            # service spawns (miss worker, logs, store, fleet) imports its parent's main module
+            # again unless it is a package's __main__ (multiprocessing's spawn), 0.05-0.08
+            # CPU-s a helper for a module it never uses
             run.service = _start(
-                [sys.executable, "-m", "epc_offboard.cli", "run", "--config",
+                [sys.executable, "-m", "epc_offboard", "run", "--config",
                  str(run.service_config)],
                 run.service_log,
                 service_env(),
