@@ -95,7 +95,6 @@ def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path
         time.sleep(FLOOD_S)
         stop.set()
         flooder.join(timeout=10)
-        flood_wall_s = time.monotonic() - t_flood
         code = rig.wait_exit(timeout_s=120)
         heard_s = time.monotonic() - t_flood  # the most the helper can have heard it for
         log = rig.log()
@@ -119,13 +118,19 @@ def test_a_flooding_peer_neither_stalls_the_loops_nor_moves_the_vehicle(tmp_path
     assert stats["loops"]["position"]["rate_hz"] >= MIN_RATE_FRACTION * 100.0
     assert stats["loops"]["attitude"]["rate_hz"] >= MIN_RATE_FRACTION * 200.0
     # and the vehicle held its hover point while it lasted (ground truth against the log's
-    # reference, over the flood's span of the offboard flight)
+    # reference, over the offboard flight's vehicle time, which holds the whole flood: it
+    # starts after Offboard is seen and the mission outlasts it). Not a span counted back
+    # from the end by the flood's wall time: that time includes the flooder's session
+    # closing (1.8 s when the service runs at the deployed priorities, 0.02 s at normal),
+    # and reached back before Offboard into the take-off climb (1.5-2.6 m "errors" from
+    # the hover point while the vehicle, in offboard, held it within 15 mm).
     with (tmp_path / "flight.csv").open() as fh:
         rows = [r for r in csv.DictReader(fh) if r["phase"] == "offboard"]
     ref = [float(rows[-1][f"ref_pos_{a}_m"]) for a in "ned"]
     truth = rig.groundtruth()
-    t_end = float(rows[-1]["vehicle_t_s"])
-    span = [i for i, t in enumerate(truth["t_s"]) if t_end - flood_wall_s - 6.0 <= t <= t_end]
+    t_start, t_end = float(rows[0]["vehicle_t_s"]), float(rows[-1]["vehicle_t_s"])
+    assert t_end - t_start >= FLOOD_S, (t_start, t_end)  # the flood inside the window
+    span = [i for i, t in enumerate(truth["t_s"]) if t_start <= t <= t_end]
     err = max(
         math.dist([truth[f"pos_{a}_m"][i] for a in "ned"], ref) for i in span
     )
