@@ -70,6 +70,7 @@ from epc_offboard.service.miss_solver import MissSolver
 from epc_offboard.service.reference_selector import ReferenceSelector
 from epc_offboard.service.setpoints import SetpointSender
 from epc_offboard.service.startup import TIMELINE
+from epc_offboard.service.step_parts import CompileCounter, StepParts
 from epc_offboard.service.supervisor import Supervisor
 from epc_offboard.service.systemd import Systemd
 from epc_offboard.service.timing import LoopTiming
@@ -79,6 +80,11 @@ from epc_offboard.vehicle.state import StateTracker
 
 log = logging.getLogger("epc_offboard.service")
 _MISS_WORKER_POLL_S = 0.05  # real time: how often the start polls whether the worker is up
+# the parts of the position and attitude steps, timed in each step (``step_parts.py``); a
+# step slower than a fifth of its period (or with a compile in it) is kept, with its parts
+POSITION_PARTS = ("state", "pump", "rate_gate", "reference", "tick", "log_row", "hand_over")
+ATTITUDE_PARTS = ("state", "command")
+SLOW_STEP_PERIODS = 0.2
 
 # After "stopped", the process ends within this or says where it hangs: once, the
 # interpreter's teardown after a finished flight waited minutes (a helper's pipe; CPython
@@ -154,6 +160,15 @@ class Service:
         )  # fmt: skip
         self.position_timing = LoopTiming(1.0 / cfg.loops.position_rate_hz)
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
+        # numba's compiles and cache loads, counted from the loops' start (none expected)
+        self.compiles = CompileCounter()
+        count = lambda: self.compiles.count  # noqa: E731 - a plain read, every step
+        self.position_parts = StepParts(
+            "position", POSITION_PARTS, SLOW_STEP_PERIODS / cfg.loops.position_rate_hz,
+            compiles=count)  # fmt: skip
+        self.attitude_parts = StepParts(
+            "attitude", ATTITUDE_PARTS, SLOW_STEP_PERIODS / cfg.loops.attitude_rate_hz,
+            compiles=count)  # fmt: skip
         # the `run` command's: the process ends within this after "stopped" (bounded_exit)
         self.exit_grace_s: float | None = None
         self._position_out: PositionOutput | None = None
@@ -213,14 +228,20 @@ class Service:
         return tracker.snapshot(tracker.vehicle_time_at(now_s, vehicle_clock=lockstep))
 
     async def _position_step(self, tick: Tick) -> bool:
+        parts = self.position_parts
+        parts.start(tick.start_s)
         state = self._state_at(tick.start_s)
+        parts.part(0)  # state
         # misses solved by the worker join the library here; in lockstep the tick waits
         # for the solve in flight, so it joins at the same tick every run
         self.misses.pump(wait=self.clock.vehicle_time)
+        parts.part(1)  # pump
         if self.outputs.stream_setpoints and state is not None:
             self._position_out = self._position_tick(state, tick.start_s)
             self.misses.hand_over(wait=self.clock.vehicle_time)  # its misses, solved by the next
             self.systemd.control_ticked()
+            parts.part(6)  # hand_over
+        parts.finish()
         return self.outputs.stream_setpoints  # ticks that control are timed, not idle ones
 
     def _use_attitude_path(self, autopilot: str, mode: AttitudeMode) -> None:
@@ -245,23 +266,31 @@ class Service:
         (with the px4 baseline nothing to compute: the log keeps the reference)."""
         reference: ReferenceHorizon | None = None  # what the flight log shows
         offboard = self.outputs.phase == Phase.OFFBOARD
+        parts = self.position_parts
         if self._attitude_path[1] == "epc":
             self._follow_rate_gate(t_s)
+        parts.part(2)  # rate_gate
         try:
             if self.cascade.flies_reference:  # the autopilot takes the reference now only
                 reference = self.references.now(state, t_s)
             else:
                 reference = self.references.horizon(state, t_s, self.sharing, offboard=offboard)
+            parts.part(3)  # reference
             out = self.cascade.position_tick(state, reference, learn=offboard)
         except Exception as exc:  # degrade, never die
             self.loops.error("position", exc)
             out = self.cascade.hover(state)
+        parts.part(4)  # tick
         if self.logs is not None and self.cfg.log.flight_log_path:
             self.logs.flight_row(pack_row(t_s, self.outputs.phase.value, state, reference, out))
+        parts.part(5)  # log_row
         return out
 
     async def _attitude_step(self, tick: Tick) -> bool:
+        parts = self.attitude_parts
+        parts.start(tick.start_s)
         state = self._state_at(tick.start_s)
+        parts.part(0)  # state
         if self.clock.vehicle_time:
             # lockstep: the answer releases the simulator's next tick, so it goes last,
             # after whatever the other tasks woken at this tick send (commands)
@@ -284,6 +313,8 @@ class Service:
             # of vehicle time): the tick is answered all the same, or the simulator would
             # hold (or fall back to real-time pace) until a position it never sends
             self.link.send(commands.system_time(self.clock.now_s()))
+        parts.part(1)  # command
+        parts.finish()
         return self.outputs.stream_setpoints
 
     # -- lifecycle --------------------------------------------------------------------
@@ -335,6 +366,7 @@ class Service:
                         "%.2f s", self.cascade.warm_up())  # fmt: skip
         self._signatures_warm = compiled_signatures()
         TIMELINE.mark("kernels_warm")
+        self.compiles.install()  # from here, a compile is one the loops may meet
         if self.clock.vehicle_time:  # lockstep: every run's first miss meets a worker up
             self._miss_worker_up(t0)
         self.library.open()
@@ -441,6 +473,7 @@ class Service:
             self.logs.close()
         self.gc_monitor.uninstall()
         self.step_monitor.uninstall()
+        self.compiles.uninstall()
         self._reload_pool.shutdown(wait=False)
         log.info("stopped: %s", dict(self.counters))
         if self.exit_grace_s is not None:
@@ -474,12 +507,26 @@ class Service:
             # ... and each deadline miss, from the previous tick's start to its own end
             "misses": [miss.as_dict() for miss in self.loops.misses],
             "event_loop_steps": self.step_monitor.stats(),  # ... and the long steps by name
+            # the control steps over a fifth of their period, part by part
+            "slow_steps": self._slow_steps(),
             "miss_worker": dict(self.misses.counters),
             "link": dict(self.link.counters),
             "state": {**self.tracker.counters, **self.tracker.clock.counters},
             "sharing": self.sharing.stats() if self.sharing is not None else {},
             "processes": self._processes_at_exit or self._process_stats(),
         }
+
+    def _slow_steps(self) -> dict[str, Any]:
+        steps = sorted((*self.position_parts.slow, *self.attitude_parts.slow),
+                       key=lambda step: step.t_s)  # fmt: skip
+        return {
+            "position": self.position_parts.count, "attitude": self.attitude_parts.count,
+            "bound_ms": {"position": self.position_parts.slow_s * 1e3,
+                         "attitude": self.attitude_parts.slow_s * 1e3},
+            "compiles_after_warm_up": self.compiles.count,
+            "compile_longest_ms": round(self.compiles.longest_ms, 3),
+            "steps": [step.as_dict() for step in steps],
+        }  # fmt: skip
 
     def _counters(self) -> dict[str, int]:
         out = dict(self.counters)
