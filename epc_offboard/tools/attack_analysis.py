@@ -308,14 +308,17 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
 
 def attribution(record: dict[str, Any], wins: Sequence[Window],
                 stalls: Sequence[dict[str, Any]], misses: Sequence[dict[str, Any]],
-                flight: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
+                flight: dict[str, Any] | None = None,
+                slow_steps: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:  # fmt: skip
     """Every position-loop gap over ``STALL_S`` (the service's position stalls) and every
     deadline miss (its ``misses``), each with the steal in it (``record``: the steal
     samples) and its verdict (:func:`attribute`), the window it fell in ("phase kind", or
     "" outside them), and counted by verdict: over the flight and in the attack windows.
     ``flight``: the flight log's columns; each event then gives the longest position tick
     it holds (``position_tick_max_ms``, the log's ``compute_us``: the controller's tick
-    alone, so a long position step with a short tick in it spent its time elsewhere)."""
+    alone, so a long position step with a short tick in it spent its time elsewhere).
+    ``slow_steps``: the service's slow control steps (stats ``slow_steps.steps``); each
+    event then gives those in its interval, part by part (:func:`slow_parts`)."""
     cols = steal.Columns.of(record)
     share = None
     if cols is not None and wins:
@@ -332,6 +335,7 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
             inside = (t >= end_s - 1e-3 * ev["interval_ms"]) & (t <= end_s)
             out["position_tick_max_ms"] = (round(float(np.max(flight["compute_us"][inside]))
                                            * 1e-3, 3) if inside.any() else None)  # fmt: skip
+        out.update(slow_parts(slow_steps, ev))
         out["window"] = next((f"{w.phase} {w.kind}" for w in wins
                               if w.t0_s <= ev["t_s"] <= w.t1_s), "")  # fmt: skip
         out["attack"] = bool(out["window"]) and not out["window"].endswith("calm")
@@ -355,6 +359,26 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
     return {"sampled": cols is not None, "usual_cpu_share": share, "events": events,
             "flight": count(events),
             "attack_windows": count([e for e in events if e["attack"]])}  # fmt: skip
+
+
+def slow_parts(slow_steps: Sequence[dict[str, Any]], ev: dict[str, Any]) -> dict[str, Any]:
+    """The slow control steps (``StepParts``) that started in a stall's or miss's interval:
+    how many (``slow_steps``), their thread CPU (``slow_steps_cpu_ms``), their parts' wall
+    time summed by name (``slow_parts_ms``), the part with the most (``slow_part``, "" with
+    none) and the compiles in them (``slow_steps_compiles``)."""
+    end_s = ev["t_s"] + (1e-3 * ev.get("compute_ms", 0.0) if ev.get("deadline_miss") else 0.0)
+    start_s = end_s - 1e-3 * ev["interval_ms"]
+    mine = [s for s in slow_steps if start_s - 1e-6 <= s["t_s"] <= end_s + 1e-6]
+    parts: dict[str, float] = {}
+    for step in mine:
+        for name, ms in step["parts_ms"].items():
+            key = f"{step['loop']}.{name}"
+            parts[key] = parts.get(key, 0.0) + ms
+    return {"slow_steps": len(mine),
+            "slow_steps_cpu_ms": round(sum(s["thread_cpu_ms"] for s in mine), 3),
+            "slow_parts_ms": {k: round(v, 3) for k, v in parts.items() if v >= 0.05},
+            "slow_part": max(parts, key=parts.__getitem__) if parts else "",
+            "slow_steps_compiles": sum(s.get("compiles", 0) for s in mine)}  # fmt: skip
 
 
 def attribution_summary(report: dict[str, Any]) -> str:
