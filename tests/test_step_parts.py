@@ -1,0 +1,127 @@
+"""The control steps timed part by part (``service/step_parts.py``), numba's compiles counted,
+and the bench's attribution naming the part of a slow step (issue 21's bursts)."""
+
+from __future__ import annotations
+
+import time
+
+import numba
+import numpy as np
+
+from epc_offboard.common import jit
+from epc_offboard.service.step_parts import CompileCounter, StepParts
+from epc_offboard.tools.attack_analysis import slow_parts
+
+
+def _busy(s: float) -> None:
+    """The thread's own CPU for ``s`` (not a sleep: a slow step is CPU)."""
+    end = time.thread_time() + s
+    while time.thread_time() < end:
+        pass
+
+
+def test_a_slow_step_is_kept_with_its_parts_and_a_fast_one_is_not() -> None:
+    parts = StepParts("position", ("state", "pump", "tick"), slow_s=0.004)
+    parts.start(1.0)
+    parts.part(0)
+    parts.part(1)
+    parts.part(2)
+    assert parts.finish() is None
+    assert parts.count == 0
+    assert not parts.slow
+    parts.start(2.0)
+    parts.part(0)
+    _busy(0.010)  # the pump's
+    parts.part(1)
+    parts.part(2)
+    step = parts.finish()
+    assert step is not None
+    assert parts.count == 1
+    assert list(parts.slow) == [step]
+    assert step.loop == "position"
+    assert step.t_s == 2.0
+    assert step.slowest_part == "pump"
+    assert step.parts_ms["pump"] >= 9.0
+    assert step.parts_ms["tick"] < 5.0
+    assert step.thread_cpu_ms >= 9.0
+    assert step.wall_ms >= step.parts_ms["pump"]
+    d = step.as_dict()
+    assert set(d) == {"loop", "t_s", "wall_ms", "thread_cpu_ms", "parts_ms", "slowest_part",
+                      "compiles"}  # fmt: skip
+    # the next step starts its parts from 0: a part skipped in it (no tick) stays 0
+    parts.start(3.0)
+    parts.part(0)
+    _busy(0.010)
+    parts.part(1)
+    step = parts.finish()
+    assert step is not None
+    assert step.parts_ms["tick"] == 0.0
+    assert step.parts_ms["state"] < 5.0
+
+
+def test_kept_steps_are_bounded() -> None:
+    parts = StepParts("attitude", ("state",), slow_s=0.0, kept=3)
+    for k in range(10):
+        parts.start(float(k))
+        parts.part(0)
+        _busy(1e-4)
+        parts.finish()
+    assert parts.count == 10
+    assert [s.t_s for s in parts.slow] == [7.0, 8.0, 9.0]
+
+
+def test_compiles_are_counted_and_calls_of_compiled_functions_are_not() -> None:
+    @numba.njit(cache=False)
+    def twice(x):
+        return 2.0 * x
+
+    counter = CompileCounter()
+    assert counter.install()
+    try:
+        before = counter.count
+        twice(np.ones(3))  # compiled now: counted
+        assert counter.count == before + 1
+        assert counter.longest_ms >= 0.5
+        for _ in range(100):  # compiled: the lock is not taken
+            twice(np.ones(3))
+        # jit.entry_point of a compiled signature takes the lock for microseconds: no compile
+        jit.entry_point(twice, np.ones(3))
+        assert counter.count == before + 1
+        twice(np.ones((2, 2)))  # a new signature met: a compile
+        assert counter.count == before + 2
+        # a step that meets it says so, and is kept whatever its time
+        parts = StepParts("position", ("tick",), slow_s=10.0, compiles=lambda: counter.count)
+        parts.start(0.0)
+        twice(np.ones((2, 2, 2)))
+        parts.part(0)
+        step = parts.finish()
+        assert step is not None
+        assert step.compiles == 1
+    finally:
+        counter.uninstall()
+    twice(np.ones(4, dtype=np.int64))  # uninstalled: not counted
+    assert counter.count == before + 3
+
+
+def test_the_attribution_names_the_part_of_the_slow_steps_in_an_interval() -> None:
+    steps = [
+        {"loop": "position", "t_s": 10.00, "thread_cpu_ms": 30.0, "compiles": 0,
+         "parts_ms": {"state": 0.1, "pump": 25.0, "tick": 4.0}},
+        {"loop": "attitude", "t_s": 10.02, "thread_cpu_ms": 6.0, "compiles": 1,
+         "parts_ms": {"state": 0.1, "command": 6.0}},
+        {"loop": "position", "t_s": 11.00, "thread_cpu_ms": 9.0, "compiles": 0,
+         "parts_ms": {"state": 0.1, "pump": 0.0, "tick": 9.0}},
+    ]  # fmt: skip
+    # a miss: its interval runs from the previous tick's start to its own end
+    ev = {"t_s": 10.03, "interval_ms": 50.0, "compute_ms": 5.0, "deadline_miss": True}
+    out = slow_parts(steps, ev)
+    assert out["slow_steps"] == 2
+    assert out["slow_steps_cpu_ms"] == 36.0
+    assert out["slow_part"] == "position.pump"
+    assert out["slow_steps_compiles"] == 1
+    assert out["slow_parts_ms"] == {"position.state": 0.1, "position.pump": 25.0,
+                                    "position.tick": 4.0, "attitude.state": 0.1,
+                                    "attitude.command": 6.0}  # fmt: skip
+    none = slow_parts(steps, {"t_s": 20.0, "interval_ms": 15.0})
+    assert none["slow_steps"] == 0
+    assert none["slow_part"] == ""
