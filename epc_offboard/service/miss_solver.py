@@ -498,21 +498,29 @@ class MissSolver:
             proc.join(0.0)
         self._killed = [proc for proc in self._killed if proc.exitcode is None]
 
-    def pump(self, *, wait: bool = False) -> int:
+    def pump(self, *, wait: bool = False, mark: Callable[[int], None] | None = None) -> int:
         """Collect returned solves into the libraries, queue new misses, submit the next.
 
         Returns the number of controllers added. ``wait``: block until every solve in flight
-        has returned first (lockstep).
+        has returned first (lockstep). ``mark``: called with 0 after each lane's collect
+        (the worker's answers read, solves joined), 1 after its candidates' offer (maps
+        attached) and 2 after its submit: the step's parts (``step_parts.StepParts.part``).
         """
         added = 0
         up = self._up(wait)  # else the misses wait for the worker's start
         for name, lane in self._lanes.items():
             if up:
                 added += self._collect(name, lane, wait)
+            if mark is not None:
+                mark(0)
             self._queue_pending(lane)
             if up:
                 self._offer_next(name, lane, wait)  # first: the worker takes tasks in order
+                if mark is not None:
+                    mark(1)
                 self._submit_next(name, lane, wait)
+            if mark is not None:
+                mark(2)
         return added
 
     def hand_over(self, *, wait: bool = False) -> int:

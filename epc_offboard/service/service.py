@@ -82,8 +82,9 @@ log = logging.getLogger("epc_offboard.service")
 _MISS_WORKER_POLL_S = 0.05  # real time: how often the start polls whether the worker is up
 # the parts of the position and attitude steps, timed in each step (``step_parts.py``); a
 # step slower than a fifth of its period (or with a compile in it) is kept, with its parts
-POSITION_PARTS = ("state", "pump", "rate_gate", "reference", "tick", "log_row", "hand_over")
-ATTITUDE_PARTS = ("state", "command")
+POSITION_PARTS = ("state", "pump_collect", "pump_offer", "pump_submit", "rate_gate",
+                  "reference", "tick", "log_row", "hand_over")
+ATTITUDE_PARTS = ("state", "command", "send")
 SLOW_STEP_PERIODS = 0.2
 
 # After "stopped", the process ends within this or says where it hangs: once, the
@@ -169,6 +170,9 @@ class Service:
         self.attitude_parts = StepParts(
             "attitude", ATTITUDE_PARTS, SLOW_STEP_PERIODS / cfg.loops.attitude_rate_hz,
             compiles=count)  # fmt: skip
+        # the marks the miss pump and the setpoint sender call, bound once (not every tick)
+        self._pump_marks = self._pump_mark
+        self._attitude_marks = self._attitude_computed
         # the `run` command's: the process ends within this after "stopped" (bounded_exit)
         self.exit_grace_s: float | None = None
         self._position_out: PositionOutput | None = None
@@ -234,15 +238,21 @@ class Service:
         parts.part(0)  # state
         # misses solved by the worker join the library here; in lockstep the tick waits
         # for the solve in flight, so it joins at the same tick every run
-        self.misses.pump(wait=self.clock.vehicle_time)
-        parts.part(1)  # pump
+        self.misses.pump(wait=self.clock.vehicle_time, mark=self._pump_marks)
         if self.outputs.stream_setpoints and state is not None:
             self._position_out = self._position_tick(state, tick.start_s)
             self.misses.hand_over(wait=self.clock.vehicle_time)  # its misses, solved by the next
             self.systemd.control_ticked()
-            parts.part(6)  # hand_over
+            parts.part(8)  # hand_over
         parts.finish()
         return self.outputs.stream_setpoints  # ticks that control are timed, not idle ones
+
+    def _pump_mark(self, phase: int) -> None:
+        """The miss pump's phases (collect, offer, submit) as the position step's parts."""
+        self.position_parts.part(1 + phase)
+
+    def _attitude_computed(self) -> None:
+        self.attitude_parts.part(1)  # command: computed and encoded, not yet sent
 
     def _use_attitude_path(self, autopilot: str, mode: AttitudeMode) -> None:
         self._attitude_path = (autopilot, mode)
@@ -269,21 +279,21 @@ class Service:
         parts = self.position_parts
         if self._attitude_path[1] == "epc":
             self._follow_rate_gate(t_s)
-        parts.part(2)  # rate_gate
+        parts.part(4)  # rate_gate
         try:
             if self.cascade.flies_reference:  # the autopilot takes the reference now only
                 reference = self.references.now(state, t_s)
             else:
                 reference = self.references.horizon(state, t_s, self.sharing, offboard=offboard)
-            parts.part(3)  # reference
+            parts.part(5)  # reference
             out = self.cascade.position_tick(state, reference, learn=offboard)
         except Exception as exc:  # degrade, never die
             self.loops.error("position", exc)
             out = self.cascade.hover(state)
-        parts.part(4)  # tick
+        parts.part(6)  # tick
         if self.logs is not None and self.cfg.log.flight_log_path:
             self.logs.flight_row(pack_row(t_s, self.outputs.phase.value, state, reference, out))
-        parts.part(5)  # log_row
+        parts.part(7)  # log_row
         return out
 
     async def _attitude_step(self, tick: Tick) -> bool:
@@ -303,7 +313,8 @@ class Service:
             target = self._position_out or self.cascade.hover(state)
             late = late_tick(tick.start_s - tick.scheduled_s, state.attitude_age_s, tick.period_s)
             offboard = self.outputs.phase == Phase.OFFBOARD
-            self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard)
+            self.setpoints.attitude(state, target, tick.start_s, late=late, acting=offboard,
+                                    computed=self._attitude_marks)
         elif self.clock.vehicle_time and state is not None:
             # lockstep: the simulator advances only on an answer for each tick; when no
             # setpoint streams (before takeoff, landing) the answer is a SYSTEM_TIME
@@ -313,7 +324,7 @@ class Service:
             # of vehicle time): the tick is answered all the same, or the simulator would
             # hold (or fall back to real-time pace) until a position it never sends
             self.link.send(commands.system_time(self.clock.now_s()))
-        parts.part(1)  # command
+        parts.part(2)  # send (or the command, if no attitude setpoint was sent)
         parts.finish()
         return self.outputs.stream_setpoints
 

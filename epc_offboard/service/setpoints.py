@@ -73,11 +73,13 @@ class SetpointSender:
         *,
         late: bool = False,
         acting: bool = True,
+        computed: Callable[[], None] | None = None,
     ) -> None:
         """Fly ``target`` from ``state`` at tick ``now_s`` (the loops' clock): the cascade's
         attitude command (``late``: the tick or its attitude sample is late; ``acting``: the
         autopilot flies our setpoints, so the rates measured answer them), its fallbacks
-        counted, encoded as SET_ATTITUDE_TARGET and sent."""
+        counted, encoded as SET_ATTITUDE_TARGET and sent. ``computed``: called once the
+        message is encoded, before it is sent (the step's parts)."""
         cmd = attitude_command(
             self.cascade.attitude, state, target, now_s, late=late,
             mode=self.autopilot.attitude_mode, acting=acting,
@@ -101,6 +103,8 @@ class SetpointSender:
         )  # fmt: skip
         if replaced:  # never a NaN to the autopilot: level at hover thrust instead, counted
             self.counters["non_finite_setpoints_replaced"] += 1
+        if computed is not None:
+            computed()
         self.autopilot.link.send(msg)
 
     def _model_events(self) -> None:
