@@ -10,7 +10,7 @@ import numpy as np
 
 from epc_offboard.common import jit
 from epc_offboard.service.step_parts import CompileCounter, StepParts
-from epc_offboard.tools.attack_analysis import slow_parts
+from epc_offboard.tools.attack_analysis import slow_parts, slow_steps_summary
 
 
 def _busy(s: float) -> None:
@@ -125,3 +125,17 @@ def test_the_attribution_names_the_part_of_the_slow_steps_in_an_interval() -> No
     none = slow_parts(steps, {"t_s": 20.0, "interval_ms": 15.0})
     assert none["slow_steps"] == 0
     assert none["slow_part"] == ""
+
+
+def test_the_bench_summary_names_the_slow_parts_and_the_bursts() -> None:
+    slow = {"position": 3, "attitude": 1, "compiles_after_warm_up": 0, "steps": [
+        {"loop": "position", "t_s": 1.0, "thread_cpu_ms": 25.0, "slowest_part": "pump_offer"},
+        {"loop": "position", "t_s": 2.0, "thread_cpu_ms": 3.0, "slowest_part": "tick"},
+        {"loop": "attitude", "t_s": 3.0, "thread_cpu_ms": 1.5, "slowest_part": "send"},
+    ]}  # fmt: skip
+    line = slow_steps_summary(slow)
+    assert "position 3, attitude 1" in line
+    assert "over 20 ms of CPU 1" in line
+    assert line.endswith("position.pump_offer 1 (max 25.0 ms CPU), position.tick 1 (max 3.0 ms "
+                         "CPU), attitude.send 1 (max 1.5 ms CPU)")  # fmt: skip
+    assert "not traced" in slow_steps_summary({})

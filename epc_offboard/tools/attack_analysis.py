@@ -361,6 +361,9 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
             "attack_windows": count([e for e in events if e["attack"]])}  # fmt: skip
 
 
+BURST_CPU_MS = 20.0  # a burst: a step with more of the loops' thread's CPU than this
+
+
 def slow_parts(slow_steps: Sequence[dict[str, Any]], ev: dict[str, Any]) -> dict[str, Any]:
     """The slow control steps (``StepParts``) that started in a stall's or miss's interval:
     how many (``slow_steps``), their thread CPU (``slow_steps_cpu_ms``), their parts' wall
@@ -400,7 +403,27 @@ def attribution_summary(report: dict[str, Any]) -> str:
         lines.append(f"attributed, {name}: " + "; ".join(parts))
     if not att["sampled"]:
         lines.append("(steal not sampled: none counted)")
+    lines.append(slow_steps_summary(report.get("stats_slow_steps") or {}))
     return "\n".join(lines)
+
+
+def slow_steps_summary(slow: dict[str, Any]) -> str:
+    """The service's slow control steps (stats ``slow_steps``): how many per loop, the
+    compiles after warm-up, the largest parts, and bursts (steps with over 20 ms of CPU)."""
+    if not slow:
+        return "slow control steps: not traced by this service"
+    steps = slow.get("steps", [])
+    by: dict[str, list[float]] = {}
+    for step in steps:
+        by.setdefault(f"{step['loop']}.{step['slowest_part']}", []).append(
+            step["thread_cpu_ms"])
+    parts = ", ".join(f"{k} {len(v)} (max {max(v):.1f} ms CPU)"
+                      for k, v in sorted(by.items(), key=lambda kv: -max(kv[1])))
+    bursts = sum(step["thread_cpu_ms"] > BURST_CPU_MS for step in steps)
+    return (f"slow control steps (kept {len(steps)}): position {slow.get('position', 0)}, "
+            f"attitude {slow.get('attitude', 0)}; compiles after warm-up "
+            f"{slow.get('compiles_after_warm_up', 0)}; over {BURST_CPU_MS:g} ms of CPU "
+            f"{bursts}; slowest part: {parts or 'none'}")  # fmt: skip
 
 
 def error_series(
