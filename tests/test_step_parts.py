@@ -90,7 +90,7 @@ def test_compiles_are_counted_and_calls_of_compiled_functions_are_not() -> None:
         twice(np.ones((2, 2)))  # a new signature met: a compile
         assert counter.count == before + 2
         # a step that meets it says so, and is kept whatever its time
-        parts = StepParts("position", ("tick",), slow_s=10.0, compiles=lambda: counter.count)
+        parts = StepParts("position", ("tick",), slow_s=10.0, compiles=counter)
         parts.start(0.0)
         twice(np.ones((2, 2, 2)))
         parts.part(0)

@@ -163,13 +163,12 @@ class Service:
         self.attitude_timing = LoopTiming(1.0 / cfg.loops.attitude_rate_hz)
         # numba's compiles and cache loads, counted from the loops' start (none expected)
         self.compiles = CompileCounter()
-        count = lambda: self.compiles.count  # noqa: E731 - a plain read, every step
         self.position_parts = StepParts(
             "position", POSITION_PARTS, SLOW_STEP_PERIODS / cfg.loops.position_rate_hz,
-            compiles=count)  # fmt: skip
+            compiles=self.compiles)  # fmt: skip
         self.attitude_parts = StepParts(
             "attitude", ATTITUDE_PARTS, SLOW_STEP_PERIODS / cfg.loops.attitude_rate_hz,
-            compiles=count)  # fmt: skip
+            compiles=self.compiles)  # fmt: skip
         # the marks the miss pump and the setpoint sender call, bound once (not every tick)
         self._pump_marks = self._pump_mark
         self._attitude_marks = self._attitude_computed

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,19 +53,19 @@ class StepParts:
     """One loop's step, timed part by part: ``start``, then ``part(i)`` at the end of part
     ``i`` (parts skipped in a step stay 0), then ``finish``. A step over ``slow_s`` of
     thread CPU, or ``WALL_BOUNDS`` times that of wall time, is kept in ``slow`` (the latest
-    ``kept``) and counted in ``count``. ``compiles``: a callable returning how many
-    compiles there were so far (``CompileCounter.count``): one within a step is kept with
-    it, and makes the step slow; None: not asked."""
+    ``kept``) and counted in ``count``. ``compiles``: numba's compiles counted
+    (:class:`CompileCounter`): one within a step is kept with it, and makes the step slow;
+    None: not asked."""
 
     def __init__(self, loop: str, parts: Sequence[str], slow_s: float,
                  kept: int = SLOW_STEPS_KEPT,
-                 compiles: Callable[[], int] | None = None) -> None:  # fmt: skip
+                 compiles: CompileCounter | None = None) -> None:  # fmt: skip
         self.loop = loop
         self.names = tuple(parts)
         self.slow_s = slow_s
         self.slow: deque[SlowStep] = deque(maxlen=kept)
         self.count = 0  # slow steps seen (kept or pushed out)
-        self._compiles = compiles or (lambda: 0)
+        self._compiles = compiles or CompileCounter()  # (never installed: stays 0)
         self._ms = [0.0] * len(self.names)  # made once: written in place every step
         self._t0 = self._last = self._cpu0 = self._start_s = 0.0
         self._compiles0 = 0
@@ -75,7 +75,7 @@ class StepParts:
         for i in range(len(ms)):
             ms[i] = 0.0
         self._start_s = t_s
-        self._compiles0 = self._compiles()
+        self._compiles0 = self._compiles.count
         self._cpu0 = time.thread_time()
         self._t0 = self._last = time.perf_counter()
 
@@ -87,8 +87,10 @@ class StepParts:
     def finish(self) -> SlowStep | None:
         """The step's end: kept (and returned) if it was slow."""
         wall_s = time.perf_counter() - self._t0
+        compiles = self._compiles.count - self._compiles0
+        if wall_s <= self.slow_s and compiles == 0:
+            return None  # (its CPU time is no more than its wall time: not read)
         cpu_s = time.thread_time() - self._cpu0
-        compiles = self._compiles() - self._compiles0
         if cpu_s <= self.slow_s and wall_s <= WALL_BOUNDS * self.slow_s and compiles == 0:
             return None
         parts = dict(zip(self.names, self._ms, strict=True))
