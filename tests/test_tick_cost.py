@@ -163,21 +163,27 @@ def test_the_estimators_kernels_unbox_few_arrays_a_call():
     fused = loop._lwpr_plan
     fused_arrays: list[int] = []
     if fused is not None:
-        # the tick's query runs the prediction inside the compiled plan (kernels.lwpr_plan):
-        # the models' fields packed there too; then the group's own kernel, the plan off
-        def counting_plan(*args: Any, _kernel: Any = fused) -> Any:
+        # the tick's query runs the prediction inside the compiled plan (kernels.lwpr_plan,
+        # with θ and the EPC's check: kernels.plan_step): the models' fields packed there
+        # too; then the group's own kernel, the plan off
+        attr = "_lwpr_plan" if loop._plan_step is None else "_plan_step"
+        kernel = getattr(loop, attr)
+
+        def counting_plan(*args: Any, _kernel: Any = kernel) -> Any:
             fused_arrays.append(_arrays_in(args))
             return _kernel(*args)
 
-        loop._lwpr_plan = counting_plan
+        setattr(loop, attr, counting_plan)
         for k in range(50, 55):
             tick(k)
         # its own arrays (the state, points, filter, plan, x0 and the dead time's commands:
         # 15; the window shares the plan's buffer, the perturbation x0's, the dead time's
-        # matrices the plan's constants), not the models' ~40
+        # matrices the plan's constants), not the models' ~40; with θ and the check 9 more
+        # (the offset, θ, its columns and their buffer, the map, its widths, the input and
+        # its bounds: x0, the references, u_p and the perturbation are the plan's)
         assert fused_arrays
-        assert max(fused_arrays) <= 15, fused_arrays
-        loop._lwpr_plan = None
+        assert max(fused_arrays) <= (15 if attr == "_lwpr_plan" else 24), fused_arrays
+        loop._lwpr_plan = loop._plan_step = None
         for k in range(55, 57):
             tick(k)
     arrays: dict[str, list[int]] = {"update": [], "predict": []}
@@ -546,8 +552,10 @@ def test_the_stage_tool_times_every_stage_of_the_tick():
     report = measure(_CONFIG, 6, ("warm", "evict"))
     for mode in ("warm", "evict"):
         stages = report[mode]["stages_us"]
-        for name in ("position_tick", "reference", "pack_row", "epc.step", "epc.theta",
-                     "epc.query", "estimate_along", "attitude_target", "observe"):
+        # the compiled plan with θ and the check (kernels.plan_step), or its parts
+        fused = ("plan_step",) if "plan_step" in stages else ("estimate_along", "epc.theta")
+        for name in ("position_tick", "reference", "pack_row", "epc.step", "epc.query",
+                     "attitude_target", "observe", *fused):
             assert stages[name]["ticks"] == 6, (mode, name)
     assert "position_tick" in format_report(report)
 
@@ -656,6 +664,9 @@ def _captured_ticks(variant: str, position: Any, path: tuple[str, str] | None,
     if path is not None:
         loop.use_attitude_path(*path)
     controller: Any = loop.controller
+    # (what the EPC step is given is compared: θ stacked in the step, not in the plan's
+    # call, kernels.plan_step; test_a_hit_enters_compiled_code_once... compares the two)
+    controller._theta_check = None
     given: list[tuple[np.ndarray, ...]] = []
     real_step = controller.step
 
