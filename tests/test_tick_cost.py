@@ -600,9 +600,11 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
     """On the EPC's hit path θ and the last controller's KKT check are one compiled call
     (``kernels.theta_check``): the check's own entry (``apply_map``, a second machinery a
     cold tick paid for; issue 21) is not called. And LWPR's query, the filter's step, the
-    plan and x0 are one compiled call (``kernels.lwpr_plan``). The commands are the
-    separate calls' to the last bit: the same ticks flown with either fused call refused
-    (its old path) give the same sources, commands, quaternions and estimates."""
+    plan and x0 are one compiled call (``kernels.lwpr_plan``), and with θ and the check
+    the same call (``kernels.plan_step``: the controller's own θ entry, ``theta_compiled``,
+    not called). The commands are the separate calls' to the last bit: the same ticks
+    flown with θ's call refused (the plan and θ + check as two calls), or the plan refused
+    (its Python path), give the same sources, commands, quaternions and estimates."""
     from epc_offboard.control import kernels
     from epc_offboard.control.epc import maps
 
@@ -628,6 +630,15 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
                     return _real(*args)
 
                 monkeypatch.setattr(maps, "apply_map", counting)
+                stacked: list[int] = []
+                real_theta = controller.theta_compiled
+
+                def stacking(*args: Any, _real: Any = real_theta,
+                             _stacked: list[int] = stacked) -> Any:
+                    _stacked.append(1)
+                    return _real(*args)
+
+                monkeypatch.setattr(controller, "theta_compiled", stacking)
             if variant == "plan refused" and k >= 1:
                 loop._lwpr_plan = None  # (made with the plan at the first tick: refused)
             state, reference = _figure8_inputs(traj, loop, k)
@@ -643,6 +654,10 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
             assert not checks, f"apply_map called {len(checks)} times on {hits} hits"
         if variant == "fused":
             assert loop._lwpr_plan is not None
+            assert loop._plan_step is not None
+            assert not stacked, f"theta_compiled called {len(stacked)} times in 100 ticks"
+        else:
+            assert len(stacked) == 100
         runs[variant] = outs
     for variant in ("theta refused", "plan refused"):
         for k, (a, b) in enumerate(zip(runs["fused"], runs[variant], strict=True)):

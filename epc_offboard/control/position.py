@@ -915,8 +915,9 @@ class PositionLoop:
                                pos_x0, vel_x0, achieved, self._d_hat_last, age_s, d_hat,
                                filter_state, dead, self._u_p, self._refs_window,
                                self._x0_perturbation, sent, missing)  # fmt: skip
-                    check = controller.check_args()
-                    if check is not None and self._plan_step_for is controller:
+                    check = (controller.check_args() if self._plan_step_for is controller
+                             else None)  # fmt: skip
+                    if check is not None:
                         # and θ with the last controller's KKT check in the same call
                         # (kernels.plan_step: -2 the plan not made, else theta_check's)
                         made = self._plan_step(*planned, *check)
