@@ -49,10 +49,12 @@ _DT_S = 0.01  # the position loop's period
 # target's quaternion from its floats, the LWPR group's field counts read in C); then 54
 # and 108.5 on main e4a2479 (55 and 112.5 with PX4 quaternion's dead time); now 52.5 and
 # 108.5 (109.5): the reference window, the dead time's carry and E d_hat in the compiled
-# plan. The bounds leave room for a small change, not for the old cost (they fail on the
-# code before).
+# plan; then 53.5 and 108.5 (109.5) on main 06044f0; now 53.5 and 106.5 (107.5): θ and
+# the EPC's check in the plan's compiled call (kernels.plan_step; the controller's
+# check_args and checked in Python where its step and theta_compiled were). The bounds
+# leave room for a small change, not for the old cost (they fail on the code before).
 MAX_PYTHON_CALLS = 56
-MAX_C_CALLS = 116
+MAX_C_CALLS = 114
 
 
 def _state(
@@ -163,21 +165,27 @@ def test_the_estimators_kernels_unbox_few_arrays_a_call():
     fused = loop._lwpr_plan
     fused_arrays: list[int] = []
     if fused is not None:
-        # the tick's query runs the prediction inside the compiled plan (kernels.lwpr_plan):
-        # the models' fields packed there too; then the group's own kernel, the plan off
-        def counting_plan(*args: Any, _kernel: Any = fused) -> Any:
+        # the tick's query runs the prediction inside the compiled plan (kernels.lwpr_plan,
+        # with θ and the EPC's check: kernels.plan_step): the models' fields packed there
+        # too; then the group's own kernel, the plan off
+        attr = "_lwpr_plan" if loop._plan_step is None else "_plan_step"
+        kernel = getattr(loop, attr)
+
+        def counting_plan(*args: Any, _kernel: Any = kernel) -> Any:
             fused_arrays.append(_arrays_in(args))
             return _kernel(*args)
 
-        loop._lwpr_plan = counting_plan
+        setattr(loop, attr, counting_plan)
         for k in range(50, 55):
             tick(k)
         # its own arrays (the state, points, filter, plan, x0 and the dead time's commands:
         # 15; the window shares the plan's buffer, the perturbation x0's, the dead time's
-        # matrices the plan's constants), not the models' ~40
+        # matrices the plan's constants), not the models' ~40; with θ and the check 9 more
+        # (the offset, θ, its columns and their buffer, the map, its widths, the input and
+        # its bounds: x0, the references, u_p and the perturbation are the plan's)
         assert fused_arrays
-        assert max(fused_arrays) <= 15, fused_arrays
-        loop._lwpr_plan = None
+        assert max(fused_arrays) <= (15 if attr == "_lwpr_plan" else 24), fused_arrays
+        loop._lwpr_plan = loop._plan_step = None
         for k in range(55, 57):
             tick(k)
     arrays: dict[str, list[int]] = {"update": [], "predict": []}
@@ -546,8 +554,10 @@ def test_the_stage_tool_times_every_stage_of_the_tick():
     report = measure(_CONFIG, 6, ("warm", "evict"))
     for mode in ("warm", "evict"):
         stages = report[mode]["stages_us"]
-        for name in ("position_tick", "reference", "pack_row", "epc.step", "epc.theta",
-                     "epc.query", "estimate_along", "attitude_target", "observe"):
+        # the compiled plan with θ and the check (kernels.plan_step), or its parts
+        fused = ("plan_step",) if "plan_step" in stages else ("estimate_along", "epc.theta")
+        for name in ("position_tick", "reference", "pack_row", "epc.step", "epc.query",
+                     "attitude_target", "observe", *fused):
             assert stages[name]["ticks"] == 6, (mode, name)
     assert "position_tick" in format_report(report)
 
@@ -592,9 +602,11 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
     """On the EPC's hit path θ and the last controller's KKT check are one compiled call
     (``kernels.theta_check``): the check's own entry (``apply_map``, a second machinery a
     cold tick paid for; issue 21) is not called. And LWPR's query, the filter's step, the
-    plan and x0 are one compiled call (``kernels.lwpr_plan``). The commands are the
-    separate calls' to the last bit: the same ticks flown with either fused call refused
-    (its old path) give the same sources, commands, quaternions and estimates."""
+    plan and x0 are one compiled call (``kernels.lwpr_plan``), and with θ and the check
+    the same call (``kernels.plan_step``: the controller's own θ entry, ``theta_compiled``,
+    not called). The commands are the separate calls' to the last bit: the same ticks
+    flown with θ's call refused (the plan and θ + check as two calls), or the plan refused
+    (its Python path), give the same sources, commands, quaternions and estimates."""
     from epc_offboard.control import kernels
     from epc_offboard.control.epc import maps
 
@@ -620,6 +632,15 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
                     return _real(*args)
 
                 monkeypatch.setattr(maps, "apply_map", counting)
+                stacked: list[int] = []
+                real_theta = controller.theta_compiled
+
+                def stacking(*args: Any, _real: Any = real_theta,
+                             _stacked: list[int] = stacked) -> Any:
+                    _stacked.append(1)
+                    return _real(*args)
+
+                monkeypatch.setattr(controller, "theta_compiled", stacking)
             if variant == "plan refused" and k >= 1:
                 loop._lwpr_plan = None  # (made with the plan at the first tick: refused)
             state, reference = _figure8_inputs(traj, loop, k)
@@ -635,6 +656,10 @@ def test_a_hit_enters_compiled_code_once_for_theta_and_the_check(monkeypatch):
             assert not checks, f"apply_map called {len(checks)} times on {hits} hits"
         if variant == "fused":
             assert loop._lwpr_plan is not None
+            assert loop._plan_step is not None
+            assert not stacked, f"theta_compiled called {len(stacked)} times in 100 ticks"
+        else:
+            assert len(stacked) == 100
         runs[variant] = outs
     for variant in ("theta refused", "plan refused"):
         for k, (a, b) in enumerate(zip(runs["fused"], runs[variant], strict=True)):
@@ -656,6 +681,9 @@ def _captured_ticks(variant: str, position: Any, path: tuple[str, str] | None,
     if path is not None:
         loop.use_attitude_path(*path)
     controller: Any = loop.controller
+    # (what the EPC step is given is compared: θ stacked in the step, not in the plan's
+    # call, kernels.plan_step; test_a_hit_enters_compiled_code_once... compares the two)
+    controller._theta_check = None
     given: list[tuple[np.ndarray, ...]] = []
     real_step = controller.step
 

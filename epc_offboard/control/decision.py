@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy.typing as npt
 
@@ -70,6 +70,18 @@ class Controller(Protocol):
     ) -> FloatArray | None:
         """θ stacked by a compiled kernel where a controller has one and the arguments suit
         it, bit for bit :meth:`MpcProblem.theta`'s; None: ``problem.theta`` stacks it."""
+        return None
+
+    def check_args(self) -> tuple[Any, ...] | None:
+        """The arguments of a compiled θ stack with the last controller's check
+        (``kernels.theta_check``'s after x0, refs and u_p, the perturbation between its
+        first and second) where a controller has one; None: it has none (the caller calls
+        :meth:`step`)."""
+        return None
+
+    def checked(self, hit: int, check: tuple[Any, ...]) -> FloatArray | None:
+        """θ, once a compiled call with :meth:`check_args`' ``check`` stacked it and made
+        the check (``hit``: its answer); None: not stacked (the caller calls :meth:`step`)."""
         return None
 
     def theta_buffer(self) -> FloatArray | None:

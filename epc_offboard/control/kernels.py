@@ -591,3 +591,49 @@ def _compile_theta_check() -> Callable[..., int] | None:
 
 
 theta_check = _compile_theta_check()
+
+
+# -- the position tick's numerics up to the EPC query in one call -----------------------------
+
+
+def _plan_step_jit(vel: FloatArray, stages: FloatArray, origin_is_vel: bool, lead_base: int,
+                   lead_frac: float, ns: Any, packed: Any, packed_type: Any, z: FloatArray,
+                   raw: FloatArray, pos: FloatArray, vel0: FloatArray, achieved: FloatArray,
+                   d_last: FloatArray, age_s: float, d_hat: FloatArray, state: FloatArray,
+                   consts: FloatArray, u_p: FloatArray, refs: FloatArray, x0: FloatArray,
+                   sent: FloatArray, missing: int, c: FloatArray, theta_aug: FloatArray,
+                   cols: IntArray, theta_cols: FloatArray, M: FloatArray, width: FloatArray,
+                   n_check: int, u_out: FloatArray, u_min: FloatArray,
+                   u_max: FloatArray) -> int:
+    """:func:`lwpr_plan` (its seven stages, on its first 23 arguments), then
+    :func:`theta_check` on what it wrote (8. **θ**, stacked from ``x0[0:9]``, the plan's
+    references ``refs[:N]``, ``u_p`` and the model's offset ``c`` plus the perturbation
+    ``x0[9:18]``; 9. **the last controller's KKT check** at θ's columns, its input into
+    ``u_out``), in one compiled call: the position tick's numerics up to the library's
+    query entered once instead of twice (issue 21: each compiled entry is a machinery a
+    cold tick pays for). The same compiled functions in the same order: the same bits as
+    the two calls.
+
+    -2: the plan was not made (:func:`lwpr_plan`'s False: only the window, ``z`` and
+    ``raw`` written; θ not stacked); else :func:`theta_check`'s answer (-1: θ's shapes do
+    not fit, nothing of θ written; 0: θ stacked, the check failed or was not asked; 1: it
+    passed)."""
+    if not _lwpr(vel, stages, origin_is_vel, lead_base, lead_frac, ns, packed, packed_type, z,
+                 raw, pos, vel0, achieved, d_last, age_s, d_hat, state, consts, u_p, refs, x0,
+                 sent, missing):
+        return -2
+    n = refs.shape[0] // 2
+    return _check(x0[:9], refs[:n], u_p, c, x0[9:], theta_aug, cols, theta_cols, M, width,
+                  n_check, u_out, u_min, u_max)
+
+
+def _compile_plan_step() -> Callable[..., int] | None:
+    """The compiled plan and θ with the check (None where either is not compiled)."""
+    if lwpr_plan is None or theta_check is None:
+        return None
+    return jit.njit_cached(cast(Callable[..., int], _plan_step_jit))  # (the GIL kept: above)
+
+
+_lwpr = cast(Callable[..., bool], lwpr_plan)  # (called by plan_step where compiled)
+_check = cast(Callable[..., int], theta_check)
+plan_step = _compile_plan_step()

@@ -52,6 +52,7 @@ from epc_offboard.control.kernels import (
     disturbance_plan,
     filtered_plan,
     lwpr_plan,
+    plan_step,
     tilt_reach,
 )
 from epc_offboard.control.models import (
@@ -473,6 +474,10 @@ class PositionLoop:
         # made with the plan), its query points' and predictions' buffers
         self._lwpr_plan: Any = None
         self._lwpr_plan_for: object = None  # the LWPR model group it was made for
+        # the same with θ and the EPC's check (kernels.plan_step's entry point), and the
+        # controller it was made for
+        self._plan_step: Any = None
+        self._plan_step_for: object = None
         self._raw = np.zeros((cfg.horizon + 2, 3))
         # its constants with the dead time's (dead_time_constants), the window's lead, and
         # the predictor they are for
@@ -486,7 +491,7 @@ class PositionLoop:
         wrapped), or LWPR with the residual observer (its estimate joins LWPR's between
         the filter and the plan)."""
         estimator = self._plan_for = self.estimator
-        self._plan = self._lwpr_plan = self._dead_for = None
+        self._plan = self._lwpr_plan = self._dead_for = self._plan_step_for = None
         if (filtered_plan is not None and type(estimator) is LwprPerturbation
                 and self._residual is None):  # fmt: skip
             filt, n = estimator.filter, self.config.horizon
@@ -499,11 +504,17 @@ class PositionLoop:
             if lwpr_plan is not None and args is not None:
                 v3 = np.zeros(3)
                 self._lwpr_plan_for = args[3]
-                self._lwpr_plan = jit.entry_point(
-                    lwpr_plan, v3, np.zeros((n + 1, 9)), False, 0, 0.0, *args[:3],
-                    self._z_stages, self._raw, v3, v3, v3, v3, 0.0, np.empty(3), filt.state,
-                    consts, self._u_p, self._refs_window, self._x0_perturbation,
-                    np.zeros((1, 3)), 0)  # fmt: skip
+                planned = (v3, np.zeros((n + 1, 9)), False, 0, 0.0, *args[:3],
+                           self._z_stages, self._raw, v3, v3, v3, v3, 0.0, np.empty(3),
+                           filt.state, consts, self._u_p, self._refs_window,
+                           self._x0_perturbation, np.zeros((1, 3)), 0)  # fmt: skip
+                self._lwpr_plan = jit.entry_point(lwpr_plan, *planned)
+                # with θ and the controller's check (its arguments' types are the
+                # controller's: made for the one flown now, the tick checks it is)
+                check = None if self.controller is None else self.controller.check_args()
+                if plan_step is not None and check is not None:
+                    self._plan_step = jit.entry_point(plan_step, *planned, *check)
+                    self._plan_step_for = self.controller
         return self._plan
 
     def _dead_args(self, consts: FloatArray) -> tuple[FloatArray, int, float]:
@@ -850,6 +861,7 @@ class PositionLoop:
         age_s = state.position_age_s
         x0 = self._x0
         x0_made = False  # (the compiled LWPR plan wrote x0)
+        theta: FloatArray | None = None  # (and stacked θ, the controller's check made)
         d_max = self._d_max
         if not self._nominal_feedforward:
             # the QP's window starts where the command chosen now starts to act
@@ -898,11 +910,22 @@ class PositionLoop:
                     dead, lead_base, lead_frac = dead_args
                     sent, missing = dead_time.flight(state.time_s)
                     d_hat = np.empty(3)
-                    x0_made = fused(vel_est, stages, dead_time.dead_time_s > 0.0, lead_base,
-                                    lead_frac, args[0], args[1], args[2], z_stages, self._raw,
-                                    pos_x0, vel_x0, achieved, self._d_hat_last, age_s, d_hat,
-                                    filter_state, dead, self._u_p, self._refs_window,
-                                    self._x0_perturbation, sent, missing)  # fmt: skip
+                    planned = (vel_est, stages, dead_time.dead_time_s > 0.0, lead_base,
+                               lead_frac, args[0], args[1], args[2], z_stages, self._raw,
+                               pos_x0, vel_x0, achieved, self._d_hat_last, age_s, d_hat,
+                               filter_state, dead, self._u_p, self._refs_window,
+                               self._x0_perturbation, sent, missing)  # fmt: skip
+                    check = (controller.check_args() if self._plan_step_for is controller
+                             else None)  # fmt: skip
+                    if check is not None:
+                        # and θ with the last controller's KKT check in the same call
+                        # (kernels.plan_step: -2 the plan not made, else theta_check's)
+                        made = self._plan_step(*planned, *check)
+                        x0_made = made > -2
+                        if x0_made:
+                            theta = controller.checked(made, check)
+                    else:
+                        x0_made = fused(*planned)
             if not x0_made:  # (the compiled LWPR plan fills them itself)
                 # the QP's window starts where the command chosen now starts to act
                 refs = dead_time.window(stages, self.config.dt_s, self.config.horizon)
@@ -963,7 +986,10 @@ class PositionLoop:
             if dead_time.steps:
                 x0[:] = dead_time.ahead(x0, d_hat, state.time_s)
             perturbation = self._e_dist @ d_hat
-        decision: Decision = controller.step(x0, refs, u_p, perturbation=perturbation)
+        if theta is not None:  # (stacked and checked by the compiled plan: the step's rest)
+            decision: Decision = controller.decide(theta, t0)
+        else:
+            decision = controller.step(x0, refs, u_p, perturbation=perturbation)
         acc = self._limit_tilt(np.asarray(decision.u, dtype=np.float64))
         clipped_only = self._tilt_clipped_only
         ramped = self._entry_ramp(acc, achieved, state.time_s, learn, d_hat)

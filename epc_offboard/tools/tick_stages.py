@@ -141,23 +141,30 @@ def measure(config: Path, ticks: int, modes: tuple[str, ...] = MODES,
     # inside the tick: the estimator (learning, prediction), the EPC step (θ, the library
     # query, the rest of the decision), the attitude map
     stages.wrap(loop, "observe", "observe")
-    if loop._filtered_plan() is None:
-        stages.wrap(loop.estimator, "estimate_along", "estimate_along")
-    elif loop._lwpr_plan is not None:  # LWPR's prediction, its filter's step, the plan
-        stages.wrap(loop, "_lwpr_plan", "estimate_along")  # and x0: one compiled call
-    else:  # LWPR's prediction along the horizon; its filter's step is in the compiled plan
-        stages.wrap(loop.estimator, "predict_raw_many", "estimate_along")
     controller: Any = loop.controller
-    from epc_offboard.control import kernels
-    from epc_offboard.control.epc import controller as epc
-
-    if isinstance(controller, epc.ExperienceController) and kernels.stack_theta is not None:
-        stages.wrap(controller, "theta_compiled", "epc.theta")  # (the compiled stack, issue 21)
+    plan = loop._filtered_plan()
+    if plan is not None and loop._plan_step is not None:
+        # LWPR's prediction, its filter's step, the plan, x0, θ and the EPC's check of the
+        # last controller: one compiled call (kernels.plan_step); the EPC step's rest
+        stages.wrap(loop, "_plan_step", "plan_step")
+        stages.wrap(controller, "decide", "epc.step")
     else:
-        stages.wrap(controller.problem, "theta", "epc.theta")
+        if plan is None:
+            stages.wrap(loop.estimator, "estimate_along", "estimate_along")
+        elif loop._lwpr_plan is not None:  # LWPR's prediction, its filter's step, the plan
+            stages.wrap(loop, "_lwpr_plan", "estimate_along")  # and x0: one compiled call
+        else:  # LWPR's prediction along the horizon; its filter's step in the compiled plan
+            stages.wrap(loop.estimator, "predict_raw_many", "estimate_along")
+        from epc_offboard.control import kernels
+        from epc_offboard.control.epc import controller as epc
+
+        if isinstance(controller, epc.ExperienceController) and kernels.stack_theta is not None:
+            stages.wrap(controller, "theta_compiled", "epc.theta")  # (the compiled stack)
+        else:
+            stages.wrap(controller.problem, "theta", "epc.theta")
+        stages.wrap(controller, "step", "epc.step")
     if hasattr(controller, "library"):
         stages.wrap(controller.library, "query", "epc.query")
-    stages.wrap(controller, "step", "epc.step")
     stages.wrap(loop, "_attitude_target", "attitude_target")
     if fine:
         _wrap_fine(stages, loop)

@@ -195,21 +195,42 @@ class ExperienceController(LibraryExchange, Controller):
                 and perturbation.flags.c_contiguous):  # fmt: skip
             # the types its entry point was compiled for: θ and the last controller's
             # check (the query's first try) in one compiled call (issue 21)
-            p = self.problem
-            last = self.library.last
-            amap = None if last is None else last.map
-            M, width = self._no_map if amap is None else (amap.M, amap.width)
-            u = np.empty(p.nu)
-            hit = fused(x0, refs, u_p, p.model.c, perturbation, self._theta_aug,
-                        self.builder.geom.cols, self._theta_cols, M, width,
-                        -1 if amap is None else amap.n_check, u, p.u_min, p.u_max)
-            if hit < 0:
-                return None  # (arrays of another shape: problem.theta raises its error)
-            if amap is not None:
-                self._u_checked, self._last_hit = u, hit == 1
-        elif not stack_theta(x0, refs, u_p, self.problem.model.c, perturbation,
-                             self._theta_aug, self.builder.geom.cols, self._theta_cols):
+            check = self.check_args()
+            assert check is not None  # (made with the entry point)
+            return self.checked(fused(x0, refs, u_p, check[0], perturbation, *check[1:]),
+                                check)
+        if not stack_theta(x0, refs, u_p, self.problem.model.c, perturbation,
+                           self._theta_aug, self.builder.geom.cols, self._theta_cols):
             return None  # (arrays of another shape: problem.theta raises its error)
+        self._cols_stacked = True
+        return self._theta_aug[:-1]
+
+    def check_args(self) -> tuple[Any, ...] | None:
+        """What ``kernels.theta_check`` takes after x0, refs and u_p (the model's offset,
+        then after the perturbation: [θ; 1], the maps' columns and their buffer, the last
+        controller's map, its row count to check (-1: none), a new input buffer, the input
+        bounds), for a compiled call that stacks θ and checks the last controller
+        (``kernels.plan_step`` in the position tick); None: not compiled. Hand its answer
+        to :meth:`checked`."""
+        if self._theta_check is None:
+            return None
+        p = self.problem
+        last = self.library.last
+        amap = None if last is None else last.map
+        M, width = self._no_map if amap is None else (amap.M, amap.width)
+        return (p.model.c, self._theta_aug, self.builder.geom.cols, self._theta_cols, M,
+                width, -1 if amap is None else amap.n_check, np.empty(p.nu), p.u_min,
+                p.u_max)  # fmt: skip
+
+    def checked(self, hit: int, check: tuple[Any, ...]) -> FloatArray | None:
+        """θ as a compiled call with :meth:`check_args`' ``check`` stacked it, its check's
+        answer ``hit`` kept for :meth:`decide` (``kernels.theta_check``'s: 1 passed, its
+        input in the buffer; 0 failed or not asked; -1 shapes that do not fit, None: θ not
+        stacked, ``problem.theta`` raises its error)."""
+        if hit < 0:
+            return None
+        if check[6] >= 0:  # (a last controller was checked)
+            self._u_checked, self._last_hit = check[7], hit == 1
         self._cols_stacked = True
         return self._theta_aug[:-1]
 
