@@ -117,28 +117,62 @@ def test_lines_beyond_the_pipe_are_dropped_and_counted_then_the_rest_arrives():
     assert len(got) == handler.lines == 4000 - handler.dropped
 
 
-def test_a_dead_pump_leaves_lines_going_straight_to_stderr_never_waiting():
-    """The pump SIGKILLed: the next line is written to stderr directly (a non-blocking
-    open of the same pipe), with one warning saying so; a full stderr then drops lines,
-    counted, and the call still returns at once."""
+def _kill_pump(handler: PipeHandler) -> int:
+    """SIGKILL the pump (a real one), once it has written what it was sent; its pid."""
+    pid = handler.pid()
+    assert pid is not None
+    assert handler._proc is not None
+    time.sleep(0.5)  # the pump has written what went before
+    os.kill(pid, signal.SIGKILL)
+    handler._proc.wait(timeout=10)
+    return pid
+
+
+def test_a_dead_pump_is_restarted_at_most_n_times_a_minute_then_lines_go_direct():
+    """The pump SIGKILLed: the next line starts a new pump on a new pipe and goes through
+    it, the restart counted and said once. Past ``restarts_per_min`` in a minute the lines
+    go straight to stderr (said once), never waiting; every line arrives. Before, a dead
+    pump was never restarted: every later line went straight to stderr."""
     read_fd, write_fd = os.pipe()
-    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536)
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536, restarts_per_min=2)
+    handler.start()
+    log = _logger(handler, "test.logpipe.restart")
+    pids = []
+    for k in range(3):
+        log.info("line %d", k)
+        pids.append(_kill_pump(handler))
+    log.info("line 3")  # the third death: straight to stderr
+    log.info("last")
+    assert handler.restarts == 2
+    assert handler.pump_failed
+    handler.close()
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as fh:
+        lines = fh.read().decode().splitlines()
+    assert len(set(pids)) == 3  # lines 0-2 each through a pump of its own, then direct
+    assert [x for x in lines if x.startswith("line") or x == "last"] == [
+        "line 0", "line 1", "line 2", "line 3", "last"]  # fmt: skip
+    assert sum("died: restarted as process" in x for x in lines) == 1, lines
+    assert sum("is not restarted now" in x for x in lines) == 1, lines
+
+
+def test_a_dead_pump_leaves_lines_going_straight_to_stderr_never_waiting():
+    """The pump SIGKILLed, no restart allowed: the next line is written to stderr directly
+    (a non-blocking open of the same pipe), with one warning saying so; a full stderr then
+    drops lines, counted, and the call still returns at once."""
+    read_fd, write_fd = os.pipe()
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536, restarts_per_min=0)
     handler.start()
     log = _logger(handler, "test.logpipe.dead")
     log.info("before")
-    pid = handler.pid()
-    assert pid is not None
-    time.sleep(0.5)  # the pump has written "before"
-    os.kill(pid, signal.SIGKILL)
-    assert handler._proc is not None
-    handler._proc.wait(timeout=10)
+    _kill_pump(handler)
     log.info("after")  # EPIPE: straight to stderr
     assert handler.pump_failed
     os.set_blocking(read_fd, False)
     lines = os.read(read_fd, 1 << 16).decode().splitlines()
     assert lines[0] == "before"
     assert lines[-1] == "after"
-    assert sum("log pump (process" in line and "died" in line for line in lines) == 1, lines
+    assert sum("log pump (process" in line and "not restarted" in line for line in lines) == 1
     # nobody reads stderr now: lines fill it, then drop; no call waits
     t0 = time.perf_counter()
     for k in range(300):

@@ -20,9 +20,14 @@ pipe is enlarged to 1 MiB where permitted: seconds of logs wait in it while stde
 The pump ends at EOF, after writing every line the pipe held: when the service closes its
 end at exit (:meth:`PipeHandler.close`, from ``logging.shutdown``: it waits a bounded time
 for the pump), or dies (SIGKILL included). It ignores SIGTERM and SIGINT, which a stop sends
-to the whole group. If the pump dies, lines go straight to stderr, never blocking (a new
-non-blocking open of the same pipe or tty, ``MSG_DONTWAIT`` on a socket; a regular file as
-it is), dropped and counted when it is full; said once in a log line, and the loops fly on.
+to the whole group. If the pump dies (its pipe says EPIPE) a new one is started with a new
+pipe, and the line goes to it: at most ``_RESTARTS_PER_MIN`` restarts in any minute,
+counted (``restarts``), the first said in a log line. Beyond that, and while no pump can
+start, lines go straight to stderr, never blocking (a new non-blocking open of the same
+pipe or tty, ``MSG_DONTWAIT`` on a socket; a regular file as it is), dropped and counted
+when it is full; said once, and the loops fly on; a restart is tried again once the
+minute allows. A pump's start is a ``vfork`` and ``exec`` (the new interpreter comes up in
+the child): on the thread that logs, once per death.
 Before :func:`pipe_stderr` (the start-up, a config error) lines go to stderr as they always
 did. Lines of the helper processes still go to stderr directly: none of them runs the loops.
 """
@@ -42,6 +47,8 @@ import struct
 import subprocess
 import sys
 import termios
+import time
+from collections import deque
 from typing import Any
 
 PIPE_BUF = select.PIPE_BUF  # writes up to this size are atomic
@@ -52,6 +59,8 @@ _PIPE_BYTES = 1 << 20
 _F_SETPIPE_SZ = 1031  # <linux/fcntl.h>
 _NICE = 10
 _CLOSE_WAIT_S = 2.0  # at exit, the pump's time to write out what is queued (stderr may hold it)
+_RESTARTS_PER_MIN = 3  # a dead pump is restarted at most this often in any 60 s
+_RESTART_WINDOW_S = 60.0
 
 
 class DirectStderr:
@@ -110,17 +119,25 @@ class DirectStderr:
 class PipeHandler(logging.Handler):
     """Log lines formatted here and written to the pump's pipe, never blocking (module
     docstring). Counts: ``lines`` written to the pipe (or to stderr directly after the
-    pump's death), ``dropped`` lines lost to a full pipe or stderr."""
+    pump's death), ``dropped`` lines lost to a full pipe or stderr, ``restarts`` of a dead
+    pump (at most ``restarts_per_min`` in any minute); ``pump_failed``: lines go straight to
+    stderr now (no pump)."""
 
-    def __init__(self, stderr_fd: int = 2, pipe_bytes: int = _PIPE_BYTES) -> None:
+    def __init__(self, stderr_fd: int = 2, pipe_bytes: int = _PIPE_BYTES,
+                 restarts_per_min: int = _RESTARTS_PER_MIN) -> None:  # fmt: skip
         super().__init__()
         self._stderr_fd = stderr_fd
         self._pipe_bytes = pipe_bytes
+        self._restarts_per_min = restarts_per_min
         self._proc: subprocess.Popen[bytes] | None = None
+        self._dead: list[subprocess.Popen[bytes]] = []  # pumps that died, until reaped
         self._fd: int | None = None  # the pipe's writing end (non-blocking)
         self._direct: DirectStderr | None = None
+        self._restarted_s: deque[float] = deque()  # the restarts' times (monotonic), last 60 s
+        self._said: set[str] = set()  # the pump's fate, said once each
         self.lines = 0
         self.dropped = 0
+        self.restarts = 0
         self.pump_failed = False
 
     def start(self) -> None:
@@ -164,6 +181,8 @@ class PipeHandler(logging.Handler):
 
     def _write(self, data: bytes) -> bool:
         fd = self._fd
+        if fd is None and self.pump_failed:  # a later minute may allow a restart
+            fd = self._restart()
         if fd is None:
             return self._write_direct(data)
         last = len(data) - 1
@@ -174,9 +193,9 @@ class PipeHandler(logging.Handler):
                 os.write(fd, _CHUNK.pack(len(piece), flags) + piece)
             except BlockingIOError:  # the pump fell behind: drop (a cut line: whole)
                 return False
-            except OSError:  # EPIPE: the pump is gone
+            except OSError:  # EPIPE: the pump is gone (a line it cut is dropped whole)
                 self._pump_died()
-                return self._write_direct(data)
+                return self._write(data) if self._fd is not None else self._write_direct(data)
         return True
 
     def _write_direct(self, data: bytes) -> bool:
@@ -188,20 +207,55 @@ class PipeHandler(logging.Handler):
         return self._direct.write(data)
 
     def _pump_died(self) -> None:
+        """The pump is gone: a new one started if the minute allows (``_restart``), else
+        lines go straight to stderr (``pump_failed``)."""
         assert self._fd is not None
         os.close(self._fd)
         self._fd = None
-        self.pump_failed = True
-        if self._proc is not None:
-            self._proc.poll()
         pid = self.pid()
-        # formatted as every line is, written straight to stderr (the pump is gone)
-        line = logging.LogRecord(
-            "epc_offboard.service", logging.WARNING, __file__, 0,
-            "log pump (process %s) died: log lines go straight to stderr now, never waiting "
-            "for it (dropped and counted when it is full); flying on", (pid,), None,
-        )  # fmt: skip
-        self._write_direct((self.format(line) + "\n").encode("utf-8", "backslashreplace"))
+        if self._proc is not None:
+            self._dead.append(self._proc)
+            self._proc = None
+        self._dead = [p for p in self._dead if p.poll() is None]  # the dead ones reaped
+        self.pump_failed = True
+        if self._restart() is not None:
+            self._say("restarted", "log pump (process %s) died: restarted as process %s (at "
+                      "most %d restarts a minute, counted; said once)",
+                      pid, self.pid(), self._restarts_per_min)  # fmt: skip
+        else:
+            self._say("direct", "log pump (process %s) died and is not restarted now (%d "
+                      "restarts in the last minute): log lines go straight to stderr, never "
+                      "waiting for it (dropped and counted when it is full); flying on",
+                      pid, len(self._restarted_s))  # fmt: skip
+
+    def _restart(self) -> int | None:
+        """A new pump and pipe if fewer than ``restarts_per_min`` started in the last
+        minute (counted); the new pipe's end, or None (lines stay direct)."""
+        now = time.monotonic()
+        while self._restarted_s and now - self._restarted_s[0] >= _RESTART_WINDOW_S:
+            self._restarted_s.popleft()
+        if len(self._restarted_s) >= self._restarts_per_min:
+            return None
+        self._restarted_s.append(now)  # a start that fails counts against the minute too
+        try:
+            self.start()
+        except OSError:
+            return None
+        self.restarts += 1
+        self.pump_failed = False
+        return self._fd
+
+    def _say(self, key: str, msg: str, *args: object) -> None:
+        """One line about the pump's fate, once per ``key``, formatted as every line is:
+        through the new pump, or straight to stderr when there is none."""
+        if key in self._said:
+            return
+        self._said.add(key)
+        line = logging.LogRecord("epc_offboard.service", logging.WARNING, __file__, 0, msg,
+                                 args, None)  # fmt: skip
+        data = (self.format(line) + "\n").encode("utf-8", "backslashreplace")
+        if self._fd is None or not self._write(data):
+            self._write_direct(data)
 
     def queued_bytes(self) -> int | None:
         """Bytes waiting in the pipe for the pump (FIONREAD on the writing end)."""
@@ -224,6 +278,8 @@ class PipeHandler(logging.Handler):
             if self._proc is not None:
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     self._proc.wait(_CLOSE_WAIT_S)
+            for dead in self._dead:
+                dead.poll()
             if self._direct is not None:
                 self._direct.close()
                 self._direct = None
@@ -270,6 +326,7 @@ def stats(handler: PipeHandler | None) -> dict[str, Any]:
         return {}
     return process_report(handler.pid(), queued_bytes=handler.queued_bytes(),
                           lines=handler.lines, dropped=handler.dropped,
+                          restarts=handler.restarts,
                           pump_failed=handler.pump_failed)  # fmt: skip
 
 
