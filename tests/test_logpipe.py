@@ -228,3 +228,51 @@ def test_pipe_stderr_takes_the_root_loggers_stream_and_pythons_warnings(tmp_path
     assert lines[1]["logger"] == "py.warnings"
     assert "careful" in lines[1]["msg"]
     assert pump_pid != 0
+
+
+def test_a_helper_whose_stderr_is_held_logs_without_waiting_and_works_on(tmp_path):
+    """A helper process (here the store writer, a real spawned one) whose stderr nobody
+    reads (journald held): each failed save's error line is dropped, never waited for, and
+    the saves go on. Before, the first line blocked the helper in its write for good."""
+    import contextlib
+    import multiprocessing
+
+    import numpy as np
+
+    from epc_offboard.common.channel import write_frame
+    from epc_offboard.common.children import spawn_fed
+    from epc_offboard.common.logsetup import LogConfig
+    from epc_offboard.store.process import ERRORS, store_main
+
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    with contextlib.suppress(BlockingIOError):  # stderr full: nobody reads it
+        while True:
+            os.write(write_fd, b"x" * 4096)
+    os.set_blocking(write_fd, True)
+    slots = multiprocessing.get_context("spawn").RawArray("q", 2)
+    counts = np.frombuffer(slots, dtype=np.int64)
+    saved_fd = os.dup(2)
+    os.dup2(write_fd, 2)  # the helper's stderr, inherited at its start
+    try:
+        proc, conn = spawn_fed(store_main, "epc-store", str(tmp_path / "lib.db"), slots,
+                               LogConfig())  # fmt: skip
+    finally:
+        os.dup2(saved_fd, 2)
+        os.close(saved_fd)
+        os.close(write_fd)
+    try:
+        for _ in range(50):  # each one fails to save and logs an error line
+            write_frame(conn.fileno(), "not a snapshot")
+        t0 = time.monotonic()
+        while counts[ERRORS] < 50 and time.monotonic() - t0 < 60.0:
+            time.sleep(0.05)
+        assert counts[ERRORS] == 50  # every save tried, none held by stderr
+        conn.close()  # EOF: the helper ends
+        proc.join(30.0)
+        assert proc.exitcode == 0
+    finally:
+        if proc.is_alive():
+            proc.kill()
+            proc.join(10.0)
+        os.close(read_fd)

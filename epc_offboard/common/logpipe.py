@@ -29,7 +29,10 @@ when it is full; said once, and the loops fly on; a restart is tried again once 
 minute allows. A pump's start is a ``vfork`` and ``exec`` (the new interpreter comes up in
 the child): on the thread that logs, once per death.
 Before :func:`pipe_stderr` (the start-up, a config error) lines go to stderr as they always
-did. Lines of the helper processes still go to stderr directly: none of them runs the loops.
+did. The helper processes (fleet helper, miss worker, store and log writers) write their
+lines straight to stderr through :class:`DirectHandler` (:func:`direct_stderr`): never
+blocking, a line whole or dropped and counted, so a stderr held by journald stalls none of
+their work (the fleet helper's session, the miss worker's solves) either.
 """
 
 from __future__ import annotations
@@ -114,6 +117,46 @@ class DirectStderr:
         if self._own_fd is not None:
             os.close(self._own_fd)
             self._own_fd = None
+
+
+class DirectHandler(logging.Handler):
+    """A helper process's log lines written to stderr with :class:`DirectStderr`: never
+    waiting, a line whole or dropped (``dropped``; ``lines`` written)."""
+
+    def __init__(self, stderr_fd: int = 2) -> None:
+        super().__init__()
+        self._stderr_fd = stderr_fd
+        self._direct: DirectStderr | None = None
+        self.lines = 0
+        self.dropped = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            data = (self.format(record) + "\n").encode("utf-8", "backslashreplace")
+            if self._direct is None:
+                self._direct = DirectStderr(self._stderr_fd)
+        except RecursionError:
+            raise
+        except Exception:  # unformattable, or no stderr at all: dropped, counted
+            self.dropped += 1
+            return
+        if self._direct.write(data):
+            self.lines += 1
+        else:
+            self.dropped += 1
+
+    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 (logging's name)
+        self.dropped += 1  # logging's default prints to stderr, a blocking write
+
+    def close(self) -> None:
+        self.acquire()
+        try:
+            if self._direct is not None:
+                self._direct.close()
+                self._direct = None
+        finally:
+            self.release()
+        super().close()
 
 
 class PipeHandler(logging.Handler):
@@ -309,6 +352,26 @@ def pipe_stderr() -> PipeHandler | None:
     root.addHandler(handler)
     # Python's warnings (a numpy RuntimeWarning in a tick) are printed to stderr by
     # ``warnings.showwarning``, a blocking write: through the pump too, once per place
+    logging.captureWarnings(True)
+    return handler
+
+
+def direct_stderr(level: int | None = None) -> DirectHandler:
+    """A helper process's root logger writes to stderr without ever blocking: its stderr
+    handlers (``setup_logging``'s) replaced by a :class:`DirectHandler` with their
+    formatter (none: the human format, and ``level``, for a process that set up no
+    logging), Python's warnings through it too."""
+    from epc_offboard.common.logsetup import HUMAN_FORMAT
+
+    root = logging.getLogger()
+    handler = DirectHandler()
+    old = [h for h in root.handlers if isinstance(h, logging.StreamHandler)]
+    handler.setFormatter(old[0].formatter if old else logging.Formatter(HUMAN_FORMAT))
+    for h in old:
+        root.removeHandler(h)
+    root.addHandler(handler)
+    if level is not None:
+        root.setLevel(level)
     logging.captureWarnings(True)
     return handler
 

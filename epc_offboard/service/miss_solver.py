@@ -62,6 +62,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar, cast
 
 import numpy as np
 
+from epc_offboard.common import logpipe
 from epc_offboard.common.channel import (
     ChannelClosedError,
     FrameInbox,
@@ -174,6 +175,7 @@ def _worker_main(requests: Connection, parent_pid: int, replies: Connection) -> 
     ``(seq, ok, value or the error)``; ends at the requests' EOF or when its answer finds
     the replies' pipe closed (the service stopping)."""
     die_with_parent(parent_pid)  # no 168 MB orphan when the service is SIGKILLed
+    logpipe.direct_stderr()  # its warnings: a held stderr (journald) holds no solve
     out = replies.fileno()
     with contextlib.suppress(ChannelClosedError):
         for seq, fn, args in read_frames(requests.fileno()):
