@@ -5,6 +5,7 @@ waiting."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -234,7 +235,6 @@ def test_a_helper_whose_stderr_is_held_logs_without_waiting_and_works_on(tmp_pat
     """A helper process (here the store writer, a real spawned one) whose stderr nobody
     reads (journald held): each failed save's error line is dropped, never waited for, and
     the saves go on. Before, the first line blocked the helper in its write for good."""
-    import contextlib
     import multiprocessing
 
     import numpy as np
@@ -276,3 +276,34 @@ def test_a_helper_whose_stderr_is_held_logs_without_waiting_and_works_on(tmp_pat
             proc.kill()
             proc.join(10.0)
         os.close(read_fd)
+
+
+def test_close_waits_for_a_held_pump_only_until_the_stops_deadline():
+    """At exit the handler waits for the pump to write out what is queued, but not past
+    ``close_by``'s deadline (the service's stop bound): with stderr held full the pump
+    cannot finish, and close returns at the deadline, not after its own 2 s. The pump
+    ends by itself once stderr is read again (EOF), every line written."""
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    filled = 0
+    with contextlib.suppress(BlockingIOError):  # stderr full: nobody reads it
+        while True:
+            filled += os.write(write_fd, b"#" * 4095 + b"\n")
+    os.set_blocking(write_fd, True)
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536)
+    handler.start()
+    os.close(write_fd)
+    log = _logger(handler, "test.logpipe.close_by")
+    log.warning("queued behind a held stderr")
+    proc = handler._proc
+    assert proc is not None
+    handler.close_by(time.monotonic() + 0.2)
+    t0 = time.monotonic()
+    handler.close()
+    took_s = time.monotonic() - t0
+    assert took_s < 1.5, took_s  # the deadline (load 6); on its own the wait was 2 s
+    assert proc.poll() is None  # the pump is still held, writing after we are gone
+    with os.fdopen(read_fd, "rb") as fh:  # stderr read again: the pump ends at EOF
+        data = fh.read()
+    assert proc.wait(timeout=30) == 0
+    assert data[filled:].decode().splitlines() == ["queued behind a held stderr"]

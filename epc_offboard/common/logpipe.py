@@ -19,7 +19,8 @@ pipe is enlarged to 1 MiB where permitted: seconds of logs wait in it while stde
 
 The pump ends at EOF, after writing every line the pipe held: when the service closes its
 end at exit (:meth:`PipeHandler.close`, from ``logging.shutdown``: it waits a bounded time
-for the pump), or dies (SIGKILL included). It ignores SIGTERM and SIGINT, which a stop sends
+for the pump, no later than :meth:`PipeHandler.close_by`'s deadline, the stop's), or dies
+(SIGKILL included). It ignores SIGTERM and SIGINT, which a stop sends
 to the whole group. If the pump dies (its pipe says EPIPE) a new one is started with a new
 pipe, and the line goes to it: at most ``_RESTARTS_PER_MIN`` restarts in any minute,
 counted (``restarts``), the first said in a log line. Beyond that, and while no pump can
@@ -41,6 +42,7 @@ import contextlib
 import errno
 import fcntl
 import logging
+import math
 import os
 import select
 import signal
@@ -178,6 +180,7 @@ class PipeHandler(logging.Handler):
         self._direct: DirectStderr | None = None
         self._restarted_s: deque[float] = deque()  # the restarts' times (monotonic), last 60 s
         self._said: set[str] = set()  # the pump's fate, said once each
+        self._close_by_s = math.inf  # close() waits for the pump until then at the latest
         self.lines = 0
         self.dropped = 0
         self.restarts = 0
@@ -309,18 +312,25 @@ class PipeHandler(logging.Handler):
             return int(struct.unpack("i", raw)[0])
         return None
 
+    def close_by(self, deadline_s: float) -> None:
+        """:meth:`close` waits for the pump until ``deadline_s`` (``time.monotonic``) at the
+        latest: the service's stop ends within its bound however long stderr holds the pump."""
+        self._close_by_s = deadline_s
+
     def close(self) -> None:
         """At exit (``logging.shutdown``): EOF to the pump, which writes out every line the
-        pipe holds; waited for at most ``_CLOSE_WAIT_S`` (a stderr that blocks keeps it
-        writing after we are gone)."""
+        pipe holds; waited for at most ``_CLOSE_WAIT_S``, and not past :meth:`close_by`'s
+        deadline (a stderr that blocks keeps it writing after we are gone: it ignores the
+        stop's SIGTERM and ends at EOF)."""
         self.acquire()
         try:
             fd, self._fd = self._fd, None
             if fd is not None:
                 os.close(fd)
+            wait_s = max(0.0, min(_CLOSE_WAIT_S, self._close_by_s - time.monotonic()))
             if self._proc is not None:
                 with contextlib.suppress(subprocess.TimeoutExpired):
-                    self._proc.wait(_CLOSE_WAIT_S)
+                    self._proc.wait(wait_s)
             for dead in self._dead:
                 dead.poll()
             if self._direct is not None:
