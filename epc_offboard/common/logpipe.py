@@ -135,20 +135,31 @@ class DirectHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         try:
             data = (self.format(record) + "\n").encode("utf-8", "backslashreplace")
-            if self._direct is None:
-                self._direct = DirectStderr(self._stderr_fd)
         except RecursionError:
             raise
-        except Exception:  # unformattable, or no stderr at all: dropped, counted
-            self.dropped += 1
+        except Exception:
+            self.handleError(record)
             return
-        if self._direct.write(data):
+        if self._write(data):
             self.lines += 1
         else:
             self.dropped += 1
 
     def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 (logging's name)
-        self.dropped += 1  # logging's default prints to stderr, a blocking write
+        """A line that could not be formatted is dropped and counted: logging's default
+        prints a traceback to stderr, a blocking write."""
+        self.dropped += 1
+
+    def _write(self, data: bytes) -> bool:
+        return self._write_direct(data)
+
+    def _write_direct(self, data: bytes) -> bool:
+        if self._direct is None:
+            try:
+                self._direct = DirectStderr(self._stderr_fd)
+            except OSError:  # no stderr at all (closed): the line is dropped, counted
+                return False
+        return self._direct.write(data)
 
     def close(self) -> None:
         self.acquire()
@@ -161,7 +172,7 @@ class DirectHandler(logging.Handler):
         super().close()
 
 
-class PipeHandler(logging.Handler):
+class PipeHandler(DirectHandler):
     """Log lines formatted here and written to the pump's pipe, never blocking (module
     docstring). Counts: ``lines`` written to the pipe (or to stderr directly after the
     pump's death), ``dropped`` lines lost to a full pipe or stderr, ``restarts`` of a dead
@@ -170,19 +181,15 @@ class PipeHandler(logging.Handler):
 
     def __init__(self, stderr_fd: int = 2, pipe_bytes: int = _PIPE_BYTES,
                  restarts_per_min: int = _RESTARTS_PER_MIN) -> None:  # fmt: skip
-        super().__init__()
-        self._stderr_fd = stderr_fd
+        super().__init__(stderr_fd)
         self._pipe_bytes = pipe_bytes
         self._restarts_per_min = restarts_per_min
         self._proc: subprocess.Popen[bytes] | None = None
         self._dead: list[subprocess.Popen[bytes]] = []  # pumps that died, until reaped
         self._fd: int | None = None  # the pipe's writing end (non-blocking)
-        self._direct: DirectStderr | None = None
         self._restarted_s: deque[float] = deque()  # the restarts' times (monotonic), last 60 s
         self._said: set[str] = set()  # the pump's fate, said once each
         self._close_by_s = math.inf  # close() waits for the pump until then at the latest
-        self.lines = 0
-        self.dropped = 0
         self.restarts = 0
         self.pump_failed = False
 
@@ -207,24 +214,6 @@ class PipeHandler(logging.Handler):
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None
 
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            data = (self.format(record) + "\n").encode("utf-8", "backslashreplace")
-        except RecursionError:
-            raise
-        except Exception:
-            self.handleError(record)
-            return
-        if self._write(data):
-            self.lines += 1
-        else:
-            self.dropped += 1
-
-    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 (logging's name)
-        """A line that could not be formatted is dropped and counted: logging's default
-        prints a traceback to stderr, a blocking write."""
-        self.dropped += 1
-
     def _write(self, data: bytes) -> bool:
         fd = self._fd
         if fd is None and self.pump_failed:  # a later minute may allow a restart
@@ -243,14 +232,6 @@ class PipeHandler(logging.Handler):
                 self._pump_died()
                 return self._write(data) if self._fd is not None else self._write_direct(data)
         return True
-
-    def _write_direct(self, data: bytes) -> bool:
-        if self._direct is None:
-            try:
-                self._direct = DirectStderr(self._stderr_fd)
-            except OSError:  # no stderr at all (closed): the line is dropped, counted
-                return False
-        return self._direct.write(data)
 
     def _pump_died(self) -> None:
         """The pump is gone: a new one started if the minute allows (``_restart``), else
@@ -333,12 +314,9 @@ class PipeHandler(logging.Handler):
                     self._proc.wait(wait_s)
             for dead in self._dead:
                 dead.poll()
-            if self._direct is not None:
-                self._direct.close()
-                self._direct = None
         finally:
             self.release()
-        super().close()
+        super().close()  # the direct stderr, if the pump's death opened it
 
 
 def pipe_stderr() -> PipeHandler | None:
