@@ -90,13 +90,13 @@ _Subparsers: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
 
 def _add_sim(sub: _Subparsers) -> None:
-    from epc_offboard.tools.sim.scenario import SCENARIO_DIR
+    from epc_offboard.common.bundled import scenario_dir
 
     fmt = _HelpFormatter
     sim = sub.add_parser(
         "sim", help="fly the bundled SITL with the service and report", formatter_class=fmt
     )
-    scenarios = ", ".join(sorted(p.stem for p in SCENARIO_DIR.glob("*.toml")))
+    scenarios = ", ".join(sorted(p.stem for p in scenario_dir().glob("*.toml")))
     sim.add_argument(
         "--scenario", default="hover", metavar="NAME",
         help=f"one of {scenarios} (config/scenarios/NAME.toml), or a path to a scenario TOML",

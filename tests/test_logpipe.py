@@ -5,6 +5,7 @@ waiting."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -117,28 +118,62 @@ def test_lines_beyond_the_pipe_are_dropped_and_counted_then_the_rest_arrives():
     assert len(got) == handler.lines == 4000 - handler.dropped
 
 
-def test_a_dead_pump_leaves_lines_going_straight_to_stderr_never_waiting():
-    """The pump SIGKILLed: the next line is written to stderr directly (a non-blocking
-    open of the same pipe), with one warning saying so; a full stderr then drops lines,
-    counted, and the call still returns at once."""
+def _kill_pump(handler: PipeHandler) -> int:
+    """SIGKILL the pump (a real one), once it has written what it was sent; its pid."""
+    pid = handler.pid()
+    assert pid is not None
+    assert handler._proc is not None
+    time.sleep(0.5)  # the pump has written what went before
+    os.kill(pid, signal.SIGKILL)
+    handler._proc.wait(timeout=10)
+    return pid
+
+
+def test_a_dead_pump_is_restarted_at_most_n_times_a_minute_then_lines_go_direct():
+    """The pump SIGKILLed: the next line starts a new pump on a new pipe and goes through
+    it, the restart counted and said once. Past ``restarts_per_min`` in a minute the lines
+    go straight to stderr (said once), never waiting; every line arrives. Before, a dead
+    pump was never restarted: every later line went straight to stderr."""
     read_fd, write_fd = os.pipe()
-    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536)
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536, restarts_per_min=2)
+    handler.start()
+    log = _logger(handler, "test.logpipe.restart")
+    pids = []
+    for k in range(3):
+        log.info("line %d", k)
+        pids.append(_kill_pump(handler))
+    log.info("line 3")  # the third death: straight to stderr
+    log.info("last")
+    assert handler.restarts == 2
+    assert handler.pump_failed
+    handler.close()
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as fh:
+        lines = fh.read().decode().splitlines()
+    assert len(set(pids)) == 3  # lines 0-2 each through a pump of its own, then direct
+    assert [x for x in lines if x.startswith("line") or x == "last"] == [
+        "line 0", "line 1", "line 2", "line 3", "last"]  # fmt: skip
+    assert sum("died: restarted as process" in x for x in lines) == 1, lines
+    assert sum("is not restarted now" in x for x in lines) == 1, lines
+
+
+def test_a_dead_pump_leaves_lines_going_straight_to_stderr_never_waiting():
+    """The pump SIGKILLed, no restart allowed: the next line is written to stderr directly
+    (a non-blocking open of the same pipe), with one warning saying so; a full stderr then
+    drops lines, counted, and the call still returns at once."""
+    read_fd, write_fd = os.pipe()
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536, restarts_per_min=0)
     handler.start()
     log = _logger(handler, "test.logpipe.dead")
     log.info("before")
-    pid = handler.pid()
-    assert pid is not None
-    time.sleep(0.5)  # the pump has written "before"
-    os.kill(pid, signal.SIGKILL)
-    assert handler._proc is not None
-    handler._proc.wait(timeout=10)
+    _kill_pump(handler)
     log.info("after")  # EPIPE: straight to stderr
     assert handler.pump_failed
     os.set_blocking(read_fd, False)
     lines = os.read(read_fd, 1 << 16).decode().splitlines()
     assert lines[0] == "before"
     assert lines[-1] == "after"
-    assert sum("log pump (process" in line and "died" in line for line in lines) == 1, lines
+    assert sum("log pump (process" in line and "not restarted" in line for line in lines) == 1
     # nobody reads stderr now: lines fill it, then drop; no call waits
     t0 = time.perf_counter()
     for k in range(300):
@@ -194,3 +229,81 @@ def test_pipe_stderr_takes_the_root_loggers_stream_and_pythons_warnings(tmp_path
     assert lines[1]["logger"] == "py.warnings"
     assert "careful" in lines[1]["msg"]
     assert pump_pid != 0
+
+
+def test_a_helper_whose_stderr_is_held_logs_without_waiting_and_works_on(tmp_path):
+    """A helper process (here the store writer, a real spawned one) whose stderr nobody
+    reads (journald held): each failed save's error line is dropped, never waited for, and
+    the saves go on. Before, the first line blocked the helper in its write for good."""
+    import multiprocessing
+
+    import numpy as np
+
+    from epc_offboard.common.channel import write_frame
+    from epc_offboard.common.children import spawn_fed
+    from epc_offboard.common.logsetup import LogConfig
+    from epc_offboard.store.process import ERRORS, store_main
+
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    with contextlib.suppress(BlockingIOError):  # stderr full: nobody reads it
+        while True:
+            os.write(write_fd, b"x" * 4096)
+    os.set_blocking(write_fd, True)
+    slots = multiprocessing.get_context("spawn").RawArray("q", 2)
+    counts = np.frombuffer(slots, dtype=np.int64)
+    saved_fd = os.dup(2)
+    os.dup2(write_fd, 2)  # the helper's stderr, inherited at its start
+    try:
+        proc, conn = spawn_fed(store_main, "epc-store", str(tmp_path / "lib.db"), slots,
+                               LogConfig())  # fmt: skip
+    finally:
+        os.dup2(saved_fd, 2)
+        os.close(saved_fd)
+        os.close(write_fd)
+    try:
+        for _ in range(50):  # each one fails to save and logs an error line
+            write_frame(conn.fileno(), "not a snapshot")
+        t0 = time.monotonic()
+        while counts[ERRORS] < 50 and time.monotonic() - t0 < 60.0:
+            time.sleep(0.05)
+        assert counts[ERRORS] == 50  # every save tried, none held by stderr
+        conn.close()  # EOF: the helper ends
+        proc.join(30.0)
+        assert proc.exitcode == 0
+    finally:
+        if proc.is_alive():
+            proc.kill()
+            proc.join(10.0)
+        os.close(read_fd)
+
+
+def test_close_waits_for_a_held_pump_only_until_the_stops_deadline():
+    """At exit the handler waits for the pump to write out what is queued, but not past
+    ``close_by``'s deadline (the service's stop bound): with stderr held full the pump
+    cannot finish, and close returns at the deadline, not after its own 2 s. The pump
+    ends by itself once stderr is read again (EOF), every line written."""
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    filled = 0
+    with contextlib.suppress(BlockingIOError):  # stderr full: nobody reads it
+        while True:
+            filled += os.write(write_fd, b"#" * 4095 + b"\n")
+    os.set_blocking(write_fd, True)
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536)
+    handler.start()
+    os.close(write_fd)
+    log = _logger(handler, "test.logpipe.close_by")
+    log.warning("queued behind a held stderr")
+    proc = handler._proc
+    assert proc is not None
+    handler.close_by(time.monotonic() + 0.2)
+    t0 = time.monotonic()
+    handler.close()
+    took_s = time.monotonic() - t0
+    assert took_s < 1.5, took_s  # the deadline (load 6); on its own the wait was 2 s
+    assert proc.poll() is None  # the pump is still held, writing after we are gone
+    with os.fdopen(read_fd, "rb") as fh:  # stderr read again: the pump ends at EOF
+        data = fh.read()
+    assert proc.wait(timeout=30) == 0
+    assert data[filled:].decode().splitlines() == ["queued behind a held stderr"]

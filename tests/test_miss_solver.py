@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -391,3 +393,70 @@ def test_a_wedged_worker_is_restarted_and_solves_again():
         assert ctrl.step(x0, refs).source == "hit"
     finally:
         solver.close()
+
+
+STOPPED_SLICE = """
+import os, signal, time
+from epc_offboard.control.epc.candidates import CandidatePool
+from epc_offboard.control.epc.maps import MapBuilder
+from epc_offboard.service.miss_solver import _Worker
+from tests.mpc_cases import position_problem
+
+class StoppedOnce(MapBuilder):  # the worker preempted in its slice: a real SIGSTOP
+    stopped = False
+    def build(self, active):
+        if not self.stopped:
+            self.stopped = True
+            os.kill(os.getpid(), signal.SIGSTOP)
+        return super().build(active)
+
+problem = position_problem(8)
+rows = range(problem.n_con)
+sets = [(i,) for i in rows] + [(i, j) for i in rows for j in rows if i < j]
+budget_s = {budget_s}
+for part in ("pool", "wanted"):
+    builder = StoppedOnce(problem, 1e-6)
+    pool = CandidatePool(len(sets), len(sets), len(sets), len(sets))
+    for s in sets:
+        pool.offer(s, "peer")
+    cpu0 = time.thread_time()
+    if part == "pool":
+        built = pool.build(builder.build, budget_s)
+    else:
+        built = len(_Worker(builder, None, pool).build_maps(sets, budget_s))
+    print(part, built, len(sets), time.thread_time() - cpu0, flush=True)
+"""
+
+
+def test_a_slice_stopped_or_starved_still_builds_its_cpu_share():
+    """The candidate slice (``sharing.candidate_slice_s``) is the worker's CPU time, as its
+    docs say: a worker SIGSTOPped (or starved by a CPU hog) in its slice builds maps until
+    the slice's CPU is spent, not only the one in hand. On the wall clock (perf_counter)
+    the stop ended the slice after that one map."""
+    budget_s = 0.02
+    proc = subprocess.Popen([sys.executable, "-c", STOPPED_SLICE.format(budget_s=budget_s)],
+                            stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        for _ in range(2):  # each part stops once, in its first map: held 0.3 s
+            t0 = time.monotonic()
+            while _proc_state(proc.pid) != "T":
+                assert proc.poll() is None
+                assert time.monotonic() - t0 < 120.0
+                time.sleep(0.01)
+            time.sleep(0.3)
+            os.kill(proc.pid, signal.SIGCONT)
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0
+    assert [line.split()[0] for line in out.splitlines()] == ["pool", "wanted"]
+    for line in out.splitlines():
+        _, built, offered, cpu_s = line.split()
+        # its share: until the budget's CPU is spent (or every map built)
+        assert int(built) == int(offered) or float(cpu_s) >= budget_s, line
+        assert int(built) > 1, line
+
+
+def _proc_state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0]

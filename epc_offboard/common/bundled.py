@@ -22,6 +22,12 @@ def bundled_dir() -> Path:
     return data
 
 
+def scenario_dir() -> Path:
+    """The bundled scenarios (``config/scenarios``): here, not in ``tools.sim.scenario``,
+    whose imports (the trajectories, numba) every CLI command's parser paid to list them."""
+    return bundled_dir() / "scenarios"
+
+
 def bundled_config(name_or_path: str, folder: str = "") -> Path:
     """A config given as a path, or as the name of a bundled one (``sitl``, ``default``; in
     ``folder``, e.g. ``vehicles``: ``quad_x_1500g``): ``epc-offboard run --config sitl`` works

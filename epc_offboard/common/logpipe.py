@@ -19,12 +19,21 @@ pipe is enlarged to 1 MiB where permitted: seconds of logs wait in it while stde
 
 The pump ends at EOF, after writing every line the pipe held: when the service closes its
 end at exit (:meth:`PipeHandler.close`, from ``logging.shutdown``: it waits a bounded time
-for the pump), or dies (SIGKILL included). It ignores SIGTERM and SIGINT, which a stop sends
-to the whole group. If the pump dies, lines go straight to stderr, never blocking (a new
-non-blocking open of the same pipe or tty, ``MSG_DONTWAIT`` on a socket; a regular file as
-it is), dropped and counted when it is full; said once in a log line, and the loops fly on.
+for the pump, no later than :meth:`PipeHandler.close_by`'s deadline, the stop's), or dies
+(SIGKILL included). It ignores SIGTERM and SIGINT, which a stop sends
+to the whole group. If the pump dies (its pipe says EPIPE) a new one is started with a new
+pipe, and the line goes to it: at most ``_RESTARTS_PER_MIN`` restarts in any minute,
+counted (``restarts``), the first said in a log line. Beyond that, and while no pump can
+start, lines go straight to stderr, never blocking (a new non-blocking open of the same
+pipe or tty, ``MSG_DONTWAIT`` on a socket; a regular file as it is), dropped and counted
+when it is full; said once, and the loops fly on; a restart is tried again once the
+minute allows. A pump's start is a ``vfork`` and ``exec`` (the new interpreter comes up in
+the child): on the thread that logs, once per death.
 Before :func:`pipe_stderr` (the start-up, a config error) lines go to stderr as they always
-did. Lines of the helper processes still go to stderr directly: none of them runs the loops.
+did. The helper processes (fleet helper, miss worker, store and log writers) write their
+lines straight to stderr through :class:`DirectHandler` (:func:`direct_stderr`): never
+blocking, a line whole or dropped and counted, so a stderr held by journald stalls none of
+their work (the fleet helper's session, the miss worker's solves) either.
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ import contextlib
 import errno
 import fcntl
 import logging
+import math
 import os
 import select
 import signal
@@ -42,6 +52,8 @@ import struct
 import subprocess
 import sys
 import termios
+import time
+from collections import deque
 from typing import Any
 
 PIPE_BUF = select.PIPE_BUF  # writes up to this size are atomic
@@ -52,6 +64,8 @@ _PIPE_BYTES = 1 << 20
 _F_SETPIPE_SZ = 1031  # <linux/fcntl.h>
 _NICE = 10
 _CLOSE_WAIT_S = 2.0  # at exit, the pump's time to write out what is queued (stderr may hold it)
+_RESTARTS_PER_MIN = 3  # a dead pump is restarted at most this often in any 60 s
+_RESTART_WINDOW_S = 60.0
 
 
 class DirectStderr:
@@ -107,20 +121,76 @@ class DirectStderr:
             self._own_fd = None
 
 
-class PipeHandler(logging.Handler):
-    """Log lines formatted here and written to the pump's pipe, never blocking (module
-    docstring). Counts: ``lines`` written to the pipe (or to stderr directly after the
-    pump's death), ``dropped`` lines lost to a full pipe or stderr."""
+class DirectHandler(logging.Handler):
+    """A helper process's log lines written to stderr with :class:`DirectStderr`: never
+    waiting, a line whole or dropped (``dropped``; ``lines`` written)."""
 
-    def __init__(self, stderr_fd: int = 2, pipe_bytes: int = _PIPE_BYTES) -> None:
+    def __init__(self, stderr_fd: int = 2) -> None:
         super().__init__()
         self._stderr_fd = stderr_fd
-        self._pipe_bytes = pipe_bytes
-        self._proc: subprocess.Popen[bytes] | None = None
-        self._fd: int | None = None  # the pipe's writing end (non-blocking)
         self._direct: DirectStderr | None = None
         self.lines = 0
         self.dropped = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            data = (self.format(record) + "\n").encode("utf-8", "backslashreplace")
+        except RecursionError:
+            raise
+        except Exception:
+            self.handleError(record)
+            return
+        if self._write(data):
+            self.lines += 1
+        else:
+            self.dropped += 1
+
+    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 (logging's name)
+        """A line that could not be formatted is dropped and counted: logging's default
+        prints a traceback to stderr, a blocking write."""
+        self.dropped += 1
+
+    def _write(self, data: bytes) -> bool:
+        return self._write_direct(data)
+
+    def _write_direct(self, data: bytes) -> bool:
+        if self._direct is None:
+            try:
+                self._direct = DirectStderr(self._stderr_fd)
+            except OSError:  # no stderr at all (closed): the line is dropped, counted
+                return False
+        return self._direct.write(data)
+
+    def close(self) -> None:
+        self.acquire()
+        try:
+            if self._direct is not None:
+                self._direct.close()
+                self._direct = None
+        finally:
+            self.release()
+        super().close()
+
+
+class PipeHandler(DirectHandler):
+    """Log lines formatted here and written to the pump's pipe, never blocking (module
+    docstring). Counts: ``lines`` written to the pipe (or to stderr directly after the
+    pump's death), ``dropped`` lines lost to a full pipe or stderr, ``restarts`` of a dead
+    pump (at most ``restarts_per_min`` in any minute); ``pump_failed``: lines go straight to
+    stderr now (no pump)."""
+
+    def __init__(self, stderr_fd: int = 2, pipe_bytes: int = _PIPE_BYTES,
+                 restarts_per_min: int = _RESTARTS_PER_MIN) -> None:  # fmt: skip
+        super().__init__(stderr_fd)
+        self._pipe_bytes = pipe_bytes
+        self._restarts_per_min = restarts_per_min
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._dead: list[subprocess.Popen[bytes]] = []  # pumps that died, until reaped
+        self._fd: int | None = None  # the pipe's writing end (non-blocking)
+        self._restarted_s: deque[float] = deque()  # the restarts' times (monotonic), last 60 s
+        self._said: set[str] = set()  # the pump's fate, said once each
+        self._close_by_s = math.inf  # close() waits for the pump until then at the latest
+        self.restarts = 0
         self.pump_failed = False
 
     def start(self) -> None:
@@ -144,26 +214,10 @@ class PipeHandler(logging.Handler):
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None
 
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            data = (self.format(record) + "\n").encode("utf-8", "backslashreplace")
-        except RecursionError:
-            raise
-        except Exception:
-            self.handleError(record)
-            return
-        if self._write(data):
-            self.lines += 1
-        else:
-            self.dropped += 1
-
-    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 (logging's name)
-        """A line that could not be formatted is dropped and counted: logging's default
-        prints a traceback to stderr, a blocking write."""
-        self.dropped += 1
-
     def _write(self, data: bytes) -> bool:
         fd = self._fd
+        if fd is None and self.pump_failed:  # a later minute may allow a restart
+            fd = self._restart()
         if fd is None:
             return self._write_direct(data)
         last = len(data) - 1
@@ -174,34 +228,61 @@ class PipeHandler(logging.Handler):
                 os.write(fd, _CHUNK.pack(len(piece), flags) + piece)
             except BlockingIOError:  # the pump fell behind: drop (a cut line: whole)
                 return False
-            except OSError:  # EPIPE: the pump is gone
+            except OSError:  # EPIPE: the pump is gone (a line it cut is dropped whole)
                 self._pump_died()
-                return self._write_direct(data)
+                return self._write(data) if self._fd is not None else self._write_direct(data)
         return True
 
-    def _write_direct(self, data: bytes) -> bool:
-        if self._direct is None:
-            try:
-                self._direct = DirectStderr(self._stderr_fd)
-            except OSError:  # no stderr at all (closed): the line is dropped, counted
-                return False
-        return self._direct.write(data)
-
     def _pump_died(self) -> None:
+        """The pump is gone: a new one started if the minute allows (``_restart``), else
+        lines go straight to stderr (``pump_failed``)."""
         assert self._fd is not None
         os.close(self._fd)
         self._fd = None
-        self.pump_failed = True
-        if self._proc is not None:
-            self._proc.poll()
         pid = self.pid()
-        # formatted as every line is, written straight to stderr (the pump is gone)
-        line = logging.LogRecord(
-            "epc_offboard.service", logging.WARNING, __file__, 0,
-            "log pump (process %s) died: log lines go straight to stderr now, never waiting "
-            "for it (dropped and counted when it is full); flying on", (pid,), None,
-        )  # fmt: skip
-        self._write_direct((self.format(line) + "\n").encode("utf-8", "backslashreplace"))
+        if self._proc is not None:
+            self._dead.append(self._proc)
+            self._proc = None
+        self._dead = [p for p in self._dead if p.poll() is None]  # the dead ones reaped
+        self.pump_failed = True
+        if self._restart() is not None:
+            self._say("restarted", "log pump (process %s) died: restarted as process %s (at "
+                      "most %d restarts a minute, counted; said once)",
+                      pid, self.pid(), self._restarts_per_min)  # fmt: skip
+        else:
+            self._say("direct", "log pump (process %s) died and is not restarted now (%d "
+                      "restarts in the last minute): log lines go straight to stderr, never "
+                      "waiting for it (dropped and counted when it is full); flying on",
+                      pid, len(self._restarted_s))  # fmt: skip
+
+    def _restart(self) -> int | None:
+        """A new pump and pipe if fewer than ``restarts_per_min`` started in the last
+        minute (counted); the new pipe's end, or None (lines stay direct)."""
+        now = time.monotonic()
+        while self._restarted_s and now - self._restarted_s[0] >= _RESTART_WINDOW_S:
+            self._restarted_s.popleft()
+        if len(self._restarted_s) >= self._restarts_per_min:
+            return None
+        self._restarted_s.append(now)  # a start that fails counts against the minute too
+        try:
+            self.start()
+        except OSError:
+            return None
+        self.restarts += 1
+        self.pump_failed = False
+        return self._fd
+
+    def _say(self, key: str, msg: str, *args: object) -> None:
+        """One line about the pump's fate, once per ``key``, formatted as every line is:
+        through the new pump, or straight to stderr when there is none."""
+        if key in self._said:
+            return
+        self._said.add(key)
+        line = logging.LogRecord("epc_offboard.service", logging.WARNING, __file__, 0, msg,
+                                 args, None)  # fmt: skip
+        data = (self.format(line) + "\n").encode("utf-8", "backslashreplace")
+        if self._fd is None or not self._write(data):
+            self._write_direct(data)
 
     def queued_bytes(self) -> int | None:
         """Bytes waiting in the pipe for the pump (FIONREAD on the writing end)."""
@@ -212,24 +293,30 @@ class PipeHandler(logging.Handler):
             return int(struct.unpack("i", raw)[0])
         return None
 
+    def close_by(self, deadline_s: float) -> None:
+        """:meth:`close` waits for the pump until ``deadline_s`` (``time.monotonic``) at the
+        latest: the service's stop ends within its bound however long stderr holds the pump."""
+        self._close_by_s = deadline_s
+
     def close(self) -> None:
         """At exit (``logging.shutdown``): EOF to the pump, which writes out every line the
-        pipe holds; waited for at most ``_CLOSE_WAIT_S`` (a stderr that blocks keeps it
-        writing after we are gone)."""
+        pipe holds; waited for at most ``_CLOSE_WAIT_S``, and not past :meth:`close_by`'s
+        deadline (a stderr that blocks keeps it writing after we are gone: it ignores the
+        stop's SIGTERM and ends at EOF)."""
         self.acquire()
         try:
             fd, self._fd = self._fd, None
             if fd is not None:
                 os.close(fd)
+            wait_s = max(0.0, min(_CLOSE_WAIT_S, self._close_by_s - time.monotonic()))
             if self._proc is not None:
                 with contextlib.suppress(subprocess.TimeoutExpired):
-                    self._proc.wait(_CLOSE_WAIT_S)
-            if self._direct is not None:
-                self._direct.close()
-                self._direct = None
+                    self._proc.wait(wait_s)
+            for dead in self._dead:
+                dead.poll()
         finally:
             self.release()
-        super().close()
+        super().close()  # the direct stderr, if the pump's death opened it
 
 
 def pipe_stderr() -> PipeHandler | None:
@@ -257,6 +344,26 @@ def pipe_stderr() -> PipeHandler | None:
     return handler
 
 
+def direct_stderr(level: int | None = None) -> DirectHandler:
+    """A helper process's root logger writes to stderr without ever blocking: its stderr
+    handlers (``setup_logging``'s) replaced by a :class:`DirectHandler` with their
+    formatter (none: the human format, and ``level``, for a process that set up no
+    logging), Python's warnings through it too."""
+    from epc_offboard.common.logsetup import HUMAN_FORMAT
+
+    root = logging.getLogger()
+    handler = DirectHandler()
+    old = [h for h in root.handlers if isinstance(h, logging.StreamHandler)]
+    handler.setFormatter(old[0].formatter if old else logging.Formatter(HUMAN_FORMAT))
+    for h in old:
+        root.removeHandler(h)
+    root.addHandler(handler)
+    if level is not None:
+        root.setLevel(level)
+    logging.captureWarnings(True)
+    return handler
+
+
 def installed() -> PipeHandler | None:
     """The root logger's :class:`PipeHandler`, if :func:`pipe_stderr` put one there."""
     return next((h for h in logging.getLogger().handlers if isinstance(h, PipeHandler)), None)
@@ -270,6 +377,7 @@ def stats(handler: PipeHandler | None) -> dict[str, Any]:
         return {}
     return process_report(handler.pid(), queued_bytes=handler.queued_bytes(),
                           lines=handler.lines, dropped=handler.dropped,
+                          restarts=handler.restarts,
                           pump_failed=handler.pump_failed)  # fmt: skip
 
 

@@ -33,14 +33,18 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(entry)
 
 
+HUMAN_FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
+
+
 def setup_logging(cfg: LogConfig) -> None:
-    """Lines to stderr, written by the thread that logs them (the helper processes'; the
-    control process's ``run`` then hands them to a pump: ``logpipe.pipe_stderr``)."""
+    """Lines to stderr, written by the thread that logs them; the control process's ``run``
+    then hands them to a pump (``logpipe.pipe_stderr``), the helper processes write them
+    without blocking (``logpipe.direct_stderr``)."""
     handler = logging.StreamHandler(sys.stderr)
     if cfg.format == "json":
         handler.setFormatter(JsonFormatter())
     else:
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s"))
+        handler.setFormatter(logging.Formatter(HUMAN_FORMAT))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(cfg.level.upper())

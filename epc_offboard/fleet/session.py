@@ -39,6 +39,7 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
+from epc_offboard.common import logpipe
 from epc_offboard.common.channel import ChannelClosedError, read_frames, write_all
 from epc_offboard.common.children import die_with_parent, lower_priority
 from epc_offboard.common.logsetup import LogConfig, setup_logging
@@ -785,6 +786,7 @@ def helper_main(args: HelperArgs, slots: Any, candidates_fd: Any, reference_fd: 
     die_with_parent(args.parent_pid)
     lower_priority(args.cfg.helper_nice)
     setup_logging(args.log)
+    logpipe.direct_stderr()  # a held stderr (journald) stalls none of the session's work
     counters = Counters(np.frombuffer(slots, dtype=np.int64))
     session = FleetSession(
         args.cfg, args.specs, counters, args.candidate_dtype, args.max_successors,

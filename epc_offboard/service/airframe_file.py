@@ -14,6 +14,10 @@ from pathlib import Path
 from epc_offboard.common.airframe import Airframe
 from epc_offboard.common.bundled import bundled_config
 
+# ``[airframe] file``'s default (``service.config.AirframeConfig``); here, so that `sim`
+# finds it without importing the service's config and with it the control stack
+DEFAULT_VEHICLE_FILE = "quad_x_1500g"
+
 
 def airframe_path(name_or_path: str) -> Path:
     """A vehicle file given as a path, or as the name of a bundled one (``quad_x_1500g``)."""

@@ -20,7 +20,7 @@ from epc_offboard.control.perturbation import EstimatorConfig
 from epc_offboard.control.position import PositionControlConfig
 from epc_offboard.control.trajectories import TrajectoryConfig
 from epc_offboard.fleet.config import SharingConfig
-from epc_offboard.service.airframe_file import load_airframe
+from epc_offboard.service.airframe_file import DEFAULT_VEHICLE_FILE, load_airframe
 from epc_offboard.vehicle.offboard import OffboardConfig
 from epc_offboard.vehicle.state import StateLimits
 
@@ -130,7 +130,7 @@ class AirframeConfig:
     and body-rate limits, the mass, drag and lags from it (:class:`Airframe`); the service
     config cannot set them too (they are not its keys: one number, one home)."""
 
-    file: str = "quad_x_1500g"
+    file: str = DEFAULT_VEHICLE_FILE
 
 
 # service-config keys that moved to the vehicle file: their "unknown key" error says where

@@ -31,6 +31,7 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
+from epc_offboard.common import logpipe
 from epc_offboard.common.channel import PIPE_BUF, ChannelClosedError, DropWriter
 from epc_offboard.common.children import Backoff, die_with_parent, lower_priority, spawn_fed
 from epc_offboard.common.logsetup import LogConfig, setup_logging
@@ -68,6 +69,7 @@ def _writer_main(fd_conn: Any, parent_pid: int, paths: _Paths, append: bool) -> 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     lower_priority(_NICE)
     setup_logging(paths.log)
+    logpipe.direct_stderr()  # a held stderr (journald) holds no record
     flight = FlightLog(paths.flight_log, append=append) if paths.flight_log else None
     tlog = TlogWriter(paths.tlog) if paths.tlog else None
     fd = fd_conn.fileno()

@@ -228,6 +228,12 @@ class Loops:
         before: _Mark | None = None
         loop = asyncio.get_running_loop()  # once: each call is a getpid (CPython 3.11)
         with contextlib.closing(_RunqueueClock()) as runqueue:
+
+            def mark(t_s: float, cpu_s: float, rusage: resource.struct_rusage) -> _Mark:
+                """The readers of an interval's end (a tick's start, a missed tick's end)."""
+                return _Mark(t_s, cpu_s, self._gc_pause_s(), rusage, runqueue.read_s(),
+                             self.steps.mark(), time.process_time())  # fmt: skip
+
             stall_s = min(STALL_S, 2.0 * period)  # the attitude loop's: a deadline miss
             while True:
                 await self.wait(t_next, until_reached=True, loop=loop)
@@ -237,9 +243,7 @@ class Loops:
                 use0 = resource.getrusage(resource.RUSAGE_THREAD)
                 cpu0 = time.thread_time()
                 # a stall is real time's (in lockstep the vehicle's clock waits for the tick)
-                now = None if self.clock.vehicle_time else _Mark(
-                    start, cpu0, self._gc_pause_s(), use0, runqueue.read_s(),
-                    self.steps.mark(), time.process_time())
+                now = None if self.clock.vehicle_time else mark(start, cpu0, use0)
                 a_stall = (before, now) if before is not None and now is not None and (
                     start - before[0] > stall_s) else None  # fmt: skip
                 what = Tick(start, t_next, period)
@@ -260,11 +264,9 @@ class Loops:
                         preempted=use.ru_nivcsw > use0.ru_nivcsw,
                     )  # fmt: skip
                     if missed and now is not None:  # traced from the previous tick's start
-                        end = self.clock.now_s()
-                        self._stall(name, what, before or now, _Mark(
-                            end, time.thread_time(), self._gc_pause_s(),
-                            resource.getrusage(resource.RUSAGE_THREAD), runqueue.read_s(),
-                            self.steps.mark(), time.process_time()), wall, miss=True)
+                        end = mark(self.clock.now_s(), time.thread_time(),
+                                   resource.getrusage(resource.RUSAGE_THREAD))
+                        self._stall(name, what, before or now, end, wall, miss=True)
                 before = now if controlled else None
                 # In lockstep the next tick is planned from the vehicle time the tick ran
                 # at, not the clock now: the tick's answer has released the simulator, and

@@ -22,7 +22,7 @@ body-rate mode, flipped the vehicle.
 Fleet candidates (:class:`~epc_offboard.control.epc.candidates.CandidatePool`) are screened
 here too, so a flood of received controllers costs the loops nothing but bookkeeping: the loop's
 controller keeps the bounded pool of active sets, the worker a copy with their maps, built
-in slices bounded by time (``slice_s``) between solves. A miss is first checked against
+in slices bounded by its CPU time (``slice_s``) between solves. A miss is first checked against
 the built candidates; one that passes is handed back with its origin instead of a solve,
 and the loop promotes it after its own KKT check at that θ. Candidates never optimal for a
 real tick stay in the pool until newer ones push them out: they never take library slots.
@@ -62,6 +62,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar, cast
 
 import numpy as np
 
+from epc_offboard.common import logpipe
 from epc_offboard.common.channel import (
     ChannelClosedError,
     FrameInbox,
@@ -138,11 +139,12 @@ class _Worker:
 
     def build_maps(self, actives: list[tuple[int, ...]], budget_s: float | None) -> Built:
         """Maps for ``actives`` (None where the rows are dependent), reusing the pool's,
-        until ``budget_s`` is spent (at least one)."""
-        t0 = time.perf_counter()
+        until ``budget_s`` of the worker's CPU time is spent (at least one), as
+        :meth:`CandidatePool.build`."""
+        t0 = time.thread_time()
         out: Built = []
         for active in actives:
-            if budget_s is not None and out and time.perf_counter() - t0 >= budget_s:
+            if budget_s is not None and out and time.thread_time() - t0 >= budget_s:
                 break
             amap = self.pool.map_of(active)
             if amap is None:
@@ -173,6 +175,7 @@ def _worker_main(requests: Connection, parent_pid: int, replies: Connection) -> 
     ``(seq, ok, value or the error)``; ends at the requests' EOF or when its answer finds
     the replies' pipe closed (the service stopping)."""
     die_with_parent(parent_pid)  # no 168 MB orphan when the service is SIGKILLed
+    logpipe.direct_stderr()  # its warnings: a held stderr (journald) holds no solve
     out = replies.fileno()
     with contextlib.suppress(ChannelClosedError):
         for seq, fn, args in read_frames(requests.fileno()):

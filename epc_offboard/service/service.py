@@ -93,6 +93,10 @@ SLOW_STEP_PERIODS = 0.2
 # flight's files are written by then. Beyond the unit's TimeoutStopSec (5 s), so under
 # systemd its SIGKILL comes first; `sim` and a shell get every thread's stack and exit 1.
 EXIT_GRACE_S = 10.0
+# SIGTERM (or the mission's end) to exit, as README and the unit file's comment say: the
+# log pump is waited for only until then (its stderr, journald, may hold it for longer; it
+# writes out what is queued after we are gone). Well inside the unit's TimeoutStopSec (5 s).
+STOP_S = 2.0
 
 
 def bounded_exit(grace_s: float) -> None:
@@ -174,6 +178,7 @@ class Service:
         self._attitude_marks = self._attitude_computed
         # the `run` command's: the process ends within this after "stopped" (bounded_exit)
         self.exit_grace_s: float | None = None
+        self._stop_asked_s: float | None = None  # when a stop was asked (monotonic)
         self._position_out: PositionOutput | None = None
         self._processes_at_exit: dict[str, Any] | None = None
         self._signatures_warm = 0  # compiled kernel signatures once warmed (0: numpy twins)
@@ -330,6 +335,8 @@ class Service:
     # -- lifecycle --------------------------------------------------------------------
 
     def request_stop(self) -> None:
+        if self._stop_asked_s is None:
+            self._stop_asked_s = time.monotonic()
         self.loops.stopping.set()
 
     def _reload(self) -> None:
@@ -468,6 +475,10 @@ class Service:
 
     def _shutdown(self) -> None:
         self.systemd.notify("STOPPING=1")
+        pump = logpipe.installed()
+        if pump is not None:  # the stop's bound holds whatever stderr does
+            asked_s = self._stop_asked_s if self._stop_asked_s is not None else time.monotonic()
+            pump.close_by(asked_s + STOP_S)
         self._processes_at_exit = self._process_stats()  # while the helpers still run
         dialect = self.autopilot.dialect
         if dialect is not None and self.outputs.phase in (Phase.OFFBOARD, Phase.OFFBOARD_REQUESTED):

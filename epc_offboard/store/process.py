@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from epc_offboard.common import logpipe
 from epc_offboard.common.channel import read_frames
 from epc_offboard.common.children import die_with_parent, lower_priority
 from epc_offboard.common.logsetup import LogConfig, setup_logging
@@ -31,6 +32,7 @@ def store_main(conn: Any, parent_pid: int, path: str, slots: Any, log_cfg: LogCo
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     lower_priority(NICE)
     setup_logging(log_cfg)
+    logpipe.direct_stderr()  # a held stderr (journald) holds no save
     counts = np.frombuffer(slots, dtype=np.int64)
     store = LibraryStore.open(path)
     try:

@@ -45,10 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from epc_offboard.common.bundled import scenario_dir
 from epc_offboard.common.configio import dump_toml
-from epc_offboard.tools.sim.analysis import read_csv_columns
-from epc_offboard.tools.sim.envelope import tilt_deg_of
-from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 
 MODES = ("epc", "autopilot")  # body rates, quaternion
 FLIGHTS = ("circle", "figure8", "figure8-wind", "hover-cold")
@@ -118,7 +116,7 @@ def add_modes_arguments(bench: argparse.ArgumentParser) -> None:
 def scenario_toml(spec: FlightSpec, mode: str) -> str:
     """The bundled scenario of ``spec`` flown in attitude ``mode``: its targets and compare
     list left out (one method per flight; the bench judges), the service's mode set."""
-    with (SCENARIO_DIR / f"{spec.scenario}.toml").open("rb") as fh:
+    with (scenario_dir() / f"{spec.scenario}.toml").open("rb") as fh:
         data = tomllib.load(fh)
     data.pop("targets", None)
     data.pop("compare", None)
@@ -131,6 +129,11 @@ def scenario_toml(spec: FlightSpec, mode: str) -> str:
 def judge(vehicle_dir: Path, report: dict[str, Any]) -> dict[str, Any]:
     """One flight's figures (see the module docstring) from its sim output."""
     vehicle = report["vehicles"][0]
+    # here, not at the top: the CLI's parser imports this module (add_modes_arguments), and
+    # the analysis imports the scenarios' trajectories and numba
+    from epc_offboard.tools.sim.analysis import read_csv_columns
+    from epc_offboard.tools.sim.envelope import tilt_deg_of
+
     flight = read_csv_columns(vehicle_dir / "flight.csv", allow_empty=True)
     truth = read_csv_columns(vehicle_dir / "groundtruth.csv")
     tt = truth["t_s"]

@@ -380,15 +380,17 @@ class CandidatePool:
     def build(
         self, make_map: Callable[[tuple[int, ...]], ActiveSetMap], budget_s: float | None
     ) -> int:
-        """Build unbuilt maps, oldest first, until ``budget_s`` (None: no limit) of CPU time
-        is spent (at least one per call, so slices always progress); returns how many.
+        """Build unbuilt maps, oldest first, until ``budget_s`` (None: no limit) of the
+        calling thread's CPU time is spent (at least one per call, so slices always
+        progress); returns how many.
 
         Dependent sets are dropped. Time, not a count, bounds a slice: a map's cost grows
-        with its active rows."""
-        t0 = time.perf_counter()
+        with its active rows. CPU time, not the wall clock: a worker preempted (a CPU hog,
+        SIGSTOP) in its slice still builds its share of maps, not only the one in hand."""
+        t0 = time.thread_time()
         built = 0
         for active in [a for a, c in self._items.items() if c.map is None]:
-            if budget_s is not None and built and time.perf_counter() - t0 >= budget_s:
+            if budget_s is not None and built and time.thread_time() - t0 >= budget_s:
                 break
             try:
                 self._items[active].map = make_map(active)

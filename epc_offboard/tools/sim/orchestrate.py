@@ -30,8 +30,7 @@ from epc_offboard.common.cliargs import WindProfile, check_port_free
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.common.ports import free_port
-from epc_offboard.service.airframe_file import airframe_path, load_airframe
-from epc_offboard.service.config import AirframeConfig
+from epc_offboard.service.airframe_file import DEFAULT_VEHICLE_FILE, airframe_path, load_airframe
 from epc_offboard.tools.figures import flight_title, write_figure
 from epc_offboard.tools.sim.analysis import VehicleResult, analyse, read_flight
 from epc_offboard.tools.sim.envelope import Envelope, breaches, envelope_for, tilt_deg_of
@@ -322,7 +321,7 @@ def flight_progress(run: VehicleRun, duration_s: float) -> tuple[str, float]:
 def vehicle_file(service_cfg: dict[str, Any]) -> Path:
     """The vehicle file a service config names (``[airframe] file``): its SITL flies the
     same one, so the service's hover thrust and limits are the simulated airframe's."""
-    return airframe_path(str(service_cfg.get("airframe", {}).get("file", AirframeConfig.file)))
+    return airframe_path(str(service_cfg.get("airframe", {}).get("file", DEFAULT_VEHICLE_FILE)))
 
 
 def flight_envelope(options: SimOptions, service_cfg: dict[str, Any]) -> Envelope:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from epc_offboard.common.bundled import bundled_dir
+from epc_offboard.common.bundled import bundled_dir, scenario_dir
 from epc_offboard.common.cliargs import parse_wind_profile
 from epc_offboard.common.configio import ConfigError, from_dict
 from epc_offboard.control.trajectories import TrajectoryConfig
@@ -22,7 +22,7 @@ from epc_offboard.tools.sim.envelope import EnvelopeConfig
 from epc_offboard.tools.targets import CompareConfig, TargetConfig
 
 CONFIG_DIR = bundled_dir()  # the checkout's config/, shipped in the wheel
-SCENARIO_DIR = CONFIG_DIR / "scenarios"
+SCENARIO_DIR = scenario_dir()
 VEHICLE_DIR = CONFIG_DIR / "vehicles"
 EXTRA_METRICS = ("mean_error_m",)  # what a scenario may add to its report's tracking
 SITL_SERVICE_CONFIG = CONFIG_DIR / "sitl.toml"
