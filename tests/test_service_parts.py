@@ -505,11 +505,11 @@ def test_a_fleet_turn_waits_for_room_between_the_loops_ticks():
     assert fleet.counters["helper_restarts"] == 0  # no turn's work ran before it
 
 
-def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(monkeypatch):
-    """A turn's candidates (ten at 200 a second) offered at once took the loops' thread 2-6
-    ms, the longest step of most turns beside bench --attack's replay (issue 21, the event
-    loop's steps timed). They are offered a few at a time, each slice after ``Loops.room``."""
-    from epc_offboard.fleet import sharing as sharing_module
+def _fleet_turn_offers(monkeypatch: pytest.MonkeyPatch,
+                       ahead_s: float | None) -> list[object]:  # fmt: skip
+    """A fleet turn's ten candidates waiting, offered by ``run``: the events, in order
+    ("room" asked, then each ``_offer``'s count); ``room`` gives the deadline ``ahead_s``
+    from now (None: none, as in lockstep)."""
     from epc_offboard.fleet.sharing import FleetSharing
 
     class Done(Exception):  # noqa: N818 - the test's end
@@ -517,16 +517,18 @@ def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(
 
     events: list[object] = []
 
-    async def room() -> None:
+    async def room() -> float | None:
         events.append("room")
-        if events.count("room") > 6:
+        if events.count("room") > 12:
             raise Done
+        return None if ahead_s is None else time.monotonic() + ahead_s
 
     fleet = FleetSharing(sharing_config("a", free_port(), [], enabled=False), [],
                          share_library=False, reference=True, room=room)  # fmt: skip
     # no helper: the turn's candidates are these, read before
     monkeypatch.setattr(fleet, "poll", lambda now_s, deadline_s=None: 0)
     fleet._to_offer = np.zeros(10, dtype=fleet.candidate_dtype)
+
     def offer(records: np.ndarray) -> int:
         events.append(len(records))
         return 0
@@ -534,6 +536,17 @@ def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(
     monkeypatch.setattr(fleet, "_offer", offer)
     with pytest.raises(Done):
         asyncio.run(fleet.run())
+    return events
+
+
+def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(monkeypatch):
+    """A turn's candidates (ten at 200 a second) offered at once took the loops' thread 2-6
+    ms, the longest step of most turns beside bench --attack's replay (issue 21, the event
+    loop's steps timed). They are offered a few at a time, each slice after ``Loops.room``
+    (with no deadline, lockstep's: a count)."""
+    from epc_offboard.fleet import sharing as sharing_module
+
+    events = _fleet_turn_offers(monkeypatch, None)
     per = sharing_module._OFFERS_PER_SLICE
     sizes = [e for e in events if isinstance(e, int)]
     assert sizes == [per] * (10 // per) + ([10 % per] if 10 % per else [])
@@ -547,38 +560,12 @@ def test_a_fleet_slice_offers_candidates_until_its_deadline(monkeypatch, ahead_s
     bound on time. A slice now offers one candidate at a time until the deadline
     ``Loops.room`` gives has passed: a deadline already past, one a slice; one far off,
     all in the first (counted, not timed)."""
-    from epc_offboard.fleet.sharing import FleetSharing
-
-    class Done(Exception):  # noqa: N818 - the test's end
-        pass
-
-    events: list[object] = []
-
-    async def room() -> float:
-        events.append("room")
-        if events.count("room") > 12:
-            raise Done
-        return time.monotonic() + float(ahead_s)
-
-    fleet = FleetSharing(sharing_config("a", free_port(), [], enabled=False), [],
-                         share_library=False, reference=True, room=room)  # fmt: skip
-    monkeypatch.setattr(fleet, "poll", lambda now_s, deadline_s=None: 0)
-    fleet._to_offer = np.zeros(10, dtype=fleet.candidate_dtype)
-
-    def offer(records: np.ndarray) -> int:
-        events.append(len(records))
-        return 0
-
-    monkeypatch.setattr(fleet, "_offer", offer)
-    with pytest.raises(Done):
-        asyncio.run(fleet.run())
+    events = _fleet_turn_offers(monkeypatch, ahead_s)
     sizes = [e for e in events if isinstance(e, int)]
-    assert sum(sizes) == 10
-    if ahead_s < 0:
-        assert sizes == [1] * 10  # each slice after its own room
+    assert sizes == [1] * 10
+    if ahead_s < 0:  # each slice after its own room
         assert all(events[i - 1] == "room" for i, e in enumerate(events) if isinstance(e, int))
     else:
-        assert len(sizes) == 10
         assert events[2:12] == [1] * 10  # the turn's room, the slice's, then all
 
 
