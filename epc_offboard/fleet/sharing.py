@@ -389,7 +389,8 @@ class FleetSharing:
                         break  # the pipe is full: the rest next turn
                 for i in range(len(self._libraries)):
                     if self.share_library and self._dirty[i]:
-                        self._refresh_snapshot(i, await self._room())
+                        await self._room()
+                        self._refresh_snapshot(i)
             await asyncio.sleep(_TURN_S)
 
     def poll(self, now_s: float, deadline_s: float | None = None) -> int:
@@ -517,15 +518,9 @@ class FleetSharing:
         self._backlog.hand_off(self._send, deadline_s)
         return not self._backlog.refused
 
-    def _refresh_snapshots(self) -> None:
-        for i in range(len(self._libraries)):
-            if self.share_library and self._dirty[i]:
-                self._refresh_snapshot(i)
-
-    def _refresh_snapshot(self, i: int, deadline_s: float | None = None) -> None:
+    def _refresh_snapshot(self, i: int) -> None:
         """Problem ``i``'s library as the helper answers queries with it (one problem a
-        slice: ``deadline_s`` is not used, a snapshot is not cut)."""
-        del deadline_s
+        slice: a snapshot is not cut)."""
         # here, on the event loop: the library is not thread-safe
         if self._send(("snapshot", i, *self._libraries[i][1].snapshot())):
             self._dirty[i] = False
