@@ -437,6 +437,84 @@ def test_work_beside_the_loops_starts_only_with_room_before_the_next_tick():
     assert sum(r >= ROOM_S for r in room_at_start) >= 20 - timed_out
 
 
+def test_room_gives_a_slice_a_deadline_before_the_next_tick():
+    """Issue 21: work beside the loops started with room (``ROOM_S``) but ran as long as it
+    took: fleet sharing's slices 3-10 ms before late ticks (stop 37). ``Loops.room`` gives
+    the slice its deadline: ``SLICE_S`` from now, never nearer than ``SLICE_MARGIN_S`` to
+    the next tick due; none in lockstep (a count there, the same every run)."""
+    from epc_offboard.service.clock import VehicleClock
+    from epc_offboard.service.loop import SLICE_MARGIN_S, SLICE_S
+
+    async def main() -> list[tuple[float | None, float, float]]:
+        loops = Loops(WallClock(), Counter(), LogGate())
+        got: list[tuple[float | None, float, float]] = []
+
+        async def tick(t: Tick) -> bool:
+            return True
+
+        async def work() -> None:
+            for _ in range(10):
+                deadline = await loops.room()
+                got.append((deadline, loops.clock.now_s(), min(loops._next_due.values())))
+            loops.stopping.set()
+
+        async def fly() -> None:
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(loops.periodic("attitude", LoopTiming(0.005), tick))
+                tg.create_task(work())
+                tg.create_task(loops.stop_watch())
+
+        with pytest.raises(ExceptionGroup):
+            await fly()
+        return got
+
+    got = asyncio.run(main())
+    assert len(got) == 10
+    for deadline, now, due in got:
+        assert deadline is not None
+        assert deadline <= due - SLICE_MARGIN_S + 1e-9
+        assert deadline <= now + SLICE_S + 1e-9
+
+    async def lockstep() -> float | None:
+        return await Loops(VehicleClock(), Counter(), LogGate()).room(timeout_s=0.01)
+
+    assert asyncio.run(lockstep()) is None
+
+
+def test_long_steps_are_counted_by_name_with_their_time_and_histogram():
+    """The stats' ``long_by_name``: each long step's count, longest, total and how many took
+    over 2, 5 and 10 ms; a task awaiting one helper from two places is named apart."""
+    steps = StepMonitor()
+
+    async def helper() -> None:
+        await asyncio.sleep(0)
+
+    async def worker() -> None:
+        _spin(0.003)
+        await helper()
+        _spin(0.006)
+        await helper()
+
+    async def main() -> None:
+        await asyncio.create_task(worker(), name="sharer")
+
+    steps.install()
+    try:
+        asyncio.run(main())
+    finally:
+        steps.uninstall()
+    named = {n["name"]: n for n in steps.stats()["long_by_name"]
+             if n["name"].startswith("task sharer")}  # fmt: skip
+    assert len(named) == 2, named  # the two awaits of the same helper
+    spans = sorted(named.values(), key=lambda n: n["longest_ms"])
+    assert all(" < test_clock_timing.py:" in n for n in named)
+    assert spans[0]["count"] == 1
+    assert spans[0]["over_ms"]["2"] == 1
+    assert spans[1]["over_ms"]["5"] == 1
+    assert spans[1]["over_ms"]["10"] <= 1
+    assert spans[1]["total_ms"] >= spans[1]["longest_ms"] >= 6.0
+
+
 def test_the_step_sampler_thread_runs_only_while_installed(monkeypatch):
     """``EPC_STEP_SAMPLE_MS`` (a diagnosis) samples the loops' thread from a thread of its
     own, started by ``install`` (real time), not by the monitor's constructor: a monitor

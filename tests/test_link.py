@@ -371,3 +371,43 @@ async def _peer_moves():
 
 def test_a_second_sender_is_heard_only_once_the_peer_is_silent():
     asyncio.run(_peer_moves())
+
+
+async def _packed_stranger():
+    from epc_offboard.vehicle.receive import (
+        MAX_FRAMES_PER_DATAGRAM,
+        MAX_FRAMES_PER_STRANGER_DATAGRAM,
+    )
+
+    server, client, got_server, _ = await pair()
+    client.send(heartbeat(client))
+    await settle(lambda: got_server)
+    forger = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    packed = b"".join(
+        bytes(forger.attitude_quaternion_encode(i, 1.0, 0, 0, 0, 0, 0, 0).pack(forger))
+        for i in range(MAX_FRAMES_PER_DATAGRAM)
+    )  # fmt: skip
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as intruder:
+        intruder.sendto(packed, ("127.0.0.1", server.local_address[1]))
+        await settle(lambda: server.counters["datagrams"] >= 2)
+    read = server.counters["other_sender"]
+    limited = server.counters["frame_limit"]
+    delivered = len(got_server)
+    client.send(heartbeat(client))  # ... the peer's datagrams are read as before
+    await settle(lambda: len(got_server) == delivered + 1)
+    for link in (server, client):
+        link.close()
+    return read, limited, delivered, MAX_FRAMES_PER_STRANGER_DATAGRAM
+
+
+def test_a_strangers_packed_datagram_is_read_only_so_far_in_one_callback():
+    """Issue 21: asyncio's datagram transport reads one datagram a callback, and a datagram
+    may pack 256 frames of the vehicle's own ids from a second address: all 256 were read
+    (1.6 ms of the loops' thread in one callback, load 10) to be dropped as the other
+    sender's. While the peer talks on an unsigned link, a stranger's datagram is read only
+    to ``MAX_FRAMES_PER_STRANGER_DATAGRAM`` frames, the rest dropped and counted
+    (``frame_limit``); nothing of it is delivered, as before."""
+    read, limited, delivered, bound = asyncio.run(_packed_stranger())
+    assert 0 < read <= bound
+    assert limited == 1
+    assert delivered == 1  # the peer's heartbeat only

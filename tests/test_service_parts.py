@@ -505,11 +505,11 @@ def test_a_fleet_turn_waits_for_room_between_the_loops_ticks():
     assert fleet.counters["helper_restarts"] == 0  # no turn's work ran before it
 
 
-def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(monkeypatch):
-    """A turn's candidates (ten at 200 a second) offered at once took the loops' thread 2-6
-    ms, the longest step of most turns beside bench --attack's replay (issue 21, the event
-    loop's steps timed). They are offered a few at a time, each slice after ``Loops.room``."""
-    from epc_offboard.fleet import sharing as sharing_module
+def _fleet_turn_offers(monkeypatch: pytest.MonkeyPatch,
+                       ahead_s: float | None) -> list[object]:  # fmt: skip
+    """A fleet turn's ten candidates waiting, offered by ``run``: the events, in order
+    ("room" asked, then each ``_offer``'s count); ``room`` gives the deadline ``ahead_s``
+    from now (None: none, as in lockstep)."""
     from epc_offboard.fleet.sharing import FleetSharing
 
     class Done(Exception):  # noqa: N818 - the test's end
@@ -517,15 +517,18 @@ def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(
 
     events: list[object] = []
 
-    async def room() -> None:
+    async def room() -> float | None:
         events.append("room")
-        if events.count("room") > 6:
+        if events.count("room") > 12:
             raise Done
+        return None if ahead_s is None else time.monotonic() + ahead_s
 
     fleet = FleetSharing(sharing_config("a", free_port(), [], enabled=False), [],
                          share_library=False, reference=True, room=room)  # fmt: skip
-    monkeypatch.setattr(fleet, "poll", lambda now_s: 0)  # no helper: the turn's candidates
-    fleet._to_offer = np.zeros(10, dtype=fleet.candidate_dtype)  # are these, read before
+    # no helper: the turn's candidates are these, read before
+    monkeypatch.setattr(fleet, "poll", lambda now_s, deadline_s=None: 0)
+    fleet._to_offer = np.zeros(10, dtype=fleet.candidate_dtype)
+
     def offer(records: np.ndarray) -> int:
         events.append(len(records))
         return 0
@@ -533,10 +536,65 @@ def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(
     monkeypatch.setattr(fleet, "_offer", offer)
     with pytest.raises(Done):
         asyncio.run(fleet.run())
+    return events
+
+
+def test_a_fleet_turn_offers_its_candidates_a_slice_at_a_time_with_room_between(monkeypatch):
+    """A turn's candidates (ten at 200 a second) offered at once took the loops' thread 2-6
+    ms, the longest step of most turns beside bench --attack's replay (issue 21, the event
+    loop's steps timed). They are offered a few at a time, each slice after ``Loops.room``
+    (with no deadline, lockstep's: a count)."""
+    from epc_offboard.fleet import sharing as sharing_module
+
+    events = _fleet_turn_offers(monkeypatch, None)
     per = sharing_module._OFFERS_PER_SLICE
     sizes = [e for e in events if isinstance(e, int)]
     assert sizes == [per] * (10 // per) + ([10 % per] if 10 % per else [])
     assert all(events[i - 1] == "room" for i, e in enumerate(events) if isinstance(e, int))
+
+
+@pytest.mark.parametrize("ahead_s", [-1.0, 60.0])
+def test_a_fleet_slice_offers_candidates_until_its_deadline(monkeypatch, ahead_s: float) -> None:
+    """Issue 21: three candidates a slice still took the loops' thread up to 10 ms in one
+    step beside two hogs (stop 37's bench --attack, before late ticks): a count is no
+    bound on time. A slice now offers one candidate at a time until the deadline
+    ``Loops.room`` gives has passed: a deadline already past, one a slice; one far off,
+    all in the first (counted, not timed)."""
+    events = _fleet_turn_offers(monkeypatch, ahead_s)
+    sizes = [e for e in events if isinstance(e, int)]
+    assert sizes == [1] * 10
+    if ahead_s < 0:  # each slice after its own room
+        assert all(events[i - 1] == "room" for i, e in enumerate(events) if isinstance(e, int))
+    else:
+        assert events[2:12] == [1] * 10  # the turn's room, the slice's, then all
+
+
+def test_a_publication_is_handed_over_a_frame_a_slice_by_its_deadline():
+    """Issue 21: a publication's frames (up to 512 controllers each) were all pickled and
+    written in the one step that queued them. Handed over until a deadline: one past, one
+    frame a call; none (lockstep, a shutdown), all."""
+    from epc_offboard.fleet.sharing import _FRAME_ENTRIES, PublishBacklog
+
+    entries = [object()] * (3 * _FRAME_ENTRIES)
+    sent: list[int] = []
+
+    def send(frame: tuple[Any, ...]) -> bool:
+        sent.append(len(frame[2]))
+        return True
+
+    backlog = PublishBacklog(10 * _FRAME_ENTRIES)
+    backlog.add(0, entries)  # type: ignore[arg-type]
+    past = time.monotonic() - 1.0
+    assert backlog.hand_off(send, past) == _FRAME_ENTRIES
+    assert backlog.waiting == 2 * _FRAME_ENTRIES
+    assert sent == [_FRAME_ENTRIES]
+    assert backlog.hand_off(send, past) == _FRAME_ENTRIES
+    assert backlog.hand_off(send) == _FRAME_ENTRIES
+    assert backlog.waiting == 0
+    assert not backlog.refused
+    backlog.add(0, entries)  # type: ignore[arg-type]
+    assert backlog.hand_off(send, None) == 3 * _FRAME_ENTRIES
+    assert backlog.hand_off(lambda frame: False) == 0
 
 
 def test_sighup_reads_the_config_off_the_loops_thread_and_applies_it_on_it(tmp_path, monkeypatch):

@@ -93,6 +93,17 @@ _MARKS, _CANDIDATES, _OWN = "marks", "candidates:", "own"  # fleet_state's names
 _NO_MARKS = '{"held":[]}'
 
 
+def _first(deadline_s: float | None) -> int:
+    """The candidates a slice offers before it looks at its deadline (none: a count)."""
+    return _OFFERS_PER_SLICE if deadline_s is None else 1
+
+
+async def _no_room() -> float | None:
+    """Without the loops (tests, tools): a slice is a count, not a deadline."""
+    await asyncio.sleep(0)
+    return None
+
+
 @dataclass(frozen=True)
 class LiveReference:
     message: ReferenceMessage
@@ -117,6 +128,7 @@ class PublishBacklog:
         self._handed: deque[tuple[int, list[tuple[int, LibraryEntry]]]] = deque()  # by seq
         self._seq = 0  # the last frame number given; never reused, across helpers
         self.dropped = 0
+        self.refused = False  # the last hand_off stopped at a frame refused (a full pipe)
 
     def __len__(self) -> int:
         return len(self._waiting) + sum(len(items) for _, items in self._handed)
@@ -125,11 +137,22 @@ class PublishBacklog:
         self._waiting.extend((index, e) for e in entries)
         self._trim()
 
-    def hand_off(self, send: Callable[[tuple[Any, ...]], bool]) -> int:
+    @property
+    def waiting(self) -> int:
+        """Entries not handed to a helper yet."""
+        return len(self._waiting)
+
+    def hand_off(self, send: Callable[[tuple[Any, ...]], bool],
+                 deadline_s: float | None = None) -> int:  # fmt: skip
         """Send what waits as ``("publish", index, entries, seq)`` frames, one per run of a
-        problem; stops at the first frame ``send`` refuses. Returns the entries handed."""
+        problem; stops at the first frame ``send`` refuses (``refused`` then True), or once
+        ``deadline_s`` (time.monotonic) has passed after a frame (the rest on the next
+        call). Returns the entries handed."""
         handed = 0
+        self.refused = False
         while self._waiting:
+            if handed and deadline_s is not None and time.monotonic() >= deadline_s:
+                break
             index = self._waiting[0][0]
             items: list[tuple[int, LibraryEntry]] = []
             for item in self._waiting:
@@ -138,6 +161,7 @@ class PublishBacklog:
                 items.append(item)
             seq = self._seq + 1
             if not send(("publish", index, [e for _, e in items], seq)):
+                self.refused = True
                 break
             self._seq = seq
             for _ in items:
@@ -198,7 +222,7 @@ class FleetSharing:
         reference: bool = False,
         log_cfg: LogConfig | None = None,
         candidates: CandidatePoolConfig | None = None,
-        room: Callable[[], Awaitable[None]] | None = None,
+        room: Callable[[], Awaitable[float | None]] | None = None,
     ) -> None:
         if not cfg.vehicle_id:
             raise ValueError("sharing.vehicle_id must be set to open a fleet session")
@@ -208,8 +232,9 @@ class FleetSharing:
         self.subscribe_reference = reference
         self.log_cfg = log_cfg or LogConfig()  # the helper's log lines, on the same stderr
         self.counters: Counter[str] = Counter()
-        # waits until a turn fits between two of the loops' ticks (``Loops.room``)
-        self._room = room or (lambda: asyncio.sleep(0))
+        # waits until a turn fits between two of the loops' ticks (``Loops.room``); gives the
+        # slice's deadline on time.monotonic (None: a slice is _OFFERS_PER_SLICE, a frame)
+        self._room: Callable[[], Awaitable[float | None]] = room or _no_room
         pool = self.candidates = candidates or CandidatePoolConfig()
         ports = [(name, FleetPort(ctrl, pool)) for name, ctrl in controllers]
         self.specs = tuple(
@@ -345,23 +370,33 @@ class FleetSharing:
             # ticks due (100 of 135 position-loop gaps over 12 ms beside bench --attack's
             # replay, issue 21); it starts now when a tick has just run and the next is
             # at least ROOM_S away
-            await self._room()
+            #
+            # Each slice ends by the deadline ``room`` gives (~1 ms, before the next tick due):
+            # the candidates are offered one by one until it passes, the publication handed
+            # over a frame at a time, the snapshots one problem at a time. Three candidates a
+            # slice, and a publication and its hand-over at once, still took the loops'
+            # thread 3-10 ms in a step (stop 37's bench --attack, before late ticks).
+            deadline = await self._room()
             now = time.monotonic()
-            self.poll(now)
+            self.poll(now, deadline)
             while len(self._to_offer):  # the rest of the turn's candidates, a slice at a time
-                await self._room()
-                self.offer_slice()
+                self.offer_slice(await self._room())
             if now >= next_publish:
                 next_publish = now + period
-                await self._room()  # each part of its own: together up to 7 ms
-                self.publish_new()
-                await self._room()
-                self._refresh_snapshots()
+                self.publish_new(await self._room())
+                while self._backlog.waiting and self.helper_running():
+                    if not self._hand_off(await self._room()):
+                        break  # the pipe is full: the rest next turn
+                for i in range(len(self._libraries)):
+                    if self.share_library and self._dirty[i]:
+                        await self._room()
+                        self._refresh_snapshot(i)
             await asyncio.sleep(_TURN_S)
 
-    def poll(self, now_s: float) -> int:
-        """One turn: at most the budget's candidates offered, the newest reference kept, the
-        helper checked (restarted when due). Returns the candidates offered."""
+    def poll(self, now_s: float, deadline_s: float | None = None) -> int:
+        """One turn: the budget's candidates read and, until ``deadline_s`` (time.monotonic;
+        None: ``_OFFERS_PER_SLICE``), offered, the newest reference kept, the helper checked
+        (restarted when due). Returns the candidates offered."""
         helper = self._helper
         if helper is None:
             if self._restarts.due(now_s):
@@ -384,9 +419,11 @@ class FleetSharing:
                 self._read += len(records)
                 waiting = self._to_offer
                 self._to_offer = np.concatenate((waiting, records)) if len(waiting) else records
-                offered = self._offer(self._next_slice())  # the rest: offer_slice, in run
+                # a slice's worth (the rest: offer_slice, in run)
+                offered = self._offer(self._next_slice(_first(deadline_s)))
+                offered += self._offer_until(deadline_s)
             helper.outbox.flush()
-            self._hand_off()
+            self._hand_off(deadline_s)
         except ChannelClosedError:
             helper.failed = True
         self._watch(helper, now_s)
@@ -414,17 +451,26 @@ class FleetSharing:
         self._reference = None
         self.counters["publish_requeued"] += self._backlog.requeue()
 
-    def offer_slice(self) -> int:
-        """Offer at most ``_OFFERS_PER_SLICE`` of the candidates read and waiting (``run``
-        waits for ``Loops.room`` before each slice); returns how many were new. A turn's
-        ten offered at once took the loops' thread 2-6 ms (bench --attack's replay, the
-        event loop's steps timed: the longest step of most turns, issue 21)."""
-        return self._offer(self._next_slice())
+    def offer_slice(self, deadline_s: float | None = None) -> int:
+        """Offer the candidates read and waiting one by one until ``deadline_s`` has passed
+        (time.monotonic; at least one), or, with no deadline (lockstep: the same every run),
+        ``_OFFERS_PER_SLICE`` of them (``run`` waits for ``Loops.room`` before each slice);
+        returns how many were new. A turn's ten offered at once took the loops' thread 2-6 ms
+        (bench --attack's replay, the event loop's steps timed: the longest step of most
+        turns, issue 21), three at once still up to 10 ms beside two hogs (stop 37)."""
+        return self._offer(self._next_slice(_first(deadline_s))) + self._offer_until(deadline_s)
 
-    def _next_slice(self) -> Records:
-        """The next few candidates waiting (none: offered all the same, counted as before)."""
-        head = self._to_offer[:_OFFERS_PER_SLICE]
-        self._to_offer = self._to_offer[_OFFERS_PER_SLICE:]
+    def _offer_until(self, deadline_s: float | None) -> int:
+        """After a slice's first: the candidates waiting, one by one until ``deadline_s``."""
+        offered = 0
+        while deadline_s is not None and len(self._to_offer) and time.monotonic() < deadline_s:
+            offered += self._offer(self._next_slice(1))
+        return offered
+
+    def _next_slice(self, n: int) -> Records:
+        """The next ``n`` candidates waiting (none: offered all the same, counted as before)."""
+        head = self._to_offer[:n]
+        self._to_offer = self._to_offer[n:]
         return head
 
     def _offer(self, records: Records) -> int:
@@ -446,9 +492,10 @@ class FleetSharing:
             msg, received_s = reference_of(rows[-1])
             self._reference = LiveReference(msg, received_s)
 
-    def publish_new(self) -> int:
+    def publish_new(self, deadline_s: float | None = None) -> int:
         """Queue every controller learned since the last call for publication, and hand what
-        waits to the helper if its session is open; returns how many were queued."""
+        waits to the helper if its session is open (until ``deadline_s``, as
+        :meth:`_hand_off`); returns how many were queued."""
         queued = 0
         for i, (_name, library) in enumerate(self._libraries):
             new = library.new_entries()
@@ -457,24 +504,26 @@ class FleetSharing:
             self._dirty[i] = True
             self._backlog.add(i, new)
             queued += len(new)
-        self._hand_off()
+        self._hand_off(deadline_s)
         return queued
 
-    def _hand_off(self) -> None:
+    def _hand_off(self, deadline_s: float | None = None) -> bool:
         """Publication goes only to a helper whose session is open: one still starting may
-        never open it, and one that dies takes its pipe's contents with it."""
+        never open it, and one that dies takes its pipe's contents with it. Frames are
+        handed until ``deadline_s`` has passed (time.monotonic; at least one; None: all
+        that wait). Returns False if the helper refused one (its pipe full)."""
         if not self.helper_running():
-            return
+            return True
         self._backlog.done(self._slot("publish_seq_done"))
-        self._backlog.hand_off(self._send)
+        self._backlog.hand_off(self._send, deadline_s)
+        return not self._backlog.refused
 
-    def _refresh_snapshots(self) -> None:
-        for i, (_name, library) in enumerate(self._libraries):
-            if not self.share_library or not self._dirty[i]:
-                continue
-            # here, on the event loop: the library is not thread-safe
-            if self._send(("snapshot", i, *library.snapshot())):
-                self._dirty[i] = False
+    def _refresh_snapshot(self, i: int) -> None:
+        """Problem ``i``'s library as the helper answers queries with it (one problem a
+        slice: a snapshot is not cut)."""
+        # here, on the event loop: the library is not thread-safe
+        if self._send(("snapshot", i, *self._libraries[i][1].snapshot())):
+            self._dirty[i] = False
 
     def _send(self, frame: tuple[Any, ...]) -> bool:
         helper = self._helper

@@ -70,7 +70,7 @@ class LibraryKeeper:
         published: Callable[[], bool],
         log_cfg: LogConfig | None = None,
         fleet_steps: Callable[[], Iterator[FleetState | None]] | None = None,
-        room: Callable[[], Awaitable[None]] | None = None,
+        room: Callable[[], Awaitable[object]] | None = None,
     ) -> None:
         self.cfg = cfg
         self.cascade = cascade

@@ -93,6 +93,11 @@ STALLS_KEPT = 256  # the latest stalls (and, apart, deadline misses), in the sta
 # Work beside the loops on their thread (``Loops.room``) starts only this long before the
 # next tick is due: a slice of it that fits runs between two ticks, not across one.
 ROOM_S = 0.002
+# ... and a slice started then ends by this (``Loops.room``'s deadline): the ~1 ms issue 21
+# allows a step on the loops' thread that is not a tick, and never nearer than
+# ``SLICE_MARGIN_S`` to the next tick due
+SLICE_S = 0.001
+SLICE_MARGIN_S = 0.0005
 
 
 class _Mark(NamedTuple):
@@ -157,14 +162,19 @@ class Loops:
         self._next_due: dict[str, float] = {}  # per loop: when its next tick is due
         self._ticked: asyncio.Future[None] | None = None  # set when a tick has run
 
-    async def room(self, room_s: float = ROOM_S, timeout_s: float = 0.05) -> None:
+    async def room(self, room_s: float = ROOM_S, timeout_s: float = 0.05) -> float | None:
         """Until a tick of the loops has just run and the next one of either loop is at least
         ``room_s`` away: a slice of other work on the loops' thread started now runs between
         two ticks. ``asyncio.sleep(0)`` between slices let the next slice start whenever no
         tick was due at that instant, and slices back to back, 10-25 ms of the library saver
         every 5 s, came between ticks (position-loop gaps of 12-16 ms and late attitude
         ticks beside two CPU hogs). Returns after ``timeout_s`` all the same (loops that do
-        not tick: before start-up is over, after a stop)."""
+        not tick: before start-up is over, after a stop).
+
+        Returns the slice's deadline on ``time.monotonic``: ``SLICE_S`` from now, or
+        ``SLICE_MARGIN_S`` before the next tick due if sooner; work that can stop in the
+        middle stops there (the fleet's candidates). None in lockstep (the vehicle's clock
+        stands while the slice runs: a slice is a count there, as every run the same)."""
         loop = asyncio.get_running_loop()
         end = loop.time() + timeout_s
         while (left := end - loop.time()) > 0.0:
@@ -175,8 +185,15 @@ class Loops:
                     await asyncio.shield(self._ticked)
             due = min(self._next_due.values(), default=math.inf)
             if due - self.clock.now_s() >= room_s:
-                return
+                return self._slice_deadline(due)
         self.counters["room_timeouts"] += 1
+        return self._slice_deadline(min(self._next_due.values(), default=math.inf))
+
+    def _slice_deadline(self, due_s: float) -> float | None:
+        if self.clock.vehicle_time:
+            return None
+        now = self.clock.now_s()
+        return min(now + SLICE_S, due_s - SLICE_MARGIN_S)
 
     async def wait(
         self, t_s: float, *, until_reached: bool = False,

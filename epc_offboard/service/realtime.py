@@ -223,6 +223,8 @@ class GcMonitor:
 _LONG_STEP_S = 0.001  # an event-loop step longer than this is named (and kept)
 _LONG_STEPS_KEPT = 256  # the latest long steps, for a stall to be traced to one
 _STEP_NAMES_KEPT = 64  # distinct long steps' names counted in the stats
+# a long step's name counts its steps over each of these (the stats' ``over_ms``)
+_STEP_BINS_S = (0.002, 0.005, 0.010)
 
 
 @dataclass(frozen=True)
@@ -249,7 +251,8 @@ class StepMonitor:
         self.count = 0
         self.long_seen = 0  # steps longer than _LONG_STEP_S so far
         self.long: deque[tuple[int, float, float, str]] = deque(maxlen=_LONG_STEPS_KEPT)
-        self.names: dict[str, list[float]] = {}  # name -> [count, longest s]
+        # name -> [count, longest s, total s, steps over each of _STEP_BINS_S]
+        self.names: dict[str, list[float]] = {}
         self.longest_s = 0.0
         self.longest = ""
         self._original: Any = None
@@ -333,11 +336,15 @@ class StepMonitor:
         self.long.append((self.long_seen, t0, dt, name))
         self.long_seen += 1
         seen = self.names.get(name)
+        if seen is None and len(self.names) < _STEP_NAMES_KEPT:
+            seen = self.names[name] = [0, 0.0, 0.0] + [0] * len(_STEP_BINS_S)
         if seen is not None:
             seen[0] += 1
             seen[1] = max(seen[1], dt)
-        elif len(self.names) < _STEP_NAMES_KEPT:
-            self.names[name] = [1, dt]
+            seen[2] += dt
+            for i, bound in enumerate(_STEP_BINS_S):  # the histogram's bins over 1 ms
+                if dt > bound:
+                    seen[3 + i] += 1
         if dt > self.longest_s:
             self.longest_s, self.longest = dt, name
 
@@ -351,8 +358,11 @@ class StepMonitor:
             "longest": self.longest,
             "samples": [{"t0": round(a, 4), "ms": round(b * 1e3, 2), "stack": c}
                         for a, b, c in tuple(self.samples)],
-            "long_by_name": [{"name": k, "count": int(c), "longest_ms": round(m * 1e3, 3)}
-                             for k, (c, m) in top],
+            "long_by_name": [{"name": k, "count": int(v[0]), "longest_ms": round(v[1] * 1e3, 3),
+                              "total_ms": round(v[2] * 1e3, 3),
+                              "over_ms": {f"{b * 1e3:g}": int(n)
+                                          for b, n in zip(_STEP_BINS_S, v[3:], strict=True)}}
+                             for k, v in top],
         }  # fmt: skip
 
 
@@ -376,8 +386,9 @@ _ASYNCIO_DIR = os.path.dirname(asyncio.__file__)
 
 def _awaits_at(coro: Any) -> str:
     """file:line function of the innermost coroutine ``coro`` awaits in, asyncio's own left
-    out ("done" if none)."""
-    where = "done"
+    out ("done" if none), then, if another, `` < `` the task's own coroutine's line: a task
+    awaiting one helper (``Loops.room``) from several places names each step apart."""
+    where = outer = "done"
     for _ in range(32):  # a chain of awaits, innermost last
         frame = getattr(coro, "cr_frame", None) or getattr(coro, "gi_frame", None)
         if frame is None:
@@ -385,8 +396,10 @@ def _awaits_at(coro: Any) -> str:
         code = frame.f_code
         if not code.co_filename.startswith(_ASYNCIO_DIR):
             where = f"{os.path.basename(code.co_filename)}:{frame.f_lineno} {code.co_name}"
+            if outer == "done":
+                outer = where
         coro = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
-    return where
+    return where if outer == where else f"{where} < {outer}"
 
 
 # Room a collection needs before the next tick of the loops: a young one took 1-4 ms of

@@ -443,6 +443,7 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "stats_stalls": stats.get("stalls", []),
         "stats_misses": stats.get("misses", []),
         "stats_slow_steps": stats.get("slow_steps", {}),
+        "stats_event_loop_steps": stats.get("event_loop_steps", {}),
         "steal": steal,
         # every position-loop gap over 12 ms and every deadline miss, with its verdict
         "attribution": analysis.attribution(record.get("steal", {}), record["windows"],

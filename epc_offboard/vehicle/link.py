@@ -53,6 +53,8 @@ from epc_offboard.common.logsetup import LogGate
 from epc_offboard.common.signing import SignatureCheck, enable_signing
 from epc_offboard.vehicle.receive import (
     ALL_MESSAGE_IDS,
+    MAX_FRAMES_PER_DATAGRAM,
+    MAX_FRAMES_PER_STRANGER_DATAGRAM,
     FrameReceiver,
     ReceiveBudget,
     SourceGate,
@@ -486,10 +488,14 @@ class MavlinkLink:
         if not gate.admits(source, now):
             self.counters["throttled"] += 1
             return
-        msgs = self._receive(data, source, now)
+        # one datagram a callback (asyncio's datagram transport reads one per readiness):
+        # from a second address while the peer talks, few of its frames are read
+        stranger = self._peer_live(now)
+        frames = MAX_FRAMES_PER_STRANGER_DATAGRAM if stranger else MAX_FRAMES_PER_DATAGRAM
+        msgs = self._receive(data, source, now, frames)
         if not msgs:
             return
-        if self._peer_live(now):
+        if stranger:
             # The autopilot is talking to us from its address: on an unsigned link, a second
             # address sending well-formed frames of its ids is a forger (or a stray route),
             # and what it says is neither flown nor worth the tracker's time. Charged like
@@ -511,12 +517,13 @@ class MavlinkLink:
         )
 
     def _receive(
-        self, data: bytes, source: tuple[Any, int] | None = None, now: float = 0.0
+        self, data: bytes, source: tuple[Any, int] | None = None, now: float = 0.0,
+        max_frames: int = MAX_FRAMES_PER_DATAGRAM,
     ) -> list[Any]:
-        """The messages of one datagram; its failures are charged to ``source`` (None: the
-        peer, not charged)."""
+        """The messages of one datagram (at most ``max_frames`` frames read); its failures
+        are charged to ``source`` (None: the peer, not charged)."""
         try:
-            msgs, failures = self.receiver.datagram(data)
+            msgs, failures = self.receiver.datagram(data, max_frames)
         except Exception as exc:  # the receive path must never take the loop down
             self.counters["bad_data"] += 1
             self.counters["decode_errors"] += 1
