@@ -556,11 +556,11 @@ def test_candidate_maps_are_built_in_slices_bounded_by_time(monkeypatch):
     ctrl.offer_candidates([LibraryEntry((i,)) for i in range(12)], "shared:v2")
     fake_now = [0.0]
 
-    def perf_counter() -> float:
+    def thread_time() -> float:  # the worker's CPU time, as the slice is budgeted
         fake_now[0] += 1e-3
         return fake_now[0]
 
-    monkeypatch.setattr("epc_offboard.control.epc.candidates.time.perf_counter", perf_counter)
+    monkeypatch.setattr("epc_offboard.control.epc.candidates.time.thread_time", thread_time)
     assert ctrl.build_candidates(0.0) == 1
     # start at t0; after each map a reading: t0 + 1 and + 2 ms go on, + 3 ms stops it
     assert ctrl.build_candidates(2.5e-3) == 3
