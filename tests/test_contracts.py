@@ -496,7 +496,8 @@ def test_the_fleet_message_path_names_at_most_four_files_and_real_code() -> None
     ("rel", "qualname", "callee"),
     [
         ("epc_offboard/fleet/session.py", "FleetSession._on_batch", "receive"),
-        ("epc_offboard/fleet/sharing.py", "FleetSharing.poll", "_offer"),
+        ("epc_offboard/fleet/sharing.py", "FleetSharing.poll", "offer_slice"),
+        ("epc_offboard/fleet/sharing.py", "FleetSharing.offer_slice", "_offer"),
         ("epc_offboard/fleet/sharing.py", "FleetSharing._offer", "offer_records"),
         ("epc_offboard/fleet/exchange.py", "offer_records", "offer"),
         ("epc_offboard/control/epc/exchange.py", "FleetPort.offer", "offer_candidates"),

@@ -419,9 +419,7 @@ class FleetSharing:
                 self._read += len(records)
                 waiting = self._to_offer
                 self._to_offer = np.concatenate((waiting, records)) if len(waiting) else records
-                # a slice's worth (the rest: offer_slice, in run)
-                offered = self._offer(self._next_slice(_first(deadline_s)))
-                offered += self._offer_until(deadline_s)
+                offered = self.offer_slice(deadline_s)  # a slice's worth (the rest: run)
             helper.outbox.flush()
             self._hand_off(deadline_s)
         except ChannelClosedError:
