@@ -139,3 +139,36 @@ def test_the_bench_summary_names_the_slow_parts_and_the_bursts() -> None:
     assert line.endswith("position.pump_offer 1 (max 25.0 ms CPU), position.tick 1 (max 3.0 ms "
                          "CPU), attitude.send 1 (max 1.5 ms CPU)")  # fmt: skip
     assert "not traced" in slow_steps_summary({})
+
+
+def test_the_service_marks_each_part_by_its_name_never_by_a_number() -> None:
+    """``Service``'s steps mark their parts through indices named from ``POSITION_PARTS`` /
+    ``ATTITUDE_PARTS``: each name maps to its own index, the pump's three phases follow its
+    first in order, no step marks a part by a bare number, and every part is marked."""
+    import ast
+    import inspect
+
+    from epc_offboard.service import service as svc
+
+    position = {"state": svc._P_STATE, "pump_collect": svc._P_PUMP,
+                "rate_gate": svc._P_RATE_GATE, "reference": svc._P_REFERENCE,
+                "tick": svc._P_TICK, "log_row": svc._P_LOG_ROW, "hand_over": svc._P_HAND_OVER}
+    attitude = {"state": svc._A_STATE, "command": svc._A_COMMAND, "send": svc._A_SEND}
+    for name, i in position.items():
+        assert svc.POSITION_PARTS[i] == name
+    for name, i in attitude.items():
+        assert svc.ATTITUDE_PARTS[i] == name
+    pump = svc.POSITION_PARTS[svc._P_PUMP:svc._P_PUMP + 3]
+    assert pump == ("pump_collect", "pump_offer", "pump_submit")  # MissSolver.pump's phases
+    tree = ast.parse(inspect.getsource(svc))
+    args = [c.args[0] for c in ast.walk(tree) if isinstance(c, ast.Call)
+            and isinstance(c.func, ast.Attribute) and c.func.attr == "part"]  # fmt: skip
+    assert args
+    names = {n.id for a in args for n in ast.walk(a) if isinstance(n, ast.Name)}
+    assert all(not isinstance(a, ast.Constant) and any(isinstance(n, ast.Name)
+               for n in ast.walk(a)) for a in args), "a part marked by a number"  # fmt: skip
+    marked_p = {getattr(svc, n) for n in names if n.startswith("_P_")}
+    marked_p |= {svc._P_PUMP + k for k in range(3)}
+    marked_a = {getattr(svc, n) for n in names if n.startswith("_A_")}
+    assert marked_p == set(range(len(svc.POSITION_PARTS)))
+    assert marked_a == set(range(len(svc.ATTITUDE_PARTS)))

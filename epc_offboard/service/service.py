@@ -85,6 +85,13 @@ _MISS_WORKER_POLL_S = 0.05  # real time: how often the start polls whether the w
 POSITION_PARTS = ("state", "pump_collect", "pump_offer", "pump_submit", "rate_gate",
                   "reference", "tick", "log_row", "hand_over")
 ATTITUDE_PARTS = ("state", "command", "send")
+# each part's index, named once from the tuples (a renamed part fails at import, a moved
+# one takes its index along; test_step_parts checks every part is marked by name)
+_P_STATE, _P_PUMP, _P_RATE_GATE, _P_REFERENCE, _P_TICK, _P_LOG_ROW, _P_HAND_OVER = map(
+    POSITION_PARTS.index,
+    ("state", "pump_collect", "rate_gate", "reference", "tick", "log_row", "hand_over"),
+)  # the pump's phases (collect, offer, submit) follow ``_P_PUMP`` in this order
+_A_STATE, _A_COMMAND, _A_SEND = map(ATTITUDE_PARTS.index, ("state", "command", "send"))
 SLOW_STEP_PERIODS = 0.2
 
 # After "stopped", the process ends within this or says where it hangs: once, the
@@ -239,7 +246,7 @@ class Service:
         parts = self.position_parts
         parts.start(tick.start_s)
         state = self._state_at(tick.start_s)
-        parts.part(0)  # state
+        parts.part(_P_STATE)
         # misses solved by the worker join the library here; in lockstep the tick waits
         # for the solve in flight, so it joins at the same tick every run
         self.misses.pump(wait=self.clock.vehicle_time, mark=self._pump_marks)
@@ -247,16 +254,16 @@ class Service:
             self._position_out = self._position_tick(state, tick.start_s)
             self.misses.hand_over(wait=self.clock.vehicle_time)  # its misses, solved by the next
             self.systemd.control_ticked()
-            parts.part(8)  # hand_over
+            parts.part(_P_HAND_OVER)
         parts.finish()
         return self.outputs.stream_setpoints  # ticks that control are timed, not idle ones
 
     def _pump_mark(self, phase: int) -> None:
         """The miss pump's phases (collect, offer, submit) as the position step's parts."""
-        self.position_parts.part(1 + phase)
+        self.position_parts.part(_P_PUMP + phase)
 
     def _attitude_computed(self) -> None:
-        self.attitude_parts.part(1)  # command: computed and encoded, not yet sent
+        self.attitude_parts.part(_A_COMMAND)  # computed and encoded, not yet sent
 
     def _use_attitude_path(self, autopilot: str, mode: AttitudeMode) -> None:
         self._attitude_path = (autopilot, mode)
@@ -283,28 +290,28 @@ class Service:
         parts = self.position_parts
         if self._attitude_path[1] == "epc":
             self._follow_rate_gate(t_s)
-        parts.part(4)  # rate_gate
+        parts.part(_P_RATE_GATE)
         try:
             if self.cascade.flies_reference:  # the autopilot takes the reference now only
                 reference = self.references.now(state, t_s)
             else:
                 reference = self.references.horizon(state, t_s, self.sharing, offboard=offboard)
-            parts.part(5)  # reference
+            parts.part(_P_REFERENCE)
             out = self.cascade.position_tick(state, reference, learn=offboard)
         except Exception as exc:  # degrade, never die
             self.loops.error("position", exc)
             out = self.cascade.hover(state)
-        parts.part(6)  # tick
+        parts.part(_P_TICK)
         if self.logs is not None and self.cfg.log.flight_log_path:
             self.logs.flight_row(pack_row(t_s, self.outputs.phase.value, state, reference, out))
-        parts.part(7)  # log_row
+        parts.part(_P_LOG_ROW)
         return out
 
     async def _attitude_step(self, tick: Tick) -> bool:
         parts = self.attitude_parts
         parts.start(tick.start_s)
         state = self._state_at(tick.start_s)
-        parts.part(0)  # state
+        parts.part(_A_STATE)
         if self.clock.vehicle_time:
             # lockstep: the answer releases the simulator's next tick, so it goes last,
             # after whatever the other tasks woken at this tick send (commands)
@@ -328,7 +335,7 @@ class Service:
             # of vehicle time): the tick is answered all the same, or the simulator would
             # hold (or fall back to real-time pace) until a position it never sends
             self.link.send(commands.system_time(self.clock.now_s()))
-        parts.part(2)  # send (or the command, if no attitude setpoint was sent)
+        parts.part(_A_SEND)  # (or the command, if no attitude setpoint was sent)
         parts.finish()
         return self.outputs.stream_setpoints
 
