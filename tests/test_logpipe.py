@@ -12,6 +12,7 @@ import os
 import signal
 import threading
 import time
+from typing import Any
 
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -123,24 +124,37 @@ def _kill_pump(handler: PipeHandler) -> int:
     pid = handler.pid()
     assert pid is not None
     assert handler._proc is not None
-    time.sleep(0.5)  # the pump has written what went before
+    deadline = time.monotonic() + 20.0  # the pump has read what went before (under load
+    while handler.queued_bytes() and time.monotonic() < deadline:  # its start takes > 0.5 s)
+        time.sleep(0.01)
+    time.sleep(0.2)  # ... and written it
     os.kill(pid, signal.SIGKILL)
     handler._proc.wait(timeout=10)
     return pid
 
 
+def _restarted(handler: PipeHandler, n: int, timeout_s: float = 10.0) -> None:
+    """Wait until the handler's restarting thread has started its ``n``-th pump."""
+    deadline = time.monotonic() + timeout_s
+    while handler.restarts < n and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert handler.restarts == n, handler.restarts
+
+
 def test_a_dead_pump_is_restarted_at_most_n_times_a_minute_then_lines_go_direct():
-    """The pump SIGKILLed: the next line starts a new pump on a new pipe and goes through
-    it, the restart counted and said once. Past ``restarts_per_min`` in a minute the lines
-    go straight to stderr (said once), never waiting; every line arrives. Before, a dead
-    pump was never restarted: every later line went straight to stderr."""
+    """The pump SIGKILLed: the next line goes straight to stderr and a new pump is started
+    on a new pipe (by the handler's thread), the restart counted and said once. Past
+    ``restarts_per_min`` in a minute the lines go straight to stderr (said once), never
+    waiting; every line arrives. Before, a dead pump was never restarted: every later
+    line went straight to stderr."""
     read_fd, write_fd = os.pipe()
     handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536, restarts_per_min=2)
     handler.start()
     log = _logger(handler, "test.logpipe.restart")
     pids = []
     for k in range(3):
-        log.info("line %d", k)
+        log.info("line %d", k)  # 1, 2: the pump found dead, a new one asked
+        _restarted(handler, k)
         pids.append(_kill_pump(handler))
     log.info("line 3")  # the third death: straight to stderr
     log.info("last")
@@ -155,6 +169,57 @@ def test_a_dead_pump_is_restarted_at_most_n_times_a_minute_then_lines_go_direct(
         "line 0", "line 1", "line 2", "line 3", "last"]  # fmt: skip
     assert sum("died: restarted as process" in x for x in lines) == 1, lines
     assert sum("is not restarted now" in x for x in lines) == 1, lines
+
+
+def test_a_dead_pump_is_restarted_off_the_thread_that_logs(monkeypatch):
+    """The pump SIGKILLed while a thread logs (the loops' thread, in the service): the line
+    that finds it dead goes straight to stderr, and the new pump is started (a vfork and
+    exec) by the handler's own thread, never by the one that logs; lines after the
+    restart go through the new pump, and every line arrives. Before, the thread that
+    logged the line started the pump itself."""
+    from epc_offboard.common import logpipe
+
+    started_on: list[str] = []
+    popen = logpipe.subprocess.Popen
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        started_on.append(threading.current_thread().name)
+        return popen(*args, **kwargs)
+
+    monkeypatch.setattr(logpipe.subprocess, "Popen", spy)
+    read_fd, write_fd = os.pipe()
+    handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536)
+    handler.start()
+    assert started_on == [threading.current_thread().name]  # the first: at start-up
+    log = _logger(handler, "test.logpipe.offthread")
+    first = handler.pid()
+    call_ms: list[float] = []
+
+    def loops() -> None:
+        log.info("before")
+        _kill_pump(handler)
+        t0 = time.perf_counter()
+        log.info("found dead")  # EPIPE: straight to stderr, a restart asked
+        call_ms.append(1e3 * (time.perf_counter() - t0))
+        _restarted(handler, 1)
+        log.info("after")
+
+    thread = threading.Thread(target=loops, name="loops")
+    thread.start()
+    thread.join(30.0)
+    assert not thread.is_alive()
+    print(f"the log call that found the pump dead: {call_ms[0]:.2f} ms")
+    assert handler.pid() not in (None, first)
+    assert not handler.pump_failed
+    assert len(started_on) == 2, started_on
+    assert started_on[1] == "log-pump-restart", started_on  # not "loops"
+    handler.close()
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as fh:
+        lines = fh.read().decode().splitlines()
+    assert [x for x in lines if x in ("before", "found dead", "after")] == [
+        "before", "found dead", "after"]  # fmt: skip
+    assert sum("died: restarted as process" in x for x in lines) == 1, lines
 
 
 def test_a_dead_pump_leaves_lines_going_straight_to_stderr_never_waiting():

@@ -22,13 +22,15 @@ end at exit (:meth:`PipeHandler.close`, from ``logging.shutdown``: it waits a bo
 for the pump, no later than :meth:`PipeHandler.close_by`'s deadline, the stop's), or dies
 (SIGKILL included). It ignores SIGTERM and SIGINT, which a stop sends
 to the whole group. If the pump dies (its pipe says EPIPE) a new one is started with a new
-pipe, and the line goes to it: at most ``_RESTARTS_PER_MIN`` restarts in any minute,
-counted (``restarts``), the first said in a log line. Beyond that, and while no pump can
+pipe by a thread of the handler's own (``log-pump-restart``, started with the first pump):
+at most ``_RESTARTS_PER_MIN`` restarts in any minute, counted (``restarts``), the first
+said in a log line. Until the new pump is up, beyond that many, and while no pump can
 start, lines go straight to stderr, never blocking (a new non-blocking open of the same
 pipe or tty, ``MSG_DONTWAIT`` on a socket; a regular file as it is), dropped and counted
-when it is full; said once, and the loops fly on; a restart is tried again once the
+when it is full; said once, and the loops fly on; a restart is asked again once the
 minute allows. A pump's start is a ``vfork`` and ``exec`` (the new interpreter comes up in
-the child): on the thread that logs, once per death.
+the child): never on the thread that logs, which may be the loops' (it only wakes the
+restarting thread).
 Before :func:`pipe_stderr` (the start-up, a config error) lines go to stderr as they always
 did. The helper processes (fleet helper, miss worker, store and log writers) write their
 lines straight to stderr through :class:`DirectHandler` (:func:`direct_stderr`): never
@@ -52,6 +54,7 @@ import struct
 import subprocess
 import sys
 import termios
+import threading
 import time
 from collections import deque
 from typing import Any
@@ -190,16 +193,30 @@ class PipeHandler(DirectHandler):
         self._restarted_s: deque[float] = deque()  # the restarts' times (monotonic), last 60 s
         self._said: set[str] = set()  # the pump's fate, said once each
         self._close_by_s = math.inf  # close() waits for the pump until then at the latest
+        self._restarter: threading.Thread | None = None  # starts a dead pump's successor
+        self._restart_asked = threading.Event()
+        self._restart_pending = False  # asked, not yet done (under the handler's lock)
+        self._died_pid: int | None = None  # the last pump that died
+        self._closed = False
         self.restarts = 0
         self.pump_failed = False
 
     def start(self) -> None:
-        """Start the pump (OSError if it cannot be started: then stay with stderr)."""
+        """Start the pump (OSError if it cannot be started: then stay with stderr), and the
+        thread that restarts it should it die."""
+        self._proc, self._fd = self._spawn()
+        if self._restarter is None:
+            self._restarter = threading.Thread(target=self._restart_loop, daemon=True,
+                                               name="log-pump-restart")  # fmt: skip
+            self._restarter.start()
+
+    def _spawn(self) -> tuple[subprocess.Popen[bytes], int]:
+        """A new pump reading a new pipe: the process and the pipe's (non-blocking) end."""
         read, write = os.pipe()
         with contextlib.suppress(OSError):  # above the system's ceiling: the default 64 KiB
             fcntl.fcntl(write, _F_SETPIPE_SZ, self._pipe_bytes)
         try:
-            self._proc = subprocess.Popen(
+            proc = subprocess.Popen(
                 [sys.executable, "-m", "epc_offboard.common.logpipe"], stdin=read,
                 stdout=subprocess.DEVNULL, stderr=self._stderr_fd, close_fds=True,
             )  # fmt: skip
@@ -209,15 +226,15 @@ class PipeHandler(DirectHandler):
         finally:
             os.close(read)
         os.set_blocking(write, False)
-        self._fd = write
+        return proc, write
 
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None
 
     def _write(self, data: bytes) -> bool:
         fd = self._fd
-        if fd is None and self.pump_failed:  # a later minute may allow a restart
-            fd = self._restart()
+        if fd is None and self.pump_failed and not self._restart_pending:
+            self._ask_restart()  # a later minute may allow one
         if fd is None:
             return self._write_direct(data)
         last = len(data) - 1
@@ -230,47 +247,72 @@ class PipeHandler(DirectHandler):
                 return False
             except OSError:  # EPIPE: the pump is gone (a line it cut is dropped whole)
                 self._pump_died()
-                return self._write(data) if self._fd is not None else self._write_direct(data)
+                return self._write_direct(data)  # and the next ones, until the new pump
         return True
 
     def _pump_died(self) -> None:
-        """The pump is gone: a new one started if the minute allows (``_restart``), else
-        lines go straight to stderr (``pump_failed``)."""
+        """The pump is gone: lines go straight to stderr (``pump_failed``) and a new pump
+        is asked of the restarting thread if the minute allows (:meth:`_ask_restart`)."""
         assert self._fd is not None
         os.close(self._fd)
         self._fd = None
-        pid = self.pid()
+        self._died_pid = self.pid()
         if self._proc is not None:
             self._dead.append(self._proc)
             self._proc = None
         self._dead = [p for p in self._dead if p.poll() is None]  # the dead ones reaped
         self.pump_failed = True
-        if self._restart() is not None:
-            self._say("restarted", "log pump (process %s) died: restarted as process %s (at "
-                      "most %d restarts a minute, counted; said once)",
-                      pid, self.pid(), self._restarts_per_min)  # fmt: skip
-        else:
+        if not self._ask_restart():
             self._say("direct", "log pump (process %s) died and is not restarted now (%d "
                       "restarts in the last minute): log lines go straight to stderr, never "
                       "waiting for it (dropped and counted when it is full); flying on",
-                      pid, len(self._restarted_s))  # fmt: skip
+                      self._died_pid, len(self._restarted_s))  # fmt: skip
 
-    def _restart(self) -> int | None:
-        """A new pump and pipe if fewer than ``restarts_per_min`` started in the last
-        minute (counted); the new pipe's end, or None (lines stay direct)."""
+    def _ask_restart(self) -> bool:
+        """Wake the restarting thread if fewer than ``restarts_per_min`` pumps started in
+        the last minute (the ask counts against it: a start that fails too); False if the
+        minute allows none now. Called under the handler's lock, on the thread that logs:
+        no process is started here."""
         now = time.monotonic()
         while self._restarted_s and now - self._restarted_s[0] >= _RESTART_WINDOW_S:
             self._restarted_s.popleft()
-        if len(self._restarted_s) >= self._restarts_per_min:
-            return None
-        self._restarted_s.append(now)  # a start that fails counts against the minute too
-        try:
-            self.start()
-        except OSError:
-            return None
-        self.restarts += 1
-        self.pump_failed = False
-        return self._fd
+        if self._closed or len(self._restarted_s) >= self._restarts_per_min:
+            return False
+        self._restarted_s.append(now)
+        self._restart_pending = True
+        self._restart_asked.set()
+        return True
+
+    def _restart_loop(self) -> None:
+        """The ``log-pump-restart`` thread: each ask, a new pump and pipe started here (the
+        handler's lock not held meanwhile: lines go straight to stderr), then handed to the
+        handler under its lock."""
+        while True:
+            self._restart_asked.wait()
+            self._restart_asked.clear()
+            if self._closed:
+                return
+            try:
+                proc, fd = self._spawn()
+            except OSError:
+                proc = None
+            self.acquire()
+            try:
+                self._restart_pending = False
+                if proc is None:
+                    continue  # stays direct; the next line asks again when the minute allows
+                if self._closed:  # closed meanwhile: EOF ends the new pump at once
+                    os.close(fd)
+                    self._dead.append(proc)
+                    return
+                self._proc, self._fd = proc, fd
+                self.restarts += 1
+                self.pump_failed = False
+                self._say("restarted", "log pump (process %s) died: restarted as process %s "
+                          "(at most %d restarts a minute, counted; said once)",
+                          self._died_pid, proc.pid, self._restarts_per_min)  # fmt: skip
+            finally:
+                self.release()
 
     def _say(self, key: str, msg: str, *args: object) -> None:
         """One line about the pump's fate, once per ``key``, formatted as every line is:
@@ -305,6 +347,8 @@ class PipeHandler(DirectHandler):
         stop's SIGTERM and ends at EOF)."""
         self.acquire()
         try:
+            self._closed = True
+            self._restart_asked.set()  # the restarting thread ends (a pump it starts: EOF)
             fd, self._fd = self._fd, None
             if fd is not None:
                 os.close(fd)
