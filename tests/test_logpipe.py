@@ -177,16 +177,16 @@ def test_a_dead_pump_is_restarted_off_the_thread_that_logs(monkeypatch):
     exec) by the handler's own thread, never by the one that logs; lines after the
     restart go through the new pump, and every line arrives. Before, the thread that
     logged the line started the pump itself."""
-    from epc_offboard.common import logpipe
+    import subprocess
 
     started_on: list[str] = []
-    popen = logpipe.subprocess.Popen
+    popen = subprocess.Popen
 
     def spy(*args: Any, **kwargs: Any) -> Any:
         started_on.append(threading.current_thread().name)
         return popen(*args, **kwargs)
 
-    monkeypatch.setattr(logpipe.subprocess, "Popen", spy)
+    monkeypatch.setattr(subprocess, "Popen", spy)  # logpipe's, the same module
     read_fd, write_fd = os.pipe()
     handler = PipeHandler(stderr_fd=write_fd, pipe_bytes=65536)
     handler.start()
