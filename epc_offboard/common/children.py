@@ -123,6 +123,11 @@ class Backoff:
             self.wait_s = self.first_s
 
 
+# a SIGKILLed child waited for this long at most (it is reaped in milliseconds; one in a
+# disk wait dies when the wait ends): the service's stop stays within its bound
+KILL_WAIT_S = 0.2
+
+
 def enlarge_pipe(conn: Connection, nbytes: int) -> None:
     """Make the pipe under ``conn`` hold ``nbytes`` (Linux ``F_SETPIPE_SZ``; elsewhere, or
     above the system's ceiling, it keeps its size)."""

@@ -50,7 +50,7 @@ import numpy as np
 
 from epc_offboard.common.blobs import ReceivedText, received_record
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordReader
-from epc_offboard.common.children import Backoff
+from epc_offboard.common.children import KILL_WAIT_S, Backoff
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
@@ -85,6 +85,7 @@ _OFFERS_PER_SLICE = 3  # candidates offered in one stretch of the loops' thread
 _TURN_S = 0.05  # the library-sharing task's period: candidates, references, the helper
 _MAX_OUTBOX_BYTES = 4 << 20  # frames to the helper waiting in this process, at most
 _START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is restarted
+_STOP_TIMEOUT_S = 2.0  # its session closed and the process ended, or it is killed
 _REFERENCES_PER_READ = 4  # the newest of these is kept
 _HIGH_WATER_BYTES = 1 << 20  # session.HighWater's saved tables (a larger one is not kept)
 _RECORDS_PER_STEP = 64  # received controllers a step of fleet_state_steps takes
@@ -297,8 +298,10 @@ class FleetSharing:
         log.info("fleet helper up (process %s, nice +%d)", helper.process.pid,
                  self.cfg.helper_nice)  # fmt: skip
 
-    def close(self) -> None:
-        self._stop_helper(kill=False)
+    def close(self, timeout_s: float = _STOP_TIMEOUT_S) -> None:
+        """EOF to the helper (it closes its session and exits), waited for ``timeout_s``,
+        then killed (the service's stop: ``STOP_BOUND_S``)."""
+        self._stop_helper(kill=False, timeout_s=timeout_s)
 
     async def __aenter__(self) -> FleetSharing:
         await self.open()
@@ -343,7 +346,7 @@ class FleetSharing:
         )
         self._dirty = [False] * len(self._libraries)  # it started with the snapshots
 
-    def _stop_helper(self, *, kill: bool) -> None:
+    def _stop_helper(self, *, kill: bool, timeout_s: float = _STOP_TIMEOUT_S) -> None:
         helper, self._helper = self._helper, None
         if helper is None:
             return
@@ -352,10 +355,10 @@ class FleetSharing:
         proc = helper.process
         if kill and proc.is_alive():
             proc.kill()
-        proc.join(timeout=2.0)
+        proc.join(timeout=timeout_s)
         if proc.is_alive():
             proc.kill()
-            proc.join(timeout=1.0)
+            proc.join(timeout=KILL_WAIT_S)
 
     # -- the event-loop task --------------------------------------------------------------
 

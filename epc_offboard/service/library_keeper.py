@@ -34,7 +34,7 @@ from typing import Any, NoReturn, TypeVar
 import numpy as np
 
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox
-from epc_offboard.common.children import Backoff, spawn_fed
+from epc_offboard.common.children import KILL_WAIT_S, Backoff, spawn_fed
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.cascade import Cascade
@@ -229,12 +229,16 @@ class LibraryKeeper:
         proc.join(timeout=wait_s)
         if proc.is_alive():
             proc.kill()
-            proc.join(timeout=1.0)
+            proc.join(timeout=KILL_WAIT_S)
             return False
         return proc.exitcode == 0
 
-    def close(self) -> None:
-        """Save the library as it is now, waiting for the write (shutdown)."""
+    def close(self, timeout_s: float = _CLOSE_TIMEOUT_S) -> None:
+        """Save the library as it is now, waiting for the write (shutdown) at most
+        ``timeout_s`` (the service's stop: ``STOP_BOUND_S``). A store process not done by
+        then is killed, counted (``store_stop_timeouts``): its write uncommitted, SQLite's
+        journal rolls it back and the file holds the library as last saved (every save
+        before is committed); it is not saved here either (no time left)."""
         if not self.cfg.path:
             return
         try:
@@ -244,8 +248,8 @@ class LibraryKeeper:
             log.error("saving the library failed: %s", exc)
             self._close_pipe(wait_s=0.0)
             return
-        saved = False
-        deadline = time.monotonic() + _CLOSE_TIMEOUT_S
+        saved = timed_out = False
+        deadline = time.monotonic() + timeout_s
         if self._outbox is not None:  # this snapshot carries everything the queued ones do
             self.counters["store_snapshots_dropped"] += self._outbox.drop_pending()
         if self._hand_over(snap):
@@ -257,13 +261,21 @@ class LibraryKeeper:
                     time.sleep(0.005)
                 errors = int(self._slots[_ERRORS])
                 saved = self._close_pipe(wait_s=max(0.0, deadline - time.monotonic()))
+                timed_out = not saved and time.monotonic() >= deadline
                 saved = saved and int(self._slots[_ERRORS]) == errors
-            except (ChannelClosedError, TimeoutError):
+            except TimeoutError:
+                timed_out = True
+                self._close_pipe(wait_s=0.0)
+            except ChannelClosedError:
                 self._close_pipe(wait_s=0.0)
         else:
             self._close_pipe(wait_s=0.0)
         self.counters["store_errors"] = int(self._slots[_ERRORS])
-        if not saved:  # the store process could not: here, as before it existed
+        if timed_out:
+            self.counters["store_stop_timeouts"] += 1
+            log.warning("library store process not done in %.1f s: killed; the library file "
+                        "holds the last save before", timeout_s)  # fmt: skip
+        elif not saved:  # the store process could not: here, as before it existed
             self._save_here(snap)
 
     def _save_here(self, snap: LibrarySnapshot) -> None:

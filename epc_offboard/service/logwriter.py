@@ -33,7 +33,13 @@ from typing import Any
 
 from epc_offboard.common import logpipe
 from epc_offboard.common.channel import PIPE_BUF, ChannelClosedError, DropWriter
-from epc_offboard.common.children import Backoff, die_with_parent, lower_priority, spawn_fed
+from epc_offboard.common.children import (
+    KILL_WAIT_S,
+    Backoff,
+    die_with_parent,
+    lower_priority,
+    spawn_fed,
+)
 from epc_offboard.common.logsetup import LogConfig, setup_logging
 from epc_offboard.common.procstats import process_report
 from epc_offboard.service.flightlog import ROW, FlightLog
@@ -218,14 +224,17 @@ class LogWriter:
             self._conn = None
 
     def close(self, timeout_s: float = 20.0) -> None:
-        """Send what is pending, close the pipe (EOF), and let the writer finish."""
+        """Send what is pending, close the pipe (EOF), and let the writer finish; killed
+        after ``timeout_s`` (the service's stop: ``STOP_BOUND_S``; what it had not written
+        then is lost, the files as far as it wrote them)."""
         self.flush()
         self._close_pipe()
         if self._proc is not None:
             self._proc.join(timeout=timeout_s)
             if self._proc.is_alive():
+                self.counters["log_writer_stop_timeouts"] += 1
                 self._proc.kill()
-                self._proc.join(timeout=1.0)
+                self._proc.join(timeout=KILL_WAIT_S)
             self._proc = None
 
     def process_stats(self) -> dict[str, Any]:

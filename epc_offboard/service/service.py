@@ -66,7 +66,7 @@ from epc_offboard.service.flightlog import pack_row
 from epc_offboard.service.library_keeper import LibraryKeeper
 from epc_offboard.service.logwriter import LogWriter
 from epc_offboard.service.loop import Loops, Stop, Tick
-from epc_offboard.service.miss_solver import MissSolver
+from epc_offboard.service.miss_solver import STOP_TIMEOUT_S, MissSolver
 from epc_offboard.service.reference_selector import ReferenceSelector
 from epc_offboard.service.setpoints import SetpointSender
 from epc_offboard.service.startup import TIMELINE
@@ -104,6 +104,14 @@ EXIT_GRACE_S = 10.0
 # log pump is waited for only until then (its stderr, journald, may hold it for longer; it
 # writes out what is queued after we are gone). Well inside the unit's TimeoutStopSec (5 s).
 STOP_S = 2.0
+# Every other wait of the stop ends by this after it was asked (before, the miss worker's
+# end took up to 3 s, the fleet helper's 3, the library's last save 30, the log writer's 21,
+# one after the other: a SIGSTOPped store and writer held a stop 50 s): the library's last
+# save first, then the miss worker, the fleet helper and the log writer, each with what is
+# left, killed at the bound (``children.KILL_WAIT_S`` each). A store killed before its last
+# write commits leaves the library as last saved (SQLite's journal); nothing committed is
+# lost. Two seconds of the unit's TimeoutStopSec (5 s) are left for the kills and the exit.
+STOP_BOUND_S = 3.0
 
 
 def bounded_exit(grace_s: float) -> None:
@@ -482,23 +490,27 @@ class Service:
 
     def _shutdown(self) -> None:
         self.systemd.notify("STOPPING=1")
+        asked_s = self._stop_asked_s if self._stop_asked_s is not None else time.monotonic()
         pump = logpipe.installed()
         if pump is not None:  # the stop's bound holds whatever stderr does
-            asked_s = self._stop_asked_s if self._stop_asked_s is not None else time.monotonic()
             pump.close_by(asked_s + STOP_S)
+
+        def left_s() -> float:
+            return max(0.0, asked_s + STOP_BOUND_S - time.monotonic())
+
         self._processes_at_exit = self._process_stats()  # while the helpers still run
         dialect = self.autopilot.dialect
         if dialect is not None and self.outputs.phase in (Phase.OFFBOARD, Phase.OFFBOARD_REQUESTED):
             # leave the vehicle holding, not waiting for our setpoints to time out
             self.autopilot.send_command(dialect.encode(Action.REQUEST_HOLD))
-        self.misses.close()
-        self.library.close()
+        self.library.close(left_s())  # the last save first: what the stop keeps
+        self.misses.close(min(STOP_TIMEOUT_S, left_s()))
         if self.sharing is not None:
-            self.sharing.close()
+            self.sharing.close(left_s())
         self._write_stats()
         self.link.close()
         if self.logs is not None:  # after the link: its last frames are in the tlog
-            self.logs.close()
+            self.logs.close(left_s())
         self.gc_monitor.uninstall()
         self.step_monitor.uninstall()
         self.compiles.uninstall()
