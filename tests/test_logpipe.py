@@ -299,7 +299,9 @@ def test_pipe_stderr_takes_the_root_loggers_stream_and_pythons_warnings(tmp_path
 def test_a_helper_whose_stderr_is_held_logs_without_waiting_and_works_on(tmp_path):
     """A helper process (here the store writer, a real spawned one) whose stderr nobody
     reads (journald held): each failed save's error line is dropped, never waited for, and
-    the saves go on. Before, the first line blocked the helper in its write for good."""
+    the saves go on; the drops are counted in the helper's ``process_report`` (the stats'
+    ``processes.store.log_dropped``). Before, the first line blocked the helper in its write
+    for good; then the drops were counted in the helper alone."""
     import multiprocessing
 
     import numpy as np
@@ -307,6 +309,7 @@ def test_a_helper_whose_stderr_is_held_logs_without_waiting_and_works_on(tmp_pat
     from epc_offboard.common.channel import write_frame
     from epc_offboard.common.children import spawn_fed
     from epc_offboard.common.logsetup import LogConfig
+    from epc_offboard.common.procstats import process_report
     from epc_offboard.store.process import ERRORS, store_main
 
     read_fd, write_fd = os.pipe()
@@ -333,6 +336,10 @@ def test_a_helper_whose_stderr_is_held_logs_without_waiting_and_works_on(tmp_pat
         while counts[ERRORS] < 50 and time.monotonic() - t0 < 60.0:
             time.sleep(0.05)
         assert counts[ERRORS] == 50  # every save tried, none held by stderr
+        # its lines dropped are counted where the service's stats read them (processes.store)
+        report = process_report(proc.pid)
+        assert report["log_dropped"] >= 50, report
+        assert report["log_lines"] == 0, report  # stderr full from the start
         conn.close()  # EOF: the helper ends
         proc.join(30.0)
         assert proc.exitcode == 0

@@ -20,6 +20,7 @@ import contextlib
 import ctypes
 import fcntl
 import multiprocessing
+import multiprocessing.context
 import multiprocessing.process
 import os
 import signal
@@ -27,8 +28,9 @@ import sys
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any
 
-from epc_offboard.common.procstats import stat_fields
+from epc_offboard.common.procstats import register_log_counts, stat_fields
 
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 _F_SETPIPE_SZ = 1031  # <linux/fcntl.h>
@@ -135,6 +137,28 @@ def enlarge_pipe(conn: Connection, nbytes: int) -> None:
         fcntl.fcntl(conn.fileno(), _F_SETPIPE_SZ, nbytes)
 
 
+def start_counted(
+    ctx: multiprocessing.context.SpawnContext, target: Callable[..., None],
+    args: tuple[Any, ...], name: str,
+) -> multiprocessing.process.BaseProcess:
+    """``target(*args)`` started in a daemon process of ``ctx`` named ``name``, its log lines
+    (``logpipe.direct_stderr``'s handler) counted in memory shared with this process: in
+    its ``process_report`` as ``log_lines`` and ``log_dropped``."""
+    counts = ctx.RawArray("q", 2)
+    proc = ctx.Process(target=_counted, args=(target, counts, *args), name=name, daemon=True)
+    proc.start()
+    assert proc.pid is not None
+    register_log_counts(proc.pid, counts)
+    return proc
+
+
+def _counted(target: Callable[..., None], counts: Any, *args: Any) -> None:
+    from epc_offboard.common import logpipe
+
+    logpipe.count_into(counts)
+    target(*args)
+
+
 def spawn_fed(
     target: Callable[..., None], name: str, *args: object, pipe_bytes: int = 0
 ) -> tuple[multiprocessing.process.BaseProcess, Connection]:
@@ -145,7 +169,6 @@ def spawn_fed(
     read, write = ctx.Pipe(duplex=False)
     if pipe_bytes:
         enlarge_pipe(write, pipe_bytes)
-    proc = ctx.Process(target=target, args=(read, os.getpid(), *args), name=name, daemon=True)
-    proc.start()
+    proc = start_counted(ctx, target, (read, os.getpid(), *args), name)
     read.close()  # the child's end: ours closed, its death is EOF for nobody but it
     return proc, write

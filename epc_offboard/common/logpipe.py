@@ -124,16 +124,43 @@ class DirectStderr:
             self._own_fd = None
 
 
+_counts_into: Any = None  # a helper's log lines counted here (shared with the service)
+
+
+def count_into(counts: Any) -> None:
+    """This process's :func:`direct_stderr` counts its lines in ``counts`` (two int64
+    shared with the service: written, dropped; ``children.start_counted``)."""
+    global _counts_into
+    _counts_into = counts
+
+
 class DirectHandler(logging.Handler):
     """A helper process's log lines written to stderr with :class:`DirectStderr`: never
-    waiting, a line whole or dropped (``dropped``; ``lines`` written)."""
+    waiting, a line whole or dropped (``dropped``; ``lines`` written). ``counts``: where
+    they are counted (two int64: written, dropped; shared with the service, which reports
+    them); none: here."""
 
-    def __init__(self, stderr_fd: int = 2) -> None:
+    def __init__(self, stderr_fd: int = 2, counts: Any = None) -> None:
         super().__init__()
         self._stderr_fd = stderr_fd
         self._direct: DirectStderr | None = None
-        self.lines = 0
-        self.dropped = 0
+        self._counts = counts if counts is not None else [0, 0]
+
+    @property
+    def lines(self) -> int:
+        return int(self._counts[0])
+
+    @lines.setter
+    def lines(self, n: int) -> None:
+        self._counts[0] = n
+
+    @property
+    def dropped(self) -> int:
+        return int(self._counts[1])
+
+    @dropped.setter
+    def dropped(self, n: int) -> None:
+        self._counts[1] = n
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
@@ -396,7 +423,7 @@ def direct_stderr(level: int | None = None) -> DirectHandler:
     from epc_offboard.common.logsetup import HUMAN_FORMAT
 
     root = logging.getLogger()
-    handler = DirectHandler()
+    handler = DirectHandler(counts=_counts_into)
     old = [h for h in root.handlers if isinstance(h, logging.StreamHandler)]
     handler.setFormatter(old[0].formatter if old else logging.Formatter(HUMAN_FORMAT))
     for h in old:

@@ -20,11 +20,25 @@ def stat_fields(text: str) -> list[str]:
     return text[text.rindex(")") + 2 :].split()
 
 
+# a helper process's log lines (written, dropped: its ``logpipe.DirectHandler``), counted in
+# memory it shares with this process, by pid (``children.start_counted``)
+_LOG_COUNTS: dict[int, Any] = {}
+
+
+def register_log_counts(pid: int, counts: Any) -> None:
+    """``counts`` (two shared int64: lines written, dropped) are ``pid``'s log lines."""
+    _LOG_COUNTS[pid] = counts
+
+
 def process_report(pid: int | None, **extra: Any) -> dict[str, Any]:
     """``pid``'s CPU seconds (user + system), its share of one CPU over its life so far (a
     restarted helper is a new pid: its share counts from its start) and its resident
-    memory, with ``extra``."""
+    memory, with ``extra``; a helper's log lines written and dropped (``log_lines``,
+    ``log_dropped``: a stderr held full drops them, never waited for)."""
     out: dict[str, Any] = {"pid": pid, **extra}
+    counts = _LOG_COUNTS.get(pid) if pid is not None else None
+    if counts is not None:
+        out["log_lines"], out["log_dropped"] = int(counts[0]), int(counts[1])
     if pid is None:
         return out
     try:

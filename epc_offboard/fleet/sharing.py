@@ -50,7 +50,7 @@ import numpy as np
 
 from epc_offboard.common.blobs import ReceivedText, received_record
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordReader
-from epc_offboard.common.children import KILL_WAIT_S, Backoff
+from epc_offboard.common.children import KILL_WAIT_S, Backoff, start_counted
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
@@ -327,13 +327,12 @@ class FleetSharing:
         self._slots[STAT_INDEX["state"]] = 0
         self._slots[STAT_INDEX["heartbeat_ns"]] = 0  # the dead one's beat is not this one's
         self._read = 0
-        proc = self._ctx.Process(
-            target=helper_main,
-            args=(args, self._slots_raw, cand_w, ref_w, frames_r, self._high_water_raw,
-                  self._texts_raw),
-            name="epc-fleet", daemon=True,
+        proc = start_counted(
+            self._ctx, helper_main,
+            (args, self._slots_raw, cand_w, ref_w, frames_r, self._high_water_raw,
+             self._texts_raw),
+            "epc-fleet",
         )  # fmt: skip
-        proc.start()
         for conn in (cand_w, ref_w, frames_r):  # the helper's ends: EOF here when it dies
             conn.close()
         self._helper = _Helper(
