@@ -64,6 +64,15 @@ def processes_with(marker: str) -> dict[int, str]:
 DEPLOYED_NICE = -5
 
 
+def unit_stop_timeout_s() -> float:
+    """``TimeoutStopSec`` of the systemd unit the README installs (config/)."""
+    unit = Path(__file__).resolve().parents[1] / "config" / "epc-offboard.service"
+    values = [line.split("=", 1)[1] for line in unit.read_text().splitlines()
+              if line.startswith("TimeoutStopSec=")]  # fmt: skip
+    assert len(values) == 1, values
+    return float(values[0])
+
+
 def deployed_priority() -> None:
     with contextlib.suppress(PermissionError):
         os.nice(DEPLOYED_NICE)

@@ -27,7 +27,7 @@ from typing import Any
 import pytest
 
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
-from tests.rig import Rig, cpu_hog, deployed_priority
+from tests.rig import Rig, cpu_hog, deployed_priority, unit_stop_timeout_s
 
 pytestmark = [pytest.mark.timeout(240), pytest.mark.one_at_a_time("alone")]
 
@@ -196,15 +196,6 @@ def test_a_full_unread_stderr_never_stalls_the_position_loop(tmp_path):
     assert not pump["pump_failed"], pump
 
 
-def _unit_stop_timeout_s() -> float:
-    """``TimeoutStopSec`` of the systemd unit the README installs (config/)."""
-    unit = Path(__file__).resolve().parents[1] / "config" / "epc-offboard.service"
-    values = [line.split("=", 1)[1] for line in unit.read_text().splitlines()
-              if line.startswith("TimeoutStopSec=")]  # fmt: skip
-    assert len(values) == 1, values
-    return float(values[0])
-
-
 def test_a_stop_with_stderr_held_full_ends_within_its_bound(tmp_path):
     """SIGTERM while stderr is held full (journald slow): the service exits within its stop
     bound (``service.STOP_S``, README: "exits 0 within 2 s"), well inside the unit's
@@ -216,7 +207,7 @@ def test_a_stop_with_stderr_held_full_ends_within_its_bound(tmp_path):
     tail = held.text[-3000:]
     print(f"SIGTERM to exit with stderr held: {held.stop_s:.2f} s")
     assert held.code == 0, tail
-    assert _unit_stop_timeout_s() > STOP_S
+    assert unit_stop_timeout_s() > STOP_S
     assert held.stop_s < STOP_S + 1.0, tail  # the bound, and the interpreter's exit (load 6)
     assert "stopped: " in held.text, tail  # written by the pump after the service exited
 

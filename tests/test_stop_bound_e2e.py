@@ -21,18 +21,9 @@ from pathlib import Path
 import pytest
 
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
-from tests.rig import Rig
+from tests.rig import Rig, unit_stop_timeout_s
 
 pytestmark = [pytest.mark.timeout(300), pytest.mark.one_at_a_time("alone")]
-
-
-def _unit_stop_timeout_s() -> float:
-    """``TimeoutStopSec`` of the systemd unit the README installs (config/)."""
-    unit = Path(__file__).resolve().parents[1] / "config" / "epc-offboard.service"
-    values = [line.split("=", 1)[1] for line in unit.read_text().splitlines()
-              if line.startswith("TimeoutStopSec=")]  # fmt: skip
-    assert len(values) == 1, values
-    return float(values[0])
 
 
 def _helpers(pid: int) -> list[int]:
@@ -91,8 +82,8 @@ def test_a_stop_with_every_helper_wedged_ends_in_time_and_keeps_the_library(tmp_
         log = rig.log()
     print(f"SIGTERM to exit with every helper SIGSTOPped: {stop_s:.2f} s")
     assert code == 0, log
-    assert _unit_stop_timeout_s() > STOP_BOUND_S + 1.0  # the kills and the exit fit after it
-    assert stop_s < _unit_stop_timeout_s(), log  # main: ~50 s
+    assert unit_stop_timeout_s() > STOP_BOUND_S + 1.0  # the kills and the exit fit after it
+    assert stop_s < unit_stop_timeout_s(), log  # main: ~50 s
     stats = rig.stats()
     counters = {**stats["counters"], **stats["miss_worker"]}
     assert counters["store_stop_timeouts"] == 1, counters  # killed at the bound
