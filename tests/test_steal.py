@@ -119,6 +119,12 @@ def _event(**fields: Any) -> dict[str, Any]:
     ({"thread_cpu_ms": 4.0, "usual_cpu_share": 0.15}, "unattributed"),
     ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steal_thread_cpu_ms": 12.0}, "steal"),
     ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steps_ms": 16.0}, "steal"),  # unticked
+    # ... unless the slow steps in it slept that time (a voluntary switch in the step)
+    ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steps_ms": 16.0,
+      "slow_steps_slept_ms": 12.0}, "asleep in a step"),
+    # ... which counts no more than the steps' time off the CPU
+    ({"longest_step_ms": 15.0, "thread_cpu_ms": 3.0, "steps_ms": 4.0,
+      "slow_steps_slept_ms": 12.0}, "unattributed"),
     ({"other_threads_cpu_ms": 9.0}, "GIL wait"),
     ({}, "unattributed"),
     ({"steal_thread_cpu_ms": 2.0}, "unattributed"),  # 2 ms of a 10 ms excess

@@ -3,6 +3,8 @@ and the bench's attribution naming the part of a slow step (issue 21's bursts)."
 
 from __future__ import annotations
 
+import resource
+import threading
 import time
 
 import numba
@@ -47,7 +49,9 @@ def test_a_slow_step_is_kept_with_its_parts_and_a_fast_one_is_not() -> None:
     assert step.wall_ms >= step.parts_ms["pump"]
     d = step.as_dict()
     assert set(d) == {"loop", "t_s", "wall_ms", "thread_cpu_ms", "parts_ms", "slowest_part",
-                      "compiles"}  # fmt: skip
+                      "compiles", "voluntary_switches", "involuntary_switches",
+                      "major_faults"}  # fmt: skip
+    assert d["voluntary_switches"] is None  # started without the thread's rusage: not known
     # the next step starts its parts from 0: a part skipped in it (no tick) stays 0
     parts.start(3.0)
     parts.part(0)
@@ -57,6 +61,39 @@ def test_a_slow_step_is_kept_with_its_parts_and_a_fast_one_is_not() -> None:
     assert step is not None
     assert step.parts_ms["tick"] == 0.0
     assert step.parts_ms["state"] < 5.0
+
+
+def test_a_slow_step_says_whether_the_thread_slept_in_it_or_never_left_its_cpu() -> None:
+    """Issue 21: a step's wall time beyond its CPU time is a sleep of ours only if the
+    thread switched out voluntarily in it; a step that never switched out lost that time
+    to the hypervisor (steal). The switches are counted from the rusage the step started
+    with (the loop reads it for each tick), in a real thread that blocks on a real lock."""
+    parts = StepParts("position", ("state", "tick"), slow_s=0.002)
+    lock = threading.Lock()
+    lock.acquire()
+    releaser = threading.Timer(0.015, lock.release)
+    parts.start(1.0, resource.getrusage(resource.RUSAGE_THREAD))
+    parts.part(0)
+    releaser.start()
+    lock.acquire()  # the thread blocks ~15 ms: a voluntary switch
+    parts.part(1)
+    slept = parts.finish()
+    releaser.join()
+    assert slept is not None
+    assert slept.voluntary_switches is not None
+    assert slept.voluntary_switches >= 1
+    assert slept.wall_ms - slept.thread_cpu_ms >= 10.0
+    assert slept.major_faults == 0
+    # the thread's own CPU, no blocking call: no voluntary switch (a preemption may come)
+    parts.start(2.0, resource.getrusage(resource.RUSAGE_THREAD))
+    parts.part(0)
+    _busy(0.010)
+    parts.part(1)
+    busy = parts.finish()
+    assert busy is not None
+    assert busy.voluntary_switches == 0
+    assert busy.as_dict()["voluntary_switches"] == 0
+    assert slept.as_dict()["voluntary_switches"] == slept.voluntary_switches
 
 
 def test_kept_steps_are_bounded() -> None:
@@ -125,6 +162,28 @@ def test_the_attribution_names_the_part_of_the_slow_steps_in_an_interval() -> No
     none = slow_parts(steps, {"t_s": 20.0, "interval_ms": 15.0})
     assert none["slow_steps"] == 0
     assert none["slow_part"] == ""
+    # steps of a service that did not count switches: none known, nothing slept or stolen
+    assert out["slow_steps_voluntary_switches"] is None
+    assert out["slow_steps_slept_ms"] == out["slow_steps_stolen_ms"] == 0.0
+
+
+def test_the_attribution_splits_a_steps_off_cpu_time_by_how_the_thread_left_its_cpu() -> None:
+    """The wall time beyond the CPU time of a step that switched out voluntarily is slept
+    (ours); of one that never switched out, stolen (the hypervisor's); a step preempted
+    (involuntary only) is neither: its run-queue wait is the stall's."""
+    def step(t_s: float, wall: float, cpu: float, vol: int, invol: int) -> dict[str, object]:
+        return {"loop": "position", "t_s": t_s, "wall_ms": wall, "thread_cpu_ms": cpu,
+                "compiles": 0, "parts_ms": {"tick": wall}, "voluntary_switches": vol,
+                "involuntary_switches": invol, "major_faults": 0}  # fmt: skip
+
+    steps = [step(10.000, 6.0, 0.7, 1, 0), step(10.010, 5.5, 0.5, 0, 0),
+             step(10.020, 4.0, 1.0, 0, 2)]  # fmt: skip
+    out = slow_parts(steps, {"t_s": 10.025, "interval_ms": 40.0})
+    assert out["slow_steps"] == 3
+    assert out["slow_steps_voluntary_switches"] == 1
+    assert out["slow_steps_involuntary_switches"] == 2
+    assert out["slow_steps_slept_ms"] == 5.3
+    assert out["slow_steps_stolen_ms"] == 5.0
 
 
 def test_the_bench_summary_names_the_slow_parts_and_the_bursts() -> None:

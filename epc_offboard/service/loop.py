@@ -43,6 +43,10 @@ class Tick:
     start_s: float  # when it runs
     scheduled_s: float  # when it was due
     period_s: float
+    # the loops' thread's resource usage as the tick started (``Loops.periodic`` reads it
+    # for every tick anyway): a slow step counts its context switches from it
+    # (``step_parts.StepParts``); None: not read
+    rusage: resource.struct_rusage | None = None
 
 
 @dataclass(frozen=True)
@@ -263,7 +267,7 @@ class Loops:
                 now = None if self.clock.vehicle_time else mark(start, cpu0, use0)
                 a_stall = (before, now) if before is not None and now is not None and (
                     start - before[0] > stall_s) else None  # fmt: skip
-                what = Tick(start, t_next, period)
+                what = Tick(start, t_next, period, use0)
                 wall0 = time.perf_counter()
                 controlled = await tick(what)
                 wall = time.perf_counter() - wall0

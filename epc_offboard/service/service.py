@@ -252,7 +252,7 @@ class Service:
 
     async def _position_step(self, tick: Tick) -> bool:
         parts = self.position_parts
-        parts.start(tick.start_s)
+        parts.start(tick.start_s, tick.rusage)
         state = self._state_at(tick.start_s)
         parts.part(_P_STATE)
         # misses solved by the worker join the library here; in lockstep the tick waits
@@ -317,7 +317,7 @@ class Service:
 
     async def _attitude_step(self, tick: Tick) -> bool:
         parts = self.attitude_parts
-        parts.start(tick.start_s)
+        parts.start(tick.start_s, tick.rusage)
         state = self._state_at(tick.start_s)
         parts.part(_A_STATE)
         if self.clock.vehicle_time:

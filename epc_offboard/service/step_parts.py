@@ -13,6 +13,7 @@ record (a dict of the parts) is built only for a step slower than ``slow_s``.
 
 from __future__ import annotations
 
+import resource
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -39,6 +40,13 @@ class SlowStep:
     # kernel signatures compiled (or loaded from numba's cache) during the step: a
     # compile on the control loop (0 expected after start-up)
     compiles: int = 0
+    # the thread's context switches in the step, from the rusage its tick started with
+    # (None: not known): voluntary, it blocked (a lock, a system call, a fault's I/O) and
+    # its wall time beyond its CPU time was a sleep of ours; none of either kind, the
+    # thread never left its CPU and that time was the hypervisor's (steal)
+    voluntary_switches: int | None = None
+    involuntary_switches: int | None = None
+    major_faults: int | None = None  # page faults that read a file (a sleep in the fault)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -46,6 +54,9 @@ class SlowStep:
             "thread_cpu_ms": round(self.thread_cpu_ms, 3),
             "parts_ms": {k: round(v, 3) for k, v in self.parts_ms.items()},
             "slowest_part": self.slowest_part, "compiles": self.compiles,
+            "voluntary_switches": self.voluntary_switches,
+            "involuntary_switches": self.involuntary_switches,
+            "major_faults": self.major_faults,
         }  # fmt: skip
 
 
@@ -55,7 +66,9 @@ class StepParts:
     thread CPU, or ``WALL_BOUNDS`` times that of wall time, is kept in ``slow`` (the latest
     ``kept``) and counted in ``count``. ``compiles``: numba's compiles counted
     (:class:`CompileCounter`): one within a step is kept with it, and makes the step slow;
-    None: not asked."""
+    None: not asked. ``start``'s ``rusage`` (the thread's, as the step began; the loop
+    reads it for each tick anyway): a slow step reads it again and keeps its context
+    switches and major faults (one system call, for slow steps only)."""
 
     def __init__(self, loop: str, parts: Sequence[str], slow_s: float,
                  kept: int = SLOW_STEPS_KEPT,
@@ -69,12 +82,14 @@ class StepParts:
         self._ms = [0.0] * len(self.names)  # made once: written in place every step
         self._t0 = self._last = self._cpu0 = self._start_s = 0.0
         self._compiles0 = 0
+        self._rusage0: resource.struct_rusage | None = None
 
-    def start(self, t_s: float) -> None:
+    def start(self, t_s: float, rusage: resource.struct_rusage | None = None) -> None:
         ms = self._ms
         for i in range(len(ms)):
             ms[i] = 0.0
         self._start_s = t_s
+        self._rusage0 = rusage
         self._compiles0 = self._compiles.count
         self._cpu0 = time.thread_time()
         self._t0 = self._last = time.perf_counter()
@@ -94,8 +109,13 @@ class StepParts:
         if cpu_s <= self.slow_s and wall_s <= WALL_BOUNDS * self.slow_s and compiles == 0:
             return None
         parts = dict(zip(self.names, self._ms, strict=True))
+        switches: tuple[int | None, ...] = (None, None, None)
+        if (u0 := self._rusage0) is not None:
+            u = resource.getrusage(resource.RUSAGE_THREAD)
+            switches = (u.ru_nvcsw - u0.ru_nvcsw, u.ru_nivcsw - u0.ru_nivcsw,
+                        u.ru_majflt - u0.ru_majflt)  # fmt: skip
         step = SlowStep(self.loop, self._start_s, wall_s * 1e3, cpu_s * 1e3, parts,
-                        max(parts, key=parts.__getitem__), compiles)  # fmt: skip
+                        max(parts, key=parts.__getitem__), compiles, *switches)  # fmt: skip
         self.slow.append(step)
         self.count += 1
         return step

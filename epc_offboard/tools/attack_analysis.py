@@ -226,9 +226,10 @@ RUNQUEUE = "run-queue at FIFO"
 COLLECTION = "collection"
 OUR_STEP = "our step"
 GIL_WAIT = "GIL wait"
+ASLEEP_IN_STEP = "asleep in a step"
 UNATTRIBUTED = "unattributed"
 MACHINE_VERDICTS = (STEAL, RUNQUEUE)  # the hypervisor's, the machine's other real-time work
-OUR_VERDICTS = (COLLECTION, OUR_STEP, GIL_WAIT)  # what the code can still cut
+OUR_VERDICTS = (COLLECTION, OUR_STEP, GIL_WAIT, ASLEEP_IN_STEP)  # what the code can still cut
 VERDICTS = (*MACHINE_VERDICTS, *OUR_VERDICTS, UNATTRIBUTED)
 _DEFAULT_PERIOD_MS = {"position": 10.0, "attitude": 5.0}  # records without ``period_ms``
 _TICK_STEPS = ("task position-loop ", "task attitude-loop ")  # the loops' own steps
@@ -245,7 +246,8 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
       ``/proc/stat`` (in 10 ms ticks, interpolated: a single event's figure is within
       ~10 ms), or, if more, the event-loop steps' wall time beyond the thread's CPU time
       (the thread's clock leaves steal out; a SCHED_FIFO thread is not preempted in a step,
-      and no other thread of ours held the interpreter lock when ``GIL wait`` is 0);
+      and no other thread of ours held the interpreter lock when ``GIL wait`` is 0), less
+      what the slow control steps slept (``asleep in a step``);
     * ``run-queue at FIFO``: the SCHED_FIFO thread runnable and not run (the kernel's
       schedstat; a wake-up queued on a virtual CPU the hypervisor holds counts here too);
     * ``collection``: the cyclic collector's pauses, no more than the thread's CPU time;
@@ -255,7 +257,11 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
       interval (``usual_cpu_share``: its CPU time over the windows, a fraction of the
       wall; work no step timed, the event loop's own), less the collections;
     * ``GIL wait``: the thread off its CPU and not queued for it while the process's other
-      threads ran (their CPU time, no more than that off-CPU time).
+      threads ran (their CPU time, no more than that off-CPU time);
+    * ``asleep in a step``: the slow control steps' wall time beyond their CPU time in
+      those that switched out voluntarily (``slow_steps_slept_ms``: the thread blocked in
+      the step, on a lock, a system call or a fault's I/O: a sleep of ours, not steal), no
+      more than the event-loop steps' wall time beyond the thread's CPU time.
 
     The verdict is the largest share if it covers at least half the excess (and 0.5 ms),
     ties to the machine; else ``unattributed`` (e.g. the thread asleep past its timer with
@@ -270,7 +276,8 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
         excess = interval - period_ms
     cpu = float(event["thread_cpu_ms"])
     in_steps = max(0.0, float(event.get("steps_ms") or 0.0) - cpu)
-    stolen = max(float(event.get("steal_thread_cpu_ms") or 0.0), in_steps)
+    slept = min(in_steps, float(event.get("slow_steps_slept_ms") or 0.0))
+    stolen = max(float(event.get("steal_thread_cpu_ms") or 0.0), in_steps - slept)
     queued = float(event["runqueue_ms"])
     gc_ms = float(event["gc_ms"])
     step = float(event.get("longest_step_ms") or 0.0)
@@ -282,6 +289,7 @@ def attribute(event: dict[str, Any]) -> dict[str, Any]:
         OUR_STEP: max(0.0, (min(step, cpu) if step > 0.0 else 0.0) - gc_ms,
                       cpu - float(event.get("usual_cpu_share") or 1.0) * interval - gc_ms),
         GIL_WAIT: min(float(event.get("other_threads_cpu_ms") or 0.0), asleep),
+        ASLEEP_IN_STEP: slept,
     }
     verdict = max(shares, key=lambda k: shares[k])  # the first of equals: the machine's
     if shares[verdict] < max(0.5, 0.5 * excess):
@@ -327,7 +335,8 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
         share = None if usual is None or not usual["ms"] else usual["thread_cpu_ms"] / usual["ms"]
     events = []
     for ev in [*(s for s in stalls if s["loop"] == "position"), *misses]:
-        out = attribute(dict(_stall_steal(cols, ev), usual_cpu_share=share))
+        parts = slow_parts(slow_steps, ev)
+        out = attribute(dict(_stall_steal(cols, ev), usual_cpu_share=share, **parts))
         if flight is not None:
             end_s = ev["t_s"] + (1e-3 * ev.get("compute_ms", 0.0) if ev.get("deadline_miss")
                                  else 0.0)  # fmt: skip
@@ -335,7 +344,7 @@ def attribution(record: dict[str, Any], wins: Sequence[Window],
             inside = (t >= end_s - 1e-3 * ev["interval_ms"]) & (t <= end_s)
             out["position_tick_max_ms"] = (round(float(np.max(flight["compute_us"][inside]))
                                            * 1e-3, 3) if inside.any() else None)  # fmt: skip
-        out.update(slow_parts(slow_steps, ev))
+        out.update(parts)
         out["window"] = next((f"{w.phase} {w.kind}" for w in wins
                               if w.t0_s <= ev["t_s"] <= w.t1_s), "")  # fmt: skip
         out["attack"] = bool(out["window"]) and not out["window"].endswith("calm")
@@ -368,7 +377,12 @@ def slow_parts(slow_steps: Sequence[dict[str, Any]], ev: dict[str, Any]) -> dict
     """The slow control steps (``StepParts``) that started in a stall's or miss's interval:
     how many (``slow_steps``), their thread CPU (``slow_steps_cpu_ms``), their parts' wall
     time summed by name (``slow_parts_ms``), the part with the most (``slow_part``, "" with
-    none) and the compiles in them (``slow_steps_compiles``)."""
+    none) and the compiles in them (``slow_steps_compiles``); their context switches
+    (``slow_steps_voluntary_switches``, ``slow_steps_involuntary_switches``; None: the
+    service did not count them) and their wall time beyond their CPU time split by how
+    the thread left its CPU: in steps that switched out voluntarily (``slow_steps_slept_ms``:
+    it slept, ours) and in steps that never switched out (``slow_steps_stolen_ms``: it
+    never left its CPU, so the virtual CPU itself stood still: the hypervisor's steal)."""
     end_s = ev["t_s"] + (1e-3 * ev.get("compute_ms", 0.0) if ev.get("deadline_miss") else 0.0)
     start_s = end_s - 1e-3 * ev["interval_ms"]
     mine = [s for s in slow_steps if start_s - 1e-6 <= s["t_s"] <= end_s + 1e-6]
@@ -377,8 +391,21 @@ def slow_parts(slow_steps: Sequence[dict[str, Any]], ev: dict[str, Any]) -> dict
         for name, ms in step["parts_ms"].items():
             key = f"{step['loop']}.{name}"
             parts[key] = parts.get(key, 0.0) + ms
+    known = [s for s in mine if s.get("voluntary_switches") is not None]
+
+    def off_cpu_ms(pick: Sequence[dict[str, Any]]) -> float:
+        off = (float(s["wall_ms"]) - float(s["thread_cpu_ms"]) for s in pick)
+        return round(sum(max(0.0, ms) for ms in off), 3)
+
     return {"slow_steps": len(mine),
             "slow_steps_cpu_ms": round(sum(s["thread_cpu_ms"] for s in mine), 3),
+            "slow_steps_voluntary_switches": (sum(s["voluntary_switches"] for s in known)
+                                              if known else None),
+            "slow_steps_involuntary_switches": (sum(s["involuntary_switches"] for s in known)
+                                                if known else None),
+            "slow_steps_slept_ms": off_cpu_ms([s for s in known if s["voluntary_switches"]]),
+            "slow_steps_stolen_ms": off_cpu_ms([s for s in known if not s["voluntary_switches"]
+                                                and not s["involuntary_switches"]]),
             "slow_parts_ms": {k: round(v, 3) for k, v in parts.items() if v >= 0.05},
             "slow_part": max(parts, key=parts.__getitem__) if parts else "",
             "slow_steps_compiles": sum(s.get("compiles", 0) for s in mine)}  # fmt: skip
