@@ -549,7 +549,8 @@ def format_table(report: dict[str, Any]) -> str:
             ("helpers_cpu_share", "helpers", "{:.2f}"),
             ("load_avg_1min", "load", "{:.1f}"),
             ("steal_ms_per_s", "steal", "{:.1f}")]  # fmt: skip
-    head = f"{'phase':8s} {'window':7s}" + "".join(f" {k[1]:>9s}" for k in keys)
+    kind_w = max([7, *(len(w["kind"]) for w in report["windows"])])  # "flood+fuzz": 10
+    head = f"{'phase':8s} {'window':{kind_w}s}" + "".join(f" {k[1]:>9s}" for k in keys)
     lines = [head]
     for w in report["windows"]:
         cells = []
@@ -559,13 +560,20 @@ def format_table(report: dict[str, Any]) -> str:
                 v = 100.0 * v
                 fmt = "{:.2f}"
             cells.append(f" {fmt.format(v) if v is not None else '-':>9s}")
-        lines.append(f"{w['phase']:8s} {w['kind']:7s}" + "".join(cells))
+        lines.append(f"{w['phase']:8s} {w['kind']:{kind_w}s}" + "".join(cells))
     lines.append("")
     lines.append(f"autopilot {report.get('autopilot', 'px4')}; MAVLink signing "
                  f"{'on' if report.get('signing') else 'off'}; attacks of "
                  f"{report.get('window_s', 10.0):g} s"
                  + ("; the fuzzer forges state" if report.get("forge") else "")
                  + _freeze_text(report.get("freeze")))  # fmt: skip
+    refused = report.get("link_refused") or {}
+    if report.get("fuzz_datagrams_sent"):
+        lines.append(f"MAVLink: the fuzzer sent {report['fuzz_datagrams_sent']} datagrams; the "
+                     f"link refused {refused.get('total', 0)} (throttled "
+                     f"{refused.get('throttled', 0)}, bad signature "
+                     f"{refused.get('bad_signature', 0)}, other sender "
+                     f"{refused.get('other_sender', 0)})")  # fmt: skip
     load = report["load_avg"]
     lines.append(f"machine load (1/5/15 min): start {load['start']}, end {load['end']}; "
                  f"{report['cpus']} CPUs; {report['hogs']} CPU hogs; attitude mode "

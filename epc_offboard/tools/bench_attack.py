@@ -385,7 +385,7 @@ def helper_pids(service_pid: int, run_dir: Path) -> dict[str, int]:
     """The service's helper processes by name, told apart by what they hold (the service's
     stats name their pids only at the end): ``pump`` the log pump (`common.logpipe`),
     ``store`` the library's writer (the library open), ``log`` the flight-log and tlog
-    writer (flight.csv open), ``fleet`` the Zenoh session (a Rust runtime: many threads),
+    writer (flight.csv open), ``fleet`` the Zenoh session (its sockets and threads),
     ``miss`` the miss worker (the other spawned helper)."""
     out: dict[str, int] = {}
     spawned: list[int] = []
@@ -405,8 +405,9 @@ def helper_pids(service_pid: int, run_dir: Path) -> dict[str, int]:
             out["log"] = pid
         else:
             rest.append(pid)
-    if len(rest) > 1:
-        fleet = max(rest, key=_threads)
+    if len(rest) > 1:  # the Zenoh session's sockets, then its runtime's threads
+        fleet = max(rest, key=lambda p: (sum(f.startswith("socket:") for f in _open_files(p)),
+                                         _threads(p)))  # fmt: skip
         out["fleet"] = fleet
         rest.remove(fleet)
     if rest:
@@ -663,6 +664,8 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
                                             stats.get("stalls", []), stats.get("misses", []),
                                             flight,
                                             stats.get("slow_steps", {}).get("steps", [])),
+        "fuzz_datagrams_sent": fuzz_sent(record["windows"]),
+        "link_refused": link_refused(stats.get("link", {})),
         "lockstep_rmse_m": lockstep_rmse_m,
         "figure8_rmse_m": analysis.figure8_rmse_m(windows),
     }  # fmt: skip
@@ -671,6 +674,30 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
               "err_t_s": err_t, "err_m": err}  # fmt: skip
     report["verdicts"] = [vars(v) for v in analysis.judge(report)]
     return report, series
+
+
+# the link's counters that are not refusals (the rest each count a datagram or frame refused)
+_LINK_NOT_REFUSED = frozenset({"datagrams", "received", "sent", "bad_data"})
+
+
+def fuzz_sent(windows: list[analysis.Window]) -> int:
+    """Datagrams the fuzzer sent over the flight (joint attacks' fuzz parts included)."""
+    total = 0
+    for w in windows:
+        parts = w.attacker.get("parts", {"": w.attacker})
+        total += sum(int(p.get("datagrams", 0)) for k, p in parts.items()
+                     if "fuzz" in (k or w.kind).split("+"))  # fmt: skip
+    return total
+
+
+def link_refused(link: dict[str, Any]) -> dict[str, int]:
+    """What the service's link refused, by reason, and in all (``total``): throttled
+    sources, rejected headers, CRCs and signatures, other senders. Beside the fuzzer's
+    datagrams: what of them reached no loop (the autopilot's unknown messages count too)."""
+    out = {k: int(v) for k, v in sorted(link.items())
+           if k not in _LINK_NOT_REFUSED and isinstance(v, int)}  # fmt: skip
+    out["total"] = sum(out.values())
+    return out
 
 
 def lockstep_rmse_m() -> float | None:
