@@ -373,6 +373,55 @@ def test_a_second_sender_is_heard_only_once_the_peer_is_silent():
     asyncio.run(_peer_moves())
 
 
+async def _fuzzer_while_the_peer_is_silent():
+    got: list = []
+    server = MavlinkLink(
+        "udpin://127.0.0.1:0", system_id=255, component_id=191, on_message=got.append,
+        peer_timeout_s=0.2,
+    )  # fmt: skip
+    await server.open()
+    port = server.local_address[1]
+    autopilot, fuzzer = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    vehicle = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def frame(t_ms: int) -> bytes:
+        return bytes(vehicle.attitude_encode(t_ms, 0, 0, 0, 0, 0, 0).pack(vehicle))
+
+    try:
+        autopilot.sendto(frame(1), ("127.0.0.1", port))
+        await settle(lambda: len(got) == 1)
+        await asyncio.sleep(0.3)  # the autopilot falls silent (a radio drop-out, a freeze)
+        for _ in range(150):  # garbage: charged to the fuzzer, not yet throttled
+            fuzzer.sendto(b"\xfd" + bytes(30), ("127.0.0.1", port))
+        await settle(lambda: server.counters["bad_data"] >= 150)
+        fuzzer.sendto(frame(2), ("127.0.0.1", port))  # a well-formed frame of the vehicle's
+        await settle(lambda: server.counters["datagrams"] >= 152)
+        taken = server.peer
+        flown = len(got)
+        autopilot.sendto(frame(3), ("127.0.0.1", port))  # the autopilot is back
+        await settle(lambda: server.counters["datagrams"] >= 153)
+        await asyncio.sleep(0.05)
+        return taken, flown, len(got), server.peer, autopilot.getsockname()[1]
+    finally:
+        autopilot.close()
+        fuzzer.close()
+        server.close()
+
+
+def test_a_fuzzer_never_takes_the_peer_of_a_silent_autopilot():
+    """On an unsigned udpin link the peer moves to a second sender once the autopilot has
+    been silent for peer_timeout_s (an autopilot restarted on another port). A sender that
+    costs the link failures (a fuzzer) must not be that second sender: before, a fuzzer
+    talking through a 3 s silence took the peer, its state was flown and our setpoints went
+    to it, and the autopilot's own frames, back, were dropped as a stranger's for as long as
+    the fuzz lasted (`bench --attack`'s fuzz, the SITL frozen 4 s)."""
+    taken, flown, after, peer, autopilot_port = asyncio.run(_fuzzer_while_the_peer_is_silent())
+    assert taken == ("127.0.0.1", autopilot_port)  # the fuzzer did not take the peer
+    assert flown == 1  # nor was its frame delivered
+    assert after == 2  # the autopilot, back, is heard at once
+    assert peer == ("127.0.0.1", autopilot_port)
+
+
 async def _packed_stranger():
     from epc_offboard.vehicle.receive import (
         MAX_FRAMES_PER_DATAGRAM,

@@ -575,17 +575,23 @@ class MavlinkLink:
             # The peer is the first address that spoke; it only moves once it has been silent
             # for peer_timeout_s (the autopilot restarted on another port). A second sender
             # can neither redirect our setpoints nor feed us state while the vehicle talks.
+            # Never to a sender that costs us failures (SourceGate.clean): a fuzzer talking
+            # while the autopilot was silent for peer_timeout_s took the peer, and the
+            # autopilot's frames, back, were dropped as a second sender's while the fuzz
+            # lasted; nor is such a sender's state flown while the peer is silent (unsigned).
             sender = (str(addr[0]), int(addr[1]))
             now = time.monotonic()
             if sender == self._peer:
                 self._peer_heard = now
-            elif self._peer is None or now - self._peer_heard > self._peer_timeout_s:
+            elif (clean := self.gate.clean(sender, now)) and (
+                self._peer is None or now - self._peer_heard > self._peer_timeout_s
+            ):
                 if self._peer is not None:
                     log.warning("MAVLink peer moved from %s:%d to %s:%d", *self._peer, *sender)
                 self._peer, self._peer_heard = sender, now
             else:
                 self.counters["other_sender"] += 1
-                if self._peer_live(now):
+                if self._peer_live(now) or (self.signature is None and not clean):
                     return
         self.counters["received"] += 1
         if self._tlog is not None:

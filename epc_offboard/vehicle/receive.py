@@ -353,6 +353,19 @@ class SourceGate:
             del good[min(good, key=good.__getitem__)]
         good[source] = now_s
 
+    def clean(self, source: Any, now_s: float) -> bool:
+        """Whether ``source`` has cost at most half its burst in failures lately (its bucket,
+        refilled to now, over half full; a source never charged is clean). A fuzzer is
+        charged about a thousand frames a second and stays empty; an autopilot's frames of
+        messages the service does not read (PX4: ~20 a second) refill faster than they
+        cost. Reads the bucket without refilling it."""
+        b = self.budget
+        bucket = self._buckets.get(source)
+        if bucket is None:
+            return True
+        tokens = min(b.source_burst, bucket.tokens + (now_s - bucket.stamp_s) * b.source_rate_per_s)
+        return tokens > 0.5 * b.source_burst
+
     def _is_good(self, source: Any, now_s: float) -> bool:
         seen = self._good.get(source)
         return seen is not None and now_s - seen <= self.budget.good_for_s
