@@ -290,10 +290,10 @@ def _add_bench(sub: _Subparsers) -> None:
         "vehicle's own ids (fuzz_mavlink --forge)",
     )  # fmt: skip
     bench.add_argument(
-        "--freeze", choices=["fleet", "store", "miss", "log", "pump"], default=None,
+        "--freeze", choices=["fleet", "store", "miss", "log", "pump", "sitl"], default=None,
         help="with --attack: SIGSTOP this helper process (fleet session, store writer, miss "
-        "worker, flight-log writer, log pump) for --freeze-s from each phase's first attack, "
-        "then SIGCONT",
+        "worker, flight-log writer, log pump) or the SITL (the autopilot's link silent) for "
+        "--freeze-s from each phase's first attack, then SIGCONT",
     )  # fmt: skip
     bench.add_argument(
         "--freeze-s", type=float, default=20.0, metavar="S",

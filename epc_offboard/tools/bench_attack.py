@@ -70,7 +70,9 @@ FIGURE8_SETTLE_S = 8.0  # the figure-8's ramp (3 s) and the scenario's settle ti
 ZENOH_ATTACKS = ("flood", "rotate", "replay", "flap")
 ATTACKS = (*ZENOH_ATTACKS, "fuzz")
 # ``--attacks``: any of ATTACKS, or two joined by "+" run at once (e.g. "flood+fuzz")
-HELPERS = ("fleet", "store", "miss", "log", "pump")  # --freeze: which helper process
+# --freeze: which helper process, or the autopilot itself ("sitl": its link silent, as a
+# radio drop-out or a frozen autopilot, while the attack goes on)
+HELPERS = ("fleet", "store", "miss", "log", "pump", "sitl")
 FREEZE_S = 20.0  # --freeze: how long the helper stays SIGSTOPped
 AUTOPILOTS = ("px4", "ardupilot")
 ZENOH_RATE_PER_S = 1000.0
@@ -419,15 +421,17 @@ class Freezer:
     """``--freeze``: SIGSTOP one helper for ``seconds``, then SIGCONT (in a timer thread, so
     that the attack runs meanwhile); each freeze recorded (pid, wall span, found or not)."""
 
-    def __init__(self, helper: str, seconds: float, service_pid: int, run_dir: Path) -> None:
+    def __init__(self, helper: str, seconds: float, service_pid: int, run_dir: Path,
+                 sitl_pid: int | None = None) -> None:  # fmt: skip
         self.helper, self.seconds = helper, seconds
-        self.service_pid, self.run_dir = service_pid, run_dir
+        self.service_pid, self.run_dir, self.sitl_pid = service_pid, run_dir, sitl_pid
         self.events: list[dict[str, Any]] = []
         self._timers: list[threading.Timer] = []
         self._stopped: set[int] = set()
 
     def freeze(self, phase: str) -> None:
-        pid = helper_pids(self.service_pid, self.run_dir).get(self.helper)
+        pid = (self.sitl_pid if self.helper == "sitl"
+               else helper_pids(self.service_pid, self.run_dir).get(self.helper))  # fmt: skip
         event: dict[str, Any] = {"phase": phase, "helper": self.helper, "pid": pid,
                                  "t0_s": time.monotonic(), "t1_s": None}  # fmt: skip
         self.events.append(event)
@@ -542,7 +546,7 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
         attackers.wait_ready()
         wait_offboard(run_dir / "flight.csv", SETTLE_S, service)
         if opts.freeze is not None:
-            freezer = Freezer(opts.freeze, opts.freeze_s, service.pid, run_dir)
+            freezer = Freezer(opts.freeze, opts.freeze_s, service.pid, run_dir, sitl.pid)
         for phase in ("hover", "figure8"):
             if phase == "figure8":
                 config_path.write_text(dump_toml(figure8_config(cfg)))
