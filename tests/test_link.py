@@ -422,6 +422,50 @@ def test_a_fuzzer_never_takes_the_peer_of_a_silent_autopilot():
     assert peer == ("127.0.0.1", autopilot_port)
 
 
+async def _fuzzer_speaks_first():
+    got: list = []
+    server = MavlinkLink(
+        "udpin://127.0.0.1:0", system_id=255, component_id=191, on_message=got.append,
+    )  # fmt: skip
+    await server.open()
+    port = server.local_address[1]
+    autopilot, fuzzer = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    vehicle = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def frame(t_ms: int) -> bytes:
+        return bytes(vehicle.attitude_encode(t_ms, 0, 0, 0, 0, 0, 0).pack(vehicle))
+
+    try:
+        fuzzer.sendto(frame(1), ("127.0.0.1", port))  # a well-formed frame, first
+        await settle(lambda: len(got) == 1)
+        first = server.peer
+        for _ in range(10):  # then its garbage
+            fuzzer.sendto(b"\xfd" + bytes(30), ("127.0.0.1", port))
+        await settle(lambda: server.counters["bad_data"] >= 10)
+        autopilot.sendto(frame(2), ("127.0.0.1", port))  # the autopilot comes up
+        await settle(lambda: server.counters["datagrams"] >= 12)
+        fuzzer.sendto(frame(3), ("127.0.0.1", port))
+        await settle(lambda: server.counters["datagrams"] >= 13)
+        await asyncio.sleep(0.05)
+        return (first, server.peer, [m.time_boot_ms for m in got], fuzzer.getsockname()[1],
+                autopilot.getsockname()[1])  # fmt: skip
+    finally:
+        autopilot.close()
+        fuzzer.close()
+        server.close()
+
+
+def test_a_fuzzer_that_spoke_first_yields_the_peer_to_the_autopilot():
+    """A fuzzer whose first datagram was a well-formed frame of the vehicle's became the peer
+    of an unsigned udpin link before the autopilot spoke: the autopilot was then the second
+    sender, dropped for as long as the fuzz lasted. A peer that sends malformed frames yields
+    to a sender that sends none."""
+    first, peer, flown, fuzzer_port, autopilot_port = asyncio.run(_fuzzer_speaks_first())
+    assert first == ("127.0.0.1", fuzzer_port)  # (nothing tells them apart yet)
+    assert peer == ("127.0.0.1", autopilot_port)
+    assert flown == [1, 2]  # the autopilot's frame flown, the fuzzer's next one not
+
+
 async def _packed_stranger():
     from epc_offboard.vehicle.receive import (
         MAX_FRAMES_PER_DATAGRAM,
