@@ -343,17 +343,27 @@ def test_one_bad_message_costs_one_counted_drop_not_its_datagram():
     asyncio.run(_bad_message_in_a_datagram())
 
 
-async def _peer_moves():
+async def _udpin_and_two_senders(peer_timeout_s: float = 3.0):
+    """An unsigned udpin server link, what it delivers, its port, two sender sockets, and
+    ATTITUDE frames of the vehicle's ids by time stamp."""
     got: list = []
     server = MavlinkLink(
         "udpin://127.0.0.1:0", system_id=255, component_id=191, on_message=got.append,
-        peer_timeout_s=0.2,
+        peer_timeout_s=peer_timeout_s,
     )  # fmt: skip
     await server.open()
-    port = server.local_address[1]
     first, second = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
     vehicle = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    frame = bytes(vehicle.attitude_encode(1, 0, 0, 0, 0, 0, 0).pack(vehicle))
+
+    def frame_at(t_ms: int) -> bytes:
+        return bytes(vehicle.attitude_encode(t_ms, 0, 0, 0, 0, 0, 0).pack(vehicle))
+
+    return server, got, server.local_address[1], first, second, frame_at
+
+
+async def _peer_moves():
+    server, got, port, first, second, frame_at = await _udpin_and_two_senders(0.2)
+    frame = frame_at(1)
     try:
         first.sendto(frame, ("127.0.0.1", port))
         await settle(lambda: len(got) == 1)
@@ -374,19 +384,7 @@ def test_a_second_sender_is_heard_only_once_the_peer_is_silent():
 
 
 async def _fuzzer_while_the_peer_is_silent():
-    got: list = []
-    server = MavlinkLink(
-        "udpin://127.0.0.1:0", system_id=255, component_id=191, on_message=got.append,
-        peer_timeout_s=0.2,
-    )  # fmt: skip
-    await server.open()
-    port = server.local_address[1]
-    autopilot, fuzzer = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
-    vehicle = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-
-    def frame(t_ms: int) -> bytes:
-        return bytes(vehicle.attitude_encode(t_ms, 0, 0, 0, 0, 0, 0).pack(vehicle))
-
+    server, got, port, autopilot, fuzzer, frame = await _udpin_and_two_senders(0.2)
     try:
         autopilot.sendto(frame(1), ("127.0.0.1", port))
         await settle(lambda: len(got) == 1)
@@ -423,18 +421,7 @@ def test_a_fuzzer_never_takes_the_peer_of_a_silent_autopilot():
 
 
 async def _fuzzer_speaks_first():
-    got: list = []
-    server = MavlinkLink(
-        "udpin://127.0.0.1:0", system_id=255, component_id=191, on_message=got.append,
-    )  # fmt: skip
-    await server.open()
-    port = server.local_address[1]
-    autopilot, fuzzer = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
-    vehicle = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-
-    def frame(t_ms: int) -> bytes:
-        return bytes(vehicle.attitude_encode(t_ms, 0, 0, 0, 0, 0, 0).pack(vehicle))
-
+    server, got, port, autopilot, fuzzer, frame = await _udpin_and_two_senders()
     try:
         fuzzer.sendto(frame(1), ("127.0.0.1", port))  # a well-formed frame, first
         await settle(lambda: len(got) == 1)
