@@ -271,6 +271,35 @@ def _add_bench(sub: _Subparsers) -> None:
         help="with --attack: the SITL (the autopilot) pinned to CPU",
     )  # fmt: skip
     bench.add_argument(
+        "--attack-s", type=float, default=10.0, metavar="S",
+        help="with --attack: each attack's length in seconds (default 10)",
+    )  # fmt: skip
+    bench.add_argument(
+        "--attacks", default=None, metavar="A[,A...]",
+        help="with --attack: which attacks, in order: flood, rotate, replay, flap, fuzz, or "
+        "two joined by '+' run at once, e.g. flood+fuzz (default: the five, one by one)",
+    )  # fmt: skip
+    bench.add_argument(
+        "--signing", action="store_true",
+        help="with --attack: MAVLink 2 signing on (a fresh key for the service and the SITL; "
+        "the fuzzer has none)",
+    )  # fmt: skip
+    bench.add_argument(
+        "--forge", action="store_true",
+        help="with --attack: the fuzzer also forges a coherent state stream from the "
+        "vehicle's own ids (fuzz_mavlink --forge)",
+    )  # fmt: skip
+    bench.add_argument(
+        "--freeze", choices=["fleet", "store", "miss", "log", "pump", "sitl"], default=None,
+        help="with --attack: SIGSTOP this helper process (fleet session, store writer, miss "
+        "worker, flight-log writer, log pump) or the SITL (the autopilot's link silent) for "
+        "--freeze-s from each phase's first attack, then SIGCONT",
+    )  # fmt: skip
+    bench.add_argument(
+        "--freeze-s", type=float, default=20.0, metavar="S",
+        help="with --freeze: seconds the helper stays stopped (default 20)",
+    )  # fmt: skip
+    bench.add_argument(
         "--fleet",
         action="store_true",
         help="instead: N light vehicles (the real sharing stack, no physics) through one "

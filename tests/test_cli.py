@@ -77,10 +77,13 @@ def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
     from epc_offboard.tools import bench_attack
 
     seen: list[tuple[str | None, int, str, int | None, int | None]] = []
+    options: list[bench_attack.AttackOptions | None] = []
 
     def fake_run(json_path: str | None, hogs: int, mode: str, loops_cpu: int | None = None,
-                 sitl_cpu: int | None = None) -> int:  # fmt: skip
+                 sitl_cpu: int | None = None,
+                 opts: bench_attack.AttackOptions | None = None) -> int:  # fmt: skip
         seen.append((json_path, hogs, mode, loops_cpu, sitl_cpu))
+        options.append(opts)
         return 0
 
     monkeypatch.setattr(bench_attack, "run_attack_bench", fake_run)
@@ -88,10 +91,23 @@ def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
                  "--json", "a.json", "--loops-cpu", "1", "--sitl-cpu", "0"]) == 0  # fmt: skip
     assert main(["bench", "--attack"]) == 0
     assert seen == [("a.json", 2, "rates", 1, 0), (None, 0, "quaternion", None, None)]
-    for bad in (["--hogs", "-1"], ["--loops-cpu", "-1"], ["--sitl-cpu", "-1"]):
+    assert options == [bench_attack.AttackOptions()] * 2  # issue 21's bench by default
+    assert main(["bench", "--attack", "--autopilot", "ardupilot", "--attack-s", "60",
+                 "--attacks", "flood+fuzz,fuzz", "--signing", "--forge", "--freeze", "store",
+                 "--freeze-s", "15"]) == 0  # fmt: skip
+    assert options[-1] == bench_attack.AttackOptions(
+        autopilot="ardupilot", attack_s=60.0, attacks=("flood+fuzz", "fuzz"), signing=True,
+        forge=True, freeze="store", freeze_s=15.0)  # fmt: skip
+    for bad in (["--hogs", "-1"], ["--loops-cpu", "-1"], ["--sitl-cpu", "-1"],
+                ["--freeze", "nobody"], ["--autopilot", "inav"]):  # fmt: skip
         with pytest.raises(SystemExit) as exc:
             main(["bench", "--attack", *bad])
         assert exc.value.code == 2
+    # what argparse cannot check: a usage error printed, exit 1, nothing flown
+    for bad in (["--attacks", "fuzz+fuzz"], ["--attacks", "flood+rotate+fuzz"],
+                ["--attacks", "quake"], ["--attack-s", "0"]):  # fmt: skip
+        assert main(["bench", "--attack", *bad]) == 1
+    assert len(options) == 3
 
 
 def test_the_parser_and_sims_launcher_import_no_control_stack():

@@ -343,17 +343,27 @@ def test_one_bad_message_costs_one_counted_drop_not_its_datagram():
     asyncio.run(_bad_message_in_a_datagram())
 
 
-async def _peer_moves():
+async def _udpin_and_two_senders(peer_timeout_s: float = 3.0):
+    """An unsigned udpin server link, what it delivers, its port, two sender sockets, and
+    ATTITUDE frames of the vehicle's ids by time stamp."""
     got: list = []
     server = MavlinkLink(
         "udpin://127.0.0.1:0", system_id=255, component_id=191, on_message=got.append,
-        peer_timeout_s=0.2,
+        peer_timeout_s=peer_timeout_s,
     )  # fmt: skip
     await server.open()
-    port = server.local_address[1]
     first, second = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
     vehicle = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    frame = bytes(vehicle.attitude_encode(1, 0, 0, 0, 0, 0, 0).pack(vehicle))
+
+    def frame_at(t_ms: int) -> bytes:
+        return bytes(vehicle.attitude_encode(t_ms, 0, 0, 0, 0, 0, 0).pack(vehicle))
+
+    return server, got, server.local_address[1], first, second, frame_at
+
+
+async def _peer_moves():
+    server, got, port, first, second, frame_at = await _udpin_and_two_senders(0.2)
+    frame = frame_at(1)
     try:
         first.sendto(frame, ("127.0.0.1", port))
         await settle(lambda: len(got) == 1)
@@ -371,6 +381,76 @@ async def _peer_moves():
 
 def test_a_second_sender_is_heard_only_once_the_peer_is_silent():
     asyncio.run(_peer_moves())
+
+
+async def _fuzzer_while_the_peer_is_silent():
+    server, got, port, autopilot, fuzzer, frame = await _udpin_and_two_senders(0.2)
+    try:
+        autopilot.sendto(frame(1), ("127.0.0.1", port))
+        await settle(lambda: len(got) == 1)
+        await asyncio.sleep(0.3)  # the autopilot falls silent (a radio drop-out, a freeze)
+        for _ in range(150):  # garbage: charged to the fuzzer, not yet throttled
+            fuzzer.sendto(b"\xfd" + bytes(30), ("127.0.0.1", port))
+        await settle(lambda: server.counters["bad_data"] >= 150)
+        fuzzer.sendto(frame(2), ("127.0.0.1", port))  # a well-formed frame of the vehicle's
+        await settle(lambda: server.counters["datagrams"] >= 152)
+        taken = server.peer
+        flown = len(got)
+        autopilot.sendto(frame(3), ("127.0.0.1", port))  # the autopilot is back
+        await settle(lambda: server.counters["datagrams"] >= 153)
+        await asyncio.sleep(0.05)
+        return taken, flown, len(got), server.peer, autopilot.getsockname()[1]
+    finally:
+        autopilot.close()
+        fuzzer.close()
+        server.close()
+
+
+def test_a_fuzzer_never_takes_the_peer_of_a_silent_autopilot():
+    """On an unsigned udpin link the peer moves to a second sender once the autopilot has
+    been silent for peer_timeout_s (an autopilot restarted on another port). A sender that
+    costs the link failures (a fuzzer) must not be that second sender: before, a fuzzer
+    talking through a 3 s silence took the peer, its state was flown and our setpoints went
+    to it, and the autopilot's own frames, back, were dropped as a stranger's for as long as
+    the fuzz lasted (`bench --attack`'s fuzz, the SITL frozen 4 s)."""
+    taken, flown, after, peer, autopilot_port = asyncio.run(_fuzzer_while_the_peer_is_silent())
+    assert taken == ("127.0.0.1", autopilot_port)  # the fuzzer did not take the peer
+    assert flown == 1  # nor was its frame delivered
+    assert after == 2  # the autopilot, back, is heard at once
+    assert peer == ("127.0.0.1", autopilot_port)
+
+
+async def _fuzzer_speaks_first():
+    server, got, port, autopilot, fuzzer, frame = await _udpin_and_two_senders()
+    try:
+        fuzzer.sendto(frame(1), ("127.0.0.1", port))  # a well-formed frame, first
+        await settle(lambda: len(got) == 1)
+        first = server.peer
+        for _ in range(10):  # then its garbage
+            fuzzer.sendto(b"\xfd" + bytes(30), ("127.0.0.1", port))
+        await settle(lambda: server.counters["bad_data"] >= 10)
+        autopilot.sendto(frame(2), ("127.0.0.1", port))  # the autopilot comes up
+        await settle(lambda: server.counters["datagrams"] >= 12)
+        fuzzer.sendto(frame(3), ("127.0.0.1", port))
+        await settle(lambda: server.counters["datagrams"] >= 13)
+        await asyncio.sleep(0.05)
+        return (first, server.peer, [m.time_boot_ms for m in got], fuzzer.getsockname()[1],
+                autopilot.getsockname()[1])  # fmt: skip
+    finally:
+        autopilot.close()
+        fuzzer.close()
+        server.close()
+
+
+def test_a_fuzzer_that_spoke_first_yields_the_peer_to_the_autopilot():
+    """A fuzzer whose first datagram was a well-formed frame of the vehicle's became the peer
+    of an unsigned udpin link before the autopilot spoke: the autopilot was then the second
+    sender, dropped for as long as the fuzz lasted. A peer that sends malformed frames yields
+    to a sender that sends none."""
+    first, peer, flown, fuzzer_port, autopilot_port = asyncio.run(_fuzzer_speaks_first())
+    assert first == ("127.0.0.1", fuzzer_port)  # (nothing tells them apart yet)
+    assert peer == ("127.0.0.1", autopilot_port)
+    assert flown == [1, 2]  # the autopilot's frame flown, the fuzzer's next one not
 
 
 async def _packed_stranger():

@@ -763,3 +763,50 @@ def test_the_publish_backlog_is_bounded_drops_the_oldest_and_requeues_in_order()
     assert log.hand_off(lambda f: False) == 0  # refused (a full pipe): kept
     log.hand_off(take)
     assert [(f[1], f[2], f[3]) for f in sent] == [(1, [e[3]], 3), (0, e[4:6], 4)]
+
+
+def _held_sentinel(proc) -> int:
+    """A write end of ``proc``'s sentinel pipe, opened through /proc: while we hold it, the
+    process's exit does not show on its sentinel (as when its teardown is slow: a killed
+    helper at nice +10 beside CPU hogs took 1.3 s to exit), so a join waits its whole
+    timeout."""
+    import os
+    from pathlib import Path
+
+    inode = os.fstat(proc.sentinel).st_ino
+    for fd in Path(f"/proc/{proc.pid}/fd").iterdir():
+        if os.readlink(fd) == f"pipe:[{inode}]":
+            return os.open(fd, os.O_WRONLY | os.O_NONBLOCK)
+    raise AssertionError("the helper's sentinel pipe not found")
+
+
+async def _kill_a_wedged_helper() -> float:
+    import os
+
+    cfg = config("a", free_port(), [])
+    sharing = FleetSharing(cfg, [("position", controller())])
+    await sharing.open()
+    try:
+        helper = sharing._helper
+        assert helper is not None
+        held = _held_sentinel(helper.process)
+        try:
+            t0 = time.monotonic()
+            sharing._stop_helper(kill=True)  # what _watch does to a silent or dead helper
+            took_s = time.monotonic() - t0
+        finally:
+            os.close(held)
+        await until(lambda: not helper.process.is_alive(), "the killed helper reaped")
+        return took_s
+    finally:
+        sharing.close()
+
+
+def test_a_killed_helper_is_not_joined_on_the_loops_thread():
+    """A failed fleet helper (silent, dead, not started) is SIGKILLed on the event loop's
+    thread, which is the loops' thread. Its exit is the machine's to schedule: joined there
+    (2 s, then 1 s more), a helper SIGSTOPped 20 s and killed beside two CPU hogs held the
+    loops 1.26 s and the vehicle left offboard (`bench --attack --freeze fleet`). The kill
+    returns at once; the helper is reaped meanwhile."""
+    took_s = asyncio.run(_kill_a_wedged_helper())
+    assert took_s < 0.5, took_s  # main 0239a5e: 2.0 s (the join's timeout)

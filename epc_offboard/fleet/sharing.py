@@ -40,6 +40,7 @@ import logging
 import math
 import multiprocessing
 import os
+import threading
 import time
 from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
@@ -352,8 +353,16 @@ class FleetSharing:
         for conn in helper.conns:  # EOF on its frames pipe: it closes its session and exits
             conn.close()
         proc = helper.process
-        if kill and proc.is_alive():
-            proc.kill()
+        if kill:
+            # a failed helper, on the loops' thread: SIGKILL, and reaped by a thread of its
+            # own. Joined here, a helper SIGSTOPped 20 s and killed took 0.07-1.3 s to exit
+            # (its teardown at nice +10 beside two CPU hogs): the loops stood still that
+            # long, the state went stale and the vehicle left offboard (bench --attack
+            # --freeze fleet, 0.8 m off)
+            if proc.is_alive():
+                proc.kill()
+            threading.Thread(target=proc.join, name="fleet-reaper", daemon=True).start()
+            return
         proc.join(timeout=timeout_s)
         if proc.is_alive():
             proc.kill()

@@ -546,7 +546,7 @@ def judge(report: dict[str, Any]) -> list[Verdict]:
     held = _worst(attacks, "offboard_fraction", min)
     out.append(Verdict("offboard held >= 99.9 % under invalid traffic",
                        _text(100.0 * held, "{:.2f} %"), held >= 0.999))  # fmt: skip
-    fuzz_err = _worst([w for w in hover if w["kind"] == "fuzz"], "max_error_m")
+    fuzz_err = _worst([w for w in hover if "fuzz" in w["kind"].split("+")], "max_error_m")
     out.append(Verdict("no excursion over 0.10 m from implausible MAVLink (hover, fuzz)",
                        _text(fuzz_err, "{:.3f} m"), fuzz_err <= 0.10))  # fmt: skip
     med, p99 = report["attack_compute_us"]["median"], report["attack_compute_us"]["p99"]
@@ -576,7 +576,8 @@ def format_table(report: dict[str, Any]) -> str:
             ("helpers_cpu_share", "helpers", "{:.2f}"),
             ("load_avg_1min", "load", "{:.1f}"),
             ("steal_ms_per_s", "steal", "{:.1f}")]  # fmt: skip
-    head = f"{'phase':8s} {'window':7s}" + "".join(f" {k[1]:>9s}" for k in keys)
+    kind_w = max([7, *(len(w["kind"]) for w in report["windows"])])  # "flood+fuzz": 10
+    head = f"{'phase':8s} {'window':{kind_w}s}" + "".join(f" {k[1]:>9s}" for k in keys)
     lines = [head]
     for w in report["windows"]:
         cells = []
@@ -586,8 +587,20 @@ def format_table(report: dict[str, Any]) -> str:
                 v = 100.0 * v
                 fmt = "{:.2f}"
             cells.append(f" {fmt.format(v) if v is not None else '-':>9s}")
-        lines.append(f"{w['phase']:8s} {w['kind']:7s}" + "".join(cells))
+        lines.append(f"{w['phase']:8s} {w['kind']:{kind_w}s}" + "".join(cells))
     lines.append("")
+    lines.append(f"autopilot {report.get('autopilot', 'px4')}; MAVLink signing "
+                 f"{'on' if report.get('signing') else 'off'}; attacks of "
+                 f"{report.get('window_s', 10.0):g} s"
+                 + ("; the fuzzer forges state" if report.get("forge") else "")
+                 + _freeze_text(report.get("freeze")))  # fmt: skip
+    refused = report.get("link_refused") or {}
+    if report.get("fuzz_datagrams_sent"):
+        lines.append(f"MAVLink: the fuzzer sent {report['fuzz_datagrams_sent']} datagrams; the "
+                     f"link refused {refused.get('total', 0)} (throttled "
+                     f"{refused.get('throttled', 0)}, bad signature "
+                     f"{refused.get('bad_signature', 0)}, other sender "
+                     f"{refused.get('other_sender', 0)})")  # fmt: skip
     load = report["load_avg"]
     lines.append(f"machine load (1/5/15 min): start {load['start']}, end {load['end']}; "
                  f"{report['cpus']} CPUs; {report['hogs']} CPU hogs; attitude mode "
@@ -602,6 +615,15 @@ def format_table(report: dict[str, Any]) -> str:
         verdict = "n/a" if v.met is None else ("met" if v.met else "NOT MET")
         lines.append(f"{v.target:62s} {verdict:9s} {v.measured}")
     return "\n".join(lines)
+
+
+def _freeze_text(freeze: dict[str, Any] | None) -> str:
+    """``--freeze``'s line part: which helper, for how long, and whether it was found."""
+    if not freeze:
+        return ""
+    found = sum(1 for e in freeze["events"] if e.get("pid"))
+    return (f"; helper '{freeze['helper']}' SIGSTOPped {freeze['seconds']:g} s, "
+            f"{found} of {len(freeze['events'])} times found")
 
 
 def steal_summary(report: dict[str, Any]) -> str:
@@ -680,7 +702,8 @@ def write_figure(report: dict[str, Any], series: dict[str, FloatArray], path: An
         if w["kind"] == "calm":
             continue
         for ax in (ax_gap, ax_att, ax_err):
-            ax.axvspan(w["t0_s"] - t_zero, w["t1_s"] - t_zero, color=colours[w["kind"]],
+            ax.axvspan(w["t0_s"] - t_zero, w["t1_s"] - t_zero,
+                       color=colours.get(w["kind"], "tab:brown"),
                        alpha=0.25, lw=0)  # fmt: skip
         ax_gap.text((w["t0_s"] + w["t1_s"]) / 2 - t_zero, ax_gap.get_ylim()[1], w["kind"],
                     ha="center", va="top", fontsize=7)  # fmt: skip

@@ -310,12 +310,28 @@ def run_bench_command(args: argparse.Namespace) -> int:
 
         return bench_lwpr.main(["--json", args.json] if args.json else [])
     if getattr(args, "attack", False):
-        from epc_offboard.tools.bench_attack import AttackBenchError, run_attack_bench
+        from epc_offboard.tools.bench_attack import (
+            ATTACKS,
+            AttackBenchError,
+            AttackOptions,
+            parse_attacks,
+            run_attack_bench,
+        )
 
         try:
+            attacks = getattr(args, "attacks", None)
+            opts = AttackOptions(
+                autopilot=str(getattr(args, "autopilot", "px4")),
+                attack_s=float(getattr(args, "attack_s", 10.0)),
+                attacks=parse_attacks(attacks) if attacks else ATTACKS,
+                signing=bool(getattr(args, "signing", False)),
+                forge=bool(getattr(args, "forge", False)),
+                freeze=getattr(args, "freeze", None),
+                freeze_s=float(getattr(args, "freeze_s", 20.0)),
+            )  # fmt: skip
             return run_attack_bench(args.json, int(args.hogs), str(args.attitude_mode),
                                     loops_cpu=getattr(args, "loops_cpu", None),
-                                    sitl_cpu=getattr(args, "sitl_cpu", None))
+                                    sitl_cpu=getattr(args, "sitl_cpu", None), opts=opts)
         except AttackBenchError as exc:
             print(f"epc-offboard bench --attack: {exc}", file=sys.stderr)
             return 1

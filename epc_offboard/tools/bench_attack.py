@@ -45,6 +45,7 @@ import tempfile
 import threading
 import time
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -68,6 +69,12 @@ SETTLE_S = 5.0  # offboard hover before the first window
 FIGURE8_SETTLE_S = 8.0  # the figure-8's ramp (3 s) and the scenario's settle time
 ZENOH_ATTACKS = ("flood", "rotate", "replay", "flap")
 ATTACKS = (*ZENOH_ATTACKS, "fuzz")
+# ``--attacks``: any of ATTACKS, or two joined by "+" run at once (e.g. "flood+fuzz")
+# --freeze: which helper process, or the autopilot itself ("sitl": its link silent, as a
+# radio drop-out or a frozen autopilot, while the attack goes on)
+HELPERS = ("fleet", "store", "miss", "log", "pump", "sitl")
+FREEZE_S = 20.0  # --freeze: how long the helper stays SIGSTOPped
+AUTOPILOTS = ("px4", "ardupilot")
 ZENOH_RATE_PER_S = 1000.0
 FUZZ_RATE_HZ = 2000.0
 REALTIME_PRIORITY = 50  # config/default.toml's
@@ -77,6 +84,49 @@ SERVICE_SYSTEM_ID = 245  # link.system_id's default: the sender of the attitude 
 FLEET = "bench"
 MODES = {"quaternion": "autopilot", "rates": "auto"}  # --attitude-mode -> attitude.mode
 SAMPLE_S = 0.25
+
+
+@dataclass(frozen=True)
+class AttackOptions:
+    """What ``bench --attack`` varies beyond the hogs and the attitude mode (the defaults:
+    issue 21's bench). ``autopilot``: the SITL's personality (ardupilot: GUIDED,
+    GUID_OPTIONS=8, as sim flies it); ``attack_s``: each attack's length; ``attacks``: which
+    attacks, in order, each a name of ATTACKS or two joined by "+" (run at once);
+    ``signing``: a fresh MAVLink 2 signing key for the service and the SITL (the fuzzer does
+    not have it); ``forge``: the fuzzer also forges the vehicle's state (fuzz_mavlink
+    ``--forge``); ``freeze``: one helper process (HELPERS) SIGSTOPped for ``freeze_s`` from
+    the start of each phase's first attack, then SIGCONT."""
+
+    autopilot: str = "px4"
+    attack_s: float = WINDOW_S
+    attacks: tuple[str, ...] = ATTACKS
+    signing: bool = False
+    forge: bool = False
+    freeze: str | None = None
+    freeze_s: float = FREEZE_S
+
+    def __post_init__(self) -> None:
+        if self.autopilot not in AUTOPILOTS:
+            raise AttackBenchError(f"--autopilot: one of {', '.join(AUTOPILOTS)}")
+        if not 1.0 <= self.attack_s <= 600.0:
+            raise AttackBenchError("--attack-s: 1 to 600 s")
+        if not self.attacks:
+            raise AttackBenchError("--attacks: at least one")
+        for name in self.attacks:
+            parts = name.split("+")
+            if len(parts) > 2 or len(set(parts)) != len(parts) or not set(parts) <= set(ATTACKS):
+                raise AttackBenchError(
+                    f"--attacks: {name!r} is not one of {', '.join(ATTACKS)} "
+                    "or two of them joined by '+'")  # fmt: skip
+        if self.freeze is not None and self.freeze not in HELPERS:
+            raise AttackBenchError(f"--freeze: one of {', '.join(HELPERS)}")
+        if self.freeze_s <= 0.0:
+            raise AttackBenchError("--freeze-s must be > 0")
+
+
+def parse_attacks(text: str) -> tuple[str, ...]:
+    """``--attacks``' comma-separated list (validated by AttackOptions)."""
+    return tuple(a.strip() for a in text.split(",") if a.strip())
 
 
 class AttackBenchError(EpcError, RuntimeError):
@@ -114,15 +164,18 @@ def _autopilot_priority() -> None:
 
 
 def service_config(run_dir: Path, port: int, zenoh_port: int, mode: str,
-                   loops_cpu: int | None = None) -> dict[str, Any]:  # fmt: skip
+                   loops_cpu: int | None = None, autopilot: str = "px4",
+                   signing_key_file: Path | None = None) -> dict[str, Any]:  # fmt: skip
     """config/sitl.toml + what the bench flies: real time, the deployed scheduling, a hover
     to begin with (the figure-8 comes by SIGHUP), every log, fleet sharing listening on
-    ``zenoh_port``; ``loops_cpu``: the loops pinned to that CPU."""
+    ``zenoh_port``; ``loops_cpu``: the loops pinned to that CPU; ``autopilot``: the
+    personality flown; ``signing_key_file``: MAVLink signing on with that key."""
     with SITL_SERVICE_CONFIG.open("rb") as fh:
         base = tomllib.load(fh)
     scenario = load_scenario("figure8")
     return merge_dicts(base, {
-        "link": {"url": f"udpin://127.0.0.1:{port}", "autopilot": "px4"},
+        "link": {"url": f"udpin://127.0.0.1:{port}", "autopilot": autopilot,
+                 "signing_key_file": str(signing_key_file or "")},
         "loops": {"clock": "wall", "realtime_priority": REALTIME_PRIORITY,
                   "cpu_affinity": [] if loops_cpu is None else [loops_cpu]},
         "attitude": {"mode": MODES[mode]},
@@ -214,14 +267,17 @@ class Sampler(threading.Thread):
 class Attackers:
     """The Zenoh attackers, one process each, prepared and connected before the flight."""
 
-    def __init__(self, zenoh_port: int, config_path: Path, log_dir: Path) -> None:
+    def __init__(self, zenoh_port: int, config_path: Path, log_dir: Path,
+                 kinds: tuple[str, ...] = ZENOH_ATTACKS, window_s: float = WINDOW_S,
+                 ) -> None:  # fmt: skip
         self.procs: dict[str, subprocess.Popen[str]] = {}
-        for kind in ZENOH_ATTACKS:
+        self.window_s = window_s
+        for kind in kinds:
             self.procs[kind] = subprocess.Popen(
                 [sys.executable, "-m", "epc_offboard.tools.zenoh_attack", kind,
                  "--connect", f"tcp/127.0.0.1:{zenoh_port}", "--fleet", FLEET,
                  "--config", str(config_path), "--rate", str(ZENOH_RATE_PER_S),
-                 "--duration", str(WINDOW_S)],
+                 "--duration", str(window_s)],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                 stderr=(log_dir / f"attacker-{kind}.log").open("w"), text=True,
             )  # fmt: skip
@@ -237,7 +293,7 @@ class Attackers:
         assert proc.stdin is not None
         proc.stdin.write("go\n")
         proc.stdin.flush()
-        line = _readline(proc.stdout, WINDOW_S + 30.0)
+        line = _readline(proc.stdout, self.window_s + 30.0)
         if not line:
             raise AttackBenchError(f"the {kind} attacker ended early")
         summary: dict[str, Any] = json.loads(line)
@@ -266,14 +322,145 @@ def _readline(stream: IO[str] | None, timeout_s: float) -> str:
     return out[0] if out else ""
 
 
-def fuzz(port: int) -> dict[str, Any]:
+def fuzz(port: int, window_s: float = WINDOW_S, forge: bool = False) -> dict[str, Any]:
     proc = subprocess.run(
         [sys.executable, "-m", "epc_offboard.tools.fuzz_mavlink", "--port", str(port),
-         "--rate", str(FUZZ_RATE_HZ), "--duration", str(WINDOW_S)],
-        capture_output=True, text=True, timeout=WINDOW_S + 30, check=True,
+         "--rate", str(FUZZ_RATE_HZ), "--duration", str(window_s),
+         *(["--forge"] if forge else [])],
+        capture_output=True, text=True, timeout=window_s + 30, check=True,
     )  # fmt: skip
     summary: dict[str, Any] = json.loads(proc.stdout)
     return summary
+
+
+def attack(name: str, port: int, attackers: Attackers, opts: AttackOptions) -> dict[str, Any]:
+    """Run attack ``name`` (one of ATTACKS, or two joined by "+", run at once in threads)
+    for ``opts.attack_s``; the attacker's summary (a joint one: the first start, the longest
+    duration, each part's summary under its name)."""
+    def one(kind: str) -> dict[str, Any]:
+        return fuzz(port, opts.attack_s, opts.forge) if kind == "fuzz" else attackers.attack(kind)
+
+    kinds = name.split("+")
+    if len(kinds) == 1:
+        return one(name)
+    parts: dict[str, dict[str, Any]] = {}
+    errors: list[BaseException] = []
+
+    def run(kind: str) -> None:
+        try:
+            parts[kind] = one(kind)
+        except BaseException as exc:  # re-raised below, in the caller's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(k,), daemon=True) for k in kinds]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    start = min(float(p.get("start_monotonic_s", time.monotonic())) for p in parts.values())
+    end = max(float(p.get("start_monotonic_s", start)) + float(p["duration_s"])
+              for p in parts.values())  # fmt: skip
+    return {"start_monotonic_s": start, "duration_s": end - start, "parts": parts}
+
+
+# -- a helper process frozen (--freeze) -----------------------------------------------------
+
+
+def _open_files(pid: int) -> list[str]:
+    out: list[str] = []
+    with contextlib.suppress(OSError):
+        for fd in Path(f"/proc/{pid}/fd").iterdir():
+            with contextlib.suppress(OSError):
+                out.append(os.readlink(fd))
+    return out
+
+
+def _threads(pid: int) -> int:
+    with contextlib.suppress(OSError):
+        return len(list(Path(f"/proc/{pid}/task").iterdir()))
+    return 0
+
+
+def helper_pids(service_pid: int, run_dir: Path) -> dict[str, int]:
+    """The service's helper processes by name, told apart by what they hold (the service's
+    stats name their pids only at the end): ``pump`` the log pump (`common.logpipe`),
+    ``store`` the library's writer (the library open), ``log`` the flight-log and tlog
+    writer (flight.csv open), ``fleet`` the Zenoh session (its sockets and threads),
+    ``miss`` the miss worker (the other spawned helper)."""
+    out: dict[str, int] = {}
+    spawned: list[int] = []
+    for pid in _children(service_pid):
+        with contextlib.suppress(OSError):
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+            if "epc_offboard.common.logpipe" in cmd:
+                out["pump"] = pid
+            elif "spawn_main" in cmd:
+                spawned.append(pid)
+    rest = []
+    for pid in spawned:
+        files = _open_files(pid)
+        if any(f.endswith(".sqlite") for f in files):
+            out["store"] = pid
+        elif str(run_dir / "flight.csv") in files:
+            out["log"] = pid
+        else:
+            rest.append(pid)
+    if len(rest) > 1:  # the Zenoh session's sockets, then its runtime's threads
+        fleet = max(rest, key=lambda p: (sum(f.startswith("socket:") for f in _open_files(p)),
+                                         _threads(p)))  # fmt: skip
+        out["fleet"] = fleet
+        rest.remove(fleet)
+    if rest:
+        out["miss"] = rest[0]
+    return out
+
+
+class Freezer:
+    """``--freeze``: SIGSTOP one helper for ``seconds``, then SIGCONT (in a timer thread, so
+    that the attack runs meanwhile); each freeze recorded (pid, wall span, found or not)."""
+
+    def __init__(self, helper: str, seconds: float, service_pid: int, run_dir: Path,
+                 sitl_pid: int | None = None) -> None:  # fmt: skip
+        self.helper, self.seconds = helper, seconds
+        self.service_pid, self.run_dir, self.sitl_pid = service_pid, run_dir, sitl_pid
+        self.events: list[dict[str, Any]] = []
+        self._timers: list[threading.Timer] = []
+        self._stopped: set[int] = set()
+
+    def freeze(self, phase: str) -> None:
+        pid = (self.sitl_pid if self.helper == "sitl"
+               else helper_pids(self.service_pid, self.run_dir).get(self.helper))  # fmt: skip
+        event: dict[str, Any] = {"phase": phase, "helper": self.helper, "pid": pid,
+                                 "t0_s": time.monotonic(), "t1_s": None}  # fmt: skip
+        self.events.append(event)
+        if pid is None:
+            return
+        try:
+            os.kill(pid, signal.SIGSTOP)
+        except OSError:
+            event["pid"] = None
+            return
+        self._stopped.add(pid)
+        timer = threading.Timer(self.seconds, self._thaw, args=(pid, event))
+        timer.daemon = True
+        self._timers.append(timer)
+        timer.start()
+
+    def _thaw(self, pid: int, event: dict[str, Any]) -> None:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGCONT)
+        self._stopped.discard(pid)
+        event["t1_s"] = time.monotonic()
+
+    def close(self) -> None:
+        """Thaw now whatever is still frozen (before the service is stopped)."""
+        for timer in self._timers:
+            timer.cancel()
+        for event in self.events:
+            if event["pid"] in self._stopped:
+                self._thaw(event["pid"], event)
 
 
 def wait_offboard(flight_csv: Path, settle_s: float, service: subprocess.Popen[bytes],
@@ -302,24 +489,36 @@ def _stop(proc: subprocess.Popen[bytes] | None, timeout_s: float = 10.0) -> int 
 
 
 def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
-        sitl_cpu: int | None = None) -> dict[str, Any]:  # fmt: skip
+        sitl_cpu: int | None = None, opts: AttackOptions | None = None,
+        ) -> dict[str, Any]:  # fmt: skip
     """The flight and its windows; returns the raw record (windows, samples, ports)."""
+    opts = opts or AttackOptions()
     port, sitl_port = free_port(), free_port()
     zenoh_port = free_port()
-    cfg = service_config(run_dir, port, zenoh_port, mode, loops_cpu)
+    key_file = None
+    if opts.signing:
+        key_file = run_dir / "signing.key"
+        key_file.write_bytes(os.urandom(32))
+        key_file.chmod(0o600)
+    cfg = service_config(run_dir, port, zenoh_port, mode, loops_cpu, opts.autopilot, key_file)
     config_path = run_dir / "service.toml"
     config_path.write_text(dump_toml(cfg))
     scenario = load_scenario("figure8")
     sitl_cmd = [sys.executable, "-m", "sitl.main", "--listen-port", str(sitl_port),
                 "--offboard-port", str(port), "--gcs-port", "0",
-                "--groundtruth", str(run_dir / "groundtruth.csv"), "--autopilot", "px4",
+                "--groundtruth", str(run_dir / "groundtruth.csv"), "--autopilot", opts.autopilot,
                 "--config", str(vehicle_file(cfg)),
                 "--wind", f"{scenario.wind_speed_m_s},{scenario.wind_dir_deg}"]  # fmt: skip
+    if opts.autopilot == "ardupilot":  # as sim flies it: thrust as throttle (the README's)
+        sitl_cmd += ["--param", "GUID_OPTIONS=8"]
+    if key_file is not None:
+        sitl_cmd += ["--signing-key", str(key_file)]
     env = dict(os.environ, PYTHONUNBUFFERED="1", **service_env())
     hog_procs: list[subprocess.Popen[bytes]] = []
     service = sitl = None
     attackers: Attackers | None = None
     sampler: Sampler | None = None
+    freezer: Freezer | None = None
     stealer: steal_time.StealSampler | None = None
     windows: list[analysis.Window] = []
     sitl_fifo = sitl_pinned = False
@@ -336,7 +535,9 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
         )  # fmt: skip
         sitl_fifo = _is_fifo(sitl.pid)
         sitl_pinned = _pinned(sitl.pid, sitl_cpu)
-        attackers = Attackers(zenoh_port, config_path, run_dir)
+        zenoh_kinds = tuple(k for k in ZENOH_ATTACKS
+                            if any(k in a.split("+") for a in opts.attacks))  # fmt: skip
+        attackers = Attackers(zenoh_port, config_path, run_dir, zenoh_kinds, opts.attack_s)
         hog_procs = start_hogs(hogs)
         sampler = Sampler(service.pid)
         sampler.start()
@@ -344,12 +545,14 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
         stealer.start()
         attackers.wait_ready()
         wait_offboard(run_dir / "flight.csv", SETTLE_S, service)
+        if opts.freeze is not None:
+            freezer = Freezer(opts.freeze, opts.freeze_s, service.pid, run_dir, sitl.pid)
         for phase in ("hover", "figure8"):
             if phase == "figure8":
                 config_path.write_text(dump_toml(figure8_config(cfg)))
                 service.send_signal(signal.SIGHUP)
                 time.sleep(FIGURE8_SETTLE_S)
-            for kind in ATTACKS:
+            for i, kind in enumerate(opts.attacks):
                 t_calm = time.monotonic()
                 time.sleep(GAP_S)
                 windows.append(analysis.Window(phase, "calm", t_calm + GAP_S - CALM_S,
@@ -357,14 +560,23 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
                 if service.poll() is not None:
                     raise AttackBenchError(f"the service exited with {service.returncode}")
                 t0 = time.monotonic()
-                summary = fuzz(port) if kind == "fuzz" else attackers.attack(kind)
+                if freezer is not None and i == 0:
+                    freezer.freeze(phase)
+                summary = attack(kind, port, attackers, opts)
                 start = float(summary.get("start_monotonic_s", t0))
                 end = start + float(summary["duration_s"])
                 windows.append(analysis.Window(phase, kind, start, end, summary))
+        if freezer is not None:  # a freeze longer than the attacks: until it is over
+            time.sleep(max(0.0, freezer.events[-1]["t0_s"] + opts.freeze_s - time.monotonic()))
         time.sleep(2.0)
         load_end = os.getloadavg()
+        if freezer is not None:
+            freezer.close()
+            time.sleep(1.0)
         code = _stop(service)  # holds the vehicle, writes its stats
     finally:
+        if freezer is not None:
+            freezer.close()  # a frozen helper would hold the service's stop
         stop_hogs(hog_procs)  # by PID, first: the rest stops faster without them
         if sampler is not None:
             sampler.stop.set()
@@ -379,7 +591,8 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
             "steal": stealer.record() if stealer else {},
             "fifo_priority": REALTIME_PRIORITY, "sitl_fifo": sitl_fifo,
             "loops_cpu": loops_cpu, "sitl_cpu": sitl_cpu,
-            "sitl_cpu_applied": sitl_pinned}  # fmt: skip
+            "sitl_cpu_applied": sitl_pinned, "options": opts,
+            "freezes": freezer.events if freezer else []}  # fmt: skip
 
 
 # -- the report -------------------------------------------------------------------------------
@@ -389,6 +602,7 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
             unix_minus_monotonic_s: float, lockstep_rmse_m: float | None = None,
             ) -> tuple[dict[str, Any], dict[str, Any]]:  # fmt: skip
     """(report, figure series) of a flown run."""
+    opts: AttackOptions = record.get("options") or AttackOptions()
     flight = read_csv_columns(run_dir / "flight.csv")
     truth = read_csv_columns(run_dir / "groundtruth.csv")
     stats = json.loads((run_dir / "stats.json").read_text())
@@ -422,7 +636,11 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
                               and counters.get("cpu_affinity_refused", 0) == 0),
         "sitl_cpu": record.get("sitl_cpu"),
         "sitl_cpu_applied": record.get("sitl_cpu_applied", False),
-        "window_s": WINDOW_S, "zenoh_rate_per_s": ZENOH_RATE_PER_S, "fuzz_rate_hz": FUZZ_RATE_HZ,
+        "window_s": opts.attack_s, "zenoh_rate_per_s": ZENOH_RATE_PER_S,
+        "fuzz_rate_hz": FUZZ_RATE_HZ, "autopilot": opts.autopilot, "signing": opts.signing,
+        "forge": opts.forge, "attacks": list(opts.attacks),
+        "freeze": {"helper": opts.freeze, "seconds": opts.freeze_s,
+                   "events": record.get("freezes", [])} if opts.freeze else None,
         "load_avg": {k: [round(x, 2) for x in v] for k, v in record["load_avg"].items()},
         "service_exit": record["service_exit"],
         "windows": windows,
@@ -450,6 +668,8 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
                                             stats.get("stalls", []), stats.get("misses", []),
                                             flight,
                                             stats.get("slow_steps", {}).get("steps", [])),
+        "fuzz_datagrams_sent": fuzz_sent(record["windows"]),
+        "link_refused": link_refused(stats.get("link", {})),
         "lockstep_rmse_m": lockstep_rmse_m,
         "figure8_rmse_m": analysis.figure8_rmse_m(windows),
     }  # fmt: skip
@@ -458,6 +678,30 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
               "err_t_s": err_t, "err_m": err}  # fmt: skip
     report["verdicts"] = [vars(v) for v in analysis.judge(report)]
     return report, series
+
+
+# the link's counters that are not refusals (the rest each count a datagram or frame refused)
+_LINK_NOT_REFUSED = frozenset({"datagrams", "received", "sent", "bad_data"})
+
+
+def fuzz_sent(windows: list[analysis.Window]) -> int:
+    """Datagrams the fuzzer sent over the flight (joint attacks' fuzz parts included)."""
+    total = 0
+    for w in windows:
+        parts = w.attacker.get("parts", {"": w.attacker})
+        total += sum(int(p.get("datagrams", 0)) for k, p in parts.items()
+                     if "fuzz" in (k or w.kind).split("+"))  # fmt: skip
+    return total
+
+
+def link_refused(link: dict[str, Any]) -> dict[str, int]:
+    """What the service's link refused, by reason, and in all (``total``): throttled
+    sources, rejected headers, CRCs and signatures, other senders. Beside the fuzzer's
+    datagrams: what of them reached no loop (the autopilot's unknown messages count too)."""
+    out = {k: int(v) for k, v in sorted(link.items())
+           if k not in _LINK_NOT_REFUSED and isinstance(v, int)}  # fmt: skip
+    out["total"] = sum(out.values())
+    return out
 
 
 def lockstep_rmse_m() -> float | None:
@@ -479,7 +723,7 @@ def lockstep_rmse_m() -> float | None:
 
 def run_attack_bench(json_path: str | None, hogs: int, mode: str,
                      loops_cpu: int | None = None, sitl_cpu: int | None = None,
-                     ) -> int:  # fmt: skip
+                     opts: AttackOptions | None = None) -> int:  # fmt: skip
     if hogs < 0:
         raise AttackBenchError("--hogs must be >= 0")
     out = Path(json_path) if json_path else None
@@ -490,7 +734,7 @@ def run_attack_bench(json_path: str | None, hogs: int, mode: str,
                       "steal.json"):
             (run_dir / stale).unlink(missing_ok=True)
         unix_minus_monotonic_s = time.time() - time.monotonic()
-        record = fly(run_dir, hogs, mode, loops_cpu, sitl_cpu)
+        record = fly(run_dir, hogs, mode, loops_cpu, sitl_cpu, opts)
         lockstep = lockstep_rmse_m() if mode == "rates" else None
         report, series = analyse(run_dir, record, hogs, mode, unix_minus_monotonic_s,
                                  lockstep)  # fmt: skip

@@ -103,7 +103,7 @@ def add_modes_arguments(bench: argparse.ArgumentParser) -> None:
         "--autopilot",
         choices=["px4", "ardupilot"],
         default="px4",
-        help="with --modes: the SITL's personality",
+        help="with --modes or --attack: the SITL's personality",
     )
     bench.add_argument(
         "--out",

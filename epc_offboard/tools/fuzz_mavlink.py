@@ -18,7 +18,10 @@ With ``--forge``, also ``forged``: a coherent forged stream from the vehicle's o
 own timeline, starting a little ahead of the vehicle's, advancing in real time, the vehicle
 placed 10 m away) and heartbeats claiming another mode. On an unsigned link nothing in a
 frame tells it from the vehicle's; only its contradiction with the vehicle's own stream can
-(the state tracker's innovation gate). Off by default.
+(the state tracker's innovation gate). Also ``wrong_key``: the same forged stream signed
+with a key of the fuzzer's own (timestamps at the signing clock's now): on a signed link
+the signature rejects it, and a check that recorded a timestamp before verifying it would
+lock the genuine stream out. Off by default.
 
 Prints a JSON summary (datagrams sent by kind, the achieved rate) on exit.
 """
@@ -55,7 +58,7 @@ class Fuzzer:
         self.rng = random.Random(seed)
         self.own = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self._system_id = system_id
-        self.kinds = self.KINDS + (("forged",) if forge else ())
+        self.kinds = self.KINDS + (("forged", "wrong_key") if forge else ())
         self._make: dict[str, Callable[[], bytes]] = {
             "random": self._random,
             "magic": self._magic,
@@ -65,7 +68,16 @@ class Fuzzer:
             "nan": self._nan,
             "time_jump": self._time_jump,
             "forged": self._forged,
+            "wrong_key": self._wrong_key,
         }
+        self.signed = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
+        if forge:
+            # MAVLink's signing clock: 10 us units since 2015-01-01, stamped "now"
+            now = int((time.time() - 1420070400) * 100_000)
+            self.signed.signing.secret_key = bytearray(self.rng.randbytes(32))
+            self.signed.signing.link_id = 0
+            self.signed.signing.timestamp = now
+            self.signed.signing.sign_outgoing = True
         self._forge_t0 = time.monotonic()
         self._forge_boot_ms = 0
 
@@ -142,6 +154,14 @@ class Fuzzer:
         t_ms = 600_000 + int((time.monotonic() - self._forge_t0) * 1000)
         if self.rng.random() < 0.1:
             return bytes(mav.heartbeat_encode(2, 12, 129, 4 << 16 | 3 << 24, 4).pack(mav))
+        if self.rng.random() < 0.5:
+            return bytes(mav.attitude_quaternion_encode(t_ms, 1, 0, 0, 0, 0, 0, 0).pack(mav))
+        return bytes(mav.local_position_ned_encode(t_ms, 10.0, 0.0, -2.5, 0, 0, 0).pack(mav))
+
+    def _wrong_key(self) -> bytes:
+        """The forged stream, signed with the fuzzer's own key (pymavlink signs it)."""
+        mav = self.signed
+        t_ms = 600_000 + int((time.monotonic() - self._forge_t0) * 1000)
         if self.rng.random() < 0.5:
             return bytes(mav.attitude_quaternion_encode(t_ms, 1, 0, 0, 0, 0, 0, 0).pack(mav))
         return bytes(mav.local_position_ned_encode(t_ms, 10.0, 0.0, -2.5, 0, 0, 0).pack(mav))

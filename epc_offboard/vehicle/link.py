@@ -480,10 +480,10 @@ class MavlinkLink:
     def _on_datagram(self, data: bytes, addr: tuple[Any, int]) -> None:
         self.counters["datagrams"] += 1
         source = (addr[0], addr[1])
-        if source == self._peer:  # the autopilot: never throttled
-            self._deliver(self._receive(data), addr)
-            return
         now = time.monotonic()
+        if source == self._peer:  # the autopilot: never throttled (its garbage noted)
+            self._deliver(self._receive(data, None, now, soiled_by=source), addr)
+            return
         gate = self.gate
         if not gate.admits(source, now):
             self.counters["throttled"] += 1
@@ -508,20 +508,25 @@ class MavlinkLink:
 
     def _peer_live(self, now: float) -> bool:
         """Whether messages from an address other than the peer are dropped: an unsigned
-        udpin link whose peer has spoken within peer_timeout_s."""
+        udpin link whose peer has spoken within peer_timeout_s and sends no malformed frames
+        (a peer that does, a fuzzer that spoke first, lets a clean sender be heard)."""
         return (
             self.endpoint.mode == "udpin"
             and self.signature is None
             and self._peer is not None
             and now - self._peer_heard <= self._peer_timeout_s
+            and self.gate.clean(self._peer, now)
         )
 
     def _receive(
         self, data: bytes, source: tuple[Any, int] | None = None, now: float = 0.0,
-        max_frames: int = MAX_FRAMES_PER_DATAGRAM,
+        max_frames: int = MAX_FRAMES_PER_DATAGRAM, *, soiled_by: tuple[Any, int] | None = None,
     ) -> list[Any]:
         """The messages of one datagram (at most ``max_frames`` frames read); its failures
-        are charged to ``source`` (None: the peer, not charged)."""
+        are charged to ``source`` (None: the peer, not charged), its malformed frames noted
+        against ``source`` or ``soiled_by`` (:meth:`SourceGate.soiled`)."""
+        counters = self.counters
+        malformed = counters["bad_data"]
         try:
             msgs, failures = self.receiver.datagram(data, max_frames)
         except Exception as exc:  # the receive path must never take the loop down
@@ -529,8 +534,11 @@ class MavlinkLink:
             self.counters["decode_errors"] += 1
             log.debug("undecodable datagram: %s", exc)
             return []
-        if failures and source is not None:
-            self.gate.charge(source, failures, now)
+        if failures:
+            if source is not None:
+                self.gate.charge(source, failures, now)
+            if (noted := source or soiled_by) is not None:
+                self.gate.soiled(noted, counters["bad_data"] - malformed, now)
         return msgs
 
     def _on_bytes(self, data: bytes, addr: tuple[Any, int], *, stream: bool) -> None:
@@ -575,17 +583,27 @@ class MavlinkLink:
             # The peer is the first address that spoke; it only moves once it has been silent
             # for peer_timeout_s (the autopilot restarted on another port). A second sender
             # can neither redirect our setpoints nor feed us state while the vehicle talks.
+            # Never to a sender of malformed frames (SourceGate.clean): a fuzzer talking while
+            # the autopilot was silent for peer_timeout_s took the peer, and the autopilot's
+            # frames, back, were dropped as a second sender's while the fuzz lasted; nor is
+            # such a sender's state flown while the peer is silent (unsigned). A peer that
+            # sends malformed frames (a fuzzer that spoke first) yields to a clean sender.
             sender = (str(addr[0]), int(addr[1]))
             now = time.monotonic()
+            gate = self.gate
             if sender == self._peer:
                 self._peer_heard = now
-            elif self._peer is None or now - self._peer_heard > self._peer_timeout_s:
+            elif (clean := gate.clean(sender, now)) and (
+                self._peer is None
+                or now - self._peer_heard > self._peer_timeout_s
+                or not gate.clean(self._peer, now)
+            ):
                 if self._peer is not None:
                     log.warning("MAVLink peer moved from %s:%d to %s:%d", *self._peer, *sender)
                 self._peer, self._peer_heard = sender, now
             else:
                 self.counters["other_sender"] += 1
-                if self._peer_live(now):
+                if self._peer_live(now) or (self.signature is None and not clean):
                     return
         self.counters["received"] += 1
         if self._tlog is not None:

@@ -323,6 +323,7 @@ class SourceGate:
         self._buckets: dict[Any, _Bucket] = {}
         self._shared = _Bucket(budget.shared_burst, 0.0)
         self._good: dict[Any, float] = {}  # source -> when it last delivered a valid frame
+        self._dirty: dict[Any, float] = {}  # source -> when it last sent a malformed frame
 
     def admits(self, source: Any, now_s: float) -> bool:
         """Whether a datagram from ``source`` may be read at all."""
@@ -352,6 +353,23 @@ class SourceGate:
         if source not in good and len(good) >= self.budget.max_good_sources:
             del good[min(good, key=good.__getitem__)]
         good[source] = now_s
+
+    def soiled(self, source: Any, malformed: int, now_s: float) -> None:
+        """``source`` sent ``malformed`` frames no autopilot sends (not MAVLink, MAVLink 1,
+        bad length, flags or CRC: :data:`MALFORMED`); messages it does not read, or of other
+        systems, are an autopilot's everyday traffic and do not count."""
+        if malformed <= 0:
+            return
+        dirty = self._dirty
+        if source not in dirty and len(dirty) >= self.budget.max_sources:
+            del dirty[next(iter(dirty))]
+        dirty[source] = now_s
+
+    def clean(self, source: Any, now_s: float) -> bool:
+        """Whether ``source`` has sent no malformed frame for ``good_for_s``: only such a
+        sender may become the link's peer (a fuzzer never is)."""
+        seen = self._dirty.get(source)
+        return seen is None or now_s - seen > self.budget.good_for_s
 
     def _is_good(self, source: Any, now_s: float) -> bool:
         seen = self._good.get(source)
