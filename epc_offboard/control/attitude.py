@@ -203,6 +203,7 @@ class AttitudeLoop:
             probation_s=config.model_probation_s,
             period_s=period_s,
         )
+        self._sample_age_ticks = 0
         self._ticks = 0
 
     def rates_trusted(self, state: VehicleState, target: PositionOutput) -> bool:
@@ -226,11 +227,13 @@ class AttitudeLoop:
         age_ticks = round(state.attitude_age_s / self.period_s)
         history = self.history
         if key == history.last_sample_key:
+            self._sample_age_ticks = round((now_s - history.samples[-1][0]) / self.period_s)
             return
         history.last_sample_key = key
         t_s = now_s - state.attitude_age_s
         rate = state.rate_frd_rad_s
         history.add_sample(t_s, rate)
+        self._sample_age_ticks = age_ticks
         if self.config.identify:
             ident = self.identifier
             if history.valid_run >= age_ticks + ident.span:
@@ -286,17 +289,7 @@ class AttitudeLoop:
         now = state.time_s if now_s is None else now_s
         self._observe(state, now)
         x0, refs = self._refs(state, target)
-        # The predictor carries the attitude from its SAMPLE over the sample's age and the
-        # dead time with the commands in flight; the state's attitude was already carried on
-        # over that age at the sample's rates: start from the sample's own, or the age is
-        # flown twice (in real time a sample is 0-8 ms old at every tick, in lockstep 0 or 5)
-        if state.attitude_carried_s > 0.0:
-            q_sample = frames.quat_integrate_body_rate(  # back: the rates reversed
-                state.q_ned_frd, -state.rate_frd_rad_s, state.attitude_carried_s
-            )
-            x0[:3] = frames.quat_to_euler(q_sample)
-            x0[2] = state.euler_rad[2] + frames.wrap_pi(x0[2] - state.euler_rad[2])
-        ahead = self.predictor.ahead_s(self.history, x0[:3], x0[3:], state.attitude_age_s)
+        ahead = self.predictor.ahead(self.history, x0[:3], x0[3:], self._sample_age_ticks)
         x0[:3] = ahead.angles_rad
         x0[3:] = ahead.rates_frd_rad_s
         d = self.controller.step(x0, refs)

@@ -255,28 +255,6 @@ class RatePredictor:
         angles = angles_rad + w.rate0_to_angle[m] * rates_frd_rad_s + both[1]
         return Prediction(angles, rates)
 
-    def ahead_s(
-        self,
-        history: CommandHistory,
-        angles_rad: FloatArray,
-        rates_frd_rad_s: FloatArray,
-        age_s: float,
-    ) -> Prediction:
-        """:meth:`ahead` from a sample ``age_s`` old (s, not a whole number of ticks: in real
-        time a sample is 0-8 ms old, the autopilot's clock not in phase with the loop's),
-        linear between the whole tick counts on either side of its age."""
-        ticks = max(age_s, 0.0) / self.period_s
-        whole = math.floor(ticks + 1e-9)
-        frac = ticks - whole
-        near = self.ahead(history, angles_rad, rates_frd_rad_s, whole)
-        if frac < 1e-9:
-            return near
-        far = self.ahead(history, angles_rad, rates_frd_rad_s, whole + 1)
-        return Prediction(
-            near.angles_rad + frac * (far.angles_rad - near.angles_rad),
-            near.rates_frd_rad_s + frac * (far.rates_frd_rad_s - near.rates_frd_rad_s),
-        )
-
     def check(
         self, history: CommandHistory, t_s: float, rate_frd_rad_s: FloatArray, age_ticks: int
     ) -> FloatArray | None:

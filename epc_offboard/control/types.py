@@ -32,9 +32,6 @@ class VehicleState:
     rate_frd_rad_s: FloatArray
     position_age_s: float  # vehicle time since the position sample this is predicted from
     attitude_age_s: float
-    # how far q_ned_frd was carried on from its sample at the sample's body rates (the
-    # state tracker's prediction, at most its horizon): 0 when q is the sample's own
-    attitude_carried_s: float = 0.0
 
     @cached_property
     def euler_rad(self) -> tuple[float, float, float]:

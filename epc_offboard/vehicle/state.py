@@ -629,5 +629,4 @@ class StateTracker:
             rate_frd_rad_s=rate.copy(),
             position_age_s=max(dt_pos, 0.0),
             attitude_age_s=max(dt_att, 0.0),
-            attitude_carried_s=dt_att_pred,
         )
