@@ -453,6 +453,36 @@ def test_a_fuzzer_that_spoke_first_yields_the_peer_to_the_autopilot():
     assert flown == [1, 2]  # the autopilot's frame flown, the fuzzer's next one not
 
 
+async def _peer_with_a_corrupt_frame():
+    server, got, port, autopilot, second, frame = await _udpin_and_two_senders()
+    try:
+        autopilot.sendto(frame(1), ("127.0.0.1", port))
+        await settle(lambda: len(got) == 1)
+        corrupt = bytearray(frame(2))
+        corrupt[-1] ^= 0xFF  # its CRC broken: a radio's bit error, bridged to UDP
+        autopilot.sendto(bytes(corrupt), ("127.0.0.1", port))
+        await settle(lambda: server.counters["bad_data"] >= 1)
+        second.sendto(frame(3), ("127.0.0.1", port))  # a clean second sender (a GCS) talks
+        await settle(lambda: server.counters["datagrams"] >= 3)
+        autopilot.sendto(frame(4), ("127.0.0.1", port))
+        await settle(lambda: server.counters["datagrams"] >= 4)
+        await asyncio.sleep(0.05)
+        return server.peer, [m.time_boot_ms for m in got], autopilot.getsockname()[1]
+    finally:
+        autopilot.close()
+        second.close()
+        server.close()
+
+
+def test_an_autopilots_rare_corrupt_frame_does_not_cost_it_the_peer():
+    """A genuine link drops the odd corrupt frame; the autopilot that sent one stays the peer
+    while a second, clean sender talks (before: one bad CRC made the peer unclean for 5 s and
+    the second sender took it, our setpoints with it)."""
+    peer, flown, autopilot_port = asyncio.run(_peer_with_a_corrupt_frame())
+    assert peer == ("127.0.0.1", autopilot_port)
+    assert flown == [1, 4]  # the second sender's frame not flown
+
+
 async def _packed_stranger():
     from epc_offboard.vehicle.receive import (
         MAX_FRAMES_PER_DATAGRAM,

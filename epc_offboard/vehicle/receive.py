@@ -75,6 +75,10 @@ INCOMPLETE = -1  # a stream's frame whose header passed and whose rest is still 
 _HEADER = struct.Struct("<BBBBBBBHB")  # ..., msgid low 16 bits, msgid high 8 bits
 _CRC = struct.Struct("<H")
 
+# A sender's malformed frames forgiven before it is unclean (SourceGate.clean): a genuine link
+# drops the odd corrupt frame (a radio's CRC error bridged to UDP, a frame cut in two); a
+# fuzzer sends them by the hundred a second
+MALFORMED_TOLERATED = 3
 # The malformed reasons, each also counted as "bad_data" (the total the stats have always had)
 MALFORMED = ("not_mavlink", "mavlink1", "bad_length", "bad_flags", "bad_crc", "frame_limit")
 
@@ -323,7 +327,8 @@ class SourceGate:
         self._buckets: dict[Any, _Bucket] = {}
         self._shared = _Bucket(budget.shared_burst, 0.0)
         self._good: dict[Any, float] = {}  # source -> when it last delivered a valid frame
-        self._dirty: dict[Any, float] = {}  # source -> when it last sent a malformed frame
+        # source -> [when it last sent a malformed frame, how many since it was last clean]
+        self._dirty: dict[Any, list[float]] = {}
 
     def admits(self, source: Any, now_s: float) -> bool:
         """Whether a datagram from ``source`` may be read at all."""
@@ -361,15 +366,25 @@ class SourceGate:
         if malformed <= 0:
             return
         dirty = self._dirty
-        if source not in dirty and len(dirty) >= self.budget.max_sources:
-            del dirty[next(iter(dirty))]
-        dirty[source] = now_s
+        seen = dirty.get(source)
+        if seen is None:
+            if len(dirty) >= self.budget.max_sources:
+                del dirty[next(iter(dirty))]
+            dirty[source] = [now_s, float(malformed)]
+        elif now_s - seen[0] > self.budget.good_for_s:  # clean again meanwhile: a new count
+            seen[0], seen[1] = now_s, float(malformed)
+        else:
+            seen[0] = now_s
+            seen[1] += malformed
 
     def clean(self, source: Any, now_s: float) -> bool:
-        """Whether ``source`` has sent no malformed frame for ``good_for_s``: only such a
-        sender may become the link's peer (a fuzzer never is)."""
+        """Whether ``source`` has sent at most :data:`MALFORMED_TOLERATED` malformed frames,
+        none more than ``good_for_s`` apart: only such a sender may become the link's peer (a
+        fuzzer never is), and a peer stays one through a link's rare corrupt frame (a CRC
+        error on a radio bridged to UDP) while a second sender talks."""
         seen = self._dirty.get(source)
-        return seen is None or now_s - seen > self.budget.good_for_s
+        return (seen is None or now_s - seen[0] > self.budget.good_for_s
+                or seen[1] <= MALFORMED_TOLERATED)  # fmt: skip
 
     def _is_good(self, source: Any, now_s: float) -> bool:
         seen = self._good.get(source)
