@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
@@ -56,29 +57,42 @@ def test_sim_circle_against_ardupilot(tmp_path):
     # as it answers, never at real-time pace
     assert sitl["lockstep_timeouts"] == 0
     origin_ms = 36_000
-    answers, waited_wall_s = _answers_before(out / "vehicle1" / "session.tlog", origin_ms)
+    answers, wall_per_vehicle_s = _answers_before(out / "vehicle1" / "session.tlog", origin_ms)
     assert answers > 0.9 * origin_ms / 5, answers  # every 5 ms tick answered
-    # 7200 round trips: 3-13 s at load 2-30; the bound is half the vehicle time
-    assert waited_wall_s < 0.5 * origin_ms / 1000.0, waited_wall_s
+    # 7200 round trips: 3-13 s at load 2-30, once 20 s in the suite beside two hogs (load
+    # ~6, its median window 0.47 s a vehicle second): the whole wait judged the machine.
+    # Paced at real time, each 100 ms of vehicle time would take 100 ms of wall time or
+    # more; the median window is judged (a stall of the machine moves a few, not the median)
+    assert np.median(wall_per_vehicle_s) < 0.9, np.percentile(wall_per_vehicle_s, [50, 90])
 
 
-def _answers_before(tlog, origin_ms: int) -> tuple[int, float]:
-    """The service's lockstep answers stamped before ``origin_ms``, and the wall time from
-    the vehicle's first state to its first position (the origin), from the service's tlog
-    (each frame stamped with the wall time it was sent or received; the SYSTEM_TIME the
-    vehicle sends, the lockstep clock's ticks the service asks for, are not answers)."""
+def _answers_before(tlog, origin_ms: int) -> tuple[int, np.ndarray]:
+    """The service's lockstep answers stamped before ``origin_ms``, and for each 100 ms of
+    vehicle time from the vehicle's first state to its first position (the origin) the wall
+    time it took, in seconds per vehicle second, from the service's tlog (each frame stamped
+    with the wall time it was sent or received; the SYSTEM_TIME the vehicle sends, the
+    lockstep clock's ticks the service asks for, are not answers)."""
     conn = mavutil.mavlink_connection(str(tlog), dialect="common")
-    answers, first_state_s = 0, None
+    answers = 0
     ours = LinkConfig().system_id
+    states: list[tuple[float, float]] = []  # (vehicle ms, wall s) of the vehicle's attitude
     while (msg := conn.recv_match()) is not None:
         kind = msg.get_type()
         if kind in ("SYSTEM_TIME", "SET_ATTITUDE_TARGET", "SET_POSITION_TARGET_LOCAL_NED"):
             answers += msg.get_srcSystem() == ours and msg.time_boot_ms < origin_ms
-        elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION") and first_state_s is None:
-            first_state_s = msg._timestamp
+        elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION") and msg.get_srcSystem() != ours:
+            states.append((float(msg.time_boot_ms), msg._timestamp))
         elif kind == "LOCAL_POSITION_NED" and msg.time_boot_ms >= origin_ms:
-            assert first_state_s is not None
-            return answers, msg._timestamp - first_state_s
+            assert states, "no vehicle state before the origin"
+            vehicle_ms, wall_s = np.array(states).T
+            window = np.floor((vehicle_ms - vehicle_ms[0]) / 100.0)
+            ratios = []
+            for w in np.unique(window):
+                at = window == w
+                if at.sum() >= 2 and np.ptp(vehicle_ms[at]) > 0.0:
+                    ratios.append(np.ptp(wall_s[at]) / (np.ptp(vehicle_ms[at]) * 1e-3))
+            assert len(ratios) > 0.5 * origin_ms / 100.0, len(ratios)
+            return answers, np.array(ratios)
     raise AssertionError(f"no LOCAL_POSITION_NED from {origin_ms} ms on in {tlog}")
 
 
