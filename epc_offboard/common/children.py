@@ -130,6 +130,21 @@ class Backoff:
 KILL_WAIT_S = 0.2
 
 
+def join_or_kill(
+    proc: multiprocessing.process.BaseProcess, timeout_s: float,
+    reap_s: float | None = KILL_WAIT_S,
+) -> bool:
+    """Wait ``timeout_s`` for ``proc`` to end; one still running then (wedged, SIGSTOPped,
+    deaf to SIGTERM) is SIGKILLed and waited for ``reap_s`` more (None: until it is reaped;
+    SIGKILL ends a stopped process too). Whether it ended by itself, in time."""
+    proc.join(timeout=max(0.0, timeout_s))
+    if proc.exitcode is not None:
+        return True
+    proc.kill()
+    proc.join(timeout=None if reap_s is None else max(0.0, reap_s))
+    return False
+
+
 def enlarge_pipe(conn: Connection, nbytes: int) -> None:
     """Make the pipe under ``conn`` hold ``nbytes`` (Linux ``F_SETPIPE_SZ``; elsewhere, or
     above the system's ceiling, it keeps its size)."""

@@ -51,7 +51,7 @@ import numpy as np
 
 from epc_offboard.common.blobs import ReceivedText, received_record
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordReader
-from epc_offboard.common.children import KILL_WAIT_S, Backoff, start_counted
+from epc_offboard.common.children import Backoff, join_or_kill, start_counted
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
@@ -359,14 +359,10 @@ class FleetSharing:
             # (its teardown at nice +10 beside two CPU hogs): the loops stood still that
             # long, the state went stale and the vehicle left offboard (bench --attack
             # --freeze fleet, 0.8 m off)
-            if proc.is_alive():
-                proc.kill()
-            threading.Thread(target=proc.join, name="fleet-reaper", daemon=True).start()
+            threading.Thread(target=join_or_kill, args=(proc, 0.0, None), name="fleet-reaper",
+                             daemon=True).start()  # fmt: skip
             return
-        proc.join(timeout=timeout_s)
-        if proc.is_alive():
-            proc.kill()
-            proc.join(timeout=KILL_WAIT_S)
+        join_or_kill(proc, timeout_s)
 
     # -- the event-loop task --------------------------------------------------------------
 

@@ -34,7 +34,7 @@ from typing import Any, NoReturn, TypeVar
 import numpy as np
 
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox
-from epc_offboard.common.children import KILL_WAIT_S, Backoff, spawn_fed
+from epc_offboard.common.children import Backoff, join_or_kill, spawn_fed
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.cascade import Cascade
@@ -226,12 +226,7 @@ class LibraryKeeper:
         proc, self._proc = self._proc, None
         if proc is None:
             return False
-        proc.join(timeout=wait_s)
-        if proc.is_alive():
-            proc.kill()
-            proc.join(timeout=KILL_WAIT_S)
-            return False
-        return proc.exitcode == 0
+        return join_or_kill(proc, wait_s) and proc.exitcode == 0
 
     def close(self, timeout_s: float = _CLOSE_TIMEOUT_S) -> None:
         """Save the library as it is now, waiting for the write (shutdown) at most

@@ -34,9 +34,9 @@ from typing import Any
 from epc_offboard.common import logpipe
 from epc_offboard.common.channel import PIPE_BUF, ChannelClosedError, DropWriter
 from epc_offboard.common.children import (
-    KILL_WAIT_S,
     Backoff,
     die_with_parent,
+    join_or_kill,
     lower_priority,
     spawn_fed,
 )
@@ -230,11 +230,8 @@ class LogWriter:
         self.flush()
         self._close_pipe()
         if self._proc is not None:
-            self._proc.join(timeout=timeout_s)
-            if self._proc.is_alive():
+            if not join_or_kill(self._proc, timeout_s):
                 self.counters["log_writer_stop_timeouts"] += 1
-                self._proc.kill()
-                self._proc.join(timeout=KILL_WAIT_S)
             self._proc = None
 
     def process_stats(self) -> dict[str, Any]:

@@ -70,7 +70,7 @@ from epc_offboard.common.channel import (
     read_frames,
     write_frame,
 )
-from epc_offboard.common.children import KILL_WAIT_S, die_with_parent, enlarge_pipe, spawn_fed
+from epc_offboard.common.children import die_with_parent, enlarge_pipe, join_or_kill, spawn_fed
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.common.procstats import process_report
@@ -406,12 +406,9 @@ class MissSolver:
         if worker is None:
             return
         worker.close()
-        worker.proc.join(timeout_s)
-        if worker.proc.is_alive():
+        if not join_or_kill(worker.proc, timeout_s):
             self.counters["worker_stop_timeouts"] += 1
             log.warning("EPC miss worker not stopped in %.1f s: killed", timeout_s)
-            worker.proc.kill()
-            worker.proc.join(KILL_WAIT_S)
 
     def _up(self, wait: bool) -> bool:
         """Read what the worker answered; whether it is up and takes requests (``wait``:
