@@ -2,17 +2,21 @@
 nothing committed to the library, end to end in REAL TIME with real processes.
 
 The service hovers and saves its library (the store process, SQLite); then every helper
-process it spawned (the miss worker, the store, the log writer) is SIGSTOPped, as a helper
-wedged in a disk wait or starved would be, and the service gets SIGTERM. Before, each wait
-of the stop had its own timeout, one after the other (the miss worker 2 + 1 s, the store's
-last save 30 s, the log writer 20 s): the stop took ~50 s and systemd's SIGKILL at 5 s cut
-it. Now every wait ends by ``service.STOP_BOUND_S`` after the stop was asked; what is still
-stopped then is killed, counted, and the library file holds every save committed before.
+process it spawned (the miss worker, the store, the fleet helper, the log writer) is
+SIGSTOPped at once, as a helper wedged in a disk wait or starved would be, and the service gets
+SIGTERM. Before, each wait of the stop had its own timeout, one after the other (the miss
+worker 2 + 1 s, the store's last save 30 s, the log writer 20 s): the stop took ~50 s and
+systemd's SIGKILL at 5 s cut it. Now every wait ends by ``service.STOP_BOUND_S`` after the
+stop was asked; what is still stopped then is killed, counted, and the library file holds
+every save committed before. And the helpers' stop as a whole ends by the bound (stop 40):
+before, each helper killed at the bound was waited for after it (``children.KILL_WAIT_S``
+each), and the next killed after that.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sqlite3
 import time
@@ -20,6 +24,7 @@ from pathlib import Path
 
 import pytest
 
+from epc_offboard.common.ports import free_port
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from tests.rig import Rig, unit_stop_timeout_s
 
@@ -56,7 +61,11 @@ def test_a_stop_with_every_helper_wedged_ends_in_time_and_keeps_the_library(tmp_
         "mission": {"duration_s": 300.0, "land_at_end": True},
         "trajectory": {"shape": "hover"},
         "store": {"save_period_s": 1.0},
-    }
+        "sharing": {
+            "enabled": True, "fleet": "stop-bound", "vehicle_id": "v1",
+            "listen": [f"tcp/127.0.0.1:{free_port()}"], "scouting_multicast": False,
+        },
+    }  # fmt: skip
     library = tmp_path / "library.sqlite"
     stopped: list[int] = []
     with Rig(tmp_path, lockstep=False, speedup=1.0, service_overrides=overrides) as rig:
@@ -65,7 +74,7 @@ def test_a_stop_with_every_helper_wedged_ends_in_time_and_keeps_the_library(tmp_
             time.sleep(3.0)  # saves committed meanwhile (one a second)
             assert rig.service is not None
             helpers = _helpers(rig.service.pid)
-            assert len(helpers) >= 3, helpers  # miss worker, store, log writer
+            assert len(helpers) >= 4, helpers  # miss worker, store, fleet helper, log writer
             for pid in helpers:
                 os.kill(pid, signal.SIGSTOP)
                 stopped.append(pid)
@@ -84,6 +93,13 @@ def test_a_stop_with_every_helper_wedged_ends_in_time_and_keeps_the_library(tmp_
     assert code == 0, log
     assert unit_stop_timeout_s() > STOP_BOUND_S + 1.0  # the kills and the exit fit after it
     assert stop_s < unit_stop_timeout_s(), log  # main: ~50 s
+    # the helpers' stop as a whole, on the service's clock: main (stop 39) killed each at or
+    # after the bound and waited for it after it
+    found = re.search(r"stopped, its helpers ([0-9.]+) s after it was asked", log)
+    assert found, log
+    helpers_s = float(found.group(1))
+    print(f"the helpers stopped {helpers_s:.3f} s after it was asked")
+    assert helpers_s < STOP_BOUND_S, log
     stats = rig.stats()
     counters = {**stats["counters"], **stats["miss_worker"]}
     assert counters["store_stop_timeouts"] == 1, counters  # killed at the bound

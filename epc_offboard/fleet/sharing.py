@@ -51,7 +51,7 @@ import numpy as np
 
 from epc_offboard.common.blobs import ReceivedText, received_record
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordReader
-from epc_offboard.common.children import Backoff, join_or_kill, start_counted
+from epc_offboard.common.children import KILL_WAIT_S, Backoff, join_or_kill, start_counted
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
@@ -299,10 +299,10 @@ class FleetSharing:
         log.info("fleet helper up (process %s, nice +%d)", helper.process.pid,
                  self.cfg.helper_nice)  # fmt: skip
 
-    def close(self, timeout_s: float = _STOP_TIMEOUT_S) -> None:
+    def close(self, timeout_s: float = _STOP_TIMEOUT_S, reap_s: float = KILL_WAIT_S) -> None:
         """EOF to the helper (it closes its session and exits), waited for ``timeout_s``,
-        then killed (the service's stop: ``STOP_BOUND_S``)."""
-        self._stop_helper(kill=False, timeout_s=timeout_s)
+        then killed and waited ``reap_s`` (the service's stop: both end by ``STOP_BOUND_S``)."""
+        self._stop_helper(kill=False, timeout_s=timeout_s, reap_s=reap_s)
 
     async def __aenter__(self) -> FleetSharing:
         await self.open()
@@ -346,7 +346,9 @@ class FleetSharing:
         )
         self._dirty = [False] * len(self._libraries)  # it started with the snapshots
 
-    def _stop_helper(self, *, kill: bool, timeout_s: float = _STOP_TIMEOUT_S) -> None:
+    def _stop_helper(
+        self, *, kill: bool, timeout_s: float = _STOP_TIMEOUT_S, reap_s: float = KILL_WAIT_S
+    ) -> None:
         helper, self._helper = self._helper, None
         if helper is None:
             return
@@ -362,7 +364,7 @@ class FleetSharing:
             threading.Thread(target=join_or_kill, args=(proc, 0.0, None), name="fleet-reaper",
                              daemon=True).start()  # fmt: skip
             return
-        join_or_kill(proc, timeout_s)
+        join_or_kill(proc, timeout_s, reap_s)
 
     # -- the event-loop task --------------------------------------------------------------
 

@@ -34,7 +34,7 @@ from typing import Any, NoReturn, TypeVar
 import numpy as np
 
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox
-from epc_offboard.common.children import Backoff, join_or_kill, spawn_fed
+from epc_offboard.common.children import KILL_WAIT_S, Backoff, join_or_kill, spawn_fed
 from epc_offboard.common.logsetup import LogConfig
 from epc_offboard.common.procstats import process_report
 from epc_offboard.control.cascade import Cascade
@@ -217,8 +217,9 @@ class LibraryKeeper:
             self._close_pipe(wait_s=0.0)
         return False
 
-    def _close_pipe(self, wait_s: float) -> bool:
-        """EOF to the store process and wait ``wait_s`` for it; whether it exited."""
+    def _close_pipe(self, wait_s: float, reap_s: float = KILL_WAIT_S) -> bool:
+        """EOF to the store process and wait ``wait_s`` for it (then killed, and waited
+        ``reap_s``); whether it exited, 0."""
         self._outbox = None
         if self._conn is not None:
             self._conn.close()
@@ -226,14 +227,15 @@ class LibraryKeeper:
         proc, self._proc = self._proc, None
         if proc is None:
             return False
-        return join_or_kill(proc, wait_s) and proc.exitcode == 0
+        return join_or_kill(proc, wait_s, reap_s) and proc.exitcode == 0
 
-    def close(self, timeout_s: float = _CLOSE_TIMEOUT_S) -> None:
+    def close(self, timeout_s: float = _CLOSE_TIMEOUT_S, reap_s: float = KILL_WAIT_S) -> None:
         """Save the library as it is now, waiting for the write (shutdown) at most
-        ``timeout_s`` (the service's stop: ``STOP_BOUND_S``). A store process not done by
-        then is killed, counted (``store_stop_timeouts``): its write uncommitted, SQLite's
-        journal rolls it back and the file holds the library as last saved (every save
-        before is committed); it is not saved here either (no time left)."""
+        ``timeout_s`` (the service's stop: until ``reap_s`` before ``STOP_BOUND_S``). A store
+        process not done by then is killed (waited ``reap_s`` more), counted
+        (``store_stop_timeouts``): its write uncommitted, SQLite's journal rolls it back and
+        the file holds the library as last saved (every save before is committed); it is not
+        saved here either (no time left)."""
         if not self.cfg.path:
             return
         try:
@@ -241,7 +243,7 @@ class LibraryKeeper:
         except Exception as exc:
             self.counters["store_errors"] += 1
             log.error("saving the library failed: %s", exc)
-            self._close_pipe(wait_s=0.0)
+            self._close_pipe(0.0, reap_s)
             return
         saved = timed_out = False
         deadline = time.monotonic() + timeout_s
@@ -255,16 +257,16 @@ class LibraryKeeper:
                     self._outbox.flush()
                     time.sleep(0.005)
                 errors = int(self._slots[_ERRORS])
-                saved = self._close_pipe(wait_s=max(0.0, deadline - time.monotonic()))
+                saved = self._close_pipe(max(0.0, deadline - time.monotonic()), reap_s)
                 timed_out = not saved and time.monotonic() >= deadline
                 saved = saved and int(self._slots[_ERRORS]) == errors
             except TimeoutError:
                 timed_out = True
-                self._close_pipe(wait_s=0.0)
+                self._close_pipe(0.0, reap_s)
             except ChannelClosedError:
-                self._close_pipe(wait_s=0.0)
+                self._close_pipe(0.0, reap_s)
         else:
-            self._close_pipe(wait_s=0.0)
+            self._close_pipe(0.0, reap_s)
         self.counters["store_errors"] = int(self._slots[_ERRORS])
         if timed_out:
             self.counters["store_stop_timeouts"] += 1

@@ -34,6 +34,7 @@ from typing import Any
 from epc_offboard.common import logpipe
 from epc_offboard.common.channel import PIPE_BUF, ChannelClosedError, DropWriter
 from epc_offboard.common.children import (
+    KILL_WAIT_S,
     Backoff,
     die_with_parent,
     join_or_kill,
@@ -223,14 +224,15 @@ class LogWriter:
             self._conn.close()
             self._conn = None
 
-    def close(self, timeout_s: float = 20.0) -> None:
+    def close(self, timeout_s: float = 20.0, reap_s: float = KILL_WAIT_S) -> None:
         """Send what is pending, close the pipe (EOF), and let the writer finish; killed
-        after ``timeout_s`` (the service's stop: ``STOP_BOUND_S``; what it had not written
+        after ``timeout_s`` and waited ``reap_s`` more (the service's stop: both end by
+        ``STOP_BOUND_S``; what it had not written
         then is lost, the files as far as it wrote them)."""
         self.flush()
         self._close_pipe()
         if self._proc is not None:
-            if not join_or_kill(self._proc, timeout_s):
+            if not join_or_kill(self._proc, timeout_s, reap_s):
                 self.counters["log_writer_stop_timeouts"] += 1
             self._proc = None
 

@@ -70,7 +70,13 @@ from epc_offboard.common.channel import (
     read_frames,
     write_frame,
 )
-from epc_offboard.common.children import die_with_parent, enlarge_pipe, join_or_kill, spawn_fed
+from epc_offboard.common.children import (
+    KILL_WAIT_S,
+    die_with_parent,
+    enlarge_pipe,
+    join_or_kill,
+    spawn_fed,
+)
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.frames import FloatArray
 from epc_offboard.common.procstats import process_report
@@ -397,16 +403,16 @@ class MissSolver:
         while not self.poll_ready():
             self._wait_io(self._worker, deadline - time.monotonic())
 
-    def close(self, timeout_s: float = STOP_TIMEOUT_S) -> None:
+    def close(self, timeout_s: float = STOP_TIMEOUT_S, reap_s: float = KILL_WAIT_S) -> None:
         """Stop the worker: the EOF of its requests, and its answer in flight refused (the
         replies' pipe closed), end it after the request it works on. A worker that does not
-        end in ``timeout_s`` is killed all the same, counted (``worker_stop_timeouts``); the
-        service's bounded exit covers the rest."""
+        end in ``timeout_s`` is killed all the same (waited ``reap_s`` more), counted
+        (``worker_stop_timeouts``); the service's bounded exit covers the rest."""
         worker, self._worker = self._worker, None
         if worker is None:
             return
         worker.close()
-        if not join_or_kill(worker.proc, timeout_s):
+        if not join_or_kill(worker.proc, timeout_s, reap_s):
             self.counters["worker_stop_timeouts"] += 1
             log.warning("EPC miss worker not stopped in %.1f s: killed", timeout_s)
 

@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from epc_offboard.common import jit, logpipe
+from epc_offboard.common.children import KILL_WAIT_S
 from epc_offboard.common.cliargs import check_port_free
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.logsetup import LogGate, setup_logging
@@ -108,7 +109,9 @@ STOP_S = 2.0
 # end took up to 3 s, the fleet helper's 3, the library's last save 30, the log writer's 21,
 # one after the other: a SIGSTOPped store and writer held a stop 50 s): the library's last
 # save first, then the miss worker, the fleet helper and the log writer, each with what is
-# left, killed at the bound (``children.KILL_WAIT_S`` each). A store killed before its last
+# left, killed ``children.KILL_WAIT_S`` before the bound and reaped by it (one killed after
+# another took the time is waited for only until the bound: before stop 40, each kill and its
+# wait, up to 0.2 s, came after the bound). A store killed before its last
 # write commits leaves the library as last saved (SQLite's journal); nothing committed is
 # lost. Two seconds of the unit's TimeoutStopSec (5 s) are left for the kills and the exit.
 STOP_BOUND_S = 3.0
@@ -495,27 +498,36 @@ class Service:
         if pump is not None:  # the stop's bound holds whatever stderr does
             pump.close_by(asked_s + STOP_S)
 
-        def left_s() -> float:
-            return max(0.0, asked_s + STOP_BOUND_S - time.monotonic())
+        end_s = asked_s + STOP_BOUND_S  # the one deadline of every helper's stop
+
+        def left_s() -> float:  # a helper still running then is killed, reaped by end_s
+            return max(0.0, end_s - KILL_WAIT_S - time.monotonic())
+
+        def reap_s() -> float:  # killed late (the others took the time): reaped by end_s
+            return min(KILL_WAIT_S, max(0.0, end_s - time.monotonic()))
 
         self._processes_at_exit = self._process_stats()  # while the helpers still run
         dialect = self.autopilot.dialect
         if dialect is not None and self.outputs.phase in (Phase.OFFBOARD, Phase.OFFBOARD_REQUESTED):
             # leave the vehicle holding, not waiting for our setpoints to time out
             self.autopilot.send_command(dialect.encode(Action.REQUEST_HOLD))
-        self.library.close(left_s())  # the last save first: what the stop keeps
-        self.misses.close(min(STOP_TIMEOUT_S, left_s()))
+        self.library.close(left_s(), reap_s())  # the last save first: what the stop keeps
+        self.misses.close(min(STOP_TIMEOUT_S, left_s()), reap_s())
         if self.sharing is not None:
-            self.sharing.close(left_s())
-        self._write_stats()
+            self.sharing.close(left_s(), reap_s())
         self.link.close()
         if self.logs is not None:  # after the link: its last frames are in the tlog
-            self.logs.close(left_s())
+            self.logs.close(left_s(), reap_s())
+        helpers_s = time.monotonic() - asked_s
+        # after every helper's wait, not in their bound (CPU work on this thread: before them,
+        # a slow one left the log writer no time at all)
+        self._write_stats()
         self.gc_monitor.uninstall()
         self.step_monitor.uninstall()
         self.compiles.uninstall()
         self._reload_pool.shutdown(wait=False)
-        log.info("stopped: %s", dict(self.counters))
+        log.info("stopped, its helpers %.3f s after it was asked: %s", helpers_s,
+                 dict(self.counters))  # fmt: skip
         if self.exit_grace_s is not None:
             bounded_exit(self.exit_grace_s)
 
