@@ -408,3 +408,40 @@ def test_a_packed_export_leaves_out_a_count_naming_an_entry_no_longer_held():
     assert len(packed) == len(expected) > 0
     assert list(zip(packed.froms, packed.tos, packed.counts, strict=True)) == [
         (f, t, n) for (f, t), n in expected.items()]  # fmt: skip
+
+
+def _switches() -> int:
+    """This thread's voluntary context switches so far (each sleep or wait is one)."""
+    with open("/proc/thread-self/status") as fh:
+        for line in fh:
+            if line.startswith("voluntary_ctxt_switches:"):
+                return int(line.split()[1])
+    raise AssertionError("no voluntary_ctxt_switches")
+
+
+def test_the_last_save_waits_for_the_pipe_not_on_a_timer(tmp_path):
+    """The shutdown's last save wrote a snapshot larger than the pipe by polling it every
+    5 ms on the loops' thread (a nanosleep each, until the store took it or the bound):
+    a store SIGSTOPped held the thread in ~100 wakeups a 0.5 s bound. It waits on the pipe
+    and the store's sentinel now: a handful, whatever the bound."""
+    cascade, sharing = _learned_cascade_and_fleet(2048)  # a snapshot larger than the pipe
+    counters: Counter[str] = Counter()
+    keeper = LibraryKeeper(StoreConfig(str(tmp_path / "library.sqlite"), save_period_s=60.0),
+                           cascade, counters, published=lambda: True,
+                           fleet_steps=sharing.fleet_state_steps)  # fmt: skip
+    keeper.open()
+    pid = keeper.process_stats()["pid"]
+    assert isinstance(pid, int)
+    os.kill(pid, signal.SIGSTOP)  # wedged: it reads nothing more
+    try:
+        before = _switches()
+        keeper.close(timeout_s=0.5, reap_s=30.0)
+        woken = _switches() - before
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+            os.kill(pid, signal.SIGCONT)
+    assert counters["store_stop_timeouts"] == 1, dict(counters)  # killed at the bound
+    assert not os.path.exists(f"/proc/{pid}")  # and reaped
+    print(f"the last save's wait: {woken} voluntary switches")
+    assert woken < 20, woken  # main: ~100 (0.5 s / 5 ms)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import os
 import pickle
 import select
+import selectors
 import struct
 from collections import deque
 from collections.abc import Iterator
@@ -144,6 +145,15 @@ class FrameOutbox:
             else:  # a partial write: the rest goes next time, in order
                 self._pending[0] = head[n:]
                 self._head_started = True
+
+    def wait_writable(self, timeout_s: float, sentinel: int | None = None) -> None:
+        """Block until the pipe takes more, ``sentinel`` (the reader's process sentinel:
+        its end) is readable, or ``timeout_s`` has passed; no timer's wakeups meanwhile."""
+        with selectors.DefaultSelector() as sel:
+            sel.register(self.fd, selectors.EVENT_WRITE)
+            if sentinel is not None:
+                sel.register(sentinel, selectors.EVENT_READ)
+            sel.select(max(0.0, timeout_s))
 
     def drop_pending(self) -> int:
         """Forget the frames not begun yet (a newer one supersedes them); a frame partly

@@ -255,7 +255,9 @@ class LibraryKeeper:
                     if time.monotonic() > deadline:
                         raise TimeoutError
                     self._outbox.flush()
-                    time.sleep(0.005)
+                    if self._outbox.pending_bytes:  # the store reads it, or ends, or the bound
+                        sentinel = self._proc.sentinel if self._proc is not None else None
+                        self._outbox.wait_writable(deadline - time.monotonic(), sentinel)
                 errors = int(self._slots[_ERRORS])
                 saved = self._close_pipe(max(0.0, deadline - time.monotonic()), reap_s)
                 timed_out = not saved and time.monotonic() >= deadline
