@@ -158,12 +158,13 @@ def start_counted(
 ) -> multiprocessing.process.BaseProcess:
     """``target(*args)`` started in a daemon process of ``ctx`` named ``name``, its log lines
     (``logpipe.direct_stderr``'s handler) counted in memory shared with this process: in
-    its ``process_report`` as ``log_lines`` and ``log_dropped``."""
+    its ``process_report`` as ``log_lines`` and ``log_dropped``, summed over the processes
+    of that ``name`` (a restarted helper's)."""
     counts = ctx.RawArray("q", 2)
     proc = ctx.Process(target=_counted, args=(target, counts, *args), name=name, daemon=True)
     proc.start()
     assert proc.pid is not None
-    register_log_counts(proc.pid, counts)
+    register_log_counts(proc.pid, counts, name)
     return proc
 
 
