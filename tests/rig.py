@@ -20,6 +20,7 @@ from typing import Any
 
 from pymavlink import mavutil
 
+from epc_offboard.common.children import launched_env
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.ports import free_port
 from epc_offboard.tools.sim.scenario import SCENARIO_DIR, SITL_SERVICE_CONFIG
@@ -154,6 +155,7 @@ class Rig:
             [sys.executable, "-m", "sitl.main", *self.sitl_args],
             stdout=(self.tmp / "sitl.log").open("wb"),
             stderr=subprocess.STDOUT,
+            env=dict(os.environ, **launched_env()),  # it ends with pytest, even SIGKILLed
             preexec_fn=deployed_priority,
         )
         self.gcs = mavutil.mavlink_connection(
@@ -161,7 +163,8 @@ class Rig:
         )
 
     def start_service(self, config_path: Path | None = None) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.service_env)
+        # with pytest's pid: it stops (SIGTERM) when pytest dies, even SIGKILLed (stop 40)
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **launched_env(), **self.service_env)
         self.service = subprocess.Popen(
             [
                 sys.executable,

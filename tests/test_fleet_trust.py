@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -31,6 +32,7 @@ import pytest
 import trustme
 import zenoh
 
+from epc_offboard.common.children import launched_env
 from epc_offboard.common.ports import free_port
 from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.fleet.sharing import FleetSharing, SharingConfig
@@ -108,7 +110,8 @@ def router(
         args += ["--cfg", f"{path}:{json.dumps(value)}"]
     log_path = tmp_path / f"router-{port}-{time.monotonic_ns()}.log"
     with log_path.open("w") as log:
-        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=log, text=True, cwd=REPO)
+        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=log, text=True, cwd=REPO,
+                                env={**os.environ, **launched_env()})  # ends with pytest
     r = Router(proc, endpoint, port)
     try:
         deadline = time.monotonic() + 60

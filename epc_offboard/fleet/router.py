@@ -51,6 +51,7 @@ from typing import Any, TextIO
 
 import zenoh
 
+from epc_offboard.common.children import die_with_launcher
 from epc_offboard.common.errors import EXIT_OK, EXIT_RUNTIME, UsageError
 from epc_offboard.common.procstats import process_report
 
@@ -248,7 +249,16 @@ def _zenoh_log_to_pipe() -> tuple[TextIO, int]:
     return stats_out, read_fd
 
 
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 def run_router_command(args: argparse.Namespace) -> int:
+    # SIGINT and SIGTERM blocked in every thread (Zenoh's, the log reader) and taken by the
+    # main loop's sigtimedwait: before, a handler set a threading.Event, whose lock the main
+    # thread may hold in Event.wait when the signal lands (a self-deadlock: a router that
+    # ignored SIGTERM outlived a dead pytest, stop 39). Blocked first, before any thread.
+    signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    die_with_launcher()  # started by `sim`, a test or `bench --fleet`: SIGTERM when it dies
     listen: list[str] = list(args.listen or [])
     cfg = [parse_cfg(item) for item in (args.cfg or [])]
     for ep in listen:
@@ -275,13 +285,10 @@ def run_router_command(args: argparse.Namespace) -> int:
         print(f"epc-offboard fleet router: could not open the router: {exc}", file=sys.stderr)
         return EXIT_RUNTIME
     router.refusals = refusals
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     print(json.dumps({"event": "started", "zid": router.zid, "listen": listen,
                       "stats_key": STATS_KEY.format(zid=router.zid)}), file=stats_out)  # fmt: skip
     try:
-        while not stop.wait(args.stats_every):
+        while signal.sigtimedwait(_STOP_SIGNALS, args.stats_every) is None:
             print(json.dumps({"event": "stats", **router.stats()}), file=stats_out)
     finally:
         print(json.dumps({"event": "stopped", **router.stats()}), file=stats_out)

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from epc_offboard.common.children import launched_env
 from epc_offboard.common.errors import UsageError
 from epc_offboard.common.ports import free_port
 
@@ -278,6 +279,7 @@ def run_fleet_bench(
     router = subprocess.Popen(
         [sys.executable, "-m", "epc_offboard", "fleet", "router", "--listen", endpoint,
          "--stats-every", "1"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        env={**os.environ, **launched_env()},  # it ends with the bench, even SIGKILLed
     )  # fmt: skip
     assert router.stdout is not None
     json.loads(router.stdout.readline())  # the "started" line: it listens
