@@ -100,11 +100,13 @@ def quat_multiply(p: npt.ArrayLike, q: npt.ArrayLike) -> FloatArray:
 
 def quat_integrate_body_rate(q: FloatArray, rate_frd_rad_s: FloatArray, dt_s: float) -> FloatArray:
     """``q`` (4,) rotated on by constant body rates (3,) FRD for ``dt_s``: the exact solution
-    of q' = 1/2 q ⊗ [0, w], ``q ⊗ [cos(|w| dt/2), sin(|w| dt/2) w/|w|]``; unit, w >= 0."""
+    of q' = 1/2 q ⊗ [0, w], ``q ⊗ [cos(|w| dt/2), sin(|w| dt/2) w/|w|]``; unit, w >= 0.
+    A negative ``dt_s`` rotates back exactly (a sample carried back in time); before stop 40
+    it returned ``q`` unchanged."""
     wx, wy, wz = np.asarray(rate_frd_rad_s, dtype=np.float64).tolist()
     norm = math.sqrt(wx * wx + wy * wy + wz * wz)
     half = 0.5 * norm * dt_s
-    if half < 1e-12:
+    if abs(half) < 1e-12:
         return np.array(q, dtype=np.float64)
     k = math.sin(half) / norm
     out = quat_multiply(q, (math.cos(half), wx * k, wy * k, wz * k))
