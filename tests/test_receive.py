@@ -11,6 +11,7 @@ import math
 import random
 import socket
 import struct
+import time
 from collections import Counter
 from typing import Any
 
@@ -342,6 +343,7 @@ async def _flood_beside_the_autopilot():
     fuzzer.setblocking(False)
     mav, stranger = codec(), codec(sysid=42)
     n_good = 200
+    t0_s = time.monotonic()
     try:
         for i in range(n_good):
             autopilot.sendto(_attitude(mav, i), ("127.0.0.1", port))
@@ -351,11 +353,14 @@ async def _flood_beside_the_autopilot():
                         _attitude(stranger, j) if j % 2 else bytes([0xFD]) + bytes(40),
                         ("127.0.0.1", port),
                     )
-            await asyncio.sleep(0.002)
-        async with asyncio.timeout(5):
-            while len(got) < n_good:  # noqa: ASYNC110
-                await asyncio.sleep(0.01)
+            # paced by the reader: the next burst once this genuine frame is read (sent at a
+            # fixed rate, at load 25 the socket's buffer overflowed while the loop was off
+            # the CPU, and the kernel dropped genuine frames with the garbage)
+            async with asyncio.timeout(10):
+                while len(got) <= i:  # noqa: ASYNC110
+                    await asyncio.sleep(0.002)
         await asyncio.sleep(0.05)
+        elapsed_s = time.monotonic() - t0_s
     finally:
         link.close()
         autopilot.close()
@@ -363,7 +368,8 @@ async def _flood_beside_the_autopilot():
     assert [m.time_boot_ms for m in got] == list(range(n_good))
     c = link.counters
     assert c["throttled"] > c["wrong_system"] + c["bad_data"], c  # most never read
-    assert c["wrong_system"] + c["bad_data"] <= 200 + 100 * 3, c
+    # the fuzzer's bucket: its burst and its refill while this ran (2 s idle, longer loaded)
+    assert c["wrong_system"] + c["bad_data"] <= 200 + 100 * elapsed_s + 1, (c, elapsed_s)
 
 
 def test_a_garbage_flood_is_throttled_and_the_autopilot_is_not():
@@ -422,15 +428,19 @@ def test_rotating_addresses_cost_bounded_work_and_the_peer_is_never_throttled():
     peer = ("127.0.0.1", 14580)
     mav, stranger = codec(), codec(sysid=42)
     link._on_datagram(_attitude(mav, 0), peer)  # the autopilot speaks first
+    t0_s = time.monotonic()
     for i in range(5000):
         link._on_datagram(_attitude(stranger, i), ("10.0.0.1", 1024 + i))
         link._on_datagram(b"\x00 line noise " * 3, peer)  # the peer's own garbage
         if i % 50 == 0:
             link._on_datagram(_attitude(mav, 1 + i // 50), peer)
+    elapsed_s = time.monotonic() - t0_s
     c = link.counters
-    # examined: the shared burst and what it refilled while this ran (well under a second)
-    assert c["wrong_system"] <= 100 + 100, c
-    assert c["throttled"] >= 5000 - 200, c
+    # examined: the shared burst and what it refilled while this ran (well under a second
+    # idle; the link's clock is the wall clock, so a loaded run refills more)
+    examined = 100 + 100 * elapsed_s + 1
+    assert c["wrong_system"] <= examined, (c, elapsed_s)
+    assert c["throttled"] >= 5000 - examined, (c, elapsed_s)
     assert c["not_mavlink"] == 5000  # the peer's: every datagram read, none throttled
     assert [m.time_boot_ms for m in got] == list(range(101))
     assert link.gate.sources <= ReceiveBudget().max_sources
