@@ -202,3 +202,24 @@ def test_sim_through_a_fleet_router_shares_as_clients_with_no_fixed_port() -> No
     assert _sharing_flags(options("--vehicles", "2"), 1)["listen"]  # peers: as before
     with pytest.raises(UsageError, match="--fleet-router with --no-share"):
         options("--vehicles", "2", "--fleet-router", ep, "--no-share")
+
+
+@pytest.mark.parametrize(
+    ("url", "says_what"),
+    [("udp:/127.0.0.1:14540", "scheme must be"), ("udpin://127.0.0.1:99999", "bad port")],
+)
+def test_the_service_names_a_bad_link_url_with_its_key_and_file(
+    tmp_path: Path, url: str, says_what: str
+) -> None:
+    # it said "connection url ...: bad port" with neither the key nor the file (README: a bad
+    # value stops the service with exit code 2 and a message naming the key and the file)
+    config = (ROOT / "config" / "sitl.toml").read_text()
+    config = config.replace("udpin://127.0.0.1:14540", url)
+    (tmp_path / "service.toml").write_text(config)
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "run", "--config", str(tmp_path / "service.toml")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    says(proc.stderr, str(tmp_path / "service.toml"), "`link`", "url", url, says_what)
+    assert "Traceback" not in proc.stderr
