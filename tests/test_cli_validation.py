@@ -223,3 +223,22 @@ def test_the_service_names_a_bad_link_url_with_its_key_and_file(
     assert proc.returncode == 2, proc.stderr
     says(proc.stderr, str(tmp_path / "service.toml"), "`link`", "url", url, says_what)
     assert "Traceback" not in proc.stderr
+
+
+def test_the_service_names_a_serial_device_it_cannot_open(tmp_path: Path) -> None:
+    # it said "epc-offboard: [Errno 2] No such file or directory: '/.../ttyNONE'", naming
+    # neither link.url nor what it was doing; exit 1 stays (a USB adapter may enumerate
+    # late: the unit's Restart=on-failure tries again)
+    device = tmp_path / "ttyNONE"
+    config = (ROOT / "config" / "sitl.toml").read_text()
+    config = config.replace("udpin://127.0.0.1:14540", f"serial://{device}:921600")
+    config = config.replace("out/sitl-service/library.sqlite", str(tmp_path / "lib.sqlite"))
+    (tmp_path / "service.toml").write_text(config)
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "run", "--config", str(tmp_path / "service.toml")],
+        capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    says(proc.stderr, f"link.url serial://{device}:921600: cannot open",
+         "No such file or directory")  # fmt: skip
+    assert "Traceback" not in proc.stderr
