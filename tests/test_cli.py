@@ -125,3 +125,20 @@ def test_the_parser_and_sims_launcher_import_no_control_stack():
         "assert not heavy, heavy\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+@pytest.mark.parametrize("what", ["readme", "neuralfly"])
+def test_figures_without_a_readme_says_so_before_flying_anything(tmp_path, what):
+    # an installed wheel has no README: `figures` once flew every recipe (half an hour), then
+    # died on a FileNotFoundError traceback; with --numbers-only at once, the same traceback
+    results = tmp_path / "results"
+    proc = subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "figures", what, "--numbers-only",
+         "--readme", str(tmp_path / "README.md"), "--results", str(results)],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert f"--readme {tmp_path / 'README.md'}: no such file" in proc.stderr
+    assert "pip install -e ." in proc.stderr
+    assert not results.exists()  # nothing written

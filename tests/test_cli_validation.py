@@ -166,19 +166,24 @@ def test_sim_names_a_taken_port_before_starting_anything(
     assert not (tmp_path / "out" / "vehicle1").exists()  # nothing started
 
 
-def test_the_service_names_a_taken_port_before_its_warm_up(tmp_path: Path) -> None:
-    port = free_port()
+def run_service(tmp_path: Path, url: str) -> subprocess.CompletedProcess[str]:
+    """A real `epc-offboard run` of config/sitl.toml on link ``url``, its library in
+    ``tmp_path``, its config ``tmp_path/service.toml``; to its end (a bad start ends it)."""
     config = (ROOT / "config" / "sitl.toml").read_text()
-    config = config.replace("udpin://127.0.0.1:14540", f"udpin://127.0.0.1:{port}")
+    config = config.replace("udpin://127.0.0.1:14540", url)
     config = config.replace("out/sitl-service/library.sqlite", str(tmp_path / "lib.sqlite"))
     (tmp_path / "service.toml").write_text(config)
+    return subprocess.run(
+        [sys.executable, "-m", "epc_offboard", "run", "--config", str(tmp_path / "service.toml")],
+        capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+
+
+def test_the_service_names_a_taken_port_before_its_warm_up(tmp_path: Path) -> None:
+    port = free_port()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
         taken.bind(("127.0.0.1", port))
-        proc = subprocess.run(
-            [sys.executable, "-m", "epc_offboard", "run", "--config",
-             str(tmp_path / "service.toml")],
-            capture_output=True, text=True, timeout=120,
-        )  # fmt: skip
+        proc = run_service(tmp_path, f"udpin://127.0.0.1:{port}")
     out = proc.stdout + proc.stderr
     assert proc.returncode == 1, out
     says(out, f"127.0.0.1:{port}", "link.url", "in use")
@@ -202,3 +207,30 @@ def test_sim_through_a_fleet_router_shares_as_clients_with_no_fixed_port() -> No
     assert _sharing_flags(options("--vehicles", "2"), 1)["listen"]  # peers: as before
     with pytest.raises(UsageError, match="--fleet-router with --no-share"):
         options("--vehicles", "2", "--fleet-router", ep, "--no-share")
+
+
+@pytest.mark.parametrize(
+    ("url", "says_what"),
+    [("udp:/127.0.0.1:14540", "scheme must be"), ("udpin://127.0.0.1:99999", "bad port")],
+)
+def test_the_service_names_a_bad_link_url_with_its_key_and_file(
+    tmp_path: Path, url: str, says_what: str
+) -> None:
+    # it said "connection url ...: bad port" with neither the key nor the file (README: a bad
+    # value stops the service with exit code 2 and a message naming the key and the file)
+    proc = run_service(tmp_path, url)
+    assert proc.returncode == 2, proc.stderr
+    says(proc.stderr, str(tmp_path / "service.toml"), "`link`", "url", url, says_what)
+    assert "Traceback" not in proc.stderr
+
+
+def test_the_service_names_a_serial_device_it_cannot_open(tmp_path: Path) -> None:
+    # it said "epc-offboard: [Errno 2] No such file or directory: '/.../ttyNONE'", naming
+    # neither link.url nor what it was doing; exit 1 stays (a USB adapter may enumerate
+    # late: the unit's Restart=on-failure tries again)
+    device = tmp_path / "ttyNONE"
+    proc = run_service(tmp_path, f"serial://{device}:921600")
+    assert proc.returncode == 1, proc.stderr
+    says(proc.stderr, f"link.url serial://{device}:921600: cannot open",
+         "No such file or directory")  # fmt: skip
+    assert "Traceback" not in proc.stderr

@@ -303,3 +303,28 @@ def test_info_lists_signatures_and_origins(tmp_path, capsys):
     assert main(["db", "info", str(lib)]) == 0
     out = capsys.readouterr().out
     assert f"{SIG}: 2 controllers (shared 1, solved 1), 0 transitions, 1 models" in out
+
+
+def test_merge_takes_a_bundled_config_by_name_and_names_a_config_it_cannot_read(tmp_path):
+    # `db merge ... --config sitl` in a checkout (which has a sitl/ folder) died on an
+    # IsADirectoryError traceback; `run --config sitl` takes the bundled config by name
+    import subprocess
+    import sys
+
+    src = _library(tmp_path / "v1.sqlite", [LibraryEntry((), 3.0, 1), LibraryEntry((1,), 2.0, 1)])
+    (tmp_path / "sitl").mkdir()
+    (tmp_path / "cfgdir").mkdir()
+
+    def db(*argv: str) -> subprocess.CompletedProcess[str]:
+        command = [sys.executable, "-m", "epc_offboard", "db", *argv]
+        return subprocess.run(command, capture_output=True, text=True, timeout=180, cwd=tmp_path)
+
+    by_name = db("merge", "fleet.sqlite", str(src), "--config", "sitl")
+    assert by_name.returncode == 0, by_name.stderr
+    got = _contents(tmp_path / "fleet.sqlite").signatures[SIG].controllers
+    assert sorted(c.active_set for c in got) == [(), (1,)]
+    unreadable = db("merge", "other.sqlite", str(src), "--config", "cfgdir/")
+    assert unreadable.returncode == 2, unreadable.stderr
+    assert "cfgdir: cannot read the config file: Is a directory" in unreadable.stderr
+    assert "Traceback" not in unreadable.stderr
+    assert not (tmp_path / "other.sqlite").exists()  # nothing written

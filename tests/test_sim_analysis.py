@@ -144,6 +144,10 @@ def test_the_envelope_is_judged_on_every_truth_sample_and_names_where_it_was_lef
                     max_flight_s=20.0)  # fmt: skip
     ok = analyse(_record(), SCENARIO, BOUNDS_M_S, wide).report
     assert ok["envelope"]["left"] == []
+    # the breaches are warnings too (they printed "warnings: none" beside FAILED before)
+    assert v["warnings"]["left its envelope: distance from the reference"] == 1
+    assert v["warnings"]["left its envelope: flight time"] == 1
+    assert not [k for k in ok["warnings"] if "envelope" in k]
     assert flight_failures({"vehicles": [ok]}) == ["vehicle 3: the flight did not finish "
                                                    "(last phase: none)"]  # fmt: skip
 
@@ -279,6 +283,29 @@ def test_flight_warnings_name_what_the_state_tracker_would_not_believe():
         "contradicting state streams (forged telemetry?)": 2,
         "state samples far from the prediction (not flown)": 40,
     }
+
+
+def test_rejected_state_and_dropped_log_lines_reach_the_warnings():
+    # an autopilot sending NaN or absurd estimates, a reboot's stamps, a full log pipe: each
+    # was counted in stats.json only, and the report said "warnings: none"
+    stats = {"state": {"rejected_nan": 5, "rejected_range": 1, "rejected_quaternion": 2,
+                       "rejected_time_jump": 3},
+             "counters": {"log_lines_dropped": 7}}  # fmt: skip
+    assert flight_warnings(stats, {}) == {
+        "service log lines dropped (its logged warnings may be incomplete)": 7,
+        "state samples not finite (not flown)": 5,
+        "state samples out of range (not flown)": 1,
+        "attitude samples not a unit quaternion (not flown)": 2,
+        "state samples stamped off their stream's timeline (not flown)": 3,
+    }
+
+
+def test_a_flight_stopped_by_sim_says_so_in_its_warnings():
+    stopped = FlightRecord(3, _flight(), _truth(), stopped="stopped by sim: it left its envelope")
+    v = analyse(stopped, SCENARIO, BOUNDS_M_S).report
+    assert v["warnings"]["stopped by sim before it finished"] == 1
+    assert "stopped by sim before it finished" not in analyse(_record(), SCENARIO,
+                                                              BOUNDS_M_S).report["warnings"]
 
 
 def test_sitl_counters_are_read_from_its_closing_line(tmp_path):

@@ -169,6 +169,9 @@ def test_a_wind_beyond_the_vehicles_authority_ends_the_flight_outside_its_envelo
     assert not v["finished"]
     assert "left its envelope" in proc.stderr
     assert "FAILED: vehicle 1 left its envelope" in proc.stdout
+    assert "warnings: none" not in proc.stdout  # it was, beside FAILED
+    assert [k for k in v["warnings"] if k.startswith("left its envelope: ")], v["warnings"]
+    assert v["warnings"]["stopped by sim before it finished"] == 1
     assert wall_s < 150.0
 
 

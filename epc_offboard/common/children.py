@@ -171,6 +171,10 @@ def start_counted(
 def _counted(target: Callable[..., None], counts: Any, *args: Any) -> None:
     from epc_offboard.common import logpipe
 
+    # Ctrl-C in a terminal goes to the whole process group: the service stops its helpers
+    # itself (EOF, the parent-death signal), so a helper's KeyboardInterrupt was only a
+    # traceback on the user's terminal (the miss worker's, the fleet helper's)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     logpipe.count_into(counts)
     target(*args)
 

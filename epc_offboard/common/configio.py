@@ -37,6 +37,8 @@ def load_config(cls: type[T], path: str | Path, overrides: dict[str, Any] | None
         raise ConfigError(f"{p}: config file not found") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
+    except OSError as exc:  # a directory, a file we may not read
+        raise ConfigError(f"{p}: cannot read the config file: {exc.strerror or exc}") from exc
     if overrides:
         raw = merge_dicts(raw, overrides)
     return from_dict(cls, raw, source=str(p))

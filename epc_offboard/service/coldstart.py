@@ -23,6 +23,7 @@ import argparse
 import contextlib
 import logging
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -147,6 +148,7 @@ def _die_with(parent_pid: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     """The background compile: CONFIG PARENT_PID."""
     config_path, parent = (argv if argv is not None else sys.argv[1:])[:2]
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C of the group: the parent stops
     _die_with(int(parent))
     from epc_offboard.control.cascade import Cascade
     from epc_offboard.service.config import load_service_config

@@ -43,6 +43,12 @@ class LinkConfig:
         for name in ("target_component", "component_id"):
             if not 0 <= getattr(self, name) <= 255:
                 raise ValueError(f"{name} must be in 0..255, got {getattr(self, name)}")
+        from epc_offboard.vehicle.link import parse_url  # (pymavlink: only when validated)
+
+        try:  # checked on load, so the message names link.url and the file
+            parse_url(self.url)
+        except ConfigError as exc:
+            raise ValueError(f"url: {exc}") from exc
 
 
 @dataclass(frozen=True)

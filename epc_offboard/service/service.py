@@ -424,7 +424,11 @@ class Service:
             self.step_monitor.install()
             if loops_cfg.collect_in_slack:
                 self.collector.start()
-        await self.link.open()
+        try:
+            await self.link.open()
+        except OSError as exc:  # a serial device absent, an address not this machine's
+            raise OSError(f"link.url {self.cfg.link.url}: cannot open: "
+                          f"{exc.strerror or exc}") from exc  # fmt: skip
         TIMELINE.mark("link_open")
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)

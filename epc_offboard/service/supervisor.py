@@ -32,6 +32,10 @@ log = logging.getLogger("epc_offboard.service")
 
 _MAX_PHASE_EVENTS = 200  # phase transitions kept for the stats
 _LOCKSTEP_SILENCE_FACTOR = 10.0  # lockstep: wall-clock silence tolerated, x heartbeat timeout
+# waiting for the autopilot (no heartbeat, or no fresh state): a WARNING after this long on
+# the wall clock, then after 3x as long again, at most every _WAITING_WARN_MAX_S
+WAITING_WARN_FIRST_S = 10.0
+_WAITING_WARN_MAX_S = 600.0
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,11 @@ class Supervisor:
             _LOCKSTEP_SILENCE_FACTOR if clock.vehicle_time else 1.0
         )
         self._ready_sent = False
+        self._waiting_since_s = time.monotonic()  # in WAIT_HEARTBEAT / WAIT_STATE since
+        self._waiting_warn_first_s = WAITING_WARN_FIRST_S * (
+            _LOCKSTEP_SILENCE_FACTOR if clock.vehicle_time else 1.0
+        )
+        self._waiting_warn_s = self._waiting_warn_first_s
         self._lingering = False  # landed, still up for the fleet (mission.linger_after_landing)
 
     def reconfigure(self, cfg: ServiceConfig) -> None:
@@ -137,10 +146,42 @@ class Supervisor:
         if changed:
             self._phase_changed(now, out)
         self.outputs = out
+        self._warn_waiting(out.phase)
         autopilot.manage(now, link_up=hb is not None)
         if out.phase == Phase.DONE and self.cfg.mission.duration_s > 0:
             self._mission_over()
         return Step(out, state, changed)
+
+    def _warn_waiting(self, phase: Phase) -> None:
+        """Still waiting for the autopilot's heartbeat or for fresh state: a WARNING after
+        WAITING_WARN_FIRST_S, then 3x as long again, saying what the link receives (nothing
+        at all: nothing answers on link.url; other system ids: link.target_system)."""
+        wall_s = time.monotonic()
+        if phase not in (Phase.WAIT_HEARTBEAT, Phase.WAIT_STATE):
+            self._waiting_since_s = wall_s
+            self._waiting_warn_s = self._waiting_warn_first_s
+            return
+        waited_s = wall_s - self._waiting_since_s
+        if waited_s < self._waiting_warn_s:
+            return
+        self._waiting_warn_s = min(3.0 * self._waiting_warn_s, _WAITING_WARN_MAX_S)
+        link = self.cfg.link
+        counters = self.autopilot.link.counters
+        if phase == Phase.WAIT_STATE:
+            heard = "heartbeats arrive, but no fresh attitude and position state (the " \
+                "autopilot's estimator, or its streams: stats.json rates_hz)"
+        elif self.autopilot.last_rx_wall_s > -math.inf:
+            heard = f"messages from system {link.target_system} arrive, but no HEARTBEAT"
+        elif counters["wrong_system"]:
+            heard = (f"{counters['wrong_system']} frames from other system ids, none from "
+                     f"system {link.target_system}: is link.target_system right?")
+        elif counters["datagrams"] or counters["received"]:
+            heard = "data arrives, but no MAVLink 2 frame of the autopilot (stats.json link)"
+        else:
+            heard = "nothing received: is the autopilot sending to this address and port?"
+        log.warning("no %s from the autopilot on %s for %.0f s: %s",
+                    "fresh state" if phase == Phase.WAIT_STATE else "HEARTBEAT",
+                    link.url, waited_s, heard)  # fmt: skip
 
     def _phase_changed(self, now: float, out: Outputs) -> None:
         """Log, tell systemd, count failsafes and keep the transition for the stats (the sim

@@ -258,12 +258,13 @@ def _bundled_loops() -> dict[str, str]:
 
 
 def _config_cascade(config_path: str | Path) -> Cascade:
+    from epc_offboard.common.bundled import bundled_config
     from epc_offboard.common.configio import ConfigError
     from epc_offboard.control.cascade import Cascade
     from epc_offboard.service.config import load_service_config
 
-    try:
-        cfg = load_service_config(config_path)
+    try:  # a path, or a bundled config by name (`--config sitl`), as `run --config`
+        cfg = load_service_config(bundled_config(str(config_path)))
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
     return Cascade(cfg.position, cfg.attitude, cfg.estimator, 1.0 / cfg.loops.position_rate_hz,

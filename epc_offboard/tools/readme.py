@@ -246,6 +246,12 @@ def fly(recipe: Recipe, work_dir: Path, results_dir: Path) -> int:
 def run_figures_command(args: argparse.Namespace) -> int:
     """``epc-offboard figures readme [NAME ...] [--numbers-only]``, or ``figures neuralfly``
     (:mod:`epc_offboard.tools.neuralfly`)."""
+    if not Path(args.readme).is_file():  # said before half an hour of flights, not after
+        raise UsageError(
+            f"--readme {args.readme}: no such file: `figures` rewrites a checkout's README "
+            "(an installed wheel has none): run it in a checkout installed with "
+            "`pip install -e .`, or give --readme FILE and --results DIR"
+        )
     if args.what == "neuralfly":
         from epc_offboard.tools.neuralfly import run
 

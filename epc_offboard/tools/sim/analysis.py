@@ -48,12 +48,17 @@ _SERVICE_WARNINGS = {
     "heartbeats_other_autopilot": "heartbeats of another autopilot than link.autopilot",
     "realtime_priority_refused": "loops' real-time priority refused (normal scheduling)",
     "unready_entries": "offboard entered before the controller was ready (miss worker)",
+    "log_lines_dropped": "service log lines dropped (its logged warnings may be incomplete)",
 }
 # the state tracker's (stats.json "state"): what it would not believe
 _STATE_WARNINGS = {
     "heartbeat_flaps": "heartbeat flaps (forged heartbeats?)",
     "state_conflicts": "contradicting state streams (forged telemetry?)",
     "rejected_innovation": "state samples far from the prediction (not flown)",
+    "rejected_nan": "state samples not finite (not flown)",
+    "rejected_range": "state samples out of range (not flown)",
+    "rejected_quaternion": "attitude samples not a unit quaternion (not flown)",
+    "rejected_time_jump": "state samples stamped off their stream's timeline (not flown)",
 }
 _SITL_WARNINGS = {
     "lockstep_timeouts": "SITL lockstep timeouts",
@@ -366,6 +371,10 @@ def analyse(
     if envelope is not None:
         found, worst = _envelope_check(record, envelope, start)
         report["envelope"] = {"bounds": envelope.as_dict(), "worst": worst, "left": found}
+        # sim's own judgements are warnings too: never "warnings: none" beside a FAILED
+        report["warnings"].update({f"left its envelope: {b['what']}": 1 for b in found})
+    if record.stopped:
+        report["warnings"]["stopped by sim before it finished"] = 1
     every = slice(None, None, max(1, len(tt) // 4000))  # enough samples to draw
     q = _columns(truth, ["q_w", "q_x", "q_y", "q_z"], len(tt))
     return VehicleResult(
