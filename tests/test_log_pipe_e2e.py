@@ -209,7 +209,7 @@ def test_a_full_unread_stderr_never_stalls_the_position_loop(tmp_path):
     assert held.loop_gap_s < GAP_BOUND_S, f"position loop stalled {held.loop_gap_s:.3f} s:\n{tail}"
     # nothing logged meanwhile was lost: every line arrived once stderr was read, whole
     assert held.text.count(_RELOADED) == SIGHUPS, tail
-    assert "stopped: " in held.text, tail  # the last line, flushed at exit
+    assert "stopped, its helpers " in held.text, tail  # the last line, flushed at exit
     assert held.stats["counters"]["log_lines_dropped"] == 0
     pump = held.stats["processes"]["log_lines"]
     assert pump["lines"] >= SIGHUPS, pump
@@ -230,7 +230,7 @@ def test_a_stop_with_stderr_held_full_ends_within_its_bound(tmp_path):
     assert held.code == 0, tail
     assert unit_stop_timeout_s() > STOP_S
     assert held.stop_s < STOP_S + 1.0, tail  # the bound, and the interpreter's exit (load 6)
-    assert "stopped: " in held.text, tail  # written by the pump after the service exited
+    assert "stopped, its helpers " in held.text, tail  # written by the pump after the service exited
 
 
 def main() -> int:

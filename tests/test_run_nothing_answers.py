@@ -66,4 +66,4 @@ def test_nothing_answering_is_said_and_ctrl_c_stops_every_process_without_a_trac
     assert code == 0, err
     assert "Traceback" not in err, err
     assert "KeyboardInterrupt" not in err, err
-    assert "stopped:" in err  # the orderly stop ran
+    assert "stopped, its helpers " in err  # the orderly stop ran
