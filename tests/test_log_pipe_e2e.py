@@ -230,7 +230,7 @@ def test_a_stop_with_stderr_held_full_ends_within_its_bound(tmp_path):
     assert held.code == 0, tail
     assert unit_stop_timeout_s() > STOP_S
     assert held.stop_s < STOP_S + 1.0, tail  # the bound, and the interpreter's exit (load 6)
-    assert "stopped, its helpers " in held.text, tail  # written by the pump after the service exited
+    assert "stopped, its helpers " in held.text, tail  # by the pump, after the service exited
 
 
 def main() -> int:
