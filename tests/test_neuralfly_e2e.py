@@ -99,6 +99,7 @@ def test_a_killed_figures_neuralfly_leaves_no_flight_flying(tmp_path: Path) -> N
     `kill -9`), it left the running `sim`, its SITL and its service flying to the flight's
     end (a minute); they now end with it (`sim` gets SIGTERM and stops its own)."""
     work = tmp_path / "work"
+    (tmp_path / "README.md").write_text("# a README for figures to rewrite\n")  # it must exist
     proc = subprocess.Popen(
         [sys.executable, "-m", "epc_offboard", "figures", "neuralfly", "--seed", "0",
          "--jobs", "1", "--work", str(work), "--results", str(tmp_path / "results"),
