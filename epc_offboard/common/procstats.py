@@ -28,7 +28,7 @@ _LOG_COUNTS: dict[int, tuple[str, Any]] = {}
 _ENDED_LOG_COUNTS: dict[str, tuple[int, int]] = {}
 
 
-def register_log_counts(pid: int, counts: Any, name: str = "") -> None:
+def register_log_counts(pid: int, counts: Any, name: str) -> None:
     """``counts`` (two shared int64: lines written, dropped) are ``pid``'s log lines; ``pid``
     is helper ``name``'s process now: the one before it (ended: restarted helpers are started
     after their predecessor's end) is folded into the name's counts and dropped."""

@@ -82,14 +82,11 @@ class Supervisor:
         # heartbeat's age is judged in vehicle time by the state machine; wall-clock silence
         # only tells a simulator that has gone, and a loaded machine must not look like one
         # (it failed a lockstep figure-8 safe beside a CPU hog: runs must not depend on load).
-        self._silence_s = cfg.offboard.heartbeat_timeout_s * (
-            _LOCKSTEP_SILENCE_FACTOR if clock.vehicle_time else 1.0
-        )
+        wall_factor = _LOCKSTEP_SILENCE_FACTOR if clock.vehicle_time else 1.0
+        self._silence_s = cfg.offboard.heartbeat_timeout_s * wall_factor
         self._ready_sent = False
         self._waiting_since_s = time.monotonic()  # in WAIT_HEARTBEAT / WAIT_STATE since
-        self._waiting_warn_first_s = WAITING_WARN_FIRST_S * (
-            _LOCKSTEP_SILENCE_FACTOR if clock.vehicle_time else 1.0
-        )
+        self._waiting_warn_first_s = WAITING_WARN_FIRST_S * wall_factor
         self._waiting_warn_s = self._waiting_warn_first_s
         self._lingering = False  # landed, still up for the fleet (mission.linger_after_landing)
 
