@@ -19,20 +19,31 @@ from hypothesis import strategies as st
 
 from epc_offboard.common.logpipe import PIPE_BUF, PipeHandler
 
+HOLD_S = 60.0  # a reader held back (nothing read) at most: a writer that waits meets it
 EMIT_BOUND_S = 0.1  # a log call's wall time, at most (load 6); a blocked write: the pauses'
 
 
 class SlowReader:
     """The real stderr: a pipe read by a thread that pauses as ``pauses_s`` says."""
 
-    def __init__(self, pauses_s: list[float]) -> None:
+    def __init__(self, pauses_s: list[float], hold_s: float = 0.0) -> None:
         self.read_fd, self.write_fd = os.pipe()
         self.data = bytearray()
         self._pauses = list(pauses_s)
+        # ``hold_s``: nothing read until :meth:`release` or ``hold_s``; ``held_to_bound``
+        # says the bound released it (a writer waited for this reader, or never ended)
+        self._hold_s = hold_s
+        self._released = threading.Event()
+        self.held_to_bound = False
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
+    def release(self) -> None:
+        self._released.set()
+
     def _run(self) -> None:
+        if self._hold_s > 0.0:
+            self.held_to_bound = not self._released.wait(self._hold_s)
         while True:
             if self._pauses:
                 time.sleep(self._pauses.pop(0))
@@ -103,16 +114,18 @@ def test_lines_beyond_the_pipe_are_dropped_and_counted_then_the_rest_arrives():
     """Stderr not read at all while 4 MB of lines are logged: the calls return at once,
     what the pipes cannot hold is dropped and counted, and when stderr is read again
     every line not dropped arrives."""
-    stderr = SlowReader([1.0])  # nothing read for a second
+    stderr = SlowReader([], hold_s=HOLD_S)  # nothing read until the calls are done
     handler = PipeHandler(stderr_fd=stderr.write_fd, pipe_bytes=65536)
     handler.start()
     os.close(stderr.write_fd)
     log = _logger(handler, "test.logpipe.full")
-    t0 = time.perf_counter()
     for k in range(4000):
         log.warning(_line(k, 1000))
-    spent_s = time.perf_counter() - t0
-    assert spent_s < 0.9, spent_s  # well inside the reader's pause: nothing waited for it
+    stderr.release()
+    # all 4000 returned while stderr was not read: none waited for it (a blocking write
+    # returns only once the reader's bound lets it read). Before stop 41: < 0.9 s of wall
+    # time against a 1 s pause, which the 4000 calls' own CPU passed at load 14-18
+    assert not stderr.held_to_bound, "a log call waited for stderr's reader"
     assert handler.dropped > 0
     handler.close()
     got = stderr.finish()
@@ -239,11 +252,18 @@ def test_a_dead_pump_leaves_lines_going_straight_to_stderr_never_waiting():
     assert lines[0] == "before"
     assert lines[-1] == "after"
     assert sum("log pump (process" in line and "not restarted" in line for line in lines) == 1
-    # nobody reads stderr now: lines fill it, then drop; no call waits
-    t0 = time.perf_counter()
-    for k in range(300):
-        log.info(_line(k, 1000))
-    assert time.perf_counter() - t0 < 0.9
+    # nobody reads stderr now: lines fill it, then drop; no call waits (a blocking write
+    # would never return: no one reads; the thread's bound is the test's, not a figure)
+    logger = threading.Thread(target=lambda: [log.info(_line(k, 1000)) for k in range(300)],
+                              daemon=True)  # fmt: skip
+    logger.start()
+    logger.join(HOLD_S)
+    stuck = logger.is_alive()
+    if stuck:  # let it end: read what it waits to write
+        with contextlib.suppress(BlockingIOError):
+            while logger.is_alive():
+                os.read(read_fd, 1 << 16)
+    assert not stuck, "a log call waited for stderr"
     assert handler.dropped > 0
     assert handler.lines + handler.dropped == 302
     handler.close()
