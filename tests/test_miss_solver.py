@@ -460,3 +460,45 @@ def test_a_slice_stopped_or_starved_still_builds_its_cpu_share():
 def _proc_state(pid: int) -> str:
     with open(f"/proc/{pid}/stat") as f:
         return f.read().rsplit(")", 1)[1].split()[0]
+
+
+def test_a_start_longer_than_its_bound_but_running_is_waited_for():
+    """Stop 41: at load 12-17 the worker's start (imports, its problems, its learners) took
+    93-156 s, every second of it running or queued for a CPU, and a 30 s clock raised out of
+    a lockstep run (in real time restarted it as wedged, and the next one alike). The bound
+    is on its progress now: a start far longer than 1 s, never 1 s without CPU, is up."""
+    ctrl = ExperienceController(position_problem(30), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl})
+    t0 = time.monotonic()
+    solver.start(wait=False, timeout_s=1.0)
+    try:
+        solver.wait_ready(timeout_s=1.0)
+        assert time.monotonic() - t0 > 1.0  # (2.5 s on an idle 2-core machine)
+        assert solver.counters["worker_restarts"] == 0
+    finally:
+        solver.close()
+
+
+def test_a_worker_stopped_in_its_start_is_reported_or_restarted():
+    """SIGSTOP in its start: ``wait_ready`` (lockstep) says so within its stall bound; in
+    real time ``pump`` restarts it, and the new worker comes up."""
+    ctrl = ExperienceController(position_problem(30), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl})
+    solver.start(wait=False, timeout_s=1.0)
+    try:
+        stopped = solver.worker_pid()
+        assert stopped is not None
+        os.kill(stopped, signal.SIGSTOP)
+        t0 = time.monotonic()
+        with pytest.raises(TimeoutError, match="no CPU used or waited for in 1 s"):
+            solver.wait_ready(timeout_s=1.0)
+        assert time.monotonic() - t0 < 30.0
+        deadline = time.monotonic() + 30.0
+        while solver.counters["worker_restarts"] == 0 and time.monotonic() < deadline:
+            solver.pump()
+            time.sleep(0.05)
+        assert solver.counters["worker_restarts"] == 1
+        assert solver.worker_pid() not in (None, stopped)
+        solver.wait_ready(timeout_s=30.0)
+    finally:
+        solver.close()

@@ -7,6 +7,7 @@ the CPU figures are absent and the rest (queues, drops, restarts) is still given
 from __future__ import annotations
 
 import os
+import time
 from typing import Any
 
 _TICKS_PER_S = os.sysconf("SC_CLK_TCK")
@@ -76,3 +77,53 @@ def process_report(pid: int | None, **extra: Any) -> dict[str, Any]:
     if life_s > 0.1:
         out["cpu_share"] = round(cpu_s / life_s, 3)
     return out
+
+
+def progress(pid: int) -> tuple[int, int, int] | None:
+    """What grows while ``pid`` runs or waits for a CPU: its CPU ticks (every thread: utime
+    + stime), its main thread's ns on a CPU and ns queued for one (``schedstat``). None:
+    gone (or a zombie). A stopped (SIGSTOP) or blocked process grows none of them."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = stat_fields(fh.read())
+        with open(f"/proc/{pid}/schedstat") as fh:
+            on_cpu_ns, queued_ns = (int(x) for x in fh.read().split()[:2])
+    except (OSError, ValueError):
+        return None
+    if fields[0] in ("Z", "X"):
+        return None
+    return int(fields[11]) + int(fields[12]), on_cpu_ns, queued_ns
+
+
+class StartWatch:
+    """A child's start judged by its progress, not by a clock (stop 41): at load 12-17 on
+    2 CPUs, importing numpy, numba and Zenoh took a child 93-156 s, every second of it
+    running or queued for a CPU. ``verdict`` is None while the child is starting: it is
+    alive, and it ran or waited for a CPU within ``stall_s``; otherwise why it is not (gone;
+    no progress for ``stall_s``: SIGSTOPped, blocked, wedged; or not up in ``cap_s`` though
+    moving: a loop that never ends). Call it at any pace; each call samples ``/proc``."""
+
+    def __init__(self, pid: int, stall_s: float, cap_s: float) -> None:
+        self.pid = pid
+        self.stall_s = stall_s
+        self.cap_s = cap_s
+        self.started_s = self.moved_s = time.monotonic()
+        self._last = progress(pid)
+
+    def restart_clock(self, now_s: float) -> None:
+        """Judge from ``now_s`` on (a start whose clock runs from a later event)."""
+        self.started_s = self.moved_s = now_s
+        self._last = progress(self.pid)
+
+    def verdict(self, now_s: float | None = None) -> str | None:
+        now_s = time.monotonic() if now_s is None else now_s
+        seen = progress(self.pid)
+        if seen is None:
+            return "it ended"
+        if seen != self._last:
+            self._last, self.moved_s = seen, now_s
+        if now_s - self.moved_s > self.stall_s:
+            return f"no CPU used or waited for in {self.stall_s:g} s (stopped or wedged)"
+        if now_s - self.started_s > self.cap_s:
+            return f"not up in {self.cap_s:g} s though running"
+        return None

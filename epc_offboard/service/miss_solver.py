@@ -79,7 +79,7 @@ from epc_offboard.common.children import (
 )
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.frames import FloatArray
-from epc_offboard.common.procstats import process_report
+from epc_offboard.common.procstats import StartWatch, process_report
 from epc_offboard.control import kernels
 from epc_offboard.control.epc.candidates import CandidatePool
 from epc_offboard.control.epc.learner import Learner
@@ -94,7 +94,11 @@ log = logging.getLogger(__name__)
 # close(): the task in flight returns and the worker ends within this (a slice's solve is
 # tens of ms; at load 6 a few hundred), inside the unit's TimeoutStopSec (5 s) with the rest
 STOP_TIMEOUT_S = 2.0
-START_TIMEOUT_S = 30.0  # its imports and learners: seconds at load 15
+# its start (imports, problems, learners) is judged by progress (StartWatch): it fails once
+# the worker used and waited for no CPU this long (SIGSTOP, a block), or was not up in the
+# cap though running; a clock did not hold: 93-156 s at load 12-17, every second running
+START_TIMEOUT_S = 30.0
+START_CAP_S = 600.0
 WAIT_TIMEOUT_S = 30.0  # lockstep's wait for an answer: longer, and the worker is wedged
 WEDGED_S = 10.0  # real time: a request unanswered that long (a solve is tens of ms)
 _PIPE_BYTES = 1 << 20  # each pipe (Linux's default ceiling): a reply with its maps in one read
@@ -258,6 +262,7 @@ class _Process:
     inbox: FrameInbox
     conns: tuple[Connection, Connection]
     ready: _Reply[bool]
+    watch: StartWatch  # its start's progress
     replies: dict[int, _Reply[Any]] = field(default_factory=dict)
     next_seq: int = 0
     ready_waited: bool = False  # whether a read has started the start's clock
@@ -362,6 +367,7 @@ class MissSolver:
         worker = _Process(
             proc, FrameOutbox(requests_w.fileno(), _MAX_PENDING_BYTES),
             FrameInbox(replies_r.fileno(), _PIPE_BYTES), (requests_w, replies_r), _Reply(now),
+            StartWatch(proc.pid or 0, self._start_timeout_s, START_CAP_S),
         )  # fmt: skip
         self._worker = worker
         self._send(worker, worker.ready, _init_worker, problems)
@@ -392,16 +398,19 @@ class MissSolver:
             return True
         if self._worker is not worker or not worker.proc.is_alive():
             raise RuntimeError("EPC miss worker died in its start")
-        if time.monotonic() - worker.ready.sent_s > self._start_timeout_s:
-            raise TimeoutError(f"EPC miss worker not started in {self._start_timeout_s:g} s")
+        why = worker.watch.verdict()
+        if why is not None:
+            raise TimeoutError(f"EPC miss worker not started: {why}")
         return False
 
     def wait_ready(self, timeout_s: float = START_TIMEOUT_S) -> None:
-        """Wait until a worker started with ``start(wait=False)`` is up."""
+        """Wait until a worker started with ``start(wait=False)`` is up; TimeoutError once
+        it made no progress for ``timeout_s`` (or was not up in START_CAP_S)."""
         self._start_timeout_s = timeout_s
-        deadline = time.monotonic() + timeout_s
+        if self._worker is not None:
+            self._worker.watch.stall_s = timeout_s
         while not self.poll_ready():
-            self._wait_io(self._worker, deadline - time.monotonic())
+            self._wait_io(self._worker, 0.5)
 
     def close(self, timeout_s: float = STOP_TIMEOUT_S, reap_s: float = KILL_WAIT_S) -> None:
         """Stop the worker: the EOF of its requests, and its answer in flight refused (the
@@ -443,6 +452,7 @@ class MissSolver:
         if not worker.ready_waited:  # the start's clock runs from the first write after the
             worker.ready_waited = True  # spawn: until then no one fed it the rest of its
             worker.ready.sent_s = time.monotonic()  # problems (a cold warm-up: 50 s and more)
+            worker.watch.restart_clock(worker.ready.sent_s)
         try:
             worker.outbox.flush()
             # Nothing asked, nothing to read: the worker writes only answers. The read of an
@@ -463,9 +473,13 @@ class MissSolver:
         now = time.monotonic()
         answer_s = WAIT_TIMEOUT_S if wait else self._wedged_s
         for reply in worker.replies.values():
-            limit = self._start_timeout_s if reply is worker.ready else answer_s
-            if now - reply.sent_s > limit:
-                self._restart(f"no answer in {limit:g} s (wedged)", wait)
+            if reply is worker.ready:
+                why = worker.watch.verdict(now)
+                if why is not None:
+                    self._restart(f"not started: {why}", wait)
+                    return
+            elif now - reply.sent_s > answer_s:
+                self._restart(f"no answer in {answer_s:g} s (wedged)", wait)
                 return
 
     def _wait_io(self, worker: _Process | None, timeout_s: float) -> None:
@@ -484,6 +498,8 @@ class MissSolver:
             worker = self._worker
             if worker is None or reply not in (worker.ready, *worker.replies.values()):
                 return  # restarted meanwhile: the request is lost
+            if reply is worker.ready:  # its start: judged by its progress (_read)
+                deadline = time.monotonic() + timeout_s
             if time.monotonic() >= deadline:
                 self._restart(f"no answer in {timeout_s:g} s (wedged)", wait=True)
                 return

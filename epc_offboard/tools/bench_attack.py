@@ -38,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -54,7 +55,7 @@ import numpy as np
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.ports import free_port
-from epc_offboard.common.procstats import stat_fields
+from epc_offboard.common.procstats import StartWatch, stat_fields
 from epc_offboard.tools import attack_analysis as analysis
 from epc_offboard.tools import steal as steal_time
 from epc_offboard.tools.bench_modes import start_hogs, stop_hogs
@@ -84,6 +85,10 @@ SERVICE_SYSTEM_ID = 245  # link.system_id's default: the sender of the attitude 
 FLEET = "bench"
 MODES = {"quaternion": "autopilot", "rates": "auto"}  # --attitude-mode -> attitude.mode
 SAMPLE_S = 0.25
+# an attacker's start: failed once it used and waited for no CPU this long, or not ready in
+# the cap though running (Attackers.wait_ready)
+ATTACKER_STALL_S = 30.0
+ATTACKER_CAP_S = 900.0
 
 
 @dataclass(frozen=True)
@@ -282,9 +287,21 @@ class Attackers:
                 stderr=(log_dir / f"attacker-{kind}.log").open("w"), text=True,
             )  # fmt: skip
 
-    def wait_ready(self) -> None:
+    def wait_ready(self, stall_s: float = ATTACKER_STALL_S, cap_s: float = ATTACKER_CAP_S,
+                   ) -> None:  # fmt: skip
+        """Each attacker's "ready", judged by its progress (``procstats.StartWatch``): one
+        alive and running or queued for a CPU is starting (at load 12-17 its imports took
+        longer than the 120 s the wait gave before stop 41); one that used and waited for
+        no CPU for ``stall_s`` (SIGSTOPped, blocked), or not ready in ``cap_s``, fails the
+        bench with the cause."""
         for kind, proc in self.procs.items():
-            line = _readline(proc.stdout, 120.0)
+            assert proc.stdout is not None
+            watch = StartWatch(proc.pid, stall_s, cap_s)
+            while not select.select([proc.stdout], [], [], 0.5)[0]:
+                why = watch.verdict()
+                if why is not None:
+                    raise AttackBenchError(f"the {kind} attacker did not start: {why}")
+            line = proc.stdout.readline()
             if line.strip() != "ready":
                 raise AttackBenchError(f"the {kind} attacker did not start ({line!r})")
 

@@ -1,0 +1,81 @@
+"""A child's start judged by its progress (common/procstats.StartWatch), on real processes:
+one running, however long, is starting; one SIGSTOPped is caught within its stall bound;
+one gone is said. The bench's attackers' wait uses it (a SIGSTOPped attacker fails the
+bench with the cause)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from epc_offboard.common.procstats import StartWatch, progress
+from epc_offboard.tools.bench_attack import AttackBenchError, Attackers
+
+BUSY = "import time\nt = time.monotonic()\nwhile time.monotonic() - t < 60: pass\n"
+
+
+@pytest.fixture
+def busy():
+    proc = subprocess.Popen([sys.executable, "-c", BUSY])
+    yield proc
+    proc.kill()
+    proc.wait()
+
+
+def _judge(watch: StartWatch, for_s: float) -> str | None:
+    end = time.monotonic() + for_s
+    while time.monotonic() < end:
+        why = watch.verdict()
+        if why is not None:
+            return why
+        time.sleep(0.05)
+    return None
+
+
+def test_a_running_child_is_starting_past_its_stall_bound_and_a_stopped_one_is_caught(busy):
+    watch = StartWatch(busy.pid, stall_s=0.5, cap_s=600.0)
+    assert _judge(watch, 2.0) is None  # four stall bounds, every one of them running
+    os.kill(busy.pid, signal.SIGSTOP)
+    t0 = time.monotonic()
+    why = _judge(watch, 10.0)
+    assert why is not None
+    assert "stopped or wedged" in why, why
+    assert time.monotonic() - t0 < 10.0
+
+
+def test_a_running_child_not_up_in_the_cap_is_said(busy):
+    watch = StartWatch(busy.pid, stall_s=5.0, cap_s=0.5)
+    why = _judge(watch, 10.0)
+    assert why is not None
+    assert "though running" in why, why
+
+
+def test_a_child_gone_is_said():
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    watch = StartWatch(proc.pid, stall_s=5.0, cap_s=600.0)
+    proc.wait()
+    assert progress(proc.pid) is None
+    assert watch.verdict() == "it ended"
+
+
+def test_a_stopped_attacker_fails_the_bench_with_the_cause(tmp_path: Path):
+    """Before stop 41 the wait gave each attacker 120 s on the clock: at load 12-17 their
+    imports took longer (5 runs failed, "did not start"), and a stopped one was caught no
+    sooner. Now a running one is waited for and a stopped one is said within its stall."""
+    config = tmp_path / "service.toml"
+    config.write_text("")
+    attackers = Attackers(25099, config, tmp_path, ("replay",), window_s=1.0)
+    try:
+        os.kill(attackers.procs["replay"].pid, signal.SIGSTOP)
+        with pytest.raises(AttackBenchError, match="replay attacker did not start: no CPU"):
+            attackers.wait_ready(stall_s=1.0, cap_s=600.0)
+    finally:
+        for proc in attackers.procs.values():
+            proc.kill()
+            proc.wait()
