@@ -64,6 +64,25 @@ def test_a_child_gone_is_said():
     assert watch.verdict() == "it ended"
 
 
+def test_a_child_waiting_for_a_starting_peer_is_starting_until_it_is_stopped(busy):
+    """An attacker's session waits for the service's fleet helper: blocked, it uses no CPU,
+    while the service's tree starts. It is starting while its peer moves; SIGSTOPped, it
+    is caught though its peer still moves."""
+    waiting = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        alone = StartWatch(waiting.pid, stall_s=0.5, cap_s=600.0)
+        assert _judge(alone, 3.0) is not None  # blocked, no peer: no progress
+        watch = StartWatch(waiting.pid, stall_s=0.5, cap_s=600.0, waits_on=busy.pid)
+        assert _judge(watch, 2.0) is None
+        os.kill(waiting.pid, signal.SIGSTOP)
+        why = _judge(watch, 10.0)
+        assert why is not None
+        assert "stopped or wedged" in why, why
+    finally:
+        waiting.kill()
+        waiting.wait()
+
+
 def test_a_stopped_attacker_fails_the_bench_with_the_cause(tmp_path: Path):
     """Before stop 41 the wait gave each attacker 120 s on the clock: at load 12-17 their
     imports took longer (5 runs failed, "did not start"), and a stopped one was caught no

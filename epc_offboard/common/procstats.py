@@ -95,29 +95,64 @@ def progress(pid: int) -> tuple[int, int, int] | None:
     return int(fields[11]) + int(fields[12]), on_cpu_ns, queued_ns
 
 
+def stopped(pid: int) -> bool:
+    """Whether ``pid`` is stopped (SIGSTOP, a tracer): state T or t."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return stat_fields(fh.read())[0] in ("T", "t")
+    except OSError:
+        return False
+
+
+def tree(pid: int) -> list[int]:
+    """``pid`` and its descendants now."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        try:
+            for task in os.listdir(f"/proc/{p}/task"):
+                with open(f"/proc/{p}/task/{task}/children") as fh:
+                    todo += [int(c) for c in fh.read().split()]
+        except OSError:
+            continue
+    return out
+
+
 class StartWatch:
     """A child's start judged by its progress, not by a clock (stop 41): at load 12-17 on
     2 CPUs, importing numpy, numba and Zenoh took a child 93-156 s, every second of it
     running or queued for a CPU. ``verdict`` is None while the child is starting: it is
     alive, and it ran or waited for a CPU within ``stall_s``; otherwise why it is not (gone;
     no progress for ``stall_s``: SIGSTOPped, blocked, wedged; or not up in ``cap_s`` though
-    moving: a loop that never ends). Call it at any pace; each call samples ``/proc``."""
+    moving: a loop that never ends). Call it at any pace; each call samples ``/proc``.
+    ``waits_on``: a process whose start the child's waits for (the bench's attackers connect
+    to the service's fleet helper): while the child is not stopped, that process's tree's
+    progress is the child's too."""
 
-    def __init__(self, pid: int, stall_s: float, cap_s: float) -> None:
+    def __init__(self, pid: int, stall_s: float, cap_s: float,
+                 waits_on: int | None = None) -> None:  # fmt: skip
         self.pid = pid
+        self.waits_on = waits_on
         self.stall_s = stall_s
         self.cap_s = cap_s
         self.started_s = self.moved_s = time.monotonic()
-        self._last = progress(pid)
+        self._last = self._progress()
 
     def restart_clock(self, now_s: float) -> None:
         """Judge from ``now_s`` on (a start whose clock runs from a later event)."""
         self.started_s = self.moved_s = now_s
-        self._last = progress(self.pid)
+        self._last = self._progress()
+
+    def _progress(self) -> tuple[Any, ...] | None:
+        own = progress(self.pid)
+        if own is None or self.waits_on is None or stopped(self.pid):
+            return own
+        return own, tuple(progress(p) for p in tree(self.waits_on))
 
     def verdict(self, now_s: float | None = None) -> str | None:
         now_s = time.monotonic() if now_s is None else now_s
-        seen = progress(self.pid)
+        seen = self._progress()
         if seen is None:
             return "it ended"
         if seen != self._last:

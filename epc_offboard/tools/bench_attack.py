@@ -288,15 +288,16 @@ class Attackers:
             )  # fmt: skip
 
     def wait_ready(self, stall_s: float = ATTACKER_STALL_S, cap_s: float = ATTACKER_CAP_S,
-                   ) -> None:  # fmt: skip
+                   service_pid: int | None = None) -> None:  # fmt: skip
         """Each attacker's "ready", judged by its progress (``procstats.StartWatch``): one
         alive and running or queued for a CPU is starting (at load 12-17 its imports took
         longer than the 120 s the wait gave before stop 41); one that used and waited for
         no CPU for ``stall_s`` (SIGSTOPped, blocked), or not ready in ``cap_s``, fails the
-        bench with the cause."""
+        bench with the cause. An attacker's session waits for the service's fleet helper
+        (``service_pid``'s tree): while that makes progress, so does the attacker's start."""
         for kind, proc in self.procs.items():
             assert proc.stdout is not None
-            watch = StartWatch(proc.pid, stall_s, cap_s)
+            watch = StartWatch(proc.pid, stall_s, cap_s, waits_on=service_pid)
             while not select.select([proc.stdout], [], [], 0.5)[0]:
                 why = watch.verdict()
                 if why is not None:
@@ -560,7 +561,7 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
         sampler.start()
         stealer = steal_time.StealSampler(service.pid)  # its loops run on its main thread
         stealer.start()
-        attackers.wait_ready()
+        attackers.wait_ready(service_pid=service.pid)
         wait_offboard(run_dir / "flight.csv", SETTLE_S, service)
         if opts.freeze is not None:
             freezer = Freezer(opts.freeze, opts.freeze_s, service.pid, run_dir, sitl.pid)
