@@ -62,6 +62,8 @@ _STATE_WARNINGS = {
 }
 _SITL_WARNINGS = {
     "lockstep_timeouts": "SITL lockstep timeouts",
+    # counted: a flight that ran on the wall clock for a while is not its seed's alone
+    "lockstep_fallbacks": "lockstep fell back to real time",
     "offboard_failsafes": "SITL offboard-loss failsafes",
     "handler_errors": "SITL message handler errors",
     "nan_setpoints": "non-finite setpoints received by the SITL",
