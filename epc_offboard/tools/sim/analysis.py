@@ -49,6 +49,9 @@ _SERVICE_WARNINGS = {
     "realtime_priority_refused": "loops' real-time priority refused (normal scheduling)",
     "unready_entries": "offboard entered before the controller was ready (miss worker)",
     "log_lines_dropped": "service log lines dropped (its logged warnings may be incomplete)",
+    # the flight log's rows the writer fell behind on: flight.csv has gaps (two lockstep
+    # flights of one seed then differ in their files, not in their flight)
+    "log_records_dropped": "flight log records dropped (flight.csv has gaps)",
 }
 # the state tracker's (stats.json "state"): what it would not believe
 _STATE_WARNINGS = {
