@@ -254,8 +254,11 @@ def test_a_dead_pump_leaves_lines_going_straight_to_stderr_never_waiting():
     assert sum("log pump (process" in line and "not restarted" in line for line in lines) == 1
     # nobody reads stderr now: lines fill it, then drop; no call waits (a blocking write
     # would never return: no one reads; the thread's bound is the test's, not a figure)
-    logger = threading.Thread(target=lambda: [log.info(_line(k, 1000)) for k in range(300)],
-                              daemon=True)  # fmt: skip
+    def flood() -> None:
+        for k in range(300):
+            log.info(_line(k, 1000))
+
+    logger = threading.Thread(target=flood, daemon=True)
     logger.start()
     logger.join(HOLD_S)
     stuck = logger.is_alive()
