@@ -75,6 +75,7 @@ from epc_offboard.service.step_parts import CompileCounter, StepParts
 from epc_offboard.service.supervisor import Supervisor
 from epc_offboard.service.systemd import Systemd
 from epc_offboard.service.timing import LoopTiming
+from epc_offboard.store.database import StoreRefusedError, library_refusal, store_path_refused
 from epc_offboard.vehicle import commands
 from epc_offboard.vehicle.offboard import Action, Outputs, Phase
 from epc_offboard.vehicle.state import StateTracker
@@ -394,7 +395,16 @@ class Service:
         t0 = time.perf_counter()
         self.misses.start(wait=False)  # the worker's imports overlap the warm-up
         if jit.enabled():
+            cold = jit.will_compile()
+            if cold:
+                log.info("control kernels: %s", jit.COLD_COMPILE_NOTE)
             log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
+            # marked as the background compile marks it, when this cascade is one that
+            # compiles every kernel (EPC and LWPR: `run`'s default config's)
+            full = self.cfg.position.controller == "epc" and self.cfg.estimator.kind == "lwpr"
+            if cold and full and not jit.mark_cache_warm():
+                log.warning("cannot mark the kernel cache warm in %s (set NUMBA_CACHE_DIR to a "
+                            "writable directory)", jit.cache_dir())  # fmt: skip
         else:  # a cold cache: coldstart.py compiles them in the background for the next start
             log.warning("control kernels: numpy twins (no compiled kernels in the cache: "
                         "compiling them in the background for the next start); warmed in "
@@ -620,6 +630,9 @@ def run_service_command(args: argparse.Namespace) -> int:
         cfg = load_service_config(args.config)
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
+    refused = library_refusal(cfg.store.path) if cfg.store.path else None
+    if refused is not None:  # nothing moved: the user's directory or file is theirs
+        raise UsageError(store_path_refused(args.config, cfg.store.path, refused))
     TIMELINE.mark("config")
     setup_logging(cfg.log)
     # from here the log lines go through a pump process, never blocking the loops' thread
@@ -633,6 +646,8 @@ def run_service_command(args: argparse.Namespace) -> int:
     service.exit_grace_s = EXIT_GRACE_S
     try:
         return asyncio.run(service.run())
+    except StoreRefusedError as exc:  # the path changed since the check above
+        raise UsageError(store_path_refused(args.config, cfg.store.path, str(exc))) from exc
     except OSError as exc:
         print(f"epc-offboard: {exc}", file=sys.stderr)
         return 1
