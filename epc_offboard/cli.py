@@ -480,7 +480,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (UsageError, ConfigError) as exc:
         print(f"epc-offboard: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # Ctrl-C: said (it ended silently), what it started stopped
+        print(f"epc-offboard {args.command}: interrupted (Ctrl-C)", file=sys.stderr)
         return EXIT_RUNTIME
 
 
