@@ -38,3 +38,46 @@ def test_ctrl_c_during_sim_says_it_was_interrupted_and_stops_everything(tmp_path
     assert "epc-offboard sim: interrupted (Ctrl-C)" in err
     assert "Traceback" not in err
     assert _group_alive(proc.pid) == []  # no SITL, service or helper left flying
+
+
+def _stamp_s(line: str) -> float:
+    """The wall-clock seconds of a human-format log line ('2026-11-28 06:29:51,685 ...')."""
+    clock = line.split()[1]
+    h, m, s = clock.replace(",", ".").split(":")
+    return 3600 * int(h) + 60 * int(m) + float(s)
+
+
+def test_the_wait_for_the_autopilot_is_counted_from_the_links_opening(tmp_path: Path) -> None:
+    # counted from the service's construction, the start-up (a first start's compile: 154 s
+    # at load 8) was said as silence on a link that had just opened, and stood among the
+    # first sim's warnings ("no HEARTBEAT ... for 154 s: nothing received")
+    from epc_offboard.common.ports import free_port
+    from epc_offboard.service.supervisor import WAITING_WARN_FIRST_S
+
+    root = Path(__file__).resolve().parent.parent
+    port = free_port()
+    config = (root / "config" / "sitl.toml").read_text()
+    config = config.replace("udpin://127.0.0.1:14540", f"udpin://127.0.0.1:{port}")
+    config = config.replace("out/sitl-service/library.sqlite", str(tmp_path / "lib.sqlite"))
+    (tmp_path / "service.toml").write_text(config)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "epc_offboard", "run", "--config", str(tmp_path / "service.toml")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"), start_new_session=True,
+    )  # fmt: skip
+    assert proc.stderr is not None
+    lines: list[str] = []
+    try:
+        for line in proc.stderr:
+            lines.append(line)
+            if "no HEARTBEAT from the autopilot" in line:
+                break
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.wait(timeout=30)
+    opened = next(line for line in lines if "epc-offboard running:" in line)
+    warning = lines[-1]
+    assert "no HEARTBEAT from the autopilot" in warning, "".join(lines)
+    # the link opens, then "running" is logged: the first warning comes no earlier than
+    # WAITING_WARN_FIRST_S after it (log stamps are to the ms)
+    assert _stamp_s(warning) - _stamp_s(opened) >= WAITING_WARN_FIRST_S - 0.01, "".join(lines)

@@ -440,6 +440,7 @@ class Service:
             raise OSError(f"link.url {self.cfg.link.url}: cannot open: "
                           f"{exc.strerror or exc}") from exc  # fmt: skip
         TIMELINE.mark("link_open")
+        self.supervisor.link_opened()  # the wait for the autopilot starts now, not at build
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)
         loop.add_signal_handler(signal.SIGINT, self.request_stop)
