@@ -251,3 +251,19 @@ def test_sim_says_once_that_a_cold_cache_compiles_and_nothing_when_warm(
     assert main(argv) == 0
     assert "compiling" not in capsys.readouterr().err
     assert len(flown) == 3
+
+
+def test_db_export_to_a_directory_says_so_and_leaves_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # it ended in a traceback (IsADirectoryError from the .tmp's rename) and left OUT.tmp
+    good = tmp_path / "good.sqlite"
+    LibraryStore.open(good).close()
+    folder = tmp_path / "exports"
+    folder.mkdir()
+    assert main(["db", "export", str(good), str(folder)]) == 2
+    assert f"{folder}: is a directory" in capsys.readouterr().err
+    assert main(["db", "export", str(good), str(tmp_path / "none" / "x.json")]) == 2
+    assert "no folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exports", "good.sqlite"]
+    assert list(folder.iterdir()) == []
