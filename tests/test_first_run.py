@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 
 def _group_alive(pgid: int) -> list[str]:
     ps = subprocess.run(["ps", "-o", "pid=,args=", "-g", str(pgid)], capture_output=True,
@@ -81,3 +83,34 @@ def test_the_wait_for_the_autopilot_is_counted_from_the_links_opening(tmp_path: 
     # the link opens, then "running" is logged: the first warning comes no earlier than
     # WAITING_WARN_FIRST_S after it (log stamps are to the ms)
     assert _stamp_s(warning) - _stamp_s(opened) >= WAITING_WARN_FIRST_S - 0.01, "".join(lines)
+
+
+def test_a_mistyped_bundled_config_name_is_answered_with_the_names(tmp_path: Path) -> None:
+    # `run --config sitll` said only "sitll: config file not found"
+    proc = subprocess.run([sys.executable, "-m", "epc_offboard", "run", "--config", "sitll"],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert "sitll: config file not found, nor a bundled config (default, sitl): did you mean " \
+        "sitl?" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_bench_says_once_that_a_cold_cache_compiles_and_nothing_when_warm(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from epc_offboard.cli import main
+    from epc_offboard.common import jit
+
+    if not jit.numba_installed():
+        pytest.skip("no numba: nothing compiles")
+    benched: list[object] = []
+    monkeypatch.setattr("epc_offboard.tools.bench_lwpr.main", lambda a: benched.append(a) or 0)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv(jit.ENV, raising=False)
+    assert main(["bench", "--lwpr"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("epc-offboard bench: first run: compiling the control kernels") == 1, err
+    assert jit.mark_cache_warm()
+    assert main(["bench", "--lwpr"]) == 0
+    assert "compiling" not in capsys.readouterr().err
+    assert len(benched) == 2

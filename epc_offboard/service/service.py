@@ -626,7 +626,17 @@ def run_service_command(args: argparse.Namespace) -> int:
     from epc_offboard.common.bundled import bundled_config
     from epc_offboard.common.errors import UsageError
 
-    args.config = str(bundled_config(args.config))  # `--config sitl`: the bundled one
+    given = args.config
+    args.config = str(bundled_config(given))  # `--config sitl`: the bundled one
+    if not Path(args.config).exists() and "/" not in given and not given.endswith(".toml"):
+        import difflib
+
+        from epc_offboard.common.bundled import bundled_names
+
+        names = bundled_names()
+        close = difflib.get_close_matches(given, names, n=1)
+        raise UsageError(f"{given}: config file not found, nor a bundled config ("
+                         f"{', '.join(names)})" + (f": did you mean {close[0]}?" if close else ""))
     try:
         cfg = load_service_config(args.config)
     except ConfigError as exc:
