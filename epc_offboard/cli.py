@@ -424,6 +424,32 @@ def _add_fleet(sub: _Subparsers) -> None:
                         help="answer and send UDP multicast scouting (off: explicit endpoints)")
 
 
+def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    """The parser of ``command`` (its usage line is the one a mistyped flag wants)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            found = action.choices.get(command)
+            if isinstance(found, argparse.ArgumentParser):
+                return found
+    return parser
+
+
+def _unrecognized(parser: argparse.ArgumentParser, command: str, extra: list[str]) -> str:
+    """'unrecognized arguments: ...', with the command's closest flag for each mistyped one
+    (a PX4 user's `sim --scenaro` got the top-level usage and no hint)."""
+    import difflib
+
+    flags = [o for a in _subparser(parser, command)._actions for o in a.option_strings]
+    hints = []
+    for word in extra:
+        if word.startswith("--"):
+            close = difflib.get_close_matches(word.split("=")[0], flags, n=1)
+            if close:
+                hints.append(f"{word.split('=')[0]}: did you mean {close[0]}?")
+    return f"unrecognized arguments: {' '.join(extra)}" + (f" ({'; '.join(hints)})"
+                                                          if hints else "")  # fmt: skip
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     if list(sys.argv[1:] if argv is None else argv)[:1] == ["run"]:
         # compiled kernels or their numpy twins, chosen before anything imports them (the
@@ -439,7 +465,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # before the first option, and leaves later paths over; they are the same list
         args.paths += extra
     elif extra:
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        _subparser(parser, args.command).error(_unrecognized(parser, args.command, extra))
     module_name, func_name = _COMMANDS[args.command].split(":")
     try:
         module = importlib.import_module(module_name)
@@ -454,7 +480,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (UsageError, ConfigError) as exc:
         print(f"epc-offboard: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # Ctrl-C: said (it ended silently), what it started stopped
+        print(f"epc-offboard {args.command}: interrupted (Ctrl-C)", file=sys.stderr)
         return EXIT_RUNTIME
 
 

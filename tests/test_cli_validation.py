@@ -234,3 +234,20 @@ def test_the_service_names_a_serial_device_it_cannot_open(tmp_path: Path) -> Non
     says(proc.stderr, f"link.url serial://{device}:921600: cannot open",
          "No such file or directory")  # fmt: skip
     assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("argv", "command", "hint"),
+    [(["sim", "--scenaro", "hover"], "sim", "--scenaro: did you mean --scenario?"),
+     (["bench", "--stpes", "3"], "bench", "--stpes: did you mean --steps?"),
+     (["sim", "--gcs-prot=0"], "sim", "--gcs-prot: did you mean --gcs-port?")],
+)  # fmt: skip
+def test_a_mistyped_flag_gets_its_commands_usage_and_the_flag_it_meant(
+    argv: list[str], command: str, hint: str
+) -> None:
+    # it printed the top-level usage ("epc-offboard [-h] [--version] COMMAND ...") and no hint
+    proc = subprocess.run([sys.executable, "-m", "epc_offboard", *argv], capture_output=True,
+                          text=True, timeout=60, cwd=ROOT)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    says(proc.stderr, f"usage: epc-offboard {command} ", f"epc-offboard {command}: error: "
+         "unrecognized arguments", hint)  # fmt: skip

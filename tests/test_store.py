@@ -17,6 +17,7 @@ from epc_offboard.control.library_types import LibraryEntry
 from epc_offboard.store.database import (
     LibraryStore,
     StoreError,
+    StoreRefusedError,
     decode_active_set,
     encode_active_set,
 )
@@ -78,9 +79,8 @@ def test_bad_rows_are_skipped_not_fatal(tmp_path):
     [
         lambda p: p.write_bytes(b"this is not a database at all" * 100),
         lambda p: p.write_bytes(p.read_bytes()[:1500]),  # truncated
-        lambda p: _set_version(p, "999"),
     ],
-    ids=["garbage", "truncated", "other-schema"],
+    ids=["garbage", "truncated"],
 )
 def test_unusable_file_is_moved_aside_and_store_starts_empty(tmp_path, damage, caplog):
     path = tmp_path / "lib.sqlite"
@@ -92,13 +92,6 @@ def test_unusable_file_is_moved_aside_and_store_starts_empty(tmp_path, damage, c
     aside = list(tmp_path.glob("lib.sqlite.corrupt-*"))
     assert [p.name for p in aside if not p.name.endswith(("-wal", "-shm"))]
     assert "moved aside" in caplog.text
-
-
-def _set_version(path, version):
-    conn = sqlite3.connect(path)
-    conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (version,))
-    conn.commit()
-    conn.close()
 
 
 def test_kill_9_keeps_every_committed_controller(tmp_path):
@@ -224,7 +217,8 @@ def _drop_version(path):
 def test_an_unversioned_empty_library_is_finished_one_with_rows_refused(tmp_path):
     """The file an old creation left when killed between its tables and its version is
     finished, not refused nor moved aside. One that holds rows is not guessed at: refused
-    offline, moved aside by the service, as before."""
+    offline and by the service too, nothing moved (stop 41: another version's library is
+    refused, not destroyed; tests/test_store_path.py)."""
     full = tmp_path / "full.sqlite"
     with LibraryStore.open(full) as store:
         store.save_controllers(SIG, [LibraryEntry((1,), 1.0, 1)])
@@ -233,9 +227,9 @@ def test_an_unversioned_empty_library_is_finished_one_with_rows_refused(tmp_path
         LibraryStore.open(full, repair=False)
     with pytest.raises(StoreError, match="schema version None"):
         LibraryStore.open_readonly(full)
-    with LibraryStore.open(full) as store:
-        assert store.load_controllers(SIG) == []
-    assert list(tmp_path.glob("full.sqlite.corrupt-*"))
+    with pytest.raises(StoreRefusedError, match="schema version None"):
+        LibraryStore.open(full)
+    assert not list(tmp_path.glob("full.sqlite.corrupt-*"))
 
     path = tmp_path / "lib.sqlite"
     LibraryStore.open(path).close()

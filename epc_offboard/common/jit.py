@@ -9,7 +9,8 @@ behave exactly as without numba. A cold start (empty cache) compiles for 10-30 s
 companion computer; the service then flies on the twins and compiles into the cache in a
 background process (``service.coldstart``), which marks the cache warm when it is done.
 
-No I/O beyond reading and writing that one marker file.
+No I/O beyond reading and writing that one marker file, and :func:`announce_cold_compile`'s
+one line on stderr.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import sys
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
@@ -96,6 +98,30 @@ def mark_cache_warm() -> bool:
         marker.write_text("compiled\n")
     except OSError:
         return False
+    return True
+
+
+def will_compile() -> bool:
+    """Whether this process, or the services it starts with ``EPC_OFFBOARD_JIT=1``, will
+    compile the kernels now: numba installed, not switched off, and the cache not marked
+    warm (a first run after an install, an upgrade or an edited kernel)."""
+    return numba_installed() and enabled() and not cache_warm()
+
+
+# what a first run says while numba compiles (a new user took the silence for a hang)
+COLD_COMPILE_NOTE = (
+    "first run: compiling the control kernels with numba into its cache (once per install "
+    "or upgrade; 1-3 min on 2 busy cores, longer on a companion computer; nothing is "
+    "printed meanwhile); later runs start in seconds"
+)
+
+
+def announce_cold_compile(command: str) -> bool:
+    """Say once on stderr, for ``epc-offboard COMMAND``, that the kernels are about to
+    compile (:func:`will_compile`); nothing when the cache is warm. Whether it said it."""
+    if not will_compile():
+        return False
+    print(f"epc-offboard {command}: {COLD_COMPILE_NOTE}", file=sys.stderr, flush=True)
     return True
 
 

@@ -75,6 +75,7 @@ from epc_offboard.service.step_parts import CompileCounter, StepParts
 from epc_offboard.service.supervisor import Supervisor
 from epc_offboard.service.systemd import Systemd
 from epc_offboard.service.timing import LoopTiming
+from epc_offboard.store.database import StoreRefusedError, library_refusal, store_path_refused
 from epc_offboard.vehicle import commands
 from epc_offboard.vehicle.offboard import Action, Outputs, Phase
 from epc_offboard.vehicle.state import StateTracker
@@ -394,7 +395,16 @@ class Service:
         t0 = time.perf_counter()
         self.misses.start(wait=False)  # the worker's imports overlap the warm-up
         if jit.enabled():
+            cold = jit.will_compile()
+            if cold:
+                log.info("control kernels: %s", jit.COLD_COMPILE_NOTE)
             log.info("control kernels compiled and warmed in %.2f s", self.cascade.warm_up())
+            # marked as the background compile marks it, when this cascade is one that
+            # compiles every kernel (EPC and LWPR: `run`'s default config's)
+            full = self.cfg.position.controller == "epc" and self.cfg.estimator.kind == "lwpr"
+            if cold and full and not jit.mark_cache_warm():
+                log.warning("cannot mark the kernel cache warm in %s (set NUMBA_CACHE_DIR to a "
+                            "writable directory)", jit.cache_dir())  # fmt: skip
         else:  # a cold cache: coldstart.py compiles them in the background for the next start
             log.warning("control kernels: numpy twins (no compiled kernels in the cache: "
                         "compiling them in the background for the next start); warmed in "
@@ -430,6 +440,7 @@ class Service:
             raise OSError(f"link.url {self.cfg.link.url}: cannot open: "
                           f"{exc.strerror or exc}") from exc  # fmt: skip
         TIMELINE.mark("link_open")
+        self.supervisor.link_opened()  # the wait for the autopilot starts now, not at build
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGTERM, self.request_stop)
         loop.add_signal_handler(signal.SIGINT, self.request_stop)
@@ -615,11 +626,24 @@ def run_service_command(args: argparse.Namespace) -> int:
     from epc_offboard.common.bundled import bundled_config
     from epc_offboard.common.errors import UsageError
 
-    args.config = str(bundled_config(args.config))  # `--config sitl`: the bundled one
+    given = args.config
+    args.config = str(bundled_config(given))  # `--config sitl`: the bundled one
+    if not Path(args.config).exists() and "/" not in given and not given.endswith(".toml"):
+        import difflib
+
+        from epc_offboard.common.bundled import bundled_names
+
+        names = bundled_names()
+        close = difflib.get_close_matches(given, names, n=1)
+        raise UsageError(f"{given}: config file not found, nor a bundled config ("
+                         f"{', '.join(names)})" + (f": did you mean {close[0]}?" if close else ""))
     try:
         cfg = load_service_config(args.config)
     except ConfigError as exc:
         raise UsageError(str(exc)) from exc
+    refused = library_refusal(cfg.store.path) if cfg.store.path else None
+    if refused is not None:  # nothing moved: the user's directory or file is theirs
+        raise UsageError(store_path_refused(args.config, cfg.store.path, refused))
     TIMELINE.mark("config")
     setup_logging(cfg.log)
     # from here the log lines go through a pump process, never blocking the loops' thread
@@ -633,6 +657,8 @@ def run_service_command(args: argparse.Namespace) -> int:
     service.exit_grace_s = EXIT_GRACE_S
     try:
         return asyncio.run(service.run())
+    except StoreRefusedError as exc:  # the path changed since the check above
+        raise UsageError(store_path_refused(args.config, cfg.store.path, str(exc))) from exc
     except OSError as exc:
         print(f"epc-offboard: {exc}", file=sys.stderr)
         return 1

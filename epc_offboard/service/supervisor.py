@@ -90,6 +90,13 @@ class Supervisor:
         self._waiting_warn_s = self._waiting_warn_first_s
         self._lingering = False  # landed, still up for the fleet (mission.linger_after_landing)
 
+    def link_opened(self) -> None:
+        """The link is open: the wait for the autopilot is counted from now. Counted from
+        the service's construction, a first start's compile (154 s at load 8) was said at
+        the link's opening as "no HEARTBEAT ... for 154 s: nothing received" and stood in
+        the first sim's warnings."""
+        self._waiting_since_s = time.monotonic()
+
     def reconfigure(self, cfg: ServiceConfig) -> None:
         """New offboard and mission settings (SIGHUP)."""
         self.cfg = cfg

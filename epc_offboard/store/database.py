@@ -9,8 +9,12 @@ What is stored is experience, never gains: each controller is an active set (sor
 constraint row indices of the problem) under the problem signature it belongs to, with its
 importance and use count; transitions between active sets; and opaque model blobs (LWPR).
 Rows are validated when read: a row that does not parse is skipped and counted, never fatal.
-A file that is not a database, fails SQLite's quick_check, or has another schema version is
-moved aside (``NAME.corrupt-YYYYmmddTHHMMSS``) with a log line, and a new empty store opens.
+A file that is not a database or fails SQLite's quick_check is corrupt: the service moves it
+aside (``NAME.corrupt-YYYYmmddTHHMMSS``) with a log line, and a new empty store opens. A path
+that cannot be a library is refused, nothing moved (:class:`StoreRefusedError`,
+:func:`library_refusal`): a directory, a parent that is a file, a directory this user cannot
+write, a read-only filesystem, a symlink to nothing, another application's SQLite file, a
+library of another schema version (a newer release's, which an older one must not destroy).
 
 Offline transfer between vehicles (``epc-offboard db``, :mod:`epc_offboard.tools.db`) reads a whole
 library as a :class:`LibrarySnapshot` and writes one back in a single transaction, so an
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sqlite3
 import threading
 import time
@@ -88,6 +93,87 @@ class StoreError(EpcError, RuntimeError):
     """The library file could not be used."""
 
 
+class StoreRefusedError(StoreError):
+    """The path cannot hold this service's library and nothing there is moved or written:
+    the user's mistake (a directory, another application's file, ...), not corruption."""
+
+
+# SQLite's answers that say the path, not the file's content, is unusable
+_PATH_ERRORS = frozenset({"SQLITE_CANTOPEN", "SQLITE_READONLY", "SQLITE_PERM", "SQLITE_AUTH"})
+
+
+def path_refusal(path: str | Path) -> str | None:
+    """Why ``path`` cannot hold a library, found without writing anything, or None: a
+    directory or another non-file there, a symlink to nothing, an ancestor that is a file,
+    a read-only filesystem, a directory or file this user may not write."""
+    p = Path(path).absolute()
+    if p.is_symlink() and not p.exists():
+        return f"a symlink to {os.readlink(p)}, which does not exist"
+    if p.exists() and not p.is_file():
+        return "is a directory, not a library file" if p.is_dir() else "is not a regular file"
+    ancestor = p.parent
+    while not ancestor.exists() and not ancestor.is_symlink():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        return f"{ancestor} is not a directory"
+    if os.statvfs(ancestor).f_flag & os.ST_RDONLY:
+        return f"{ancestor} is on a read-only filesystem"
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        return f"directory {ancestor} is not writable by this user (uid {os.getuid()})"
+    if p.exists() and not os.access(p, os.R_OK | os.W_OK):
+        return f"not readable and writable by this user (uid {os.getuid()})"
+    return None
+
+
+def library_refusal(path: str | Path) -> str | None:
+    """Why the service must refuse ``path`` as its library (:func:`path_refusal`, or a file
+    that is another application's SQLite or a library of another schema version), read
+    without writing; None when it can open it: a missing or empty file, a library, or a
+    corrupt file (which :meth:`LibraryStore.open` moves aside)."""
+    reason = path_refusal(path)
+    p = Path(path)
+    if reason is not None or not p.is_file() or p.stat().st_size == 0:
+        return reason
+    # immutable: no -wal/-shm made beside it, when there is no -wal to read
+    uri = p.resolve().as_uri() + "?mode=ro" + ("" if Path(f"{p}-wal").exists() else "&immutable=1")
+    try:
+        conn = sqlite3.connect(uri, uri=True)
+    except sqlite3.DatabaseError:
+        return None  # the read-write open says why
+    try:
+        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if tables and "meta" not in tables:
+            return _foreign(tables)
+        if not tables:
+            return None  # a creation killed before its first table: finished by the open
+        row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        if row is None and _creation_cut_short(conn, tables, readonly=False):
+            return None  # finished by the open
+        return None if row is not None and row[0] == str(SCHEMA_VERSION) else _other_version(row)
+    except sqlite3.DatabaseError:
+        return None  # corrupt: moved aside by the open
+    finally:
+        conn.close()
+
+
+def _foreign(tables: set[str]) -> str:
+    return (f"not an epc-offboard library (no meta table; its tables: "
+            f"{', '.join(sorted(tables)) or 'none'})")  # fmt: skip
+
+
+def _other_version(row: tuple[str] | None) -> str:
+    return (f"a library of schema version {row[0] if row else None}, this release reads "
+            f"{SCHEMA_VERSION}")  # fmt: skip
+
+
+def store_path_refused(where: str | Path, path: str | Path, reason: str) -> str:
+    """The message of a ``store.path`` refused (exit code 2): where the path came from (the
+    config file, ``--out DIR``), the key, the path and why; the reason's own copy of the
+    path dropped."""
+    reason = reason.removeprefix(f"{path}: ")
+    return f"{where}: `store.path` {path}: {reason} (nothing was moved or written)"
+
+
 def encode_active_set(active_set: Iterable[int]) -> str:
     return json.dumps(sorted(int(i) for i in active_set), separators=(",", ":"))
 
@@ -111,26 +197,42 @@ class LibraryStore:
     def open(cls, path: str | Path, *, repair: bool = True) -> LibraryStore:
         """Open or create the store.
 
-        A corrupt or incompatible file is moved aside and a new one started when ``repair``
-        (the service: it must fly); otherwise :class:`StoreError` names the problem and the
-        file is left as it is (the offline tools: a user's file is never moved under them).
+        :class:`StoreRefusedError` when the path cannot hold a library (:func:`path_refusal`,
+        another application's SQLite file, another schema version): nothing moved. A corrupt
+        file is moved aside and a new one started when ``repair`` (the service: it must fly);
+        otherwise :class:`StoreError` names the problem and the file is left as it is (the
+        offline tools: a user's file is never moved under them).
         """
         p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
+        reason = library_refusal(p)  # read first: a refused file gets no -wal or -shm
+        if reason is not None:
+            raise StoreRefusedError(f"{p}: {reason}")
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreRefusedError(f"{p}: cannot create {p.parent}: {exc.strerror}") from exc
         try:
             return cls(p, _conn=_connect(p))
-        except (sqlite3.DatabaseError, StoreError) as exc:
+        except StoreRefusedError as exc:
+            raise StoreRefusedError(f"{p}: {exc}") from exc
+        except sqlite3.DatabaseError as exc:
+            if getattr(exc, "sqlite_errorname", "") in _PATH_ERRORS:
+                raise StoreRefusedError(f"{p}: cannot open or write it: {exc}") from exc
             if not repair:
                 raise StoreError(f"{p}: not a usable library: {exc}") from exc
-            aside = p.with_name(f"{p.name}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}")
-            log.error(
-                "library %s is unusable (%s): moved aside to %s, starting empty", p, exc, aside
-            )
-            for suffix in ("", "-wal", "-shm"):
-                side = Path(str(p) + suffix)
-                if side.exists():
-                    side.rename(Path(str(aside) + suffix))
-            return cls(p, _conn=_connect(p))
+            failure: Exception = exc
+        except StoreError as exc:
+            if not repair:
+                raise StoreError(f"{p}: not a usable library: {exc}") from exc
+            failure = exc
+        aside = p.with_name(f"{p.name}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}")
+        log.error("library %s is corrupt (%s): moved aside to %s, starting empty", p, failure,
+                  aside)  # fmt: skip
+        for suffix in ("", "-wal", "-shm"):
+            side = Path(str(p) + suffix)
+            if side.exists():
+                side.rename(Path(str(aside) + suffix))
+        return cls(p, _conn=_connect(p))
 
     @classmethod
     def open_readonly(cls, path: str | Path, *, immutable: bool = False) -> LibraryStore:
@@ -142,9 +244,12 @@ class LibraryStore:
         """
         p = Path(path)
         if not p.is_file():
-            raise StoreError(f"{p}: no such library file")
+            reason = path_refusal(p) if p.exists() or p.is_symlink() else None
+            raise StoreError(f"{p}: {reason or 'no such library file'}")
         try:
             return cls(p, _conn=_connect(p, readonly=True, immutable=immutable))
+        except StoreRefusedError as exc:
+            raise StoreRefusedError(f"{p}: {exc}") from exc
         except (sqlite3.DatabaseError, StoreError) as exc:
             raise StoreError(f"{p}: not a usable library: {exc}") from exc
 
@@ -430,8 +535,10 @@ def _connect(
         if check is None or check[0] != "ok":
             raise StoreError(f"quick_check failed: {check}")
         tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-        if (tables or readonly) and "meta" not in tables:
-            raise StoreError("not an epc-offboard library (no meta table)")
+        if tables and "meta" not in tables:  # another application's SQLite file
+            raise StoreRefusedError(_foreign(tables))
+        if readonly and not tables:
+            raise StoreError("not an epc-offboard library (an empty SQLite file)")
         if "meta" in tables:
             row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
             if row is None and _creation_cut_short(conn, tables, readonly=readonly):
@@ -441,9 +548,7 @@ def _connect(
                     path, "read as empty" if readonly else "finished",
                 )  # fmt: skip
             elif row is None or row[0] != str(SCHEMA_VERSION):
-                raise StoreError(
-                    f"schema version {row[0] if row else None}, expected {SCHEMA_VERSION}"
-                )
+                raise StoreRefusedError(_other_version(row))
         if not readonly:
             # the schema and its version in ONE transaction: a kill leaves both or neither
             conn.executescript(f"BEGIN IMMEDIATE;{_SCHEMA}{_SET_VERSION}COMMIT;")

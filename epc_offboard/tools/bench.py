@@ -300,6 +300,10 @@ def format_table(report: dict[str, Any]) -> str:
 
 
 def run_bench_command(args: argparse.Namespace) -> int:
+    from epc_offboard.common import jit
+
+    if not getattr(args, "fleet", False):  # (the light vehicles run no kernel)
+        jit.announce_cold_compile("bench")
     if getattr(args, "fleet", False):
         from epc_offboard.tools.bench_fleet import run_fleet_bench_command
 

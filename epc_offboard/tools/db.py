@@ -428,14 +428,24 @@ def _info(path: Path, signatures: list[str] | None) -> int:
 
 
 def _export(path: Path, out: Path, signatures: list[str] | None) -> int:
+    if str(out) != "-":  # said before the library is read (a traceback, and OUT.tmp left)
+        if out.is_dir():
+            raise UsageError(f"{out}: is a directory: give the export a file name, e.g. "
+                             f"{out / (path.stem + '.json')}")  # fmt: skip
+        if not out.parent.is_dir():
+            raise UsageError(f"{out}: no folder {out.parent}")
     snap = select(read_library(path)[0], signatures)
     text = json.dumps(snapshot_to_json(snap, path.name), indent=1)
     if str(out) == "-":
         sys.stdout.write(text + "\n")
     else:
         tmp = out.with_name(out.name + ".tmp")
-        tmp.write_text(text + "\n", encoding="utf-8")
-        tmp.replace(out)  # never leave a half-written export behind
+        try:
+            tmp.write_text(text + "\n", encoding="utf-8")
+            tmp.replace(out)  # never leave a half-written export behind
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise UsageError(f"{out}: cannot write the export: {exc.strerror or exc}") from exc
         counts = snap.counts()
         print(
             f"{out}: {counts['controllers']} controllers, {counts['transitions']} transitions, "

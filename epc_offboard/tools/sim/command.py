@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from epc_offboard.common import jit
 from epc_offboard.common.children import die_with_launcher
 from epc_offboard.common.errors import EXIT_RUNTIME
 from epc_offboard.tools.sim.options import SimOptions, sim_options
@@ -39,6 +40,9 @@ def run_sim_command(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"epc-offboard sim: {exc}", file=sys.stderr)
         return EXIT_RUNTIME
+    # the services start with EPC_OFFBOARD_JIT=1 (orchestrate.service_env): on a cold cache
+    # each compiles before its first tick, 1-2 min of silence on a fresh install
+    jit.announce_cold_compile("sim")
     if options.compare is not None:
         from epc_offboard.tools.compare import run_compare
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from epc_offboard.common.cliargs import MAX_PORT, WindProfile, parse_wind_profile
 from epc_offboard.common.configio import ConfigError
 from epc_offboard.common.errors import UsageError
+from epc_offboard.store.database import library_refusal, store_path_refused
 from epc_offboard.tools.sim.scenario import CONFIG_DIR, ScenarioConfig, load_scenario
 from epc_offboard.tools.targets import method_name, parse_method
 
@@ -111,6 +112,7 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
     profile = args.wind_profile or parse_wind_profile(scenario.wind_profile)
     compare = None if args.compare is None else _compare_methods(args.compare, scenario)
     _check_outputs(Path(args.out), Path(args.json) if args.json else None)
+    _check_libraries(Path(args.out), args.vehicles, compare)
     return SimOptions(
         scenario_name=args.scenario,
         scenario=scenario,
@@ -169,6 +171,20 @@ def _check_outputs(out_dir: Path, json_path: Path | None) -> None:
             raise UsageError(f"--json {json_path}: is a folder")
         if not json_path.parent.is_dir():
             raise UsageError(f"--json {json_path}: no folder {json_path.parent}")
+
+
+def _check_libraries(out_dir: Path, vehicles: int, compare: tuple[str, ...] | None) -> None:
+    """Each vehicle's library (``store.path`` DIR/library-K.sqlite, DIR the ``--out`` or,
+    with ``--compare``, each method's folder in it) must be one the service can open: a
+    directory or another application's file there is refused now, nothing moved, not found
+    by the service and moved aside as corrupt."""
+    dirs = [out_dir] if compare is None else [out_dir / m.replace(":", "-") for m in compare]
+    for folder in dirs:
+        for k in range(1, vehicles + 1):
+            path = folder / f"library-{k}.sqlite"
+            reason = library_refusal(path)
+            if reason is not None:
+                raise UsageError(store_path_refused(f"--out {out_dir}", path, reason))
 
 
 def _scenario(name: str, duration_s: float | None) -> ScenarioConfig:
