@@ -104,7 +104,12 @@ def test_bench_says_once_that_a_cold_cache_compiles_and_nothing_when_warm(
     if not jit.numba_installed():
         pytest.skip("no numba: nothing compiles")
     benched: list[object] = []
-    monkeypatch.setattr("epc_offboard.tools.bench_lwpr.main", lambda a: benched.append(a) or 0)
+
+    def bench_lwpr(a: object) -> int:
+        benched.append(a)
+        return 0
+
+    monkeypatch.setattr("epc_offboard.tools.bench_lwpr.main", bench_lwpr)
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.delenv(jit.ENV, raising=False)
     assert main(["bench", "--lwpr"]) == 0

@@ -186,7 +186,12 @@ def test_a_file_that_is_not_a_database_is_still_moved_aside_and_said_corrupt(
 
 def _never_fly(monkeypatch: pytest.MonkeyPatch) -> list[object]:
     flown: list[object] = []
-    monkeypatch.setattr("epc_offboard.tools.sim.command.run_one", lambda o: flown.append(o) or 0)
+
+    def run_one(o: object) -> int:
+        flown.append(o)
+        return 0
+
+    monkeypatch.setattr("epc_offboard.tools.sim.command.run_one", run_one)
     monkeypatch.setattr("epc_offboard.tools.sim.command.check_ports", lambda _o: None)
     return flown
 
