@@ -141,19 +141,34 @@ def library_refusal(path: str | Path) -> str | None:
     except sqlite3.DatabaseError:
         return None  # the read-write open says why
     try:
-        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-        if tables and "meta" not in tables:
-            return _foreign(tables)
-        if not tables:
-            return None  # a creation killed before its first table: finished by the open
-        row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
-        if row is None and _creation_cut_short(conn, tables, readonly=False):
-            return None  # finished by the open
-        return None if row is not None and row[0] == str(SCHEMA_VERSION) else _other_version(row)
+        # judged as the read-write open judges it: a creation cut short is finished there
+        return _not_ours(conn, _tables(conn), readonly=False)[0]
     except sqlite3.DatabaseError:
         return None  # corrupt: moved aside by the open
     finally:
         conn.close()
+
+
+def _tables(conn: sqlite3.Connection) -> set[str]:
+    return {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+
+
+def _not_ours(conn: sqlite3.Connection, tables: set[str], *,
+              readonly: bool) -> tuple[str | None, bool]:  # fmt: skip
+    """Why an opened SQLite file with ``tables`` is not this release's library (another
+    application's file, another schema version), or None; and whether it is a library whose
+    creation was cut short (:func:`_creation_cut_short`: finished read-write, read as empty
+    read-only). A file with no tables is neither (a creation killed before its first)."""
+    if tables and "meta" not in tables:
+        return _foreign(tables), False
+    if "meta" not in tables:
+        return None, False
+    row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+    if row is None and _creation_cut_short(conn, tables, readonly=readonly):
+        return None, True
+    if row is None or row[0] != str(SCHEMA_VERSION):
+        return _other_version(row), False
+    return None, False
 
 
 def _foreign(tables: set[str]) -> str:
@@ -534,21 +549,17 @@ def _connect(
         check = conn.execute("PRAGMA quick_check").fetchone()
         if check is None or check[0] != "ok":
             raise StoreError(f"quick_check failed: {check}")
-        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-        if tables and "meta" not in tables:  # another application's SQLite file
-            raise StoreRefusedError(_foreign(tables))
+        tables = _tables(conn)
+        refused, cut_short = _not_ours(conn, tables, readonly=readonly)
+        if refused is not None:
+            raise StoreRefusedError(refused)
         if readonly and not tables:
             raise StoreError("not an epc-offboard library (an empty SQLite file)")
-        if "meta" in tables:
-            row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
-            if row is None and _creation_cut_short(conn, tables, readonly=readonly):
-                log.warning(
-                    "library %s: its creation was cut short (empty tables, no schema "
-                    "version): %s",
-                    path, "read as empty" if readonly else "finished",
-                )  # fmt: skip
-            elif row is None or row[0] != str(SCHEMA_VERSION):
-                raise StoreRefusedError(_other_version(row))
+        if cut_short:
+            log.warning(
+                "library %s: its creation was cut short (empty tables, no schema version): %s",
+                path, "read as empty" if readonly else "finished",
+            )  # fmt: skip
         if not readonly:
             # the schema and its version in ONE transaction: a kill leaves both or neither
             conn.executescript(f"BEGIN IMMEDIATE;{_SCHEMA}{_SET_VERSION}COMMIT;")
