@@ -302,13 +302,13 @@ def format_table(report: dict[str, Any]) -> str:
 def run_bench_command(args: argparse.Namespace) -> int:
     from epc_offboard.common import jit
 
-    if not getattr(args, "fleet", False):  # (the light vehicles run no kernel)
-        jit.announce_cold_compile("bench")
     if getattr(args, "fleet", False):
         from epc_offboard.tools.bench_fleet import run_fleet_bench_command
 
         return run_fleet_bench_command(list(args.vehicles), args.json,
                                        getattr(args, "late_joiner", False))
+    # every bench but the fleet's (its light vehicles run no kernel) compiles the kernels
+    jit.announce_cold_compile("bench")
     if getattr(args, "lwpr", False):
         from epc_offboard.tools import bench_lwpr
 
