@@ -12,9 +12,10 @@ import time
 import numpy as np
 import pytest
 
+from epc_offboard.common.procstats import progress
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.library_types import LibraryEntry
-from epc_offboard.service.miss_solver import MissSolver
+from epc_offboard.service.miss_solver import WATCH_EVERY_S, MissSolver
 from tests import test_sharing
 from tests.mpc_cases import exact_solution, hover_refs, position_problem
 
@@ -500,5 +501,78 @@ def test_a_worker_stopped_in_its_start_is_reported_or_restarted():
         assert solver.counters["worker_restarts"] == 1
         assert solver.worker_pid() not in (None, stopped)
         solver.wait_ready(timeout_s=30.0)
+    finally:
+        solver.close()
+
+
+# /proc opened by one thread while counting: an audit hook (every open the interpreter makes,
+# builtins.open and os.open alike), installed once per test process
+_PROC_OPENS = {"thread": None, "count": 0}
+
+
+def _count_proc_opens(event: str, args: tuple) -> None:
+    if (event == "open" and _PROC_OPENS["thread"] == threading.get_ident()
+            and isinstance(args[0], str) and args[0].startswith("/proc/")):  # fmt: skip
+        _PROC_OPENS["count"] += 1
+
+
+def _proc_opens_counted() -> None:
+    if not _PROC_OPENS.get("hooked"):
+        sys.addaudithook(_count_proc_opens)
+        _PROC_OPENS["hooked"] = True
+
+
+def _gone(pid: int) -> None:
+    t0 = time.monotonic()
+    while progress(pid) is not None:  # a zombie: its pipes closed
+        assert time.monotonic() - t0 < 30.0
+        time.sleep(0.01)
+
+
+def test_a_restarting_worker_reads_proc_seldom_on_the_loop_and_its_death_is_seen_at_once():
+    """Stop 42: while the worker restarted, every position tick asked its StartWatch, two
+    /proc reads on the loops' thread (tens of us a tick, for the whole start: 2.5 s idle,
+    90 s and more at load). The tick asks it every WATCH_EVERY_S now; a worker that dies
+    meanwhile is still seen at the next tick, by its replies' EOF."""
+    _proc_opens_counted()
+    ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl})
+    solver.start()
+    try:
+        first = solver.worker_pid()
+        assert first is not None
+        os.kill(first, signal.SIGKILL)
+        _gone(first)
+        x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
+        miss(ctrl, x0, [4.0, -3.0, 1.0])
+        solver.pump()  # its request finds the pipe closed: a new worker
+        assert solver.counters["worker_restarts"] == 1
+        starting = solver.worker_pid()
+        assert starting not in (None, first)
+        os.kill(starting, signal.SIGSTOP)  # held in its start, within its stall bound
+        window_s, ticks = 2.0, 0
+        _PROC_OPENS["thread"], _PROC_OPENS["count"] = threading.get_ident(), 0
+        t0 = time.monotonic()
+        try:
+            while time.monotonic() - t0 < window_s:  # the position loop's ticks
+                solver.pump()
+                ticks += 1
+                time.sleep(0.01)
+        finally:
+            _PROC_OPENS["thread"] = None
+        elapsed_s = time.monotonic() - t0
+        assert solver.counters["worker_restarts"] == 1
+        assert solver.worker_pid() == starting
+        # two reads (stat, schedstat) an ask; an ask every tick was two a tick
+        bound = 2 * (elapsed_s / WATCH_EVERY_S + 2)
+        assert ticks > 2 * bound  # (about 190 on an idle machine): a read a tick would fail
+        assert _PROC_OPENS["count"] <= bound, (_PROC_OPENS["count"], ticks)
+        solver.pump()  # asks only after WATCH_EVERY_S: the next tick's is its EOF's
+        os.kill(starting, signal.SIGKILL)
+        _gone(starting)
+        solver.pump()
+        assert solver.counters["worker_restarts"] == 2
+        assert solver.worker_pid() not in (None, first, starting)
+        solver.wait_ready()
     finally:
         solver.close()
