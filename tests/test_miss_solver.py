@@ -12,10 +12,10 @@ import time
 import numpy as np
 import pytest
 
-from epc_offboard.common.procstats import progress
+from epc_offboard.common.procstats import WATCH_EVERY_S, progress
 from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.library_types import LibraryEntry
-from epc_offboard.service.miss_solver import WATCH_EVERY_S, MissSolver
+from epc_offboard.service.miss_solver import MissSolver
 from tests import test_sharing
 from tests.mpc_cases import exact_solution, hover_refs, position_problem
 

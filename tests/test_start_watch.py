@@ -98,3 +98,16 @@ def test_a_stopped_attacker_fails_the_bench_with_the_cause(tmp_path: Path):
         for proc in attackers.procs.values():
             proc.kill()
             proc.wait()
+
+
+def test_verdict_every_samples_at_most_so_often_and_says_what_verdict_says():
+    """The loops' callers (the miss worker's pump, the fleet's turn) ask every
+    WATCH_EVERY_S, not every tick: between two samples it reads no /proc and says nothing;
+    a sample says what ``verdict`` says."""
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    watch = StartWatch(proc.pid, stall_s=5.0, cap_s=600.0)
+    proc.wait()
+    t0 = time.monotonic()
+    assert watch.verdict_every(10.0, t0) == "it ended"
+    assert watch.verdict_every(10.0, t0 + 9.9) is None  # not sampled
+    assert watch.verdict_every(10.0, t0 + 10.0) == "it ended"

@@ -6,11 +6,15 @@ the CPU figures are absent and the rest (queues, drops, restarts) is still given
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from typing import Any
 
 _TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+# how often a caller on the loops' thread asks a start's StartWatch (``verdict_every``): two
+# /proc reads, tens of us, were paid every position tick of a start (2.5-150 s) before stop 42
+WATCH_EVERY_S = 0.25
 _PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
 
 
@@ -125,7 +129,8 @@ class StartWatch:
     running or queued for a CPU. ``verdict`` is None while the child is starting: it is
     alive, and it ran or waited for a CPU within ``stall_s``; otherwise why it is not (gone;
     no progress for ``stall_s``: SIGSTOPped, blocked, wedged; or not up in ``cap_s`` though
-    moving: a loop that never ends). Call it at any pace; each call samples ``/proc``.
+    moving: a loop that never ends). Call it at any pace; each call samples ``/proc``
+    (:meth:`verdict_every`: at most so often).
     ``waits_on``: a process whose start the child's waits for (the bench's attackers connect
     to the service's fleet helper): while the child is not stopped, that process's tree's
     progress is the child's too."""
@@ -138,6 +143,7 @@ class StartWatch:
         self.cap_s = cap_s
         self.started_s = self.moved_s = time.monotonic()
         self._last = self._progress()
+        self._asked_s = -math.inf  # when verdict_every last sampled
 
     def restart_clock(self, now_s: float) -> None:
         """Judge from ``now_s`` on (a start whose clock runs from a later event)."""
@@ -162,3 +168,13 @@ class StartWatch:
         if now_s - self.started_s > self.cap_s:
             return f"not up in {self.cap_s:g} s though running"
         return None
+
+    def verdict_every(self, every_s: float, now_s: float | None = None) -> str | None:
+        """:meth:`verdict`, sampled at most every ``every_s`` (None between): for a caller
+        on the loops' thread that sees the child's end at once by other means (its pipe's
+        EOF, its exit), judging the start's stall and cap no sooner than it needs to."""
+        now_s = time.monotonic() if now_s is None else now_s
+        if now_s - self._asked_s < every_s:
+            return None
+        self._asked_s = now_s
+        return self.verdict(now_s)

@@ -53,7 +53,7 @@ from epc_offboard.common.blobs import ReceivedText, received_record
 from epc_offboard.common.channel import ChannelClosedError, FrameOutbox, RecordReader
 from epc_offboard.common.children import KILL_WAIT_S, Backoff, join_or_kill, start_counted
 from epc_offboard.common.logsetup import LogConfig
-from epc_offboard.common.procstats import process_report
+from epc_offboard.common.procstats import WATCH_EVERY_S, StartWatch, process_report
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.epc import MAX_SUCCESSORS, ExperienceController
 from epc_offboard.control.epc.exchange import FleetPort
@@ -85,7 +85,12 @@ log = logging.getLogger(__name__)
 _OFFERS_PER_SLICE = 3  # candidates offered in one stretch of the loops' thread
 _TURN_S = 0.05  # the library-sharing task's period: candidates, references, the helper
 _MAX_OUTBOX_BYTES = 4 << 20  # frames to the helper waiting in this process, at most
-_START_TIMEOUT_S = 30.0  # a helper that has not opened its session by then is restarted
+# its start (imports, the session's open) is judged by progress (procstats.StartWatch), as
+# the miss worker's: it failed once it used and waited for no CPU this long (SIGSTOP, a
+# block), or was not up in the cap though running. On a 30 s clock (before stop 42) a helper
+# still importing at load 12-17 was killed, and the next alike
+_START_TIMEOUT_S = 30.0
+_START_CAP_S = 600.0
 _STOP_TIMEOUT_S = 2.0  # its session closed and the process ended, or it is killed
 _REFERENCES_PER_READ = 4  # the newest of these is kept
 _HIGH_WATER_BYTES = 1 << 20  # session.HighWater's saved tables (a larger one is not kept)
@@ -201,6 +206,7 @@ class _Helper:
     outbox: FrameOutbox
     conns: list[Any]  # this process's Connection objects (closed with the helper)
     started_s: float
+    watch: StartWatch  # its start's progress (while its session is not open)
     failed: bool = False  # its pipes closed or it could not open its session
 
 
@@ -283,19 +289,22 @@ class FleetSharing:
     # -- lifecycle ------------------------------------------------------------------------
 
     async def open(self) -> None:
-        """Start the helper and wait until its session is open; RuntimeError if it cannot
-        open one (the service then flies alone)."""
+        """Start the helper and wait until its session is open, judged by its progress
+        (``_START_TIMEOUT_S`` without CPU, or ``_START_CAP_S`` though running); RuntimeError
+        if it cannot open one (the service then flies alone)."""
         self._start_helper()
         helper = self._helper
         assert helper is not None
-        deadline = time.monotonic() + _START_TIMEOUT_S
-        while self._slot("state") == 0:
-            if not helper.process.is_alive() or time.monotonic() > deadline:
+        why = "see the fleet helper's log"
+        while self._slot("state") == 0 and helper.process.is_alive():
+            stalled = helper.watch.verdict_every(WATCH_EVERY_S)
+            if stalled is not None:
+                why = f"not started: {stalled}"
                 break
             await asyncio.sleep(0.02)
         if self._slot("state") != 1:
             self._stop_helper(kill=True)
-            raise RuntimeError("the fleet session did not open (see the fleet helper's log)")
+            raise RuntimeError(f"the fleet session did not open ({why})")
         log.info("fleet helper up (process %s, nice +%d)", helper.process.pid,
                  self.cfg.helper_nice)  # fmt: skip
 
@@ -343,6 +352,7 @@ class FleetSharing:
             FrameOutbox(frames_w.fileno(), _MAX_OUTBOX_BYTES),
             [cand_r, ref_r, frames_w],
             time.monotonic(),
+            StartWatch(proc.pid or 0, _START_TIMEOUT_S, _START_CAP_S),
         )
         self._dirty = [False] * len(self._libraries)  # it started with the snapshots
 
@@ -441,8 +451,8 @@ class FleetSharing:
         beat_s = self._slot("heartbeat_ns") * 1e-9
         if helper.failed or not helper.process.is_alive() or state < 0:
             why = "died"
-        elif state == 0 and now_s - helper.started_s > _START_TIMEOUT_S:
-            why = "did not start"
+        elif state == 0 and (stalled := helper.watch.verdict_every(WATCH_EVERY_S, now_s)):
+            why = f"did not start: {stalled}"  # (asked every WATCH_EVERY_S, not every turn)
         elif state == 1 and now_s - beat_s > self.cfg.helper_timeout_s:
             why = f"was silent for {now_s - beat_s:.1f} s"
         else:

@@ -79,7 +79,7 @@ from epc_offboard.common.children import (
 )
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.frames import FloatArray
-from epc_offboard.common.procstats import StartWatch, process_report
+from epc_offboard.common.procstats import WATCH_EVERY_S, StartWatch, process_report
 from epc_offboard.control import kernels
 from epc_offboard.control.epc.candidates import CandidatePool
 from epc_offboard.control.epc.learner import Learner
@@ -99,10 +99,6 @@ STOP_TIMEOUT_S = 2.0
 # cap though running; a clock did not hold: 93-156 s at load 12-17, every second running
 START_TIMEOUT_S = 30.0
 START_CAP_S = 600.0
-# how often a tick asks the start's StartWatch (two /proc reads, tens of us: every position
-# tick of a start of 2.5-150 s before stop 42); a worker that dies meanwhile is its replies'
-# EOF at the next tick, read whatever this says
-WATCH_EVERY_S = 0.25
 WAIT_TIMEOUT_S = 30.0  # lockstep's wait for an answer: longer, and the worker is wedged
 WEDGED_S = 10.0  # real time: a request unanswered that long (a solve is tens of ms)
 _PIPE_BYTES = 1 << 20  # each pipe (Linux's default ceiling): a reply with its maps in one read
@@ -270,7 +266,6 @@ class _Process:
     replies: dict[int, _Reply[Any]] = field(default_factory=dict)
     next_seq: int = 0
     ready_waited: bool = False  # whether a read has started the start's clock
-    watched_s: float = float("-inf")  # when a read last asked ``watch`` (WATCH_EVERY_S)
 
     def close(self) -> None:
         for conn in self.conns:  # its EOF; its answer finds a closed pipe
@@ -479,10 +474,9 @@ class MissSolver:
         answer_s = WAIT_TIMEOUT_S if wait else self._wedged_s
         for reply in worker.replies.values():
             if reply is worker.ready:
-                if now - worker.watched_s < WATCH_EVERY_S:
-                    continue  # asked lately: its death is the EOF above, at once
-                worker.watched_s = now
-                why = worker.watch.verdict(now)
+                # asked every WATCH_EVERY_S, not every tick (two /proc reads): a worker
+                # that dies meanwhile is its replies' EOF above, at the next tick
+                why = worker.watch.verdict_every(WATCH_EVERY_S, now)
                 if why is not None:
                     self._restart(f"not started: {why}", wait)
                     return
