@@ -576,3 +576,36 @@ def test_a_restarting_worker_reads_proc_seldom_on_the_loop_and_its_death_is_seen
         solver.wait_ready()
     finally:
         solver.close()
+
+
+def test_a_start_polled_from_the_event_loop_reads_proc_seldom():
+    """The service's real-time start polls ``poll_ready`` on the event loop (every 50 ms,
+    the loops' thread once they fly): each poll asked StartWatch, two /proc reads; it asks
+    every WATCH_EVERY_S now, its death still seen by the next poll (the process's exit)."""
+    _proc_opens_counted()
+    ctrl = ExperienceController(position_problem(8), learn_on_miss=False)
+    solver = MissSolver({"position": ctrl})
+    solver.start(wait=False)
+    try:
+        starting = solver.worker_pid()
+        assert starting is not None
+        os.kill(starting, signal.SIGSTOP)  # held in its start, within its stall bound
+        window_s, polls = 1.0, 0
+        _PROC_OPENS["thread"], _PROC_OPENS["count"] = threading.get_ident(), 0
+        t0 = time.monotonic()
+        try:
+            while time.monotonic() - t0 < window_s:
+                assert solver.poll_ready() is False
+                polls += 1
+                time.sleep(0.01)
+        finally:
+            _PROC_OPENS["thread"] = None
+        bound = 2 * ((time.monotonic() - t0) / WATCH_EVERY_S + 2)
+        assert polls > 2 * bound  # (about 95 on an idle machine): a read a poll would fail
+        assert _PROC_OPENS["count"] <= bound, (_PROC_OPENS["count"], polls)
+        os.kill(starting, signal.SIGKILL)
+        _gone(starting)
+        with pytest.raises(RuntimeError, match="died in its start"):
+            solver.poll_ready()
+    finally:
+        solver.close()

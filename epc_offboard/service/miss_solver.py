@@ -398,7 +398,7 @@ class MissSolver:
             return True
         if self._worker is not worker or not worker.proc.is_alive():
             raise RuntimeError("EPC miss worker died in its start")
-        why = worker.watch.verdict()
+        why = worker.watch.verdict_every(WATCH_EVERY_S)  # its death: is_alive, above
         if why is not None:
             raise TimeoutError(f"EPC miss worker not started: {why}")
         return False
