@@ -138,7 +138,7 @@ def _lock(name: str) -> Iterator[None]:
         yield
 
 
-# The xdist work units and the order the two workers take them in. Each module is a unit
+# The xdist work units and the order the workers take them in. Each module is a unit
 # (--dist loadfile in pyproject's addopts: a module's tests on one worker, its module
 # fixtures, the compare flights, flown once), but the modules of real-time flights (an ALONE
 # test) are one unit together (RealtimeUnit), so that one worker flies them back to back while
