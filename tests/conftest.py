@@ -138,7 +138,7 @@ def _lock(name: str) -> Iterator[None]:
         yield
 
 
-# The xdist work units and the order the two workers take them in. Each module is a unit
+# The xdist work units and the order the workers take them in. Each module is a unit
 # (--dist loadfile in pyproject's addopts: a module's tests on one worker, its module
 # fixtures, the compare flights, flown once), but the modules of real-time flights (an ALONE
 # test) are one unit together (RealtimeUnit), so that one worker flies them back to back while
@@ -146,18 +146,22 @@ def _lock(name: str) -> Iterator[None]:
 # 3.8 names a test's group by rewriting its item's _nodeid, which pytest 9.2 no longer reads.)
 # Units go out in collection order (--no-loadscope-reorder: by default xdist re-sorts them by
 # their number of tests):
-# 1. REALTIME first: the longest unit (6-7 minutes of real-time flights, waits included).
+# 1. REALTIME first: the longest unit (6-7 minutes of real-time flights, waits included;
+#    test_lockstep_determinism's hog flights at its end).
 # 2. The longest modules, so that neither worker ends on one while the other idles (the
 #    scenarios' compare flights, collected last, once took a minute alone); the light unit
 #    modules fill in at the end. Ranked by the suite's own module times (issue 22).
 REALTIME = "realtime-flights"
-SLOW_FIRST = (
-    "test_entry_e2e", "test_scenarios", "test_sim_truth_e2e", "test_service_e2e", "test_bench",
-    "test_wheel_install", "test_fleet_trust", "test_sharing_e2e", "test_ardupilot_e2e",
-    "test_flight_logs_e2e", "test_sharing", "test_fleet_rejoin", "test_miss_solver",
-    "test_cascade", "test_attitude_delay_e2e", "test_neuralfly_e2e", "test_lockstep_determinism",
-    "test_lwpr", "test_daemon", "test_layers",
-)
+SLOW_FIRST = (  # stop 39 and 40's suites beside two hogs, the mean of each module's sum (s)
+    "test_scenarios", "test_entry_e2e", "test_service_e2e", "test_lwpr",  # 432 374 229 137
+    "test_sim_truth_e2e", "test_miss_solver", "test_perturbation", "test_mavproxy_e2e",
+    "test_neuralfly_e2e", "test_position_dead_time", "test_fleet_restart", "test_bench",
+    "test_position_state_filter", "test_ardupilot_e2e", "test_wheel_install", "test_sharing",
+    "test_rate_response", "test_sharing_e2e", "test_heartbeat_request_e2e", "test_ardupilot",
+    "test_fleet_trust", "test_library_keeper", "test_tick_cost", "test_flight_logs_e2e",
+    "test_aero", "test_report_output", "test_attitude_delay_e2e", "test_receive",
+    "test_neuralfly_table", "test_attitude_delay", "test_fleet_rejoin",  # ... 24 s
+)  # fmt: skip
 
 
 def marked_groups(nodes: Iterable[ast.AST]) -> set[str]:
@@ -176,11 +180,25 @@ def marked_groups(nodes: Iterable[ast.AST]) -> set[str]:
 
 
 @functools.cache
+def _module_groups(module: Path) -> frozenset[str]:
+    return frozenset(marked_groups([ast.parse(module.read_text())]))
+
+
 def flies_in_real_time(module: Path) -> bool:
     """Whether a test module marks a test one_at_a_time("alone"), read from its syntax:
     xdist's controller schedules node ids, it collects no items (pytest_collection_modifyitems
     checks this reading against the marks the workers collect)."""
-    return bool(marked_groups([ast.parse(module.read_text())]) & set(ALONE))
+    return bool(_module_groups(module) & set(ALONE))
+
+
+def in_realtime_unit(module: Path) -> bool:
+    """Whether a test module is flown in the REALTIME unit: a real-time flight, or a test
+    that runs CPU hogs (one_at_a_time("cpu-hogs"): test_lockstep_determinism). Every alone
+    test holds "cpu-hogs" too, so a hog test in the other worker held the real-time worker
+    idle at its lock for the hogs' whole flight (stop 40's suite: 25-72 s setups of
+    test_attack_e2e, test_stop_bound_e2e, test_px4_faults_e2e); in one unit, one worker flies
+    them back to back and neither waits."""
+    return bool(_module_groups(module) & {*ALONE, CPU_HOGS})
 
 
 class RealtimeUnit(LoadFileScheduling):  # type: ignore[misc]  # (xdist: untyped)
@@ -192,7 +210,7 @@ class RealtimeUnit(LoadFileScheduling):  # type: ignore[misc]  # (xdist: untyped
 
     def _split_scope(self, nodeid: str) -> str:
         module = super()._split_scope(nodeid)
-        return REALTIME if flies_in_real_time(self.root / module) else module
+        return REALTIME if in_realtime_unit(self.root / module) else module
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -206,6 +224,7 @@ def _alone(item: pytest.Item) -> bool:
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     alone = {item.path for item in items if _alone(item)}
+    unit = {path for path in {item.path for item in items} if in_realtime_unit(path)}
     rank = {name: k for k, name in enumerate(SLOW_FIRST)}
     for path in {item.path for item in items}:
         if (path in alone) != flies_in_real_time(path):
@@ -215,8 +234,8 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             )
 
     def key(item: pytest.Item) -> tuple[int, int]:
-        if item.path in alone:
-            return (0, 0)
+        if item.path in unit:  # the real-time flights first, the hogs' flights after them
+            return (0, 0 if item.path in alone else 1)
         return (1, rank.get(item.path.stem, len(rank)))
 
     items.sort(key=key)  # stable: a module's tests keep their order

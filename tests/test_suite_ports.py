@@ -10,7 +10,14 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-from tests.conftest import ALONE, REALTIME, RealtimeUnit, flies_in_real_time, marked_groups
+from tests.conftest import (
+    ALONE,
+    REALTIME,
+    RealtimeUnit,
+    flies_in_real_time,
+    in_realtime_unit,
+    marked_groups,
+)
 
 TESTS = Path(__file__).resolve().parent
 _SIM = re.compile(r'(?:"-m",\s*"epc_offboard(?:\.cli)?"|"epc-offboard"),\s*"sim"')
@@ -80,13 +87,16 @@ def test_tests_that_share_a_fixed_port_or_hog_the_cpu_run_one_at_a_time() -> Non
 
 def test_the_real_time_flights_are_one_work_unit_and_the_rest_one_per_module() -> None:
     """xdist's controller hands out RealtimeUnit's scopes: every module of a real-time
-    flight in one (one worker flies them back to back, never two at once, beside the other
-    worker's tests), every other module its own (its module fixtures flown once)."""
+    flight, and of CPU hogs, in one (one worker flies them back to back, never two at once,
+    and never waits on the other worker for the hogs' lock), every other module its own (its
+    module fixtures flown once)."""
     units = RealtimeUnit.__new__(RealtimeUnit)  # (only the scope reading: no controller)
     units.root = TESTS.parent
     realtime = [p.name for p in sorted(TESTS.glob("test_*.py")) if flies_in_real_time(p)]
     assert {"test_attack_e2e.py", "test_soak.py", "test_coldstart_e2e.py"} <= set(realtime)
-    for name in realtime:
+    unit = [p.name for p in sorted(TESTS.glob("test_*.py")) if in_realtime_unit(p)]
+    assert set(unit) == set(realtime) | {"test_lockstep_determinism.py"}
+    for name in unit:
         assert units._split_scope(f"tests/{name}::test_x[a::b]") == REALTIME, name
-    for name in ("test_scenarios.py", "test_entry_e2e.py", "test_lockstep_determinism.py"):
+    for name in ("test_scenarios.py", "test_entry_e2e.py", "test_sharing_e2e.py"):
         assert units._split_scope(f"tests/{name}::test_y") == f"tests/{name}"
