@@ -19,7 +19,14 @@ for ``lockstep_timeout_s``, ``lockstep_max_timeouts`` times in a row) lets the c
 to real-time pace (times ``speedup``); the next answer puts the clock back into lockstep.
 A timeout is counted and reported once an answer follows it: the controller was slow. The
 ones no answer ever follows are a controller that has left (a service that saves its library
-and exits at the end of a flight), not a stall, and are not counted.
+and exits at the end of a flight), not a stall, and are not counted. Likewise a fallback to
+real-time pace that an answer follows (``LockstepGate.fallbacks``) is counted and reported
+("lockstep fell back to real time"): the controller was there all along and physics ran on
+the wall clock meanwhile, so the flight is no longer a function of its config and seed. The
+bound (``lockstep_timeout_s`` x ``lockstep_max_timeouts``) must outlast the controller's own
+longest wait in lockstep: the service's miss worker is waited for up to 30 s
+(``miss_solver.WAIT_TIMEOUT_S``), and beside CPU hogs the loops' thread itself may not run
+for seconds; a 6 s bound fell back in the middle of loaded flights (stop 41, lock-load).
 
 A peer that sends commands along with its answer must send the answer last: datagrams are
 handled in arrival order, and the answer is what releases the tick.
@@ -51,6 +58,9 @@ class LockstepGate:
         self.max_timeouts = max_timeouts
         self.newest_stamp_ms = -1
         self.timeouts = 0  # timeouts an answer followed: the controller was slow, not gone
+        # fallbacks to real-time pace an answer followed: the flight ran on the wall clock
+        self.fallbacks = 0
+        self._fell_back = False
         self._unanswered_timeouts = 0
         self._consecutive_timeouts = 0
         self._event = asyncio.Event()
@@ -59,6 +69,9 @@ class LockstepGate:
         self.newest_stamp_ms = max(self.newest_stamp_ms, time_boot_ms)
         self.timeouts += self._unanswered_timeouts
         self._unanswered_timeouts = 0
+        if self._fell_back:
+            self.fallbacks += 1
+            self._fell_back = False
         if self.enabled:
             self.waiting = True
             self.joined = True
@@ -89,6 +102,7 @@ class LockstepGate:
                 self._consecutive_timeouts += 1
                 if self._consecutive_timeouts >= self.max_timeouts:
                     self.waiting = False
+                    self._fell_back = True
                     self._consecutive_timeouts = 0
                     return
                 deadline = time.monotonic() + self.timeout_s

@@ -254,6 +254,7 @@ async def run(args: argparse.Namespace) -> Counters:
         sim.setpoints_between_ticks = not args.lockstep
         await clock.run(tick, stop, args.duration)
     counters.lockstep_timeouts = gate.timeouts
+    counters.lockstep_fallbacks = gate.fallbacks
     counters.offboard_failsafes = sim.autopilot.failsafe_count
     counters.rtl_entered = sim.autopilot.rtl_count
     return counters

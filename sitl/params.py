@@ -448,7 +448,10 @@ class SitlParams:
     # Lockstep waits this long (wall clock) for the controller's answer to a tick; it is a
     # last resort (a controller gone), counted and reported, never part of a normal run.
     lockstep_timeout_s: float = 2.0
-    lockstep_max_timeouts: int = 3  # consecutive timeouts before falling back to real time
+    # consecutive timeouts before falling back to real time: 90 s, longer than the service
+    # ever waits itself in lockstep (its miss worker, miss_solver.WAIT_TIMEOUT_S = 30 s); 3
+    # (6 s) fell back in the middle of flights beside CPU hogs (stop 41, lock-load)
+    lockstep_max_timeouts: int = 45
     autopilot: str = "px4"  # the personality: what the autopilot does and says
     # Home: where local NED's origin sits on the globe (PX4 SITL's default, Zurich)
     home_lat_deg: float = 47.397742

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import time
+import tomllib
 
+from epc_offboard.service.miss_solver import START_TIMEOUT_S, WAIT_TIMEOUT_S
 from sitl.lockstep import Clock, LockstepGate
+from sitl.params import DEFAULT_VEHICLE_FILE, SitlParams
 
 
 def run_clock(gate: LockstepGate, ticks: int, on_tick=lambda k: None) -> float:
@@ -164,3 +167,41 @@ def test_a_controller_that_leaves_is_not_counted_as_lockstep_timeouts():
 
     run_clock(slow, 5, on_slow_tick)
     assert slow.timeouts >= 1  # a slow answer is still counted
+
+
+def test_a_fallback_an_answer_follows_is_counted_and_one_none_follows_is_not():
+    """Real-time pace in the middle of a lockstep flight (a controller slow past the bound,
+    then back) makes the flight depend on the wall clock: counted (``fallbacks``, the report's
+    "lockstep fell back to real time"). A controller that left at the end is not."""
+    back = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=2)
+    back.on_answer(0)
+
+    def on_tick(k: int) -> None:
+        if k >= 30:  # the slow controller answers again, every tick
+            asyncio.get_running_loop().call_soon(back.on_answer, k * 5)
+
+    run_clock(back, 40, on_tick)
+    assert back.fallbacks == 1
+    assert back.waiting  # and lockstep resumed
+
+    gone = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=2)
+    gone.on_answer(0)
+    run_clock(gone, 20)
+    assert not gone.waiting
+    assert gone.fallbacks == 0
+
+
+def test_the_shipped_bound_outlasts_the_services_own_longest_lockstep_wait():
+    """The SITL falls back only after the service's miss worker, waited for in lockstep up to
+    ``WAIT_TIMEOUT_S``, would have been declared wedged and restarted: a loaded machine that
+    slows the worker must not turn a lockstep flight into a real-time one (3 x 2 s did,
+    stop 41)."""
+    default = SitlParams()
+    shipped = [
+        tomllib.loads(p.read_text())["sitl"] for p in DEFAULT_VEHICLE_FILE.parent.glob("*.toml")
+    ]
+    assert shipped  # the vehicle files were found
+    bounds = {"default": default.lockstep_timeout_s * default.lockstep_max_timeouts}
+    for i, sitl in enumerate(shipped):
+        bounds[str(i)] = sitl["lockstep_timeout_s"] * sitl["lockstep_max_timeouts"]
+    assert min(bounds.values()) > WAIT_TIMEOUT_S + START_TIMEOUT_S, bounds

@@ -1,0 +1,94 @@
+"""A lockstep flight is a function of its config and seed alone, however long a loaded machine
+keeps the controller from answering (stop 41, lock-load): the SITL's clock waits for the
+answer; only a controller silent for the whole ``lockstep_timeout_s`` x
+``lockstep_max_timeouts`` counts as gone.
+
+Two lockstep flights beside two CPU hogs, one of them with the service starved outright for
+7 s in the middle (SIGSTOP, then SIGCONT: what a loaded machine, a swap storm or a slow miss
+worker do to it for that long). With the 6 s bound of main the SITL fell back to real-time
+pace meanwhile and flew on without the controller's answers: the two flights' ground truth
+parted at the stop. Real processes over UDP MAVLink; the hogs are real busy processes.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.rig import cpu_hog, holding_scenario, processes_with
+
+pytestmark = [pytest.mark.timeout(420), pytest.mark.one_at_a_time("cpu-hogs")]
+
+STARVED_S = 7.0  # longer than main's whole bound (3 x 2 s), far shorter than the branch's
+WALL_CLOCK_COLUMNS = ("compute_us",)
+
+
+def _rows(path: Path) -> list[list[str]]:
+    with path.open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    keep = [i for i, name in enumerate(rows[0]) if name not in WALL_CLOCK_COLUMNS]
+    return [[row[i] for i in keep] for row in rows]
+
+
+def fly(out: Path, starve_at_row: int | None) -> dict:
+    scenario = holding_scenario(out.parent, "circle")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", str(scenario),
+         "--lockstep", "--duration", "8", "--wind", "2,30", "--gcs-port", "0",
+         "--out", str(out), "--no-figure"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    try:
+        if starve_at_row is not None:
+            flight = out / "vehicle1" / "flight.csv"
+            while proc.poll() is None:
+                if flight.exists() and flight.read_text().count("\n") > starve_at_row:
+                    break
+                time.sleep(0.05)
+            (pid,) = processes_with(f"{out}/vehicle1/service.toml")
+            os.kill(pid, signal.SIGSTOP)
+            time.sleep(STARVED_S)
+            os.kill(pid, signal.SIGCONT)
+        output, _ = proc.communicate(timeout=360)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, output.decode(errors="replace")
+    report: dict = json.loads((out / "report.json").read_text())
+    assert report["lockstep"] is True
+    return report
+
+
+def test_a_starved_controller_does_not_change_a_loaded_lockstep_flight(tmp_path):
+    hogs = [cpu_hog(400.0), cpu_hog(400.0)]
+    try:
+        steady = fly(tmp_path / "steady", starve_at_row=None)
+        starved = fly(tmp_path / "starved", starve_at_row=150)
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+    warnings = starved["vehicles"][0]["warnings"]
+    assert "lockstep fell back to real time" not in warnings, warnings
+    for name in ("flight.csv", "groundtruth.csv"):
+        a = _rows(tmp_path / "steady" / "vehicle1" / name)
+        b = _rows(tmp_path / "starved" / "vehicle1" / name)
+        assert len(a) > 200  # it flew: a real comparison
+        first = next((k for k, (x, y) in enumerate(zip(a, b, strict=False)) if x != y), None)
+        assert first is None, (
+            name,
+            first,
+            a[first] if first else None,
+            b[first] if first else None,
+        )
+        assert len(a) == len(b), name
+    assert steady["vehicles"][0]["tracking"] == starved["vehicles"][0]["tracking"]
