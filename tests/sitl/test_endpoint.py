@@ -51,9 +51,7 @@ def make(allowed=(), on_answer=None, arm_refusals=0, on_offboard=None):
     )
     sim = Simulation(cfg, seed=0)
     counters = Counters()
-    ep = SitlEndpoint(
-        sim, 1, [TELEMETRY], counters, on_answer=on_answer, on_offboard=on_offboard
-    )
+    ep = SitlEndpoint(sim, 1, [TELEMETRY], counters, on_answer=on_answer, on_offboard=on_offboard)
     transport = RecordingTransport()
     ep.connection_made(transport)  # type: ignore[arg-type]
     return sim, ep, transport, counters
