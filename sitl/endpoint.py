@@ -85,7 +85,9 @@ class Counters:
     handler_errors: int = 0
     send_errors: int = 0
     lockstep_timeouts: int = 0
-    lockstep_fallbacks: int = 0  # fallbacks to real-time pace an answer followed
+    # fallbacks to real-time pace (after the controller handed the vehicle back: the ones an
+    # answer followed)
+    lockstep_fallbacks: int = 0
     offboard_failsafes: int = 0
     rtl_entered: int = 0  # ArduCopter personality: RTLs selected (PX4's offboard is RTL there)
     realtime_priority_refused: int = 0  # --realtime-priority: SCHED_FIFO not permitted
