@@ -27,6 +27,7 @@ from sitl.autopilot import (
     IGNORE_ROLL_RATE,
     IGNORE_THRUST,
     IGNORE_YAW_RATE,
+    OFFBOARD,
     AttitudeSetpoint,
     PositionSetpoint,
     Result,
@@ -84,6 +85,9 @@ class Counters:
     handler_errors: int = 0
     send_errors: int = 0
     lockstep_timeouts: int = 0
+    # fallbacks to real-time pace (after the controller handed the vehicle back: the ones an
+    # answer followed)
+    lockstep_fallbacks: int = 0
     offboard_failsafes: int = 0
     rtl_entered: int = 0  # ArduCopter personality: RTLs selected (PX4's offboard is RTL there)
     realtime_priority_refused: int = 0  # --realtime-priority: SCHED_FIFO not permitted
@@ -125,6 +129,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         counters: Counters,
         signing_key: bytes | None = None,
         on_answer: Callable[[int], None] | None = None,
+        on_offboard: Callable[[bool], None] | None = None,
     ) -> None:
         self.sim = sim
         self.sysid = sysid
@@ -132,6 +137,10 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         self.counters = counters
         # a lockstep answer: the time_boot_ms a controller's setpoint (or SYSTEM_TIME) carries
         self.on_answer = on_answer
+        # the vehicle's intended mode became offboard (True) or left it on a request (False:
+        # the controller handed the vehicle back), after what a peer sent
+        self.on_offboard = on_offboard
+        self._offboard_intended = sim.autopilot.intended_mode == OFFBOARD
         self.newest_state_stamp_ms = -1  # of the state messages sent so far
         self._previous: _Sample | None = None
         self.transport: asyncio.DatagramTransport | None = None
@@ -219,6 +228,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
                 # never dies on what a peer sends.
                 self.counters.handler_errors += 1
         self._announce_mode_change()
+        self._note_offboard()
 
     def stream_received(self, msgs: list[Any], addr: Address) -> None:
         """Messages a byte-stream peer (TCP) sent, already parsed: handled as a datagram's."""
@@ -229,6 +239,7 @@ class SitlEndpoint(asyncio.DatagramProtocol):
             except Exception:
                 self.counters.handler_errors += 1
         self._announce_mode_change()
+        self._note_offboard()
 
     def _reset_parser(self) -> None:
         self.mav.buf = bytearray()
@@ -299,6 +310,18 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         self._mode_announced = mode
         if self.sim.autopilot.heartbeat_on_mode_change:
             self.send(self._heartbeat())
+
+    def _note_offboard(self) -> None:
+        """Tell ``on_offboard`` when what a peer sent changed whether the vehicle is meant
+        to be in offboard: the intended mode (a request's; PX4's failsafe changes only the mode
+        flown), so a controller that hands the vehicle back (HOLD, LAND) is told from one
+        that merely went quiet."""
+        intended = self.sim.autopilot.intended_mode == OFFBOARD
+        if intended == self._offboard_intended:
+            return
+        self._offboard_intended = intended
+        if self.on_offboard is not None:
+            self.on_offboard(intended)
 
     def announce(self) -> None:
         """While lockstep waits for a controller to join: the heartbeat and state of the

@@ -17,9 +17,29 @@ its first tick and announces the vehicle (a heartbeat and the tick's telemetry, 
 ``ANNOUNCE_PERIOD_S``) until a controller joins. Only a controller that has gone (no answer
 for ``lockstep_timeout_s``, ``lockstep_max_timeouts`` times in a row) lets the clock fall back
 to real-time pace (times ``speedup``); the next answer puts the clock back into lockstep.
-A timeout is counted and reported once an answer follows it: the controller was slow. The
-ones no answer ever follows are a controller that has left (a service that saves its library
-and exits at the end of a flight), not a stall, and are not counted.
+A timeout is counted and reported once an answer follows it: the controller was slow. A
+fallback to real-time pace (``LockstepGate.fallbacks``, reported as "lockstep fell back to
+real time") is counted as it happens, or, after the controller handed the vehicle back, once
+an answer follows it: either way physics ran on the wall clock meanwhile, so the flight is
+no longer a function of its config and seed. The bound (``lockstep_timeout_s`` x
+``lockstep_max_timeouts``) must outlast the controller's own longest wait in lockstep: the
+service's miss worker is waited for up to 30 s (``miss_solver.WAIT_TIMEOUT_S``), and beside
+CPU hogs the loops' thread itself may not run for seconds; a 6 s bound fell back in the
+middle of loaded flights (stop 41, lock-load).
+
+A controller that *left* is told from a starved one by what the autopilot already sees, as
+PX4 would: the vehicle taken out of offboard by a mode request (HOLD / LOITER, LAND; the
+intended mode, not a failsafe's) hands the vehicle back (:meth:`LockstepGate.on_offboard`).
+From then on the controller's silence is bounded by ``lockstep_timeout_s`` x
+``lockstep_left_max_timeouts`` (1: 2 s), so a service that asks for HOLD at its stop and
+exits leaves the vehicle holding in real time within seconds, not after 90 s. The wait does
+not end at the request itself: a controller that hands back and stays (a landing at the end
+of a mission, a failsafe hold) still answers every tick, and a flight that fell back there
+would part from its seed at the landing. Back in offboard (a request, or ArduCopter's GUIDED
+setpoints), the long bound holds again. The ones no answer follows after a hand-back are a
+controller that has left (a service that saves its library and exits at the end of a
+flight), not a stall, and are not counted; silence without a hand-back (a SIGKILLed service)
+is found by the long bound and counted.
 
 A peer that sends commands along with its answer must send the answer last: datagrams are
 handled in arrival order, and the answer is what releases the tick.
@@ -43,14 +63,23 @@ ANNOUNCE_PERIOD_S = 0.5
 class LockstepGate:
     """Tracks the newest answer stamp and whether the clock must wait for the controller."""
 
-    def __init__(self, enabled: bool, timeout_s: float, max_timeouts: int) -> None:
+    def __init__(
+        self, enabled: bool, timeout_s: float, max_timeouts: int, left_max_timeouts: int = 1
+    ) -> None:
         self.enabled = enabled
         self.joined = False  # a controller has answered at least once
         self.waiting = enabled  # lockstep holds from the first tick
         self.timeout_s = timeout_s
         self.max_timeouts = max_timeouts
+        # the bound once the controller has handed the vehicle back (``on_offboard``)
+        self.left_max_timeouts = left_max_timeouts
+        self.handed_back = False  # the vehicle left offboard on a request, and is not back
         self.newest_stamp_ms = -1
         self.timeouts = 0  # timeouts an answer followed: the controller was slow, not gone
+        # fallbacks to real-time pace (after a hand-back: the ones an answer followed): the
+        # flight ran on the wall clock
+        self.fallbacks = 0
+        self._fell_back = False
         self._unanswered_timeouts = 0
         self._consecutive_timeouts = 0
         self._event = asyncio.Event()
@@ -59,10 +88,18 @@ class LockstepGate:
         self.newest_stamp_ms = max(self.newest_stamp_ms, time_boot_ms)
         self.timeouts += self._unanswered_timeouts
         self._unanswered_timeouts = 0
+        if self._fell_back:
+            self.fallbacks += 1
+            self._fell_back = False
         if self.enabled:
             self.waiting = True
             self.joined = True
         self._event.set()
+
+    def on_offboard(self, intended: bool) -> None:
+        """The vehicle's intended mode became offboard (``intended``: the controller commands
+        it) or left it on a request (the controller handed it back: HOLD, LAND)."""
+        self.handed_back = not intended
 
     async def _event_or(self, timeout_s: float) -> None:
         self._event.clear()
@@ -77,7 +114,8 @@ class LockstepGate:
         A slow answer is waited for, however long: each ``timeout_s`` without one is counted,
         but physics does not advance. Only ``max_timeouts`` in a row mean the controller has
         gone, and the clock falls back to real-time pace (a single timeout that advanced
-        physics made two lockstep runs on a loaded machine differ)."""
+        physics made two lockstep runs on a loaded machine differ); ``left_max_timeouts``
+        once the controller has handed the vehicle back."""
         while not self.joined and not stop.is_set():
             announce()
             await self._event_or(ANNOUNCE_PERIOD_S)
@@ -87,8 +125,13 @@ class LockstepGate:
             if remaining <= 0.0:
                 self._unanswered_timeouts += 1
                 self._consecutive_timeouts += 1
-                if self._consecutive_timeouts >= self.max_timeouts:
+                bound = self.left_max_timeouts if self.handed_back else self.max_timeouts
+                if self._consecutive_timeouts >= bound:
                     self.waiting = False
+                    if self.handed_back:  # left, unless an answer follows
+                        self._fell_back = True
+                    else:  # gone while commanding (killed), or starved past the bound
+                        self.fallbacks += 1
                     self._consecutive_timeouts = 0
                     return
                 deadline = time.monotonic() + self.timeout_s

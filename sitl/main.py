@@ -206,7 +206,10 @@ async def run(args: argparse.Namespace) -> Counters:
     if args.realtime_priority:
         _realtime(args.realtime_priority, counters)
     gate = LockstepGate(
-        args.lockstep, config.sitl.lockstep_timeout_s, config.sitl.lockstep_max_timeouts
+        args.lockstep,
+        config.sitl.lockstep_timeout_s,
+        config.sitl.lockstep_max_timeouts,
+        config.sitl.lockstep_left_max_timeouts,
     )
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
@@ -218,7 +221,9 @@ async def run(args: argparse.Namespace) -> Counters:
             writer = GroundTruthWriter(args.groundtruth, config.sitl.groundtruth_flush_s)
             resources.callback(writer.close)
         transport, endpoint = await loop.create_datagram_endpoint(
-            lambda: SitlEndpoint(sim, sysid, dests, counters, key, gate.on_answer),
+            lambda: SitlEndpoint(
+                sim, sysid, dests, counters, key, gate.on_answer, gate.on_offboard
+            ),
             local_addr=(HOST, listen_port),
         )
         resources.callback(transport.close)
@@ -254,6 +259,7 @@ async def run(args: argparse.Namespace) -> Counters:
         sim.setpoints_between_ticks = not args.lockstep
         await clock.run(tick, stop, args.duration)
     counters.lockstep_timeouts = gate.timeouts
+    counters.lockstep_fallbacks = gate.fallbacks
     counters.offboard_failsafes = sim.autopilot.failsafe_count
     counters.rtl_entered = sim.autopilot.rtl_count
     return counters

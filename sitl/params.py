@@ -448,7 +448,14 @@ class SitlParams:
     # Lockstep waits this long (wall clock) for the controller's answer to a tick; it is a
     # last resort (a controller gone), counted and reported, never part of a normal run.
     lockstep_timeout_s: float = 2.0
-    lockstep_max_timeouts: int = 3  # consecutive timeouts before falling back to real time
+    # consecutive timeouts before falling back to real time: 90 s, longer than the service
+    # ever waits itself in lockstep (its miss worker, miss_solver.WAIT_TIMEOUT_S = 30 s); 3
+    # (6 s) fell back in the middle of flights beside CPU hogs (stop 41, lock-load)
+    lockstep_max_timeouts: int = 45
+    # ... and once the controller has handed the vehicle back (a mode request out of offboard:
+    # the service's HOLD at its stop, a LAND): 1 (2 s). A service that asked for HOLD and
+    # exited left the vehicle waiting 90 s; a landing's answers still come every tick
+    lockstep_left_max_timeouts: int = 1
     autopilot: str = "px4"  # the personality: what the autopilot does and says
     # Home: where local NED's origin sits on the globe (PX4 SITL's default, Zurich)
     home_lat_deg: float = 47.397742
@@ -478,6 +485,8 @@ class SitlParams:
             raise ValueError(f"home ({self.home_lat_deg}, {self.home_lon_deg}) is not on Earth")
         if self.lockstep_max_timeouts < 1:
             raise ValueError("lockstep_max_timeouts must be >= 1")
+        if self.lockstep_left_max_timeouts < 1:
+            raise ValueError("lockstep_left_max_timeouts must be >= 1")
         _non_negative(telemetry_delay_s=self.telemetry_delay_s)
         delay_ticks = self.telemetry_delay_s / self.lockstep_period_s
         if abs(delay_ticks - round(delay_ticks)) > 1e-9 or self.telemetry_delay_s > 0.5:

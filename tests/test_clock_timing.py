@@ -42,8 +42,21 @@ def test_loop_timing_rate_jitter_and_misses():
         "compute_cpu_us_p99",
         "ticks_blocked",
         "ticks_preempted",
+        "compute_us_max",
     }
+    assert rep.compute_us_max == pytest.approx(20_000.0)  # tick 70's, the longest
     assert rep.as_dict()["compute_cpu_us_median"] is None  # not measured: said, not 0
+
+
+def test_the_longest_tick_is_kept_past_the_window():
+    """The first tick's (a cold start's) is the one a compile on the loops' thread makes
+    longest: it must not leave the report when the window rolls on."""
+    lt = LoopTiming(period_s=0.01, window=10)
+    lt.record(0.0, 0.3)  # 300 ms: a kernel compiled inside the tick
+    for k in range(1, 50):
+        lt.record(0.3 + 0.01 * k, 0.001)
+    assert lt.report().compute_us_max == pytest.approx(300_000.0)
+    assert lt.report().compute_us_p99 < 2_000.0  # the window's own figures have moved on
 
 
 def test_late_start_counts_as_miss():

@@ -78,8 +78,14 @@ def test_cold_start_flies_the_numpy_twins_and_reaches_offboard_in_seconds(tmp_pa
     assert stats["kernels"] == {"mode": "numpy", "signatures_after_warm_up": 0, "signatures": 0}
     # numba compiled its kernel inside the first control tick (0.2-1 s on the loop): the
     # supervisor saw stale state and failed safe on every start with a cold cache (a real PX4
-    # exposed it; this flight was also flown as such in test_px4_faults_e2e)
-    assert not any("failsafe" in line for line in log.splitlines() if "phase " in line), log
+    # exposed it; this flight was also flown as such in test_px4_faults_e2e). Judged on the
+    # loops' own longest tick, under the stale bound, not on the failsafe it caused: at load
+    # 12-14 the SITL (an ordinary process beside 14 hogs) was starved itself and its state
+    # came 0.252 s late, a failsafe the loops had no part in (stop 41). A compile injected in
+    # the first position tick fails this (that tick 0.43 s; stop 42, lock-leave)
+    stale_us = rig.config["offboard"]["max_state_age_s"] * 1e6
+    longest_us = {name: loop["compute_us_max"] for name, loop in stats["loops"].items()}
+    assert max(longest_us.values()) < stale_us, (longest_us, log)
     assert stats["takeoffs_sent"] == 1
     assert stats["counters"].get("takeoffs_sent") == 1
     # where the start went, timed from the process's own start (stats.json "startup")

@@ -420,3 +420,14 @@ def test_a_scenario_may_end_its_flights_holding(tmp_path) -> None:
     assert land_at_end("--scenario", "hover")
     assert not land_at_end("--scenario", str(holding))
     assert land_at_end("--scenario", str(holding), "--vehicles", "2", "--stagger")
+
+
+def test_wall_clock_departures_of_a_lockstep_flight_reach_the_warnings():
+    # what makes two lockstep flights of one seed differ on a loaded machine (stop 41): the
+    # SITL ran on the wall clock for a while, or the flight log's writer fell behind (the
+    # files differ, not the flight); each counted, neither said in the report
+    stats = {"counters": {"log_records_dropped": 12}}
+    assert flight_warnings(stats, {"lockstep_fallbacks": 2}) == {
+        "flight log records dropped (flight.csv has gaps)": 12,
+        "lockstep fell back to real time": 2,
+    }

@@ -31,6 +31,9 @@ class LoopReport:
     compute_cpu_us_p99: float = math.nan
     ticks_blocked: int = 0
     ticks_preempted: int = 0
+    # the longest tick's wall time over the whole run (not the window): a stall of the loops'
+    # own thread (a kernel compiled inside a tick: 0.2-1 s) whatever else was starved
+    compute_us_max: float = 0.0
 
     def as_dict(self) -> dict[str, float | int | None]:
         """Rounded to what the figures can mean: tick times are differences of clock readings
@@ -47,6 +50,7 @@ class LoopReport:
             "compute_cpu_us_p99": _round_or_none(self.compute_cpu_us_p99),
             "ticks_blocked": self.ticks_blocked,
             "ticks_preempted": self.ticks_preempted,
+            "compute_us_max": round(self.compute_us_max, 1),
         }
 
 
@@ -73,6 +77,7 @@ class LoopTiming:
     _cpu: deque[float] = field(default_factory=deque)
     _first_start_s: float = math.nan
     _last_start_s: float = math.nan
+    _compute_max_s: float = 0.0  # over every tick recorded
 
     def record(
         self,
@@ -102,6 +107,7 @@ class LoopTiming:
         self.deadline_misses += missed
         self._starts.append(start_s)
         self._compute.append(compute_s)
+        self._compute_max_s = max(self._compute_max_s, compute_s)
         if len(self._starts) > self.window:
             self._starts.popleft()
             self._compute.popleft()
@@ -109,7 +115,8 @@ class LoopTiming:
 
     def report(self) -> LoopReport:
         if self.ticks < 2:
-            return LoopReport(0.0, self.deadline_misses, 0.0, 0.0, 0.0, self.ticks)
+            return LoopReport(0.0, self.deadline_misses, 0.0, 0.0, 0.0, self.ticks,
+                              compute_us_max=self._compute_max_s * 1e6)  # fmt: skip
         span = self._last_start_s - self._first_start_s
         rate = (self.ticks - 1) / span if span > 0 else 0.0
         periods = np.diff(np.fromiter(self._starts, dtype=np.float64))
@@ -127,4 +134,5 @@ class LoopTiming:
             compute_cpu_us_p99=float(np.percentile(cpu_us, 99)) if cpu_us.size else math.nan,
             ticks_blocked=self.ticks_blocked,
             ticks_preempted=self.ticks_preempted,
+            compute_us_max=self._compute_max_s * 1e6,
         )

@@ -182,12 +182,32 @@ def test_land_loiter_and_disarm_on_touchdown():
 # -- the endpoint with the ArduCopter personality -------------------------------------------
 
 
-def make(guid_options: int = 0, ekf_origin_s: float = 0.0):
+def make(guid_options: int = 0, ekf_origin_s: float = 0.0, on_offboard=None):
     sim = Simulation(config(guid_options, ekf_origin_s), seed=0)
-    ep = SitlEndpoint(sim, 1, [TELEMETRY], Counters())
+    ep = SitlEndpoint(sim, 1, [TELEMETRY], Counters(), on_offboard=on_offboard)
     transport = RecordingTransport()
     ep.connection_made(transport)  # type: ignore[arg-type]
     return sim, ep, transport
+
+
+def test_guided_takes_the_vehicle_over_and_brake_hands_it_back():
+    """The lockstep gate's hand-back on ArduCopter: GUIDED is the controller's (offboard),
+    the service's REQUEST_HOLD is BRAKE, its LAND at a mission's end LAND."""
+    said: list[bool] = []
+    _sim, ep, _ = make(on_offboard=said.append)
+    peer = Peer()
+    custom = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+
+    def set_mode(number: int) -> None:
+        ep.datagram_received(peer.pack(peer.mav.set_mode_encode(1, custom, number)), PEER)
+
+    set_mode(GUIDED)
+    assert said == [True]
+    set_mode(BRAKE)
+    assert said == [True, False]
+    set_mode(GUIDED)
+    set_mode(LAND)
+    assert said == [True, False, True, False]
 
 
 def test_nothing_but_heartbeat_until_asked_and_no_odometry():

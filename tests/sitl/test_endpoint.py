@@ -42,7 +42,7 @@ class Peer:
         return out
 
 
-def make(allowed=(), on_answer=None, arm_refusals=0):
+def make(allowed=(), on_answer=None, arm_refusals=0, on_offboard=None):
     cfg = load_sim_config()
     cfg = dataclasses.replace(
         cfg,
@@ -51,7 +51,7 @@ def make(allowed=(), on_answer=None, arm_refusals=0):
     )
     sim = Simulation(cfg, seed=0)
     counters = Counters()
-    ep = SitlEndpoint(sim, 1, [TELEMETRY], counters, on_answer=on_answer)
+    ep = SitlEndpoint(sim, 1, [TELEMETRY], counters, on_answer=on_answer, on_offboard=on_offboard)
     transport = RecordingTransport()
     ep.connection_made(transport)  # type: ignore[arg-type]
     return sim, ep, transport, counters
@@ -195,6 +195,42 @@ def test_set_mode_message_and_position_setpoints_enter_offboard():
     assert counters.setpoints == 5
     ep.datagram_received(peer.pack(peer.mav.set_mode_encode(1, custom, 0x03040000)), PEER)
     assert sim.autopilot.mode == HOLD
+
+
+def test_a_request_out_of_offboard_hands_the_vehicle_back_and_a_failsafe_does_not():
+    """The lockstep gate learns that the controller left from the intended mode its peer's
+    requests set (the service's HOLD at its stop), not from PX4's own offboard-loss failsafe
+    (a starved controller: the vehicle is still meant to be in offboard)."""
+    said: list[bool] = []
+    sim, ep, _transport, _ = make(on_offboard=said.append)
+    peer = Peer()
+    custom = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+
+    def set_mode(main: int, sub: int = 0) -> None:
+        ep.datagram_received(
+            peer.pack(peer.mav.command_long_encode(
+                1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, custom, main, sub, 0, 0, 0, 0)),
+            PEER,
+        )  # fmt: skip
+
+    sim.advance_tick()
+    ep.datagram_received(
+        peer.pack(peer.mav.set_position_target_local_ned_encode(
+            sim.time_ms, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000,
+            0.0, 0.0, -3.0, 0, 0, 0, 0, 0, 0, 0, 0)),
+        PEER,
+    )  # fmt: skip
+    assert said == []  # a setpoint alone takes nothing over (PX4: the mode is asked for)
+    set_mode(6)
+    assert said == [True]
+    sim.autopilot._setpoints_lost(sim.time_s)  # PX4's failsafe: flies HOLD, meant OFFBOARD
+    assert sim.autopilot.mode == HOLD
+    ep.datagram_received(peer.pack(peer.mav.heartbeat_encode(6, 8, 0, 0, 0)), PEER)
+    assert said == [True]  # not handed back: the controller may only be slow
+    set_mode(4, 3)  # the service's REQUEST_HOLD (AUTO.LOITER)
+    assert said == [True, False]
+    set_mode(4, 3)
+    assert said == [True, False]  # said once
 
 
 def test_unexpected_source_system_is_ignored_when_restricted():

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import time
+import tomllib
 
+from epc_offboard.service.miss_solver import START_TIMEOUT_S, WAIT_TIMEOUT_S
 from sitl.lockstep import Clock, LockstepGate
+from sitl.params import DEFAULT_VEHICLE_FILE, SitlParams
 
 
 def run_clock(gate: LockstepGate, ticks: int, on_tick=lambda k: None) -> float:
@@ -164,3 +167,81 @@ def test_a_controller_that_leaves_is_not_counted_as_lockstep_timeouts():
 
     run_clock(slow, 5, on_slow_tick)
     assert slow.timeouts >= 1  # a slow answer is still counted
+
+
+def test_a_fallback_is_counted_unless_the_controller_handed_the_vehicle_back_and_left():
+    """Real-time pace in the middle of a lockstep flight (a controller slow past the bound,
+    then back; or one gone while commanding: a SIGKILLed service) makes the flight depend on
+    the wall clock: counted (``fallbacks``, the report's "lockstep fell back to real time").
+    A controller that handed the vehicle back and left at the end is not; one that handed it
+    back and answers again after the fallback is."""
+    back = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=2)
+    back.on_answer(0)
+
+    def on_tick(k: int) -> None:
+        if k >= 30:  # the slow controller answers again, every tick
+            asyncio.get_running_loop().call_soon(back.on_answer, k * 5)
+
+    run_clock(back, 40, on_tick)
+    assert back.fallbacks == 1
+    assert back.waiting  # and lockstep resumed
+
+    gone = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=2)
+    gone.on_answer(0)
+    run_clock(gone, 20)
+    assert not gone.waiting
+    assert gone.fallbacks == 1  # gone while commanding: said (before: 0, silent)
+
+    left = LockstepGate(enabled=True, timeout_s=0.01, max_timeouts=2)
+    left.on_answer(0)
+    left.on_offboard(True)
+    left.on_offboard(False)  # its HOLD request
+    run_clock(left, 20)
+    assert not left.waiting
+    assert left.fallbacks == 0
+
+
+def test_a_controller_that_handed_the_vehicle_back_is_waited_for_by_the_short_bound():
+    """The service's stop asks for HOLD, then sends nothing: with the long bound alone the
+    SITL stood still for it 90 s (test_service_e2e's HOLD never showed). Handed back, its
+    silence ends the wait after ``left_max_timeouts``; a controller still meant to fly
+    offboard (starved: SIGSTOP, load) keeps the whole ``max_timeouts``. Counted in timeouts
+    (the answer at tick 50 follows them), not timed: the fallback comes at that count."""
+
+    def spent(gate: LockstepGate, hand_back_at: int | None) -> int:
+        gate.on_answer(0)
+        gate.on_offboard(True)
+
+        def on_tick(k: int) -> None:
+            if hand_back_at is not None and k == hand_back_at:
+                gate.on_offboard(False)
+            if k <= 5 or k >= 50:  # silent from tick 6 to 49, as SIGSTOPped or gone
+                asyncio.get_running_loop().call_soon(gate.on_answer, k * 5)
+
+        run_clock(gate, 60, on_tick)
+        return gate.timeouts
+
+    assert spent(LockstepGate(True, 0.01, max_timeouts=8, left_max_timeouts=2), None) == 8
+    left = LockstepGate(True, 0.01, max_timeouts=8, left_max_timeouts=2)
+    assert spent(left, hand_back_at=5) == 2
+    assert left.fallbacks == 1  # it answered again after: the flight ran on the wall clock
+    # back in offboard, the long bound again
+    again = LockstepGate(True, 0.01, max_timeouts=8, left_max_timeouts=2)
+    again.on_offboard(False)
+    assert spent(again, None) == 8
+
+
+def test_the_shipped_bound_outlasts_the_services_own_longest_lockstep_wait():
+    """The SITL falls back only after the service's miss worker, waited for in lockstep up to
+    ``WAIT_TIMEOUT_S``, would have been declared wedged and restarted: a loaded machine that
+    slows the worker must not turn a lockstep flight into a real-time one (3 x 2 s did,
+    stop 41)."""
+    default = SitlParams()
+    shipped = [
+        tomllib.loads(p.read_text())["sitl"] for p in DEFAULT_VEHICLE_FILE.parent.glob("*.toml")
+    ]
+    assert shipped  # the vehicle files were found
+    bounds = {"default": default.lockstep_timeout_s * default.lockstep_max_timeouts}
+    for i, sitl in enumerate(shipped):
+        bounds[str(i)] = sitl["lockstep_timeout_s"] * sitl["lockstep_max_timeouts"]
+    assert min(bounds.values()) > WAIT_TIMEOUT_S + START_TIMEOUT_S, bounds

@@ -49,6 +49,9 @@ _SERVICE_WARNINGS = {
     "realtime_priority_refused": "loops' real-time priority refused (normal scheduling)",
     "unready_entries": "offboard entered before the controller was ready (miss worker)",
     "log_lines_dropped": "service log lines dropped (its logged warnings may be incomplete)",
+    # the flight log's rows the writer fell behind on: flight.csv has gaps (two lockstep
+    # flights of one seed then differ in their files, not in their flight)
+    "log_records_dropped": "flight log records dropped (flight.csv has gaps)",
 }
 # the state tracker's (stats.json "state"): what it would not believe
 _STATE_WARNINGS = {
@@ -62,6 +65,8 @@ _STATE_WARNINGS = {
 }
 _SITL_WARNINGS = {
     "lockstep_timeouts": "SITL lockstep timeouts",
+    # counted: a flight that ran on the wall clock for a while is not its seed's alone
+    "lockstep_fallbacks": "lockstep fell back to real time",
     "offboard_failsafes": "SITL offboard-loss failsafes",
     "handler_errors": "SITL message handler errors",
     "nan_setpoints": "non-finite setpoints received by the SITL",
