@@ -507,7 +507,8 @@ def test_a_worker_stopped_in_its_start_is_reported_or_restarted():
 
 # /proc opened by one thread while counting: an audit hook (every open the interpreter makes,
 # builtins.open and os.open alike), installed once per test process
-_PROC_OPENS = {"thread": None, "count": 0}
+# the thread whose /proc opens are counted (0: none), the count, whether the hook is in
+_PROC_OPENS: dict[str, int] = {"thread": 0, "count": 0, "hooked": 0}
 
 
 def _count_proc_opens(event: str, args: tuple) -> None:
@@ -519,7 +520,7 @@ def _count_proc_opens(event: str, args: tuple) -> None:
 def _proc_opens_counted() -> None:
     if not _PROC_OPENS.get("hooked"):
         sys.addaudithook(_count_proc_opens)
-        _PROC_OPENS["hooked"] = True
+        _PROC_OPENS["hooked"] = 1
 
 
 def _gone(pid: int) -> None:
@@ -559,7 +560,7 @@ def test_a_restarting_worker_reads_proc_seldom_on_the_loop_and_its_death_is_seen
                 ticks += 1
                 time.sleep(0.01)
         finally:
-            _PROC_OPENS["thread"] = None
+            _PROC_OPENS["thread"] = 0
         elapsed_s = time.monotonic() - t0
         assert solver.counters["worker_restarts"] == 1
         assert solver.worker_pid() == starting
@@ -599,7 +600,7 @@ def test_a_start_polled_from_the_event_loop_reads_proc_seldom():
                 polls += 1
                 time.sleep(0.01)
         finally:
-            _PROC_OPENS["thread"] = None
+            _PROC_OPENS["thread"] = 0
         bound = 2 * ((time.monotonic() - t0) / WATCH_EVERY_S + 2)
         assert polls > 2 * bound  # (about 95 on an idle machine): a read a poll would fail
         assert _PROC_OPENS["count"] <= bound, (_PROC_OPENS["count"], polls)
