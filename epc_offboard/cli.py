@@ -300,6 +300,11 @@ def _add_bench(sub: _Subparsers) -> None:
         help="with --freeze: seconds the helper stays stopped (default 20)",
     )  # fmt: skip
     bench.add_argument(
+        "--no-probe", dest="probe", action="store_false",
+        help="with --attack: no bare 200 Hz loops beside the service (the machine's floor, "
+        "measured by default: floor_probe)",
+    )  # fmt: skip
+    bench.add_argument(
         "--fleet",
         action="store_true",
         help="instead: N light vehicles (the real sharing stack, no physics) through one "

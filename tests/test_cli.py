@@ -98,6 +98,8 @@ def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
     assert options[-1] == bench_attack.AttackOptions(
         autopilot="ardupilot", attack_s=60.0, attacks=("flood+fuzz", "fuzz"), signing=True,
         forge=True, freeze="store", freeze_s=15.0)  # fmt: skip
+    assert main(["bench", "--attack", "--no-probe"]) == 0  # the machine's floor not probed
+    assert options[-1] == bench_attack.AttackOptions(probe=False)
     for bad in (["--hogs", "-1"], ["--loops-cpu", "-1"], ["--sitl-cpu", "-1"],
                 ["--freeze", "nobody"], ["--autopilot", "inav"]):  # fmt: skip
         with pytest.raises(SystemExit) as exc:
@@ -107,7 +109,7 @@ def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
     for bad in (["--attacks", "fuzz+fuzz"], ["--attacks", "flood+rotate+fuzz"],
                 ["--attacks", "quake"], ["--attack-s", "0"]):  # fmt: skip
         assert main(["bench", "--attack", *bad]) == 1
-    assert len(options) == 3
+    assert len(options) == 4
 
 
 def test_the_parser_and_sims_launcher_import_no_control_stack():
