@@ -66,7 +66,8 @@ def test_the_loops_beside_the_probe_give_ratios_and_none_without_a_probe_miss():
     flight = {"t_s": t, "phase": np.full(t.size, "offboard")}
     flight["t_s"] = np.where(t > 100.3, t + 0.004, t)  # one 14 ms gap
     att = 99.5 + np.arange(400) * P
-    misses = [{"loop": "attitude", "t_s": x} for x in (100.1, 100.2, 100.6, 100.7)]
+    misses = [{"loop": "attitude", "t_s": x, "interval_ms": 11.0, "compute_ms": 0.2}
+              for x in (100.1, 100.2, 100.6, 100.7)]  # fmt: skip
     wins = [aa.Window("hover", "calm", 99.6, 100.4, {}),
             aa.Window("hover", "flood", 100.45, 101.4, {})]  # fmt: skip
     out = aa.floor_figures({"sleep": rec}, flight, att, misses, wins, P)
@@ -131,3 +132,18 @@ def test_the_bench_json_has_the_probes_fields(probe_run):
             assert set(part[f"ratio_{wake}"]) == {"misses", "gaps_over_12ms", "lateness_p99"}
         assert report["flight"][wake]["ticks"] > 0
     assert bench_attack.floor_report({}, flight, t, [], wins, P) is None  # --no-probe
+
+
+def test_a_loops_gap_is_shared_when_a_bare_loop_was_late_inside_it():
+    rec = _records({60: 3.0})  # due 100.300 s, woken 100.303 s
+    t = np.arange(99.5, 101.5, 0.01)
+    flight = {"t_s": np.where(t > 100.295, t + 0.004, t),  # a 14 ms gap: 100.29-100.304
+              "phase": np.full(t.size, "offboard")}  # fmt: skip
+    misses = [{"loop": "attitude", "t_s": 100.7, "interval_ms": 10.0, "compute_ms": 0.2}]
+    out = aa.shared_events({"sleep": rec}, flight, misses, 99.6, 101.4)
+    assert out["position"] == {"total": 1, "with_probe_late": {"sleep": 1}}
+    assert out["attitude"] == {"total": 1, "with_probe_late": {"sleep": 0}}
+    position, attitude = out["events"]
+    assert position["probe_late_ms"]["sleep"] == pytest.approx(3.0)
+    assert attitude["probe_late_ms"]["sleep"] == pytest.approx(0.1)
+    assert (attitude["t0_s"], attitude["t1_s"]) == (100.6902, 100.7002)

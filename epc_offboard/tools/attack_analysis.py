@@ -337,13 +337,52 @@ def floor_figures(probes: dict[str, dict[str, FloatArray]], flight: dict[str, An
         return out
 
     if not wins:
-        return {"probed": sorted(probes), "windows": [], "flight": {}}
+        return {"probed": sorted(probes), "windows": [], "flight": {}, "shared": {}}
     windows = [dict(phase=w.phase, kind=w.kind, **stretch(w.t0_s, w.t1_s)) for w in wins]
     attacks = [w for w in wins if w.attack]
     return {"probed": sorted(probes), "flight": stretch(wins[0].t0_s, wins[-1].t1_s),
+            "shared": shared_events(probes, flight, misses, wins[0].t0_s, wins[-1].t1_s),
             "attack_windows": _sum_counts([w for w, win in zip(windows, wins, strict=True)
                                            if win.attack]) if attacks else {},
             "windows": windows}  # fmt: skip
+
+
+SHARED_LATE_MS = 2.0  # a bare loop's tick this late: the machine held a SCHED_FIFO thread too
+
+
+def shared_events(probes: dict[str, dict[str, FloatArray]], flight: dict[str, Any],
+                  misses: Sequence[dict[str, Any]], t0_s: float, t1_s: float,
+                  ) -> dict[str, Any]:  # fmt: skip
+    """Each of the loops' position gaps over ``STALL_S`` and attitude misses in [t0, t1]
+    (its interval: between the two ticks; a miss's from the previous tick's start to its
+    own end, ``loop.Stall``) beside each bare loop's latest tick in it (the ticks due
+    before its end and woken after its start): ``events`` (``loop``, ``t0_s``, ``t1_s``,
+    ``probe_late_ms`` by wake) and, by wake, how many had a probe tick at least
+    ``SHARED_LATE_MS`` late (``with_probe_late``): what held the loops held a bare loop at
+    the same moment, the machine's; the rest, the loops' alone."""
+    t = flight["t_s"]
+    on = t[(t >= t0_s) & (t <= t1_s) & (flight["phase"] == "offboard")]
+    spans = [("position", a, b) for a, b in steal.gaps(on, STALL_S)]
+    for m in misses:
+        if m["loop"] == "attitude" and t0_s <= m["t_s"] <= t1_s:
+            end_s = m["t_s"] + 1e-3 * float(m.get("compute_ms", 0.0))
+            spans.append(("attitude", end_s - 1e-3 * float(m["interval_ms"]), end_s))
+    events: list[dict[str, Any]] = []
+    for loop, a, b in sorted(spans, key=lambda e: e[1]):
+        late: dict[str, float | None] = {}
+        for wake, rec in probes.items():
+            inside = (rec["due_s"] <= b) & (rec["wake_s"] >= a)
+            late[wake] = (round(1e3 * float(np.max((rec["wake_s"] - rec["due_s"])[inside])), 3)
+                          if inside.any() else None)  # fmt: skip
+        events.append({"loop": loop, "t0_s": round(a, 4), "t1_s": round(b, 4),
+                       "probe_late_ms": late})  # fmt: skip
+    counts: dict[str, Any] = {}
+    for loop in ("position", "attitude"):
+        mine = [e for e in events if e["loop"] == loop]
+        counts[loop] = {"total": len(mine), "with_probe_late": {
+            wake: sum(1 for e in mine if (e["probe_late_ms"][wake] or 0.0) >= SHARED_LATE_MS)
+            for wake in probes}}  # fmt: skip
+    return {"late_ms": SHARED_LATE_MS, **counts, "events": events}
 
 
 def _sum_counts(windows: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -784,6 +823,13 @@ def floor_summary(floor: dict[str, Any] | None) -> str:
             if scope == "flight":
                 text += f", lateness {_triple(p['lateness_ms'])}"
         lines.append(text)
+    shared = floor.get("shared") or {}
+    if shared:
+        lines.append("  the loops' gaps > 12 ms and attitude misses with a bare loop's tick "
+                     f">= {shared['late_ms']:g} ms late in them: " + "; ".join(
+                         f"{loop} {shared[loop]['total']}: " + ", ".join(
+                             f"{w} {n}" for w, n in shared[loop]["with_probe_late"].items())
+                         for loop in ("position", "attitude")))  # fmt: skip
     return "\n".join(lines)
 
 
