@@ -141,8 +141,14 @@ def test_a_loops_gap_is_shared_when_a_bare_loop_was_late_inside_it():
               "phase": np.full(t.size, "offboard")}  # fmt: skip
     misses = [{"loop": "attitude", "t_s": 100.7, "interval_ms": 10.0, "compute_ms": 0.2}]
     out = aa.shared_events({"sleep": rec}, flight, misses, 99.6, 101.4)
-    assert out["position"] == {"total": 1, "with_probe_late": {"sleep": 1}}
-    assert out["attitude"] == {"total": 1, "with_probe_late": {"sleep": 0}}
+    assert out["position"] == {"total": 1, "with_probe_late": {"sleep": 1},
+                               "by_chance": {"sleep": 0}}  # fmt: skip
+    assert out["attitude"] == {"total": 1, "with_probe_late": {"sleep": 0},
+                               "by_chance": {"sleep": 0}}  # fmt: skip
+    # the control: a bare loop late 0.5 s after the attitude miss counts by chance
+    late = aa.shared_events({"sleep": _records({60: 3.0, 239: 4.0}, n=300)}, flight, misses, 99.6,
+                            101.4)  # fmt: skip
+    assert late["attitude"]["by_chance"] == {"sleep": 1}
     position, attitude = out["events"]
     assert position["probe_late_ms"]["sleep"] == pytest.approx(3.0)
     assert attitude["probe_late_ms"]["sleep"] == pytest.approx(0.1)

@@ -348,6 +348,7 @@ def floor_figures(probes: dict[str, dict[str, FloatArray]], flight: dict[str, An
 
 
 SHARED_LATE_MS = 2.0  # a bare loop's tick this late: the machine held a SCHED_FIFO thread too
+SHIFT_S = 0.5  # the control: the same intervals this much later, where the loops were on time
 
 
 def shared_events(probes: dict[str, dict[str, FloatArray]], flight: dict[str, Any],
@@ -359,7 +360,9 @@ def shared_events(probes: dict[str, dict[str, FloatArray]], flight: dict[str, An
     before its end and woken after its start): ``events`` (``loop``, ``t0_s``, ``t1_s``,
     ``probe_late_ms`` by wake) and, by wake, how many had a probe tick at least
     ``SHARED_LATE_MS`` late (``with_probe_late``): what held the loops held a bare loop at
-    the same moment, the machine's; the rest, the loops' alone."""
+    the same moment, the machine's; the rest, the loops' alone. The control
+    (``by_chance``): the same count over the same intervals ``SHIFT_S`` later, how often a
+    bare loop is that late in any stretch that long."""
     t = flight["t_s"]
     on = t[(t >= t0_s) & (t <= t1_s) & (flight["phase"] == "offboard")]
     spans = [("position", a, b) for a, b in steal.gaps(on, STALL_S)]
@@ -367,22 +370,25 @@ def shared_events(probes: dict[str, dict[str, FloatArray]], flight: dict[str, An
         if m["loop"] == "attitude" and t0_s <= m["t_s"] <= t1_s:
             end_s = m["t_s"] + 1e-3 * float(m.get("compute_ms", 0.0))
             spans.append(("attitude", end_s - 1e-3 * float(m["interval_ms"]), end_s))
+    def worst_ms(rec: dict[str, FloatArray], a: float, b: float) -> float | None:
+        inside = (rec["due_s"] <= b) & (rec["wake_s"] >= a)
+        return (round(1e3 * float(np.max((rec["wake_s"] - rec["due_s"])[inside])), 3)
+                if inside.any() else None)  # fmt: skip
+
     events: list[dict[str, Any]] = []
     for loop, a, b in sorted(spans, key=lambda e: e[1]):
-        late: dict[str, float | None] = {}
-        for wake, rec in probes.items():
-            inside = (rec["due_s"] <= b) & (rec["wake_s"] >= a)
-            late[wake] = (round(1e3 * float(np.max((rec["wake_s"] - rec["due_s"])[inside])), 3)
-                          if inside.any() else None)  # fmt: skip
         events.append({"loop": loop, "t0_s": round(a, 4), "t1_s": round(b, 4),
-                       "probe_late_ms": late})  # fmt: skip
+                       "probe_late_ms": {w: worst_ms(r, a, b) for w, r in probes.items()},
+                       "shifted_probe_late_ms": {w: worst_ms(r, a + SHIFT_S, b + SHIFT_S)
+                                                 for w, r in probes.items()}})  # fmt: skip
     counts: dict[str, Any] = {}
     for loop in ("position", "attitude"):
         mine = [e for e in events if e["loop"] == loop]
-        counts[loop] = {"total": len(mine), "with_probe_late": {
-            wake: sum(1 for e in mine if (e["probe_late_ms"][wake] or 0.0) >= SHARED_LATE_MS)
-            for wake in probes}}  # fmt: skip
-    return {"late_ms": SHARED_LATE_MS, **counts, "events": events}
+        counts[loop] = {"total": len(mine)} | {key: {
+            wake: sum(1 for e in mine if (e[field][wake] or 0.0) >= SHARED_LATE_MS)
+            for wake in probes} for key, field in (("with_probe_late", "probe_late_ms"),
+                                                   ("by_chance", "shifted_probe_late_ms"))}
+    return {"late_ms": SHARED_LATE_MS, "shift_s": SHIFT_S, **counts, "events": events}
 
 
 def _sum_counts(windows: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -828,7 +834,8 @@ def floor_summary(floor: dict[str, Any] | None) -> str:
         lines.append("  the loops' gaps > 12 ms and attitude misses with a bare loop's tick "
                      f">= {shared['late_ms']:g} ms late in them: " + "; ".join(
                          f"{loop} {shared[loop]['total']}: " + ", ".join(
-                             f"{w} {n}" for w, n in shared[loop]["with_probe_late"].items())
+                             f"{w} {n} (by chance {shared[loop]['by_chance'][w]})"
+                             for w, n in shared[loop]["with_probe_late"].items())
                          for loop in ("position", "attitude")))  # fmt: skip
     return "\n".join(lines)
 
