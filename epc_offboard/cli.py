@@ -305,6 +305,10 @@ def _add_bench(sub: _Subparsers) -> None:
         "measured by default: floor_probe)",
     )  # fmt: skip
     bench.add_argument(
+        "--probe-priority", type=int, default=50, metavar="P",
+        help="with --attack: the machine probe's SCHED_FIFO priority (default 50, the loops')",
+    )  # fmt: skip
+    bench.add_argument(
         "--fleet",
         action="store_true",
         help="instead: N light vehicles (the real sharing stack, no physics) through one "

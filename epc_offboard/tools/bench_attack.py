@@ -102,7 +102,8 @@ class AttackOptions:
     not have it); ``forge``: the fuzzer also forges the vehicle's state (fuzz_mavlink
     ``--forge``); ``freeze``: one helper process (HELPERS) SIGSTOPped for ``freeze_s`` from
     the start of each phase's first attack, then SIGCONT; ``probe``: the machine's floor
-    measured beside the loops (:class:`Probes`; ``--no-probe`` turns it off)."""
+    measured beside the loops (:class:`Probes`; ``--no-probe`` turns it off) at
+    ``probe_priority`` (SCHED_FIFO; by default the loops')."""
 
     autopilot: str = "px4"
     attack_s: float = WINDOW_S
@@ -112,6 +113,7 @@ class AttackOptions:
     freeze: str | None = None
     freeze_s: float = FREEZE_S
     probe: bool = True
+    probe_priority: int = REALTIME_PRIORITY
 
     def __post_init__(self) -> None:
         if self.autopilot not in AUTOPILOTS:
@@ -130,6 +132,8 @@ class AttackOptions:
             raise AttackBenchError(f"--freeze: one of {', '.join(HELPERS)}")
         if self.freeze_s <= 0.0:
             raise AttackBenchError("--freeze-s must be > 0")
+        if not 1 <= self.probe_priority <= 99:
+            raise AttackBenchError("--probe-priority: 1 to 99")
 
 
 def parse_attacks(text: str) -> tuple[str, ...]:
@@ -606,7 +610,7 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
         sitl_fifo = _is_fifo(sitl.pid)
         sitl_pinned = _pinned(sitl.pid, sitl_cpu)
         if opts.probe:
-            probes = Probes(run_dir, REALTIME_PRIORITY, loops_cpu)
+            probes = Probes(run_dir, opts.probe_priority, loops_cpu)
         zenoh_kinds = tuple(k for k in ZENOH_ATTACKS
                             if any(k in a.split("+") for a in opts.attacks))  # fmt: skip
         attackers = Attackers(zenoh_port, config_path, run_dir, zenoh_kinds, opts.attack_s)
