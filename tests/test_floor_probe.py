@@ -101,6 +101,8 @@ def test_the_probe_process_ticks_on_deadlines_5_ms_apart_until_stopped(probe_run
     assert sorted(meta) == sorted(floor_probe.WAKES)
     for wake, m in meta.items():
         assert m["exit"] == 0
+        assert m["cpu_s"] > 0.0  # its cost, told
+        assert m["ticks"] == floor_probe.read_records(Path(m["path"]))["due_s"].size
         rec = floor_probe.read_records(Path(m["path"]))
         assert sorted(rec) == sorted(floor_probe.COLUMNS)
         assert rec["due_s"].size > 50, wake

@@ -303,8 +303,9 @@ class Probes:
         return self.ready[wake]
 
     def close(self, timeout_s: float = 10.0) -> dict[str, Any]:
-        """Stopped (SIGTERM: each writes its records); each one's ready line and its
-        records' path (``path``) and exit code (``exit``), by wake."""
+        """Stopped (SIGTERM: each writes its records); each one's ready line, its records'
+        path (``path``), exit code (``exit``) and cost (its ``done`` line: ``cpu_s``,
+        ``wall_s``, ``ticks``, and ``cpu_share``, the CPU over the wall), by wake."""
         for proc in self.procs.values():
             with contextlib.suppress(OSError):
                 proc.send_signal(signal.SIGTERM)
@@ -315,8 +316,13 @@ class Probes:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-            out[wake] = dict(self.wait_ready(wake), path=str(self.paths[wake]),
-                             exit=proc.returncode)  # fmt: skip
+            meta = dict(self.wait_ready(wake), path=str(self.paths[wake]), exit=proc.returncode)
+            rest = proc.stdout.read() if proc.stdout is not None else ""
+            done = next((x for x in rest.splitlines() if x.startswith("done ")), "")
+            if done:  # its CPU time over its ticking time: what it cost the machine
+                cost = json.loads(done[5:])
+                meta.update(cost, cpu_share=round(cost["cpu_s"] / max(cost["wall_s"], 1e-9), 4))
+            out[wake] = meta
         return out
 
 

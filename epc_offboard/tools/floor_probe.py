@@ -20,7 +20,8 @@ A tick later than a period is not made up: the loop skips to the next deadline a
 the service's loops do (``Loops._next_tick``). Records per tick, on ``time.monotonic`` (the
 bench's and the loops' clock): ``COLUMNS``, float64, written to ``--out`` at the end
 (SIGTERM or SIGINT; ``--seconds``), read back by :func:`read_records`. The first stdout
-line is ``ready`` and a JSON object: the wake, the pid, whether SCHED_FIFO was applied.
+line is ``ready`` and a JSON object: the wake, the pid, whether SCHED_FIFO was applied;
+the last, ``done`` and its cost: ``cpu_s`` (its CPU time), ``wall_s``, ``ticks``.
 
 ``python -m epc_offboard.tools.floor_probe --wake sleep --out FILE [--fifo 50] [--cpu N]``
 """
@@ -157,8 +158,15 @@ def main(argv: list[str] | None = None) -> int:
                                  "priority": args.fifo if fifo else None, "cpu": args.cpu,
                                  "period_s": PERIOD_S, "iterations": args.iterations}),
           flush=True)  # fmt: skip
+    started_s = time.monotonic()
     probe.run(args.wake, args.seconds)
     probe.write(Path(args.out))
+    # what the probe cost the machine: its CPU time (every thread, the interpreter's own
+    # included) over its ticking time
+    wall_s = time.monotonic() - started_s
+    print("done " + json.dumps({"cpu_s": round(time.process_time(), 3),
+                                "wall_s": round(wall_s, 3),
+                                "ticks": len(probe.rows) // len(COLUMNS)}), flush=True)  # fmt: skip
     return 0
 
 
