@@ -53,11 +53,16 @@ def test_the_probes_misses_gaps_and_lateness_are_those_of_its_known_ticks():
 
 def test_a_loops_lateness_comes_from_its_grid_even_across_the_periods_edge():
     rng = np.random.default_rng(1)
-    late = rng.uniform(0.0, 0.7 * P, 500)
+    late = rng.uniform(0.0, 0.3 * P, 2000)
     late[7] = 0.0  # its best tick: the grid's phase
+    late[500] = 0.45 * P  # one late tick, still within half a period of the rest
     for phase in (0.0012, P - 1e-4):  # the ticks' times wrap past the period's edge
-        t = 5000.0 + phase + np.arange(500) * P + late
-        assert np.allclose(aa.grid_lateness_s(t, P), late, atol=1e-9)
+        t = 5000.0 + phase + np.arange(2000) * P + late
+        got = aa.grid_lateness_s(t, P)
+        assert np.allclose(got, late, atol=0.01 * P)  # the phase: the 0.5 % earliest
+        t[9] -= 0.2 * P  # one tick logged early of the grid: the phase does not follow it
+        assert np.allclose(np.delete(aa.grid_lateness_s(t, P), 9), np.delete(late, 9),
+                           atol=0.01 * P)  # fmt: skip
 
 
 def test_the_loops_beside_the_probe_give_ratios_and_none_without_a_probe_miss():

@@ -222,21 +222,23 @@ def _stall_steal(cols: steal.Columns | None, stall: dict[str, Any]) -> dict[str,
 # -- the machine's floor: the bare loops beside ours (floor_probe) ----------------------------
 
 
-def grid_lateness_s(times_s: FloatArray, period_s: float) -> FloatArray:
+def grid_lateness_s(times_s: FloatArray, period_s: float, early_q: float = 0.5) -> FloatArray:
     """Each tick's lateness against the grid its loop keeps (due every ``period_s`` at a
     fixed phase: ``Loops.periodic`` plans ``t_next += period`` and skips whole periods), for
-    loops that log when a tick ran but not when it was due. The phase is where the ticks'
-    times modulo the period begin after the widest arc no tick fell in (the earliest any
-    tick came): lateness over the loop's best tick, and modulo the period (a tick later
-    than a period counts from the deadline before it)."""
+    loops that log when a tick ran but not when it was due. The ticks' times modulo the
+    period, centred on their circular mean; the phase is the ``early_q`` percentile of them
+    (not the earliest: a few ticks logged early of the rest, as the flight log's position
+    rows show, would shift every other's lateness). Lateness is over that, 0 at least, and
+    within half a period of the centre (a tick later than that counts from the deadline
+    after it: 0)."""
     t = np.asarray(times_s, dtype=float)
     if t.size == 0:
         return t
-    r = np.sort(np.mod(t, period_s))
-    arcs = np.diff(np.concatenate([r, [r[0] + period_s]]))
-    since = t - r[(int(np.argmax(arcs)) + 1) % r.size]
-    # (the best tick's own lateness is 0, not a period less a rounding error)
-    out: FloatArray = np.maximum(since - np.floor(since / period_s + 1e-6) * period_s, 0.0)
+    r = np.mod(t, period_s)
+    angle = float(np.angle(np.mean(np.exp(2j * np.pi * r / period_s))))
+    centre = angle / (2.0 * np.pi) * period_s
+    u = np.mod(r - centre + 0.5 * period_s, period_s) - 0.5 * period_s
+    out: FloatArray = np.maximum(u - float(np.percentile(u, early_q)), 0.0)
     return out
 
 
