@@ -300,6 +300,15 @@ def _add_bench(sub: _Subparsers) -> None:
         help="with --freeze: seconds the helper stays stopped (default 20)",
     )  # fmt: skip
     bench.add_argument(
+        "--no-probe", dest="probe", action="store_false",
+        help="with --attack: no bare 200 Hz loops beside the service (the machine's floor, "
+        "measured by default: floor_probe)",
+    )  # fmt: skip
+    bench.add_argument(
+        "--probe-priority", type=int, default=50, metavar="P",
+        help="with --attack: the machine probe's SCHED_FIFO priority (default 50, the loops')",
+    )  # fmt: skip
+    bench.add_argument(
         "--fleet",
         action="store_true",
         help="instead: N light vehicles (the real sharing stack, no physics) through one "

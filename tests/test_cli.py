@@ -98,6 +98,10 @@ def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
     assert options[-1] == bench_attack.AttackOptions(
         autopilot="ardupilot", attack_s=60.0, attacks=("flood+fuzz", "fuzz"), signing=True,
         forge=True, freeze="store", freeze_s=15.0)  # fmt: skip
+    assert main(["bench", "--attack", "--no-probe"]) == 0  # the machine's floor not probed
+    assert options[-1] == bench_attack.AttackOptions(probe=False)
+    assert main(["bench", "--attack", "--probe-priority", "51"]) == 0
+    assert options[-1] == bench_attack.AttackOptions(probe_priority=51)
     for bad in (["--hogs", "-1"], ["--loops-cpu", "-1"], ["--sitl-cpu", "-1"],
                 ["--freeze", "nobody"], ["--autopilot", "inav"]):  # fmt: skip
         with pytest.raises(SystemExit) as exc:
@@ -105,9 +109,10 @@ def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
         assert exc.value.code == 2
     # what argparse cannot check: a usage error printed, exit 1, nothing flown
     for bad in (["--attacks", "fuzz+fuzz"], ["--attacks", "flood+rotate+fuzz"],
-                ["--attacks", "quake"], ["--attack-s", "0"]):  # fmt: skip
+                ["--attacks", "quake"], ["--attack-s", "0"],
+                ["--probe-priority", "0"]):  # fmt: skip
         assert main(["bench", "--attack", *bad]) == 1
-    assert len(options) == 3
+    assert len(options) == 5
 
 
 def test_the_parser_and_sims_launcher_import_no_control_stack():

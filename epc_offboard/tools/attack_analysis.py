@@ -219,6 +219,192 @@ def _stall_steal(cols: steal.Columns | None, stall: dict[str, Any]) -> dict[str,
                 steal_thread_cpu_ms=None if s is None else s["steal_thread_cpu_ms"])  # fmt: skip
 
 
+# -- the machine's floor: the bare loops beside ours (floor_probe) ----------------------------
+
+
+def grid_lateness_s(times_s: FloatArray, period_s: float, early_q: float = 0.5) -> FloatArray:
+    """Each tick's lateness against the grid its loop keeps (due every ``period_s`` at a
+    fixed phase: ``Loops.periodic`` plans ``t_next += period`` and skips whole periods), for
+    loops that log when a tick ran but not when it was due. The ticks' times modulo the
+    period, centred on their circular mean; the phase is the ``early_q`` percentile of them
+    (not the earliest: a few ticks logged early of the rest, as the flight log's position
+    rows show, would shift every other's lateness). Lateness is over that, 0 at least, and
+    within half a period of the centre (a tick later than that counts from the deadline
+    after it: 0)."""
+    t = np.asarray(times_s, dtype=float)
+    if t.size == 0:
+        return t
+    r = np.mod(t, period_s)
+    angle = float(np.angle(np.mean(np.exp(2j * np.pi * r / period_s))))
+    centre = angle / (2.0 * np.pi) * period_s
+    u = np.mod(r - centre + 0.5 * period_s, period_s) - 0.5 * period_s
+    out: FloatArray = np.maximum(u - float(np.percentile(u, early_q)), 0.0)
+    return out
+
+
+def _lateness_ms(late_s: FloatArray) -> dict[str, float | None]:
+    if not late_s.size:
+        return {"p50": None, "p99": None, "max": None}
+    ms = 1e3 * late_s
+    return {"p50": round(float(np.percentile(ms, 50)), 3),
+            "p99": round(float(np.percentile(ms, 99)), 3), "max": round(float(ms.max()), 3)}
+
+
+def probe_figures(records: dict[str, FloatArray], t0_s: float, t1_s: float,
+                  period_s: float) -> dict[str, Any]:  # fmt: skip
+    """A bare loop's (``floor_probe``'s ``COLUMNS``) ticks woken in [t0, t1], judged as the
+    loops are: ``misses``, ticks woken more than ``period_s`` (the attitude loop's
+    deadline) late or computing longer than it (``timing.LoopTiming``); ``gaps_over_12ms``,
+    wake-to-wake intervals over ``STALL_S``, at the probe's 200 Hz and at 100 Hz (its ticks
+    due on a 10 ms grid alone, ``gaps_over_12ms_100hz``: the position loop's period, the
+    same measure as its gaps); ``skipped``, deadlines passed by; lateness (wake - due)
+    percentiles in ms; the compute's wall and thread-CPU time, and the wall beyond the CPU
+    summed (``compute_off_cpu_ms``: steal or preemption inside a tick)."""
+    due, wake = records["due_s"], records["wake_s"]
+    sel = (wake >= t0_s) & (wake <= t1_s)
+    late = (wake - due)[sel]
+    wall, cpu = records["compute_wall_s"][sel], records["compute_cpu_s"][sel]
+    steps = np.rint(np.diff(due[sel]) / period_s) if sel.sum() > 1 else np.zeros(0)
+    on_100hz = sel & (np.rint((due - (due[0] if due.size else 0.0)) / period_s) % 2 == 0)
+    return {
+        "ticks": int(sel.sum()),
+        "misses": int(np.sum((late > period_s) | (wall > period_s))),
+        "gaps_over_12ms": len(steal.gaps(wake[sel], STALL_S)),
+        "gaps_over_12ms_100hz": len(steal.gaps(wake[on_100hz], STALL_S)),
+        "max_gap_ms": round(1e3 * _gap_s(wake, t0_s, t1_s), 3) if sel.any() else None,
+        "skipped": int(np.sum(np.maximum(steps - 1, 0))),
+        "lateness_ms": _lateness_ms(late),
+        "compute_wall_us": _percentiles_us(wall),
+        "compute_cpu_us": _percentiles_us(cpu),
+        "compute_off_cpu_ms": round(1e3 * float(np.sum(np.maximum(wall - cpu, 0.0))), 3),
+    }  # fmt: skip
+
+
+def _percentiles_us(x_s: FloatArray) -> dict[str, float | None]:
+    if not x_s.size:
+        return {"p50": None, "p99": None}
+    return {"p50": round(float(np.percentile(x_s, 50)) * 1e6, 1),
+            "p99": round(float(np.percentile(x_s, 99)) * 1e6, 1)}  # fmt: skip
+
+
+def loops_floor_figures(flight: dict[str, Any], att_times_s: FloatArray,
+                        misses: Sequence[dict[str, Any]], t0_s: float, t1_s: float,
+                        attitude_period_s: float,
+                        position_period_s: float = 0.01) -> dict[str, Any]:  # fmt: skip
+    """The loops' figures in [t0, t1] in the probe's terms: position-loop gaps over
+    ``STALL_S`` (its offboard ticks, as ``steal_figures`` counts them), attitude deadline
+    misses (the service's ``misses``, its latest ``loop.STALLS_KEPT``), and each loop's
+    lateness against its grid (:func:`grid_lateness_s`: the position ticks' start in the
+    flight log, the attitude ticks' SET_ATTITUDE_TARGET send in the tlog, a tick's compute
+    later than its start)."""
+    t = flight["t_s"]
+    rows = (t >= t0_s) & (t <= t1_s)
+    att = att_times_s[(att_times_s >= t0_s) & (att_times_s <= t1_s)]
+    return {
+        "position_gaps_over_12ms": len(steal.gaps(t[rows & (flight["phase"] == "offboard")],
+                                                  STALL_S)),
+        "attitude_misses": sum(1 for m in misses if m["loop"] == "attitude"
+                               and t0_s <= m["t_s"] <= t1_s),
+        "position_lateness_ms": _lateness_ms(grid_lateness_s(t[rows], position_period_s)),
+        "attitude_lateness_ms": _lateness_ms(grid_lateness_s(att, attitude_period_s)),
+    }  # fmt: skip
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None or b <= 0 else round(a / b, 2)
+
+
+def floor_figures(probes: dict[str, dict[str, FloatArray]], flight: dict[str, Any],
+                  att_times_s: FloatArray, misses: Sequence[dict[str, Any]],
+                  wins: Sequence[Window], attitude_period_s: float) -> dict[str, Any]:  # fmt: skip
+    """The loops beside the bare loops (``probes``: each wake's records), per window and
+    over the flight (the first window's start to the last's end), with the ratios
+    loops/probe: attitude misses over the probe's misses, position gaps over 12 ms over
+    the probe's at 100 Hz, lateness p99 (attitude's over the probe's). A ratio near 1 or
+    under: the machine's floor; well over 1: the loops lose more than a bare loop does."""
+
+    def stretch(t0_s: float, t1_s: float) -> dict[str, Any]:
+        loops = loops_floor_figures(flight, att_times_s, misses, t0_s, t1_s, attitude_period_s)
+        out: dict[str, Any] = {"loops": loops}
+        for wake, rec in probes.items():
+            fig = probe_figures(rec, t0_s, t1_s, attitude_period_s)
+            out[wake] = fig
+            out[f"ratio_{wake}"] = {
+                "misses": _ratio(loops["attitude_misses"], fig["misses"]),
+                "gaps_over_12ms": _ratio(loops["position_gaps_over_12ms"],
+                                         fig["gaps_over_12ms_100hz"]),
+                "lateness_p99": _ratio(loops["attitude_lateness_ms"]["p99"],
+                                       fig["lateness_ms"]["p99"]),
+            }  # fmt: skip
+        return out
+
+    if not wins:
+        return {"probed": sorted(probes), "windows": [], "flight": {}, "shared": {}}
+    windows = [dict(phase=w.phase, kind=w.kind, **stretch(w.t0_s, w.t1_s)) for w in wins]
+    attacks = [w for w in wins if w.attack]
+    return {"probed": sorted(probes), "flight": stretch(wins[0].t0_s, wins[-1].t1_s),
+            "shared": shared_events(probes, flight, misses, wins[0].t0_s, wins[-1].t1_s),
+            "attack_windows": _sum_counts([w for w, win in zip(windows, wins, strict=True)
+                                           if win.attack]) if attacks else {},
+            "windows": windows}  # fmt: skip
+
+
+SHARED_LATE_MS = 2.0  # a bare loop's tick this late: the machine held a SCHED_FIFO thread too
+SHIFT_S = 0.5  # the control: the same intervals this much later, where the loops were on time
+
+
+def shared_events(probes: dict[str, dict[str, FloatArray]], flight: dict[str, Any],
+                  misses: Sequence[dict[str, Any]], t0_s: float, t1_s: float,
+                  ) -> dict[str, Any]:  # fmt: skip
+    """Each of the loops' position gaps over ``STALL_S`` and attitude misses in [t0, t1]
+    (its interval: between the two ticks; a miss's from the previous tick's start to its
+    own end, ``loop.Stall``) beside each bare loop's latest tick in it (the ticks due
+    before its end and woken after its start): ``events`` (``loop``, ``t0_s``, ``t1_s``,
+    ``probe_late_ms`` by wake) and, by wake, how many had a probe tick at least
+    ``SHARED_LATE_MS`` late (``with_probe_late``): what held the loops held a bare loop at
+    the same moment, the machine's; the rest, the loops' alone. The control
+    (``by_chance``): the same count over the same intervals ``SHIFT_S`` later, how often a
+    bare loop is that late in any stretch that long."""
+    t = flight["t_s"]
+    on = t[(t >= t0_s) & (t <= t1_s) & (flight["phase"] == "offboard")]
+    spans = [("position", a, b) for a, b in steal.gaps(on, STALL_S)]
+    for m in misses:
+        if m["loop"] == "attitude" and t0_s <= m["t_s"] <= t1_s:
+            end_s = m["t_s"] + 1e-3 * float(m.get("compute_ms", 0.0))
+            spans.append(("attitude", end_s - 1e-3 * float(m["interval_ms"]), end_s))
+    def worst_ms(rec: dict[str, FloatArray], a: float, b: float) -> float | None:
+        inside = (rec["due_s"] <= b) & (rec["wake_s"] >= a)
+        return (round(1e3 * float(np.max((rec["wake_s"] - rec["due_s"])[inside])), 3)
+                if inside.any() else None)  # fmt: skip
+
+    events: list[dict[str, Any]] = []
+    for loop, a, b in sorted(spans, key=lambda e: e[1]):
+        events.append({"loop": loop, "t0_s": round(a, 4), "t1_s": round(b, 4),
+                       "probe_late_ms": {w: worst_ms(r, a, b) for w, r in probes.items()},
+                       "shifted_probe_late_ms": {w: worst_ms(r, a + SHIFT_S, b + SHIFT_S)
+                                                 for w, r in probes.items()}})  # fmt: skip
+    counts: dict[str, Any] = {}
+    for loop in ("position", "attitude"):
+        mine = [e for e in events if e["loop"] == loop]
+        counts[loop] = {"total": len(mine)} | {key: {
+            wake: sum(1 for e in mine if (e[field][wake] or 0.0) >= SHARED_LATE_MS)
+            for wake in probes} for key, field in (("with_probe_late", "probe_late_ms"),
+                                                   ("by_chance", "shifted_probe_late_ms"))}
+    return {"late_ms": SHARED_LATE_MS, "shift_s": SHIFT_S, **counts, "events": events}
+
+
+def _sum_counts(windows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The attack windows' counts summed (misses, gaps), the loops' and each probe's."""
+    keys = {"loops": ("position_gaps_over_12ms", "attitude_misses")}
+    out: dict[str, Any] = {}
+    for part in windows[0]:
+        if part in ("phase", "kind") or part.startswith("ratio_"):
+            continue
+        names = keys.get(part, ("misses", "gaps_over_12ms", "gaps_over_12ms_100hz", "skipped"))
+        out[part] = {k: sum(w[part][k] for w in windows) for k in names}
+    return out
+
+
 # -- every gap over 12 ms and every deadline miss, attributed ---------------------------------
 
 STEAL = "steal"
@@ -610,11 +796,54 @@ def format_table(report: dict[str, Any]) -> str:
     lines.append(stall_summary(report))
     lines.append(steal_summary(report))
     lines.append(attribution_summary(report))
+    lines.append(floor_summary(report.get("floor_probe")))
     lines.append(f"{'issue 21 target':62s} {'verdict':9s} measured")
     for v in judge(report):
         verdict = "n/a" if v.met is None else ("met" if v.met else "NOT MET")
         lines.append(f"{v.target:62s} {verdict:9s} {v.measured}")
     return "\n".join(lines)
+
+
+def floor_summary(floor: dict[str, Any] | None) -> str:
+    """The loops beside the bare loops (``floor_figures``), over the flight and the attacks."""
+    if not floor:
+        return "machine floor: not probed (--no-probe)"
+    lines = []
+    meta = floor.get("probes", {})
+    how = ", ".join(f"{w} " + (f"SCHED_FIFO {m.get('priority')}" if m.get("fifo_applied")
+                               else "NOT SCHED_FIFO") for w, m in sorted(meta.items()))
+    lines.append(f"machine floor (bare 200 Hz loops beside the service: {how}):")
+    for scope in ("flight", "attack_windows"):
+        part = floor.get(scope) or {}
+        if not part:
+            continue
+        loops = part["loops"]
+        text = (f"  {scope.replace('_', ' ')}: loops: position gaps > 12 ms "
+                f"{loops['position_gaps_over_12ms']}, attitude misses {loops['attitude_misses']}")
+        if scope == "flight":
+            text += (f", lateness ms p50/p99/max position "
+                     f"{_triple(loops['position_lateness_ms'])}, attitude "
+                     f"{_triple(loops['attitude_lateness_ms'])}")
+        for wake in floor.get("probed", []):
+            p = part[wake]
+            text += (f"; {wake}: misses {p['misses']}, gaps > 12 ms {p['gaps_over_12ms']} "
+                     f"(at 100 Hz {p['gaps_over_12ms_100hz']})")
+            if scope == "flight":
+                text += f", lateness {_triple(p['lateness_ms'])}"
+        lines.append(text)
+    shared = floor.get("shared") or {}
+    if shared:
+        lines.append("  the loops' gaps > 12 ms and attitude misses with a bare loop's tick "
+                     f">= {shared['late_ms']:g} ms late in them: " + "; ".join(
+                         f"{loop} {shared[loop]['total']}: " + ", ".join(
+                             f"{w} {n} (by chance {shared[loop]['by_chance'][w]})"
+                             for w, n in shared[loop]["with_probe_late"].items())
+                         for loop in ("position", "attitude")))  # fmt: skip
+    return "\n".join(lines)
+
+
+def _triple(late: dict[str, float | None]) -> str:
+    return "/".join("-" if late[k] is None else f"{late[k]:.2f}" for k in ("p50", "p99", "max"))
 
 
 def _freeze_text(freeze: dict[str, Any] | None) -> str:
@@ -682,7 +911,11 @@ def write_figure(report: dict[str, Any], series: dict[str, FloatArray], path: An
     import matplotlib.pyplot as plt
 
     t_zero = report["windows"][0]["t0_s"]
-    fig, (ax_gap, ax_att, ax_err) = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
+    probed = sorted(k[len("probe_"):-len("_t_s")] for k in series
+                    if k.startswith("probe_") and k.endswith("_t_s"))  # fmt: skip
+    fig, axes = plt.subplots(4 if probed else 3, 1, figsize=(10, 9 if probed else 7),
+                             sharex=True)  # fmt: skip
+    ax_gap, ax_att, ax_err = axes[0], axes[1], axes[-1]
     ax_gap.plot(series["pos_t_s"][1:] - t_zero, np.diff(series["pos_t_s"]) * 1e3, lw=0.5,
                 color="tab:blue")  # fmt: skip
     ax_gap.axhline(20.0, color="k", lw=0.6, ls="--")
@@ -692,6 +925,22 @@ def write_figure(report: dict[str, Any], series: dict[str, FloatArray], path: An
     ax_att.plot(att[1:] - t_zero, np.diff(att) * 1e3, lw=0.4, color="tab:purple")
     ax_att.set_ylabel("attitude send\ninterval, ms")
     ax_att.set_yscale("log")
+    if probed:  # the bare loops' lateness, the loops' gaps over 12 ms marked on it
+        ax_probe = axes[2]
+        for wake, colour in zip(probed, ("tab:olive", "tab:brown", "tab:gray"), strict=False):
+            late = np.maximum(series[f"probe_{wake}_late_ms"], 1e-3)
+            ax_probe.plot(series[f"probe_{wake}_t_s"] - t_zero, late, lw=0.4, color=colour,
+                          label=f"probe ({wake}) lateness")  # fmt: skip
+        pos = series["pos_t_s"]
+        big = np.flatnonzero(np.diff(pos) > STALL_S)
+        if big.size:
+            ax_probe.scatter(pos[big + 1] - t_zero, np.diff(pos)[big] * 1e3, s=10,
+                             color="tab:blue", marker="v", zorder=3,
+                             label=f"loops' position gaps > 12 ms ({big.size}), ms")  # fmt: skip
+        ax_probe.axhline(5.0, color="k", lw=0.6, ls="--")
+        ax_probe.set_yscale("log")
+        ax_probe.set_ylabel("bare loop\nlateness, ms")
+        ax_probe.legend(fontsize=6, loc="lower right", ncol=3)
     ax_err.plot(series["err_t_s"] - t_zero, series["err_m"], lw=0.6, color="tab:red")
     ax_err.axhline(0.10, color="k", lw=0.6, ls="--")
     ax_err.set_ylabel("error to the\nreference, m")
@@ -701,7 +950,7 @@ def write_figure(report: dict[str, Any], series: dict[str, FloatArray], path: An
     for w in report["windows"]:
         if w["kind"] == "calm":
             continue
-        for ax in (ax_gap, ax_att, ax_err):
+        for ax in axes:
             ax.axvspan(w["t0_s"] - t_zero, w["t1_s"] - t_zero,
                        color=colours.get(w["kind"], "tab:brown"),
                        alpha=0.25, lw=0)  # fmt: skip
@@ -726,7 +975,7 @@ def write_figure(report: dict[str, Any], series: dict[str, FloatArray], path: An
                       title="gaps > 12 ms" if ax is ax_gap else "deadline misses")  # fmt: skip
     split = [w["t0_s"] for w in report["windows"] if w["phase"] == "figure8"]
     if split:
-        for ax in (ax_gap, ax_att, ax_err):
+        for ax in axes:
             ax.axvline(split[0] - t_zero, color="k", lw=0.8)
     load = report["load_avg"]
     fig.suptitle(f"bench --attack: hover, then the windy figure-8 ({report['attitude_mode']} "

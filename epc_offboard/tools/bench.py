@@ -332,6 +332,8 @@ def run_bench_command(args: argparse.Namespace) -> int:
                 forge=bool(getattr(args, "forge", False)),
                 freeze=getattr(args, "freeze", None),
                 freeze_s=float(getattr(args, "freeze_s", 20.0)),
+                probe=bool(getattr(args, "probe", True)),
+                probe_priority=int(getattr(args, "probe_priority", 50)),
             )  # fmt: skip
             return run_attack_bench(args.json, int(args.hogs), str(args.attitude_mode),
                                     loops_cpu=getattr(args, "loops_cpu", None),

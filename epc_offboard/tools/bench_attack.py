@@ -57,6 +57,7 @@ from epc_offboard.common.errors import EpcError
 from epc_offboard.common.ports import free_port
 from epc_offboard.common.procstats import StartWatch, stat_fields
 from epc_offboard.tools import attack_analysis as analysis
+from epc_offboard.tools import floor_probe
 from epc_offboard.tools import steal as steal_time
 from epc_offboard.tools.bench_modes import start_hogs, stop_hogs
 from epc_offboard.tools.sim.analysis import read_csv_columns
@@ -100,7 +101,9 @@ class AttackOptions:
     ``signing``: a fresh MAVLink 2 signing key for the service and the SITL (the fuzzer does
     not have it); ``forge``: the fuzzer also forges the vehicle's state (fuzz_mavlink
     ``--forge``); ``freeze``: one helper process (HELPERS) SIGSTOPped for ``freeze_s`` from
-    the start of each phase's first attack, then SIGCONT."""
+    the start of each phase's first attack, then SIGCONT; ``probe``: the machine's floor
+    measured beside the loops (:class:`Probes`; ``--no-probe`` turns it off) at
+    ``probe_priority`` (SCHED_FIFO; by default the loops')."""
 
     autopilot: str = "px4"
     attack_s: float = WINDOW_S
@@ -109,6 +112,8 @@ class AttackOptions:
     forge: bool = False
     freeze: str | None = None
     freeze_s: float = FREEZE_S
+    probe: bool = True
+    probe_priority: int = REALTIME_PRIORITY
 
     def __post_init__(self) -> None:
         if self.autopilot not in AUTOPILOTS:
@@ -127,6 +132,8 @@ class AttackOptions:
             raise AttackBenchError(f"--freeze: one of {', '.join(HELPERS)}")
         if self.freeze_s <= 0.0:
             raise AttackBenchError("--freeze-s must be > 0")
+        if not 1 <= self.probe_priority <= 99:
+            raise AttackBenchError("--probe-priority: 1 to 99")
 
 
 def parse_attacks(text: str) -> tuple[str, ...]:
@@ -264,6 +271,59 @@ class Sampler(threading.Thread):
                 "control_rss_mb": round(control[1], 2), "children_cpu_s": children,
                 "load_avg": os.getloadavg(),
             })  # fmt: skip
+
+
+class Probes:
+    """The machine's floor (:mod:`~epc_offboard.tools.floor_probe`): one bare 200 Hz loop
+    per way of waiting, each a process of its own at the loops' scheduling (SCHED_FIFO at
+    ``priority``, pinned to ``cpu`` if the loops are), started before the flight and stopped
+    after it; each writes its ticks to ``run_dir/probe-WAKE.f64``."""
+
+    def __init__(self, run_dir: Path, priority: int, cpu: int | None) -> None:
+        self.paths = {w: run_dir / f"probe-{w}.f64" for w in floor_probe.WAKES}
+        self.procs: dict[str, subprocess.Popen[str]] = {}
+        for wake, path in self.paths.items():
+            path.unlink(missing_ok=True)
+            cmd = [sys.executable, "-m", "epc_offboard.tools.floor_probe", "--wake", wake,
+                   "--out", str(path), "--fifo", str(priority)]  # fmt: skip
+            if cpu is not None:
+                cmd += ["--cpu", str(cpu)]
+            self.procs[wake] = subprocess.Popen(
+                cmd, stdout=subprocess.PIPE, stderr=(run_dir / f"probe-{wake}.log").open("w"),
+                text=True)  # fmt: skip
+        self.ready: dict[str, dict[str, Any]] = {}
+
+    def wait_ready(self, wake: str) -> dict[str, Any]:
+        """``wake``'s probe's ready line (its wake, pid, whether SCHED_FIFO was applied),
+        waited for; {} if it ended without one."""
+        if wake not in self.ready:
+            stdout = self.procs[wake].stdout
+            line = stdout.readline() if stdout is not None else ""
+            self.ready[wake] = json.loads(line[6:]) if line.startswith("ready ") else {}
+        return self.ready[wake]
+
+    def close(self, timeout_s: float = 10.0) -> dict[str, Any]:
+        """Stopped (SIGTERM: each writes its records); each one's ready line, its records'
+        path (``path``), exit code (``exit``) and cost (its ``done`` line: ``cpu_s``,
+        ``wall_s``, ``ticks``, and ``cpu_share``, the CPU over the wall), by wake."""
+        for proc in self.procs.values():
+            with contextlib.suppress(OSError):
+                proc.send_signal(signal.SIGTERM)
+        out: dict[str, Any] = {}
+        for wake, proc in self.procs.items():
+            try:
+                proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            meta = dict(self.wait_ready(wake), path=str(self.paths[wake]), exit=proc.returncode)
+            rest = proc.stdout.read() if proc.stdout is not None else ""
+            done = next((x for x in rest.splitlines() if x.startswith("done ")), "")
+            if done:  # its CPU time over its ticking time: what it cost the machine
+                cost = json.loads(done[5:])
+                meta.update(cost, cpu_share=round(cost["cpu_s"] / max(cost["wall_s"], 1e-9), 4))
+            out[wake] = meta
+        return out
 
 
 # -- the flight -------------------------------------------------------------------------------
@@ -538,6 +598,8 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
     sampler: Sampler | None = None
     freezer: Freezer | None = None
     stealer: steal_time.StealSampler | None = None
+    probes: Probes | None = None
+    probed: dict[str, Any] = {}
     windows: list[analysis.Window] = []
     sitl_fifo = sitl_pinned = False
     load_start = os.getloadavg()
@@ -553,6 +615,8 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
         )  # fmt: skip
         sitl_fifo = _is_fifo(sitl.pid)
         sitl_pinned = _pinned(sitl.pid, sitl_cpu)
+        if opts.probe:
+            probes = Probes(run_dir, opts.probe_priority, loops_cpu)
         zenoh_kinds = tuple(k for k in ZENOH_ATTACKS
                             if any(k in a.split("+") for a in opts.attacks))  # fmt: skip
         attackers = Attackers(zenoh_port, config_path, run_dir, zenoh_kinds, opts.attack_s)
@@ -593,6 +657,8 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
             time.sleep(1.0)
         code = _stop(service)  # holds the vehicle, writes its stats
     finally:
+        if probes is not None:
+            probed = probes.close()
         if freezer is not None:
             freezer.close()  # a frozen helper would hold the service's stop
         stop_hogs(hog_procs)  # by PID, first: the rest stops faster without them
@@ -610,7 +676,7 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
             "fifo_priority": REALTIME_PRIORITY, "sitl_fifo": sitl_fifo,
             "loops_cpu": loops_cpu, "sitl_cpu": sitl_cpu,
             "sitl_cpu_applied": sitl_pinned, "options": opts,
-            "freezes": freezer.events if freezer else []}  # fmt: skip
+            "freezes": freezer.events if freezer else [], "probes": probed}  # fmt: skip
 
 
 # -- the report -------------------------------------------------------------------------------
@@ -690,12 +756,33 @@ def analyse(run_dir: Path, record: dict[str, Any], hogs: int, mode: str,
         "link_refused": link_refused(stats.get("link", {})),
         "lockstep_rmse_m": lockstep_rmse_m,
         "figure8_rmse_m": analysis.figure8_rmse_m(windows),
+        "floor_probe": floor_report(record.get("probes") or {}, flight, att_t_s,
+                                    stats.get("misses", []), record["windows"], period_s),
     }  # fmt: skip
     err_t, err = analysis.error_series(flight, truth)
     series = {"pos_t_s": flight["t_s"][flight["phase"] == "offboard"], "att_t_s": att_t_s,
               "err_t_s": err_t, "err_m": err}  # fmt: skip
+    for wake, meta in (record.get("probes") or {}).items():
+        rec = floor_probe.read_records(Path(meta["path"]))
+        series[f"probe_{wake}_t_s"] = rec["wake_s"]
+        series[f"probe_{wake}_late_ms"] = 1e3 * (rec["wake_s"] - rec["due_s"])
     report["verdicts"] = [vars(v) for v in analysis.judge(report)]
     return report, series
+
+
+def floor_report(probes: dict[str, Any], flight: dict[str, Any], att_t_s: Any,
+                 misses: list[dict[str, Any]], wins: list[analysis.Window],
+                 attitude_period_s: float) -> dict[str, Any] | None:  # fmt: skip
+    """The machine's floor beside the loops (``analysis.floor_figures``), with how each
+    probe ran (``Probes.close``: its wake, SCHED_FIFO applied, its compute); None with
+    ``--no-probe``."""
+    if not probes:
+        return None
+    records = {wake: floor_probe.read_records(Path(meta["path"]))
+               for wake, meta in probes.items()}  # fmt: skip
+    figures = analysis.floor_figures(records, flight, att_t_s, misses, wins, attitude_period_s)
+    return {"probes": {w: {k: v for k, v in m.items() if k != "path"}
+                       for w, m in probes.items()}, **figures}  # fmt: skip
 
 
 # the link's counters that are not refusals (the rest each count a datagram or frame refused)
