@@ -70,7 +70,7 @@ def test_the_loops_beside_the_probe_give_ratios_and_none_without_a_probe_miss():
     t = np.arange(99.5, 101.5, 0.01)
     flight = {"t_s": t, "phase": np.full(t.size, "offboard")}
     flight["t_s"] = np.where(t > 100.3, t + 0.004, t)  # one 14 ms gap
-    att = 99.5 + np.arange(400) * P
+    att = np.asarray(99.5 + np.arange(400) * P, dtype=np.float64)
     misses = [{"loop": "attitude", "t_s": x, "interval_ms": 11.0, "compute_ms": 0.2}
               for x in (100.1, 100.2, 100.6, 100.7)]  # fmt: skip
     wins = [aa.Window("hover", "calm", 99.6, 100.4, {}),
