@@ -81,7 +81,6 @@ ZENOH_RATE_PER_S = 1000.0
 FUZZ_RATE_HZ = 2000.0
 REALTIME_PRIORITY = 50  # config/default.toml's
 SITL_FIFO_PRIORITY = 40  # below the service's loops: an autopilot never waits for them
-DEPLOYED_NICE = -5  # config/epc-offboard.service's Nice=
 SERVICE_SYSTEM_ID = 245  # link.system_id's default: the sender of the attitude setpoints
 FLEET = "bench"
 MODES = {"quaternion": "autopilot", "rates": "auto"}  # --attitude-mode -> attitude.mode
@@ -146,33 +145,22 @@ class AttackBenchError(EpcError, RuntimeError):
 
 
 def _deployed_priority() -> None:
-    with contextlib.suppress(PermissionError):
-        os.nice(DEPLOYED_NICE)
+    floor_probe.schedule(None, None)
 
 
 def _autopilot_scheduling(cpu: int | None) -> Any:
-    """The SITL's ``preexec_fn``: its priority (:func:`_autopilot_priority`) and, with
-    ``cpu``, pinned to that CPU (``--sitl-cpu``; a CPU not offered: left unpinned)."""
+    """The SITL's ``preexec_fn``: it stands in for an autopilot on a processor of its own,
+    SCHED_FIFO below the service's loops where permitted (else the deployed nice), and with
+    ``cpu`` pinned to that CPU (``--sitl-cpu``; a CPU not offered: left unpinned). At
+    normal priority beside two hogs and a load of 20-30 its simulated clock fell up to 0.3 s
+    behind the wall clock and caught up in a sprint: the service rightly judged its samples
+    stale and failed safe, in calm windows as in attacks, which measured the simulator's
+    starvation, not the service."""
 
     def scheduling() -> None:
-        _autopilot_priority()
-        if cpu is not None:
-            with contextlib.suppress(OSError):
-                os.sched_setaffinity(0, {cpu})
+        floor_probe.schedule(SITL_FIFO_PRIORITY, cpu)
 
     return scheduling
-
-
-def _autopilot_priority() -> None:
-    """The SITL stands in for an autopilot on a processor of its own: SCHED_FIFO below the
-    service's loops where permitted (else the deployed nice). At normal priority beside two
-    hogs and a load of 20-30 its simulated clock fell up to 0.3 s behind the wall clock and
-    caught up in a sprint: the service rightly judged its samples stale and failed safe, in
-    calm windows as in attacks, which measured the simulator's starvation, not the service."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(SITL_FIFO_PRIORITY))
-    except (PermissionError, OSError):
-        _deployed_priority()
 
 
 def service_config(run_dir: Path, port: int, zenoh_port: int, mode: str,
@@ -288,9 +276,9 @@ class Probes:
                    "--out", str(path), "--fifo", str(priority)]  # fmt: skip
             if cpu is not None:
                 cmd += ["--cpu", str(cpu)]
-            self.procs[wake] = subprocess.Popen(
-                cmd, stdout=subprocess.PIPE, stderr=(run_dir / f"probe-{wake}.log").open("w"),
-                text=True)  # fmt: skip
+            with (run_dir / f"probe-{wake}.log").open("w") as log_fh:  # the child's copy
+                self.procs[wake] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log_fh,
+                                                    text=True)  # fmt: skip
         self.ready: dict[str, dict[str, Any]] = {}
 
     def wait_ready(self, wake: str) -> dict[str, Any]:

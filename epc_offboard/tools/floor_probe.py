@@ -46,7 +46,7 @@ PERIOD_S = 0.005  # the attitude loop's: a perfect 200 Hz loop
 WORK_ITERATIONS = 300
 WAKES = ("asyncio", "sleep")
 COLUMNS = ("due_s", "wake_s", "compute_wall_s", "compute_cpu_s")
-DEPLOYED_NICE = -5  # without SCHED_FIFO: the service's nice (bench_attack.DEPLOYED_NICE)
+DEPLOYED_NICE = -5  # config/epc-offboard.service's Nice=: without SCHED_FIFO
 
 
 def work(n: int = WORK_ITERATIONS) -> float:
@@ -121,7 +121,8 @@ def read_records(path: Path) -> dict[str, Any]:
 
 def schedule(fifo: int | None, cpu: int | None) -> bool:
     """This process at the loops' scheduling: SCHED_FIFO at ``fifo`` where permitted (else
-    the deployed nice), pinned to ``cpu`` if given; whether SCHED_FIFO was applied."""
+    the deployed nice), pinned to ``cpu`` if given; whether SCHED_FIFO was applied. The
+    bench's own children's too (the SITL's ``preexec_fn``, the attackers')."""
     if cpu is not None:
         with contextlib.suppress(OSError):
             os.sched_setaffinity(0, {cpu})
