@@ -4,6 +4,7 @@ No timing bound: the records' structure only (real-time figures live in the benc
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from pathlib import Path
@@ -160,3 +161,41 @@ def test_a_loops_gap_is_shared_when_a_bare_loop_was_late_inside_it():
     assert position["probe_late_ms"]["sleep"] == pytest.approx(3.0)
     assert attitude["probe_late_ms"]["sleep"] == pytest.approx(0.1)
     assert (attitude["t0_s"], attitude["t1_s"]) == (100.6902, 100.7002)
+
+
+def test_the_probes_end_with_a_killed_bench_and_leave_their_records(tmp_path: Path) -> None:
+    # a probe at the loops' SCHED_FIFO priority outlived a SIGKILLed bench (up to its
+    # --seconds, an hour), waking 200 times a second beside whatever ran next
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    bench = subprocess.Popen(
+        [sys.executable, "-c",
+         "import sys, time\n"
+         "from pathlib import Path\n"
+         "from epc_offboard.tools import bench_attack\n"
+         "probes = bench_attack.Probes(Path(sys.argv[1]), priority=1, cpu=None)\n"
+         "print(*(probes.wait_ready(w)['pid'] for w in probes.procs), flush=True)\n"
+         "time.sleep(60)\n", str(tmp_path)],
+        stdout=subprocess.PIPE, text=True)  # fmt: skip
+    assert bench.stdout is not None
+    pids = [int(p) for p in bench.stdout.readline().split()]
+    try:
+        assert len(pids) == len(floor_probe.WAKES)
+        bench.kill()
+        bench.wait()
+        deadline = time.monotonic() + 30.0
+        alive = pids
+        while alive and time.monotonic() < deadline:
+            time.sleep(0.05)
+            alive = [p for p in pids if Path(f"/proc/{p}").exists()
+                     and Path(f"/proc/{p}/stat").read_text().split()[2] != "Z"]  # fmt: skip
+        assert alive == [], "a probe outlived its bench"
+    finally:
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    for wake in floor_probe.WAKES:  # SIGTERM, not a kill: each wrote what it measured
+        assert floor_probe.read_records(tmp_path / f"probe-{wake}.f64")["due_s"].size > 0, wake

@@ -52,6 +52,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from epc_offboard.common.children import launched_env
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.errors import EpcError
 from epc_offboard.common.ports import free_port
@@ -277,8 +278,9 @@ class Probes:
             if cpu is not None:
                 cmd += ["--cpu", str(cpu)]
             with (run_dir / f"probe-{wake}.log").open("w") as log_fh:  # the child's copy
-                self.procs[wake] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log_fh,
-                                                    text=True)  # fmt: skip
+                self.procs[wake] = subprocess.Popen(
+                    cmd, stdout=subprocess.PIPE, stderr=log_fh, text=True,
+                    env=dict(os.environ, **launched_env()))  # ends with the bench, even killed
         self.ready: dict[str, dict[str, Any]] = {}
 
     def wait_ready(self, wake: str) -> dict[str, Any]:
@@ -579,7 +581,8 @@ def fly(run_dir: Path, hogs: int, mode: str, loops_cpu: int | None = None,
         sitl_cmd += ["--param", "GUID_OPTIONS=8"]
     if key_file is not None:
         sitl_cmd += ["--signing-key", str(key_file)]
-    env = dict(os.environ, PYTHONUNBUFFERED="1", **service_env())
+    # the service and the SITL end with the bench, even SIGKILLed (as `sim`'s do)
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **service_env(), **launched_env())
     hog_procs: list[subprocess.Popen[bytes]] = []
     service = sitl = None
     attackers: Attackers | None = None

@@ -40,6 +40,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from epc_offboard.common.children import die_with_launcher
 from epc_offboard.service.clock import sleep_until
 
 PERIOD_S = 0.005  # the attitude loop's: a perfect 200 Hz loop
@@ -138,6 +139,7 @@ def schedule(fifo: int | None, cpu: int | None) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    die_with_launcher()  # SIGTERM when the bench dies, even SIGKILLed: its records, then out
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--wake", choices=WAKES, required=True)
     p.add_argument("--out", required=True)
