@@ -231,3 +231,26 @@ def test_the_service_marks_each_part_by_its_name_never_by_a_number() -> None:
     marked_a = {getattr(svc, n) for n in names if n.startswith("_A_")}
     assert marked_p == set(range(len(svc.POSITION_PARTS)))
     assert marked_a == set(range(len(svc.ATTITUDE_PARTS)))
+
+
+def test_a_hold_of_the_compiler_lock_preempted_or_waiting_is_not_a_compile() -> None:
+    """A lookup of a compiled signature holds numba's compiler lock for microseconds; on a
+    busy host its thread can be preempted in the hold for milliseconds (CI counted one
+    such hold as a compile). A hold counts by the CPU its thread ran in it, as a compile
+    or a cache load does, not by its wall time. The holds here are numba's own events."""
+    from numba.core import event
+
+    counter = CompileCounter()
+    assert counter.install()
+    try:
+        event.start_event("numba:compiler_lock")
+        time.sleep(0.020)  # off the CPU 20 ms in the hold: not a compile
+        event.end_event("numba:compiler_lock")
+        assert counter.count == 0
+        event.start_event("numba:compiler_lock")
+        _busy(0.005)  # 5 ms of the thread's CPU: a compile's
+        event.end_event("numba:compiler_lock")
+        assert counter.count == 1
+        assert counter.longest_ms >= 5.0
+    finally:
+        counter.uninstall()
