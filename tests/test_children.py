@@ -4,6 +4,7 @@ multiprocessing's resource tracker), SIGKILLed; /proc is read for what is left."
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
@@ -72,3 +73,34 @@ def test_a_sigkilled_service_leaves_no_process_behind(tmp_path):
         assert not left, f"orphans: {_cmdlines(left)}"
     finally:
         rig.__exit__()
+
+
+def test_the_benchs_cpu_hogs_end_with_a_killed_bench() -> None:
+    """`bench --attack --hogs N` and `bench --modes --hogs N` start CPU hogs; a SIGKILLed
+    bench (a test's timeout, an OOM kill) left them spinning for ever beside whatever ran
+    next. A real bench stand-in starts two with ``start_hogs`` and is SIGKILLed."""
+    import subprocess
+    import sys
+
+    bench = subprocess.Popen(
+        [sys.executable, "-c",
+         "import time\n"
+         "from epc_offboard.tools.bench_modes import start_hogs\n"
+         "print(*(p.pid for p in start_hogs(2)), flush=True)\n"
+         "time.sleep(60)\n"],
+        stdout=subprocess.PIPE, text=True)  # fmt: skip
+    assert bench.stdout is not None
+    hogs = {int(p) for p in bench.stdout.readline().split()}
+    try:
+        assert len(hogs) == 2
+        assert _alive(hogs) == hogs
+        bench.kill()
+        bench.wait()
+        deadline = time.monotonic() + 30.0
+        while _alive(hogs) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _alive(hogs) == set(), "a CPU hog outlived its bench"
+    finally:
+        for pid in hogs:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)

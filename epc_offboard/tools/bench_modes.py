@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from epc_offboard.common.bundled import scenario_dir
+from epc_offboard.common.children import launched_env
 from epc_offboard.common.configio import dump_toml
 
 MODES = ("epc", "autopilot")  # body rates, quaternion
@@ -59,7 +60,11 @@ FLIP_DEG = 90.0
 # millimetres on a hover is noise, not a worse mode)
 NO_WORSE_RATIO = 1.2
 NO_WORSE_SLACK_M = 0.005
-_HOG = "while True: pass"
+# a core's worth of CPU that ends with its bench, even a SIGKILLed one (a hog left behind
+# spins forever beside whatever runs next: the next bench's figures, a flight)
+_HOG = ("from epc_offboard.common.children import die_with_launcher\n"
+        "die_with_launcher()\n"
+        "while True: pass\n")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -232,7 +237,8 @@ def fly(
 
 def start_hogs(n: int) -> list[subprocess.Popen[bytes]]:
     """``n`` CPU-bound processes (each a core's worth of a loaded companion computer)."""
-    return [subprocess.Popen([sys.executable, "-c", _HOG]) for _ in range(n)]
+    env = dict(os.environ, **launched_env())
+    return [subprocess.Popen([sys.executable, "-c", _HOG], env=env) for _ in range(n)]
 
 
 def stop_hogs(hogs: list[subprocess.Popen[bytes]]) -> None:
