@@ -23,6 +23,7 @@ import pytest
 
 from epc_offboard.tools.sim.orchestrate import ZENOH_BASE_PORT
 from epc_offboard.tools.sim.scenario import SCENARIO_DIR
+from tests.rig import holding_scenario
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -55,7 +56,9 @@ def test_a_corrupt_library_moved_aside_fails_the_flight_and_its_error_is_reporte
     data = bytearray(library.read_bytes())
     data[:100] = b"\xa5" * 100
     library.write_bytes(bytes(data))
-    report, proc, _wall = sim(out, "--duration", "4")
+    # ending holding: the library's error is judged, not the autopilot's landing
+    report, proc, _wall = sim(out, "--scenario", str(holding_scenario(tmp_path, "hover")),
+                              "--duration", "4")  # fmt: skip
     assert proc.returncode == 1, proc.stdout + proc.stderr
     v = report["vehicles"][0]
     assert v["flew_offboard"]  # the flight itself was fine
