@@ -125,9 +125,12 @@ def test_a_fleet_whose_sharing_cannot_open_fails_and_says_so(tmp_path):
         pytest.skip(f"port {ZENOH_BASE_PORT + 1} is in use by another process")
     probe.close()
     out = tmp_path / "out"
+    # ending holding: the sessions are judged, not two landings (8.5 s of vehicle time each,
+    # with the fixed ports' lock held)
     proc = subprocess.Popen(
         [sys.executable, "-m", "epc_offboard", "sim", "--gcs-port", "0", "--out", str(out),
-         "--vehicles", "2", "--duration", "4"],
+         "--scenario", str(holding_scenario(tmp_path, "hover")), "--vehicles", "2",
+         "--duration", "4"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env=dict(os.environ, PYTHONUNBUFFERED="1"),
     )  # fmt: skip
