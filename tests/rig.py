@@ -23,7 +23,8 @@ from pymavlink import mavutil
 from epc_offboard.common.children import launched_env
 from epc_offboard.common.configio import dump_toml, merge_dicts
 from epc_offboard.common.ports import free_port
-from epc_offboard.tools.sim.scenario import SCENARIO_DIR, SITL_SERVICE_CONFIG
+from epc_offboard.tools.sim.scenario import SITL_SERVICE_CONFIG
+from epc_offboard.tools.sim.scenario import holding_scenario as holding_scenario  # the tests'
 from epc_offboard.vehicle.dialect_px4 import px4_modes
 
 # What a CI test may assert about real-time figures: safety bounds that hold on a busy 2-core
@@ -89,16 +90,6 @@ def early_origin_vehicle(folder: Path, origin_s: float = 2.0) -> Path:
     path = folder / "vehicle.toml"
     origin = f"\n[ardupilot]\nekf_origin_after_boot_s = {origin_s}\n"
     path.write_text(DEFAULT_VEHICLE_FILE.read_text() + origin)
-    return path
-
-
-def holding_scenario(folder: Path, name: str) -> Path:
-    """A copy of the shipped scenario ``name`` in ``folder`` whose flights end holding (the
-    service exits; ``sim`` flies no landing): for the suite's lockstep flights that judge
-    nothing of the autopilot's landing, 8.5 s of vehicle time each."""
-    path = folder / f"{name}.toml"
-    shipped = (SCENARIO_DIR / f"{name}.toml").read_text()
-    path.write_text(shipped + "\n[service.mission]\nland_at_end = false\n")
     return path
 
 

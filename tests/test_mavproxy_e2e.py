@@ -27,6 +27,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.common.ports import free_port
 from epc_offboard.tools.sim.orchestrate import stop_process
+from tests.rig import holding_scenario
 
 MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent))
 
@@ -135,8 +136,10 @@ def test_mavproxy_watches_a_running_sim_fly_offboard(tmp_path):
     )  # fmt: skip
     sim = subprocess.Popen(
         # 20 s of hover: MAVProxy names a mode it finds at its own pace, and on an idle machine
-        # lockstep flew a 6 s hover's Offboard in 1.2 s of wall time, which it missed once
-        [sys.executable, "-m", "epc_offboard", "sim", "--scenario", "hover", "--duration", "20",
+        # lockstep flew a 6 s hover's Offboard in 1.2 s of wall time, which it missed once.
+        # Ending holding: MAVProxy is judged on the takeoff and Offboard, not on the landing
+        [sys.executable, "-m", "epc_offboard", "sim", "--scenario",
+         str(holding_scenario(tmp_path, "hover")), "--duration", "20",
          "--adaptation", "none", "--gcs-port", str(gcs_port), "--out", str(tmp_path / "out"),
          "--no-figure"],
         stdin=subprocess.DEVNULL, stdout=(tmp_path / "sim.log").open("wb"),

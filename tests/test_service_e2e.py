@@ -19,7 +19,6 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from epc_offboard.store.database import LibraryStore
-from epc_offboard.tools.sim.scenario import SCENARIO_DIR
 from epc_offboard.vehicle.dialect_px4 import (
     PX4_AUTO_SUB_LOITER,
     PX4_MAIN_MODE_AUTO,
@@ -55,10 +54,11 @@ def sim(tmp_path, *args, expect: int = 0, figure: bool = False):
 
 def test_sim_hover_holds_within_5_cm_and_fails_with_the_targets_it_missed_named(tmp_path):
     # the bundled hover, judged on one target it meets and one nobody can: sim exits 1 and
-    # names the failed one (one flight serves both checks)
+    # names the failed one (one flight serves both checks); ending holding: the landing
+    # after it (8.5 s of vehicle time) judged nothing (sharing_e2e's and ardupilot_e2e's land)
     scenario = tmp_path / "judged_hover.toml"
     scenario.write_text(
-        (SCENARIO_DIR / "hover.toml").read_text()
+        holding_scenario(tmp_path, "hover").read_text()
         + '\n[[targets]]\ndescription = "max error under 5 cm"\n'
         'method = "epc:none"\nmetric = "max_error_m"\nmax = 0.05\n'
         '\n[[targets]]\ndescription = "RMSE of exactly zero"\n'

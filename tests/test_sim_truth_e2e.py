@@ -23,6 +23,7 @@ import pytest
 
 from epc_offboard.tools.sim.orchestrate import ZENOH_BASE_PORT
 from epc_offboard.tools.sim.scenario import SCENARIO_DIR
+from tests.rig import holding_scenario
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -55,7 +56,9 @@ def test_a_corrupt_library_moved_aside_fails_the_flight_and_its_error_is_reporte
     data = bytearray(library.read_bytes())
     data[:100] = b"\xa5" * 100
     library.write_bytes(bytes(data))
-    report, proc, _wall = sim(out, "--duration", "4")
+    # ending holding: the library's error is judged, not the autopilot's landing
+    report, proc, _wall = sim(out, "--scenario", str(holding_scenario(tmp_path, "hover")),
+                              "--duration", "4")  # fmt: skip
     assert proc.returncode == 1, proc.stdout + proc.stderr
     v = report["vehicles"][0]
     assert v["flew_offboard"]  # the flight itself was fine
@@ -122,9 +125,12 @@ def test_a_fleet_whose_sharing_cannot_open_fails_and_says_so(tmp_path):
         pytest.skip(f"port {ZENOH_BASE_PORT + 1} is in use by another process")
     probe.close()
     out = tmp_path / "out"
+    # ending holding: the sessions are judged, not two landings (8.5 s of vehicle time each,
+    # with the fixed ports' lock held)
     proc = subprocess.Popen(
         [sys.executable, "-m", "epc_offboard", "sim", "--gcs-port", "0", "--out", str(out),
-         "--vehicles", "2", "--duration", "4"],
+         "--scenario", str(holding_scenario(tmp_path, "hover")), "--vehicles", "2",
+         "--duration", "4"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env=dict(os.environ, PYTHONUNBUFFERED="1"),
     )  # fmt: skip

@@ -54,6 +54,7 @@ from epc_offboard.control.epc import ExperienceController
 from epc_offboard.control.trajectories import Trajectory
 from epc_offboard.service.config import load_service_config
 from epc_offboard.service.miss_solver import MissSolver
+from epc_offboard.tools.sim.scenario import holding_scenario
 from epc_offboard.vehicle import commands
 from epc_offboard.vehicle.receive import SERVICE_MESSAGE_IDS, FrameReceiver
 from epc_offboard.vehicle.state import StateTracker
@@ -82,8 +83,12 @@ class Recording:
 
 
 def record_flight(out_dir: Path, duration_s: float, scenario: str = "figure8") -> Path:
-    """Fly a lockstep ``sim`` (the real SITL and service processes); returns the run dir."""
-    cmd = [sys.executable, "-m", "epc_offboard", "sim", "--scenario", scenario,
+    """Fly a lockstep ``sim`` (the real SITL and service processes); returns the run dir.
+    The flight ends holding: the replay takes the offboard phase alone, and the autopilot's
+    landing after it (8.5 s of vehicle time) was flown for nothing."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    holding = holding_scenario(out_dir, scenario)
+    cmd = [sys.executable, "-m", "epc_offboard", "sim", "--scenario", str(holding),
            "--lockstep", "--duration", f"{duration_s:g}", "--out", str(out_dir)]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     run_dir = out_dir / "vehicle1"

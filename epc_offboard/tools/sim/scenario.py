@@ -88,3 +88,14 @@ def load_scenario(name: str) -> ScenarioConfig:
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
     return from_dict(ScenarioConfig, raw, source=str(path))
+
+
+def holding_scenario(folder: Path, name: str) -> Path:
+    """A copy of the shipped scenario ``name`` in ``folder`` whose flights end holding (the
+    service exits; ``sim`` flies no landing): for flights that judge nothing of the
+    autopilot's landing (the suite's lockstep flights, ``bench --service``'s recording,
+    which replays the offboard phase alone), 8.5 s of vehicle time each."""
+    path = folder / f"{name}.toml"
+    shipped = (SCENARIO_DIR / f"{name}.toml").read_text()
+    path.write_text(shipped + "\n[service.mission]\nland_at_end = false\n")
+    return path
