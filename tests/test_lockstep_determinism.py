@@ -47,6 +47,11 @@ WALL_CLOCK_WARNINGS = ("loop clock waits timed out", "SITL lockstep timeouts")
 # a section's counts of wall-clock waits: the miss worker not stopped in its 2 s at the end
 # (beside the hogs at load 13 it was once; the flight before it was identical)
 WALL_CLOCK_COUNTS = {"miss_worker": ("worker_stop_timeouts",)}
+# the end of the ground truth judged: a flight ending holding has no landing to end it, so
+# the SITL flies on after the service's exit (handed back: at wall-clock pace) until `sim`
+# stops it, a wall-clock moment (10.80 against 11.38 s once at load 12; the flights and
+# every value judged were identical)
+WALL_CLOCK_WORST = ("flight_s",)
 
 
 STARVED_S = 7.0  # longer than main's whole bound (3 x 2 s), far shorter than the branch's
@@ -113,6 +118,10 @@ def vehicle_time_fields(report: dict[str, Any]) -> list[dict[str, Any]]:
         for section, keys in WALL_CLOCK_COUNTS.items():
             if section in fields:
                 fields[section] = {k: v for k, v in fields[section].items() if k not in keys}
+        if "envelope" in fields:
+            worst = fields["envelope"]["worst"]
+            fields["envelope"] = {**fields["envelope"], "worst": {
+                k: v for k, v in worst.items() if k not in WALL_CLOCK_WORST}}  # fmt: skip
         out.append(fields)
     return out
 
@@ -125,6 +134,7 @@ def test_two_identical_runs_give_identical_reports_even_under_load(tmp_path, qui
     finally:
         for h in hogs:
             h.kill()
+            h.wait()  # reaped here: not later, in another test's time
     a, b = vehicle_time_fields(calm), vehicle_time_fields(loaded)
     assert a[0]["tracking"]["rmse_m"] > 0.0  # it flew: a real comparison
     assert a[0]["library"]["hits"] > 0
