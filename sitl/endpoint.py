@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any, cast
@@ -112,6 +113,25 @@ class _Sample:
 
     time_us: int
     estimate: StateEstimate
+
+
+class TimesyncAnswer(mavlink.MAVLink_timesync_message):  # type: ignore[misc]
+    """TIMESYNC with common.xml's extension fields ``target_system``/``target_component``,
+    which pymavlink's dialect lacks: PX4 answers a request (tc1 = 0) with both set to the
+    requester's ids, an 18-byte payload (a receiver that knows only tc1 and ts1 must take
+    it: a MAVLink 2 receiver ignores extension fields it does not know)."""
+
+    _EXTENDED = struct.Struct("<qqBB")
+
+    def __init__(self, tc1: int, ts1: int, target_system: int, target_component: int) -> None:
+        super().__init__(tc1, ts1)
+        self.target_system = target_system
+        self.target_component = target_component
+
+    def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes:
+        payload = self._EXTENDED.pack(self.tc1, self.ts1, self.target_system,
+                                      self.target_component)  # fmt: skip
+        return cast(bytes, self._pack(mav, self.crc_extra, payload, force_mavlink1=force_mavlink1))
 
 
 def _finite(*values: float) -> bool:
@@ -514,9 +534,12 @@ class SitlEndpoint(asyncio.DatagramProtocol):
         return self.sim.now_us() / 1e6
 
     def _on_timesync(self, msg: Any, addr: Address) -> None:
-        # the time now (PX4 answers with its clock's, not with its last loop cycle's)
+        # the time now (PX4 answers with its clock's, not with its last loop cycle's), to
+        # the requester by its ids, as PX4 main does (mavlink_timesync.cpp)
         if msg.tc1 == 0:
-            self.send(self.mav.timesync_encode(self.sim.now_us() * 1000, msg.ts1), extra=addr)
+            answer = TimesyncAnswer(self.sim.now_us() * 1000, msg.ts1,
+                                    msg.get_srcSystem(), msg.get_srcComponent())  # fmt: skip
+            self.send(answer, extra=addr)
 
     def _on_param_request(self, msg: Any, addr: Address) -> None:
         """PARAM_REQUEST_LIST sends all; READ and SET answer one (SET changes what the

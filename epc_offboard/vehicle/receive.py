@@ -118,6 +118,10 @@ class Layout:
     fmt: str
     fields: tuple[str, ...]
     arrays: dict[str, int] = field(default_factory=dict)
+    # bytes of extension fields that MAVLink's common.xml has and pymavlink's dialect lacks:
+    # the length check admits them, the decode leaves them unread (as pymavlink's own
+    # decode drops what it does not know)
+    newer_extension_bytes: int = 0
 
 
 # The streams the loops fly on (common.xml), and the telemetry that comes with them. A test
@@ -156,7 +160,10 @@ FAST_LAYOUTS = (
         ("time_boot_ms", "lat", "lon", "alt", "relative_alt", "vx", "vy", "vz", "hdg"),
     ),
     Layout("EXTENDED_SYS_STATE", 245, 130, "<BB", ("vtol_state", "landed_state")),
-    Layout("TIMESYNC", 111, 34, "<qq", ("tc1", "ts1")),
+    # + target_system, target_component (uint8 each, common.xml's extensions): PX4 fills
+    # them in every answer (the requester's ids), an 18-byte payload; refused as too long,
+    # no round trip was ever trusted and a PX4 clock behind the wall clock aged the state
+    Layout("TIMESYNC", 111, 34, "<qq", ("tc1", "ts1"), newer_extension_bytes=2),
     Layout("SYSTEM_TIME", 2, 137, "<QI", ("time_unix_usec", "time_boot_ms")),
 )  # fmt: skip
 
@@ -252,7 +259,8 @@ def _specs(ids: Iterable[int]) -> dict[int, _Spec]:
         if msg_id in fast:
             layout = fast[msg_id]
             unpacker = struct.Struct(layout.fmt)
-            out[msg_id] = _Spec(layout.crc_extra, unpacker.size, unpacker, _message_class(layout))
+            out[msg_id] = _Spec(layout.crc_extra, unpacker.size + layout.newer_extension_bytes,
+                                unpacker, _message_class(layout))  # fmt: skip
         elif msg_id in mavlink.mavlink_map:
             cls = mavlink.mavlink_map[msg_id]
             out[msg_id] = _Spec(cls.crc_extra, cls.unpacker.size, None, None)
@@ -561,9 +569,10 @@ class FrameReceiver:
             return size, msg
         assert spec.make is not None
         payload = data[pos + HEADER_LEN : crc_at]
-        if plen < spec.max_len:
-            payload += self._zeros[: spec.max_len - plen]  # MAVLink 2's truncated zeros
-        values = spec.unpacker.unpack(payload)
+        known = spec.unpacker.size  # (max_len, with extension bytes pymavlink's lacks)
+        if plen < known:
+            payload += self._zeros[: known - plen]  # MAVLink 2's truncated zeros
+        values = spec.unpacker.unpack_from(payload)
         signed_ok = bool(signed) and self._signature is not None
         return size, tuple.__new__(spec.make, (*values, sysid, compid, seq, signed_ok, frame))
 

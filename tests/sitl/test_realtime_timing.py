@@ -214,3 +214,37 @@ def test_the_sitl_runs_sched_fifo_where_permitted_and_counts_a_refusal():
     assert (policy, refused) in ((os.SCHED_FIFO, 0), (os.SCHED_OTHER, 1))
     if os.geteuid() == 0:  # permitted here: it took
         assert policy == os.SCHED_FIFO
+
+
+def test_timesync_is_answered_to_the_requester_by_its_ids_as_px4_does():
+    """PX4 main answers a TIMESYNC request with common.xml's extension fields set to the
+    requester's ids (mavlink_timesync.cpp: target_system, target_component): an 18-byte
+    payload, where pymavlink's dialect knows 16. The personality answers so (it sent 16),
+    and the service's receive path takes the answer and its clock trusts the round trip
+    (on a real PX4 it refused every answer as too long: bad_length, no round trip trusted)."""
+    from collections import Counter
+
+    from epc_offboard.vehicle.receive import SERVICE_MESSAGE_IDS, FrameReceiver
+    from epc_offboard.vehicle.timesync import AutopilotClock
+
+    sim, ep, transport, _ = make()
+    for _ in range(3):
+        sim.advance_tick()
+    peer = Peer()  # system 245, component 190
+    ep.datagram_received(peer.pack(peer.mav.timesync_encode(0, 42_000_000)), PEER)
+    frames = [data for data, dest in transport.sent if dest == PEER and data[7] == 111]
+    assert len(frames) == 1
+    frame = frames[0]
+    assert frame[1] == 18  # payload length: tc1, ts1, target_system, target_component
+    assert (frame[10 + 16], frame[10 + 17]) == (245, 190)
+    counters: Counter[str] = Counter()
+    rx = FrameReceiver(counters, accept_ids=SERVICE_MESSAGE_IDS, accept_systems=frozenset({1}),
+                       accept_components=frozenset({1}), signature=None,
+                       decode_other=peer.rx.decode)  # fmt: skip
+    msgs, failures = rx.datagram(frame)
+    assert (failures, counters["bad_length"]) == (0, 0), counters
+    (answer,) = msgs
+    assert (answer.tc1, answer.ts1) == (sim.now_us() * 1000, 42_000_000)
+    clock = AutopilotClock()
+    assert clock.timesync(0.042, answer.tc1 * 1e-9, 0.045)
+    assert clock.counters["timesync_accepted"] == 1
