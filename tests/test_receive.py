@@ -173,8 +173,9 @@ def test_timesync_with_the_extension_fields_pymavlinks_dialect_lacks():
     """common.xml's TIMESYNC has target_system and target_component after tc1 and ts1
     (extensions); PX4 fills them in every answer: 18 bytes of payload, 2 more than
     pymavlink's dialect knows. They are taken and decoded as pymavlink decodes them (it
-    drops what it does not know); a 19th byte is still too long. On main every answer of a
-    real PX4 was refused (bad_length): no TIMESYNC round trip was ever trusted."""
+    drops what it does not know), and so is any longer payload (a newer dialect's
+    extensions). On main every answer of a real PX4 was refused (bad_length): no TIMESYNC
+    round trip was ever trusted."""
     mav = codec()
     for targets in (b"\xf5\xbf", b"\xf5\x00", b"\x00\x00"):
         payload = struct.pack("<qq", 1_234_567_000_000, 42) + targets
@@ -190,8 +191,10 @@ def test_timesync_with_the_extension_fields_pymavlinks_dialect_lacks():
     header = struct.pack("<BBBBBBBHB", 0xFD, len(payload), 0, 0, 7, 1, 1, 111, 0)
     frame = header + payload + struct.pack("<H", x25_crc(header[1:] + payload, 34))
     rx, counters = receiver()
-    assert rx.datagram(frame) == ([], 1)
-    assert counters["bad_length"] == 1
+    msgs, failures = rx.datagram(frame)
+    assert failures == 0, counters
+    assert_same_as_pymavlink(frame, msgs[0])
+    assert (msgs[0].tc1, msgs[0].ts1) == (5, 42)
     assert mav is not None
 
 
@@ -243,15 +246,19 @@ def test_rejections_are_counted_by_reason():
         msgs, failures = rx.datagram(dgram)
         assert (msgs, failures) == ([], 1), reason
         assert counters[reason] == 1, (reason, counters)
-    # a payload longer than the message's full length (valid CRC)
+    # a payload longer than the fields we know (valid CRC): a newer dialect's extensions,
+    # dropped as pymavlink drops them (MAVLink: unknown extensions are ignored), the
+    # fields we know decoded; the fast path (ATTITUDE) and pymavlink's (COMMAND_ACK)
     mav = codec()
-    long_payload = bytes(range(1, 30))  # ATTITUDE is 28 bytes
-    header = struct.pack("<BBBBBBBHB", 0xFD, len(long_payload), 0, 0, 0, 1, 1, 30, 0)
-    body = header[1:] + long_payload
-    frame = header + long_payload + struct.pack("<H", x25_crc(body, 39))
-    rx, counters = receiver()
-    assert rx.datagram(frame)[0] == []
-    assert counters["bad_length"] == 1
+    for msg_id, crc_extra, known in ((30, 39, 28), (77, 143, 10)):
+        long_payload = bytes(range(1, known + 8))
+        header = struct.pack("<BBBBBBBHB", 0xFD, len(long_payload), 0, 0, 0, 1, 1, msg_id, 0)
+        body = header[1:] + long_payload
+        frame = header + long_payload + struct.pack("<H", x25_crc(body, crc_extra))
+        rx, counters = receiver()
+        msgs, failures = rx.datagram(frame)
+        assert failures == 0, (msg_id, counters)
+        assert_same_as_pymavlink(frame, msgs[0])
     assert mav is not None
 
 

@@ -62,6 +62,12 @@ CRC_LEN = 2
 SIGNATURE_LEN = 13  # link id (1), timestamp (6), signature (6)
 IFLAG_SIGNED = 0x01
 MIN_PAYLOAD_LEN = 1  # MAVLink 2 never truncates a payload's first byte
+# a payload longer than the fields we know is a newer dialect's extensions (PX4's TIMESYNC
+# answer: 18 bytes, pymavlink's dialect knows 16; stop 43 found every answer of a real PX4
+# refused as too long): taken up to MAVLink 2's limit (its length byte's), the fields we
+# know decoded and the rest dropped, as pymavlink decodes (MAVLink's rule: extensions a
+# receiver does not know are ignored)
+MAX_PAYLOAD_LEN = 255
 MIN_FRAME_LEN = HEADER_LEN + MIN_PAYLOAD_LEN + CRC_LEN
 # Frames examined in one datagram: PX4 packs up to an MTU (1500 bytes, ~115 minimal frames)
 # into one; more is an attack on the scanner's loop.
@@ -118,10 +124,6 @@ class Layout:
     fmt: str
     fields: tuple[str, ...]
     arrays: dict[str, int] = field(default_factory=dict)
-    # bytes of extension fields that MAVLink's common.xml has and pymavlink's dialect lacks:
-    # the length check admits them, the decode leaves them unread (as pymavlink's own
-    # decode drops what it does not know)
-    newer_extension_bytes: int = 0
 
 
 # The streams the loops fly on (common.xml), and the telemetry that comes with them. A test
@@ -160,10 +162,9 @@ FAST_LAYOUTS = (
         ("time_boot_ms", "lat", "lon", "alt", "relative_alt", "vx", "vy", "vz", "hdg"),
     ),
     Layout("EXTENDED_SYS_STATE", 245, 130, "<BB", ("vtol_state", "landed_state")),
-    # + target_system, target_component (uint8 each, common.xml's extensions): PX4 fills
-    # them in every answer (the requester's ids), an 18-byte payload; refused as too long,
-    # no round trip was ever trusted and a PX4 clock behind the wall clock aged the state
-    Layout("TIMESYNC", 111, 34, "<qq", ("tc1", "ts1"), newer_extension_bytes=2),
+    # common.xml's target_system, target_component follow (extensions pymavlink's dialect
+    # lacks): PX4 fills them in every answer, an 18-byte payload, taken (MAX_PAYLOAD_LEN)
+    Layout("TIMESYNC", 111, 34, "<qq", ("tc1", "ts1")),
     Layout("SYSTEM_TIME", 2, 137, "<QI", ("time_unix_usec", "time_boot_ms")),
 )  # fmt: skip
 
@@ -247,7 +248,6 @@ class _Spec:
     """What the header check needs of one accepted message id, and how it is decoded."""
 
     crc_extra: int
-    max_len: int
     unpacker: struct.Struct | None  # None: decoded by pymavlink
     make: type[FastMessage] | None
 
@@ -259,11 +259,10 @@ def _specs(ids: Iterable[int]) -> dict[int, _Spec]:
         if msg_id in fast:
             layout = fast[msg_id]
             unpacker = struct.Struct(layout.fmt)
-            out[msg_id] = _Spec(layout.crc_extra, unpacker.size + layout.newer_extension_bytes,
-                                unpacker, _message_class(layout))  # fmt: skip
+            out[msg_id] = _Spec(layout.crc_extra, unpacker, _message_class(layout))
         elif msg_id in mavlink.mavlink_map:
             cls = mavlink.mavlink_map[msg_id]
-            out[msg_id] = _Spec(cls.crc_extra, cls.unpacker.size, None, None)
+            out[msg_id] = _Spec(cls.crc_extra, None, None)
         else:
             raise ValueError(f"message id {msg_id} is not in pymavlink's common dialect")
     return out
@@ -435,7 +434,8 @@ class FrameReceiver:
         self._decode_other = decode_other
         self._on_mavlink1 = on_mavlink1
         self._stream = bytearray()  # a byte stream's bytes not yet framed
-        self._zeros = bytes(max((s.max_len for s in self._specs.values()), default=0))
+        self._zeros = bytes(max((s.unpacker.size for s in self._specs.values()
+                                 if s.unpacker is not None), default=0))  # fmt: skip
 
     def reset_stream(self) -> None:
         self._stream.clear()
@@ -537,7 +537,7 @@ class FrameReceiver:
         if spec is None:
             counters["unknown_message"] += 1
             return size, None
-        if not MIN_PAYLOAD_LEN <= plen <= spec.max_len:
+        if plen < MIN_PAYLOAD_LEN:  # (a longer one: a newer dialect's, MAX_PAYLOAD_LEN)
             self._malformed("bad_length")
             return 0, None
         if pos + size > end:
@@ -569,7 +569,7 @@ class FrameReceiver:
             return size, msg
         assert spec.make is not None
         payload = data[pos + HEADER_LEN : crc_at]
-        known = spec.unpacker.size  # (max_len, with extension bytes pymavlink's lacks)
+        known = spec.unpacker.size  # the fields we know; a newer dialect's extensions dropped
         if plen < known:
             payload += self._zeros[: known - plen]  # MAVLink 2's truncated zeros
         values = spec.unpacker.unpack_from(payload)
