@@ -11,8 +11,10 @@ vehicle must not climb.
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import math
+import os
 import select
 import socket
 import threading
@@ -21,6 +23,7 @@ from typing import Any
 
 import pytest
 
+from epc_offboard.tools.bench_attack import SITL_FIFO_PRIORITY
 from epc_offboard.vehicle.dialect_px4 import PX4_MAIN_MODE_OFFBOARD
 from epc_offboard.vehicle.state import StateLimits
 from tests.rig import Rig
@@ -77,6 +80,12 @@ class DelayRelay:
         self.to_service.close()
 
     def _run(self) -> None:
+        # the link between autopilot and companion: the SITL's scheduling (SCHED_FIFO where
+        # permitted), this thread only. At normal scheduling in the test's process beside two
+        # hogs (load 8-11, stop 43) it held datagrams itself: stale-state failsafes every
+        # 0.1-0.2 s before any delay, the flight's settled offboard judged the relay
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(SITL_FIFO_PRIORITY))
         socks = [self.from_sitl, self.to_service]
         while not self._stop.is_set():
             now = time.monotonic()
