@@ -103,7 +103,13 @@ def test_cold_start_flies_the_numpy_twins_and_reaches_offboard_in_seconds(tmp_pa
     # schedule (tests/test_heartbeat_request_e2e.py times them), and nothing looked forged
     assert stats["counters"].get("heartbeat_requests", 0) >= 2, stats["counters"]
     assert "heartbeat_flaps" not in stats["state"], stats["state"]
-    assert startup["offboard_s"] <= elapsed + 1.0  # the process started after t0
+    # the process started after t0, and the SITL's offboard (what ``elapsed`` ends on) came
+    # after our first request of it (/proc's process age: 10 ms ticks). Not the service's
+    # own "offboard": at load its confirmation may come seconds after the SITL's switch, a
+    # failsafe between (a starved SITL's stale state; stop 43, load 12-13: 18.54 s against
+    # 16.52 s, failed)
+    assert marks["offboard_requested"]["t_s"] <= elapsed + 0.05, (marks, elapsed)
+    assert startup["offboard_s"] >= marks["offboard_requested"]["t_s"], marks
     # The service's own CPU up to its link, which load does not stretch: 0.64-0.79 s on an
     # earlier machine at load 2-18 (imports 0.5 s); 1.22 s there before, when a cold start
     # still imported numba (0.4 s of CPU) and compiled the rate identifier's kernel in the

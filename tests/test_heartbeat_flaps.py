@@ -203,3 +203,27 @@ def test_a_flood_of_forged_heartbeats_is_a_flap():
     arrivals += [(1.1 + 0.15 * k, Beat(-1.0, k % 2 == 0, 9)) for k in range(4)]
     feed(tracker, arrivals, APM)
     assert tracker.counters["heartbeat_flaps"] >= 1
+
+
+def test_a_change_and_back_we_commanded_within_a_period_is_no_flap():
+    """PX4 armed in LOITER (A); we ask OFFBOARD, accepted, and the heartbeat we ask for after
+    the ack shows it (B); our state goes stale, streaming stops, and the vehicle is back in
+    LOITER by its next regular heartbeat: A, B, A within a period, every change the
+    vehicle's own at our asking (test_coldstart_e2e beside four hogs, load 9-12: one flap,
+    'forged heartbeats?' warned, mode changes held back for 10 s). Told of the accepted
+    command, the tracker sees no flap; a forged B a few periods later is still one."""
+    loiter, offboard = (True, PX4_MODES[0]), (True, PX4_MODES[2])
+    arrivals = [(0.0, loiter), (0.35, offboard), (1.0, loiter), (2.0, loiter), (3.0, loiter)]
+    forged = [(3.4, offboard), (4.0, loiter), (5.0, loiter)]
+
+    def flaps(told: bool, beats: list) -> int:
+        tracker = StateTracker(system_id=1)
+        for t, (armed, custom) in beats:
+            if told and t == 0.35:
+                tracker.change_commanded(0.25)  # OFFBOARD's COMMAND_ACK, before it shows
+            tracker.handle(message(Beat(t, armed, custom), PX4), received_s=t)
+        return tracker.counters["heartbeat_flaps"]
+
+    assert flaps(False, arrivals) == 1  # untold: the guard's premise (one change a period)
+    assert flaps(True, arrivals) == 0
+    assert flaps(True, arrivals + forged) == 1

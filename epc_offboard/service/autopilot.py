@@ -175,6 +175,7 @@ class Autopilot:
             self.counters["acks_accepted" if accepted else "acks_refused"] += 1
             delay_s = _HEARTBEAT_AFTER_ACK_S.get(msg.command)
             if msg.result == mavlink.MAV_RESULT_ACCEPTED and delay_s is not None:
+                self.tracker.change_commanded(now)  # what the heartbeats show next is ours
                 self._heartbeat_due_s = min(self._heartbeat_due_s, now + delay_s)
                 self._heartbeat_due()
             if not accepted and self._log_gate.open("ack", 1.0):

@@ -232,6 +232,9 @@ class StateTracker:
     # changes claimed since the mode held was last claimed: mode -> first claimed (bounded)
     _claims: dict[tuple[bool, int], float] = field(default_factory=dict)
     _flap_logged_s: float = -math.inf
+    # when the autopilot last accepted a mode or arming change we commanded (local time):
+    # an A, B, A around it is the vehicle's own (:meth:`change_commanded`)
+    _commanded_s: float = -math.inf
     clock: AutopilotClock = field(init=False)  # the autopilot's stamps on the local clock
     _gates: dict[str, _Gate] = field(default_factory=dict)  # "attitude", "position"
     _conflict_logged: bool = False
@@ -315,6 +318,15 @@ class StateTracker:
         claims.clear()
         return True
 
+    def change_commanded(self, now_s: float) -> None:
+        """The autopilot accepted a mode or arming change we commanded (its COMMAND_ACK, on
+        the heartbeats' clock). An A, B, A of heartbeats across it is no forgery: the vehicle
+        itself changed twice within a period, at our asking (offboard asked, then Hold on a
+        stale state 0.66 s later: a starved SITL at load 9-12 made the service's failsafe
+        alternate so, and the heartbeat asked for after the first ack showed B between two
+        regular A's; stop 43). The flap guard holds for forgeries at any other time."""
+        self._commanded_s = max(self._commanded_s, now_s)
+
     def _flooded(self) -> bool:
         """Whether four heartbeats came within a period less the jitter: one regular and
         three mode changes, more than any autopilot makes (a flood of forgeries)."""
@@ -350,7 +362,8 @@ class StateTracker:
                 continue
             run_ok = heard[k + 1][0] - t0 > 0.0 and heard[-3][0] - t0 < quiet
             quiet_before = k == 0 or t0 - heard[k - 1][0] >= quiet
-            return run_ok and quiet_before and abs(t2 - t0 - period) <= jitter
+            ours = t0 < self._commanded_s <= t2  # a change we commanded lies in A, B, A
+            return run_ok and quiet_before and abs(t2 - t0 - period) <= jitter and not ours
         return False
 
     def _from_autopilot(self, msg: Any, now: float) -> bool:
