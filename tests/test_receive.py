@@ -94,6 +94,13 @@ def encode(name: str, values: dict[str, Any], mav: Any = None) -> bytes:
     return bytes(cls(**values).pack(mav))
 
 
+def raw_frame(msg_id: int, crc_extra: int, payload: bytes, seq: int = 0) -> bytes:
+    """A MAVLink 2 frame from system 1, component 1 of ``payload`` as given (any length,
+    which pymavlink's encoders never make), its CRC right."""
+    header = struct.pack("<BBBBBBBHB", 0xFD, len(payload), 0, 0, seq, 1, 1, msg_id, 0)
+    return header + payload + struct.pack("<H", x25_crc(header[1:] + payload, crc_extra))
+
+
 def assert_same_as_pymavlink(frame: bytes, got: Any) -> None:
     oracle = mavlink.MAVLink(None).decode(bytearray(frame))
     assert got.get_type() == oracle.get_type()
@@ -177,24 +184,19 @@ def test_timesync_with_the_extension_fields_pymavlinks_dialect_lacks():
     extensions). On main every answer of a real PX4 was refused (bad_length): no TIMESYNC
     round trip was ever trusted."""
     mav = codec()
-    for targets in (b"\xf5\xbf", b"\xf5\x00", b"\x00\x00"):
-        payload = struct.pack("<qq", 1_234_567_000_000, 42) + targets
-        payload = payload.rstrip(b"\x00") or b"\x00"  # MAVLink 2's truncated zeros
-        header = struct.pack("<BBBBBBBHB", 0xFD, len(payload), 0, 0, 7, 1, 1, 111, 0)
-        frame = header + payload + struct.pack("<H", x25_crc(header[1:] + payload, 34))
+    tc1, ts1 = 1_234_567_000_000, 42
+    payloads = [
+        (struct.pack("<qq", tc1, ts1) + targets).rstrip(b"\x00")  # MAVLink 2's truncated zeros
+        for targets in (b"\xf5\xbf", b"\xf5\x00", b"\x00\x00")
+    ]
+    payloads.append(struct.pack("<qqBBB", tc1, ts1, 245, 191, 1))  # a 19th byte: newer still
+    for payload in payloads:
+        frame = raw_frame(111, 34, payload, seq=7)
         rx, counters = receiver()
         msgs, failures = rx.datagram(frame)
-        assert failures == 0, counters
+        assert failures == 0, (len(payload), counters)
         assert_same_as_pymavlink(frame, msgs[0])
-        assert (msgs[0].tc1, msgs[0].ts1) == (1_234_567_000_000, 42)
-    payload = struct.pack("<qqBBB", 5, 42, 245, 191, 1)
-    header = struct.pack("<BBBBBBBHB", 0xFD, len(payload), 0, 0, 7, 1, 1, 111, 0)
-    frame = header + payload + struct.pack("<H", x25_crc(header[1:] + payload, 34))
-    rx, counters = receiver()
-    msgs, failures = rx.datagram(frame)
-    assert failures == 0, counters
-    assert_same_as_pymavlink(frame, msgs[0])
-    assert (msgs[0].tc1, msgs[0].ts1) == (5, 42)
+        assert (msgs[0].tc1, msgs[0].ts1) == (tc1, ts1)
     assert mav is not None
 
 
@@ -251,10 +253,7 @@ def test_rejections_are_counted_by_reason():
     # fields we know decoded; the fast path (ATTITUDE) and pymavlink's (COMMAND_ACK)
     mav = codec()
     for msg_id, crc_extra, known in ((30, 39, 28), (77, 143, 10)):
-        long_payload = bytes(range(1, known + 8))
-        header = struct.pack("<BBBBBBBHB", 0xFD, len(long_payload), 0, 0, 0, 1, 1, msg_id, 0)
-        body = header[1:] + long_payload
-        frame = header + long_payload + struct.pack("<H", x25_crc(body, crc_extra))
+        frame = raw_frame(msg_id, crc_extra, bytes(range(1, known + 8)))
         rx, counters = receiver()
         msgs, failures = rx.datagram(frame)
         assert failures == 0, (msg_id, counters)

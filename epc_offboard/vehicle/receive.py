@@ -62,12 +62,6 @@ CRC_LEN = 2
 SIGNATURE_LEN = 13  # link id (1), timestamp (6), signature (6)
 IFLAG_SIGNED = 0x01
 MIN_PAYLOAD_LEN = 1  # MAVLink 2 never truncates a payload's first byte
-# a payload longer than the fields we know is a newer dialect's extensions (PX4's TIMESYNC
-# answer: 18 bytes, pymavlink's dialect knows 16; stop 43 found every answer of a real PX4
-# refused as too long): taken up to MAVLink 2's limit (its length byte's), the fields we
-# know decoded and the rest dropped, as pymavlink decodes (MAVLink's rule: extensions a
-# receiver does not know are ignored)
-MAX_PAYLOAD_LEN = 255
 MIN_FRAME_LEN = HEADER_LEN + MIN_PAYLOAD_LEN + CRC_LEN
 # Frames examined in one datagram: PX4 packs up to an MTU (1500 bytes, ~115 minimal frames)
 # into one; more is an attack on the scanner's loop.
@@ -163,7 +157,7 @@ FAST_LAYOUTS = (
     ),
     Layout("EXTENDED_SYS_STATE", 245, 130, "<BB", ("vtol_state", "landed_state")),
     # common.xml's target_system, target_component follow (extensions pymavlink's dialect
-    # lacks): PX4 fills them in every answer, an 18-byte payload, taken (MAX_PAYLOAD_LEN)
+    # lacks): PX4 fills them in every answer, an 18-byte payload, taken (the length check)
     Layout("TIMESYNC", 111, 34, "<qq", ("tc1", "ts1")),
     Layout("SYSTEM_TIME", 2, 137, "<QI", ("time_unix_usec", "time_boot_ms")),
 )  # fmt: skip
@@ -537,7 +531,12 @@ class FrameReceiver:
         if spec is None:
             counters["unknown_message"] += 1
             return size, None
-        if plen < MIN_PAYLOAD_LEN:  # (a longer one: a newer dialect's, MAX_PAYLOAD_LEN)
+        # no upper bound short of the length byte's: a payload longer than the fields we know
+        # is a newer dialect's extensions (PX4's TIMESYNC answer: 18 bytes, pymavlink's
+        # dialect knows 16; stop 43 found every answer of a real PX4 refused as too long),
+        # its known fields decoded and the rest dropped, as pymavlink decodes (MAVLink's
+        # rule: extensions a receiver does not know are ignored)
+        if plen < MIN_PAYLOAD_LEN:
             self._malformed("bad_length")
             return 0, None
         if pos + size > end:
