@@ -18,7 +18,6 @@ declares no token, the flaps send no message).
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import itertools
 import json
@@ -163,7 +162,6 @@ def fuzz_then_zenoh_flood(tmp_path_factory: pytest.TempPathFactory) -> SharedFli
         Rig(tmp, lockstep=False, speedup=1.0, service_overrides=overrides) as rig,
     ):
         assert rig.sitl is not None
-        autopilot_priority(rig.sitl.pid)
         cfg = load_service_config(rig.config_path)
         problem = Cascade(cfg.position, cfg.attitude, cfg.estimator, 0.01).position.problem
         ready, go, stop, sent = threading.Event(), threading.Event(), threading.Event(), [0]
@@ -306,15 +304,6 @@ def test_a_mavlink_fuzz_neither_stalls_the_loops_nor_costs_offboard(
 PEER_ATTACK_S = 6.0
 
 
-def autopilot_priority(pid: int) -> None:
-    """The SITL stands in for an autopilot on a processor of its own: SCHED_FIFO below the
-    service's loops where permitted. At normal priority at a load of 25-45 its clock fell
-    behind the wall clock and the service failed safe on stale state, attack or none (23
-    times in one flight), which is not what these tests are about."""
-    with contextlib.suppress(PermissionError, OSError):
-        os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(40))
-
-
 def _hover_error_m(rows: list[dict[str, str]], truth: dict[str, list[float]]) -> float:
     """The largest distance (ground truth) from the hover point over the rows' vehicle time."""
     ref = [float(rows[0][f"ref_pos_{a}_m"]) for a in "ned"]
@@ -364,7 +353,6 @@ def replay_then_flap(tmp_path_factory: pytest.TempPathFactory) -> SharedFlight:
                 assert attacker.stdout.readline().strip() == "ready"
         with holding({"alone"}), rig:
             assert rig.sitl is not None
-            autopilot_priority(rig.sitl.pid)
             rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=90)
             wait_offboard(tmp / "flight.csv", settle_s=2.0)
             for kind, attacker in attackers.items():
