@@ -232,3 +232,34 @@ def test_a_stall_before_the_crossing_may_fail_safe_and_fly_again_but_not_after_i
     # a stall's failsafe, flown again, and no failsafe at the crossing
     with pytest.raises(AssertionError):
         held_from_crossing(ci[:2], t0, t0 + 5.0, bound_s)
+
+
+def test_fresh_state_from_an_autopilot_clock_slower_than_ours_flies_body_rates(tmp_path):
+    """The other side of judging state by when it was measured: a simulator slower than
+    real time (Gazebo at a real-time factor under 1; the SITL here at 0.8) stamps its fresh
+    samples on a clock that falls behind ours by 0.2 s every second. Followed only at each
+    TIMESYNC round trip (every 0.5 s), they looked up to 0.1 s old between them: the body-rate
+    attitude loop judged nearly every tick late and flew the attitude instead (9,407 ticks of
+    a 40 s flight at 0.7, by hand). With the skew the round trips show carried between them,
+    they are fresh: body rates are flown, and nothing fails safe."""
+    overrides = {
+        "mission": {"duration_s": 120.0, "land_at_end": True},
+        "trajectory": {"shape": "hover"},
+    }
+    rig = Rig(tmp_path, lockstep=False, speedup=0.8, service_overrides=overrides)
+    with rig:
+        rig.wait_mode(PX4_MAIN_MODE_OFFBOARD, timeout_s=120)
+        wait_phase(rig, "offboard", settled_s=8.0, timeout_s=90.0)
+        code, _ = rig.stop_service()
+        log = rig.log()
+        stats = rig.stats()
+    assert code == 0, log
+    assert stats["attitude_mode"] == "epc", stats["attitude_mode"]
+    events = stats["phase_events"]
+    entered = next(e["t_s"] for e in events if e["phase"] == "offboard")
+    assert not [e for e in events if e["t_s"] > entered and e["phase"] == "failsafe"], events
+    # 8 s and more of body rates at 200 Hz: at most a tenth of 8 s flown as late in the whole
+    # flight (a loaded machine's real lateness; without the skew, nearly every tick)
+    late = stats["counters"].get("attitude_late_fallbacks", 0)  # (absent: none)
+    assert late <= 0.1 * 8.0 * 200.0, (late, stats["state"])
+    assert stats["state"]["timesync_accepted"] >= 10, stats["state"]

@@ -139,3 +139,130 @@ def test_clock_limits_are_validated():
     with pytest.raises(ValueError, match="max_rtt_s"):
         AutopilotClock(max_rtt_s=0.0)
     assert math.isinf(StateTracker(system_id=1).age_s(0.0, vehicle_clock=False))
+
+
+class SlowAutopilot:
+    """An autopilot whose clock runs at ``rate`` times ours (a simulator at a real-time factor
+    under 1), booted at local ``THETA_S``: its samples at 100 Hz of its time, each delivered
+    ``delay_s`` after it was measured, and a TIMESYNC round trip every ``period_s`` of ours,
+    the answer read ``rtt_s(k)`` after the request at a point ``split(k)`` of it."""
+
+    def __init__(self, rate: float, period_s: float = 0.5) -> None:
+        self.rate, self.period_s = rate, period_s
+
+    def stamp_s(self, local_s: float) -> float:
+        return (local_s - THETA_S) * self.rate
+
+    def fly(self, clock: AutopilotClock, t0_s: float, t1_s: float, rtts, splits, delay_s=0.001):
+        """Local ``t0_s`` .. ``t1_s``: yields (local time, the age the clock gives the newest
+        sample, its true age) after every sample."""
+        next_sync, k, stamp = t0_s, 0, math.ceil(self.stamp_s(t0_s) * 100.0) / 100.0
+        while True:
+            measured = THETA_S + stamp / self.rate
+            received = measured + delay_s
+            if received > t1_s:
+                return
+            while next_sync <= received:
+                rtt = rtts[k % len(rtts)]
+                tc1 = self.stamp_s(next_sync + rtt * splits[k % len(splits)])
+                clock.timesync(next_sync, tc1, next_sync + rtt)
+                next_sync, k = next_sync + self.period_s, k + 1
+            clock.observe(stamp, received)
+            mapped = clock.to_local(stamp, received)
+            assert mapped is not None
+            yield received, received - mapped, received - measured
+            stamp = round(stamp + 0.01, 6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    rate=st.floats(0.5, 1.2),
+    rtts=st.lists(st.floats(0.0005, 0.005), min_size=1, max_size=12),
+    splits=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=12),
+)
+def test_an_autopilot_clock_slower_than_ours_is_followed_between_round_trips(rate, rtts, splits):
+    """A simulator at a real-time factor of 0.5-1.2 (Gazebo at 0.9 is common; the bundled
+    SITL at --speedup 0.7 here): its fresh samples are fresh. The offset stood still between
+    round trips: at 0.9 a sample looked up to 50 ms old before the next one (the attitude
+    loop's bound is 20 ms), and a flight at --speedup 0.7 flew 9,407 of its attitude ticks
+    as late (no body rates) against 13 with the skew. Within a few ms, whatever the answers'
+    delays (at most 5 ms round trips here, split anyhow)."""
+    clock = AutopilotClock()
+    ap = SlowAutopilot(rate)
+    worst = 0.0
+    for now, age, truth in ap.fly(clock, THETA_S, THETA_S + 12.0, rtts, splits):
+        if now > THETA_S + 6.0:  # after 8 round trips
+            worst = max(worst, abs(age - truth))
+    # each offset within half a round trip of the truth (2.5 ms); the skew's error, from
+    # slopes of such offsets 0.5 s apart, over the half second to the next round trip
+    assert worst <= 0.0025 + 0.5 * (2 * 0.0025 / 0.5) + 1e-6, (worst, clock.skew)
+
+
+def test_without_fresh_round_trips_the_skew_stops_carrying_the_offset():
+    """Learnt at a rate of 0.8 (skew 0.2), then no answer is trusted (a late reader reads the
+    answers late too): the skew carries the offset on for ``skew_horizon_s`` and no further,
+    and a sample read 1 s late is 1 s old, less what the horizon's skew granted."""
+    clock = AutopilotClock(skew_horizon_s=1.0)
+    ap = SlowAutopilot(0.8)
+    end = THETA_S + 8.0
+    for _ in ap.fly(clock, THETA_S, end, [0.002], [0.5]):
+        pass
+    assert clock.skew == pytest.approx(0.2, abs=0.01)
+    # the answers now come 1 s late: rejected
+    assert not clock.timesync(end + 0.5, ap.stamp_s(end + 0.5), end + 1.5)
+    late = end + 30.0
+    stamp = ap.stamp_s(late - 1.0)  # measured 1 s before it is read
+    clock.observe(stamp, late)
+    mapped = clock.to_local(stamp, late)
+    assert mapped is not None
+    # a 0.8 clock moves the true offset 0.2 s/s: 30 s without evidence is 6 s of it, of
+    # which the skew carried at most 0.2 s (its horizon); the sample looks older, not younger
+    assert late - mapped >= 1.0
+    assert clock.offset_s(late) == pytest.approx(clock.offset_s(end + 2.0), abs=0.04)
+
+
+def test_one_step_of_the_autopilot_clock_or_one_forged_answer_does_not_set_the_skew():
+    """The bundled SITL re-anchors 0.5 s behind when starved (a step of its clock), and an
+    unsigned link may carry one forged answer: each is one slope of eight, and the median
+    stays the clock's rate."""
+    clock = AutopilotClock()
+    t = THETA_S
+    for k in range(9):
+        t = THETA_S + 0.5 * k
+        step = 0.5 if k >= 4 else 0.0  # its clock falls 0.5 s behind at the fifth
+        tc1 = (t + 0.001 - THETA_S) - step
+        if k == 6:
+            tc1 += 3.0  # a forged answer
+        assert clock.timesync(t, tc1, t + 0.002)
+    assert abs(clock.skew) < 1e-9
+    assert clock.offset_s(t + 0.4) == pytest.approx(THETA_S + 0.5, abs=0.002)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    rtts=st.lists(st.floats(0.0, 0.05), min_size=9, max_size=30),
+    splits=st.lists(st.floats(0.0, 1.0), min_size=9, max_size=30),
+    late_s=st.floats(0.3, 3.0),
+)
+def test_trusted_answers_however_delayed_hide_no_more_lateness_than_their_bound(
+    rtts, splits, late_s
+):
+    """Property: an autopilot on our clock's rate whose trusted answers (round trips up to
+    max_rtt_s, each split anyhow: a one-way delay that grows, shrinks, is chosen to mislead)
+    give a skew of at most (max_rtt_s / 2) / SKEW_MIN_GAP_S; a sample read ``late_s`` late
+    looks at least ``late_s`` old, less half a round trip and that skew over the horizon."""
+    clock = AutopilotClock()
+    t = THETA_S
+    for k, (rtt, split) in enumerate(zip(rtts, splits, strict=False)):
+        t = THETA_S + 0.5 * k
+        assert clock.timesync(t, t + rtt * split - THETA_S, t + rtt)
+        clock.observe(t - THETA_S, t + 0.001)
+    skew_bound = 0.5 * clock.max_rtt_s / 0.25
+    assert abs(clock.skew) <= skew_bound + 1e-9
+    now = t + 0.3
+    stamp = now - late_s - THETA_S
+    clock.observe(stamp, now)
+    mapped = clock.to_local(stamp, now)
+    assert mapped is not None
+    hidden = 0.5 * clock.max_rtt_s + skew_bound * (clock.skew_horizon_s + 0.5 * clock.max_rtt_s)
+    assert now - mapped >= late_s - hidden - 1e-9

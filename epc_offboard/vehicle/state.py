@@ -240,7 +240,9 @@ class StateTracker:
     _conflict_logged: bool = False
 
     def __post_init__(self) -> None:
-        self.clock = AutopilotClock(self.limits.max_clock_drift, self.limits.timesync_max_rtt_s)
+        # the skew a round trip shows carries the offset on for two requests' periods
+        self.clock = AutopilotClock(self.limits.max_clock_drift, self.limits.timesync_max_rtt_s,
+                                    2.0 * self.limits.timesync_period_s)  # fmt: skip
 
     def handle(self, msg: Any, received_s: float | None = None) -> bool:
         """Consume one decoded message; True when it updated the state."""

@@ -24,15 +24,39 @@ from two kinds of evidence (pure bookkeeping, the caller gives every time):
   A trusted round trip may move theta either way (the autopilot's clock stepped, a
   simulator fell behind real time and re-anchored), and restarts the stream bound from it.
 
+* the autopilot's clock rate against ours (skew): a simulator running slower than real
+  time (Gazebo at a real-time factor of 0.9, a starved SITL) moves theta by 1 - its rate every
+  second, far beyond a crystal's drift. Between two round trips the offset is carried on at
+  the skew the recent trusted round trips show (the median of their successive slopes, so one
+  step of the autopilot's clock or one forged answer does not set it), for at most
+  ``skew_horizon_s`` after the newest one: without fresh evidence, samples age again. Before,
+  the offset stood still between round trips, and at a rate of 0.9 every sample looked up to
+  50 ms old before the next one: the attitude loop judged them late and flew no body rates.
+
 The estimate is the smaller of the two (the stream bound is a bound: an estimate above it
-would call a sample measured after it arrived). A timeline resync (autopilot reboot: its
+would call a sample measured after it arrived); the bound may rise at the skew too, within
+the same horizon. A timeline resync (autopilot reboot: its
 stamps restart) must :meth:`reset` the mapping; until the next sample there is none.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+import statistics
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
+
+# the autopilot's clock rate against ours, as 1 - rate (s/s): at most a simulator at half real
+# time, or running twice as fast
+MAX_SKEW = 0.5
+SKEW_TRIPS = 9  # the trusted round trips whose successive slopes give the skew (8 slopes)
+SKEW_MIN_SPAN_S = 1.0  # ... spanning at least this long (their offsets' noise, over a span)
+# a slope only between round trips this far apart: each offset is within half its round trip
+# (at most max_rtt_s / 2) of the truth, so a slope's error is at most max_rtt_s / 2 over this
+# (0.1 s/s at the default 50 ms), however the answers' delays are chosen
+SKEW_MIN_GAP_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -49,7 +73,28 @@ class RoundTrip:
 
     @property
     def offset_s(self) -> float:
-        return 0.5 * (self.sent_s + self.received_s) - self.tc1_s
+        return self.mid_s - self.tc1_s
+
+    @property
+    def mid_s(self) -> float:
+        """Local time the autopilot's ``tc1_s`` is taken to have been read at."""
+        return 0.5 * (self.sent_s + self.received_s)
+
+
+def skew_of(trips: Sequence[RoundTrip]) -> float:
+    """The offset's rate (s/s, 1 - the autopilot's clock rate against ours) the round trips
+    ``trips`` (in order) show: the median of their successive slopes (of trips at least
+    ``SKEW_MIN_GAP_S`` apart), clipped to ``MAX_SKEW``; 0 with fewer than three trips or a
+    span under ``SKEW_MIN_SPAN_S``. A step
+    of the autopilot's clock (a simulator re-anchoring) or one forged answer is one or two
+    slopes of eight, and moves the median little."""
+    if len(trips) < 3 or trips[-1].mid_s - trips[0].mid_s < SKEW_MIN_SPAN_S:
+        return 0.0
+    pairs = [(a, b) for a, b in itertools.pairwise(trips) if b.mid_s - a.mid_s >= SKEW_MIN_GAP_S]
+    slopes = [(b.offset_s - a.offset_s) / (b.mid_s - a.mid_s) for a, b in pairs]
+    if not slopes:
+        return 0.0
+    return min(MAX_SKEW, max(-MAX_SKEW, statistics.median(slopes)))
 
 
 class AutopilotClock:
@@ -57,14 +102,19 @@ class AutopilotClock:
 
     ``max_drift``: how fast (s/s) the offset may grow without new evidence (clock drift:
     crystals are within 1e-4; the default allows 1e-3). ``max_rtt_s``: the longest TIMESYNC
-    round trip trusted.
+    round trip trusted. ``skew_horizon_s``: how long after the newest trusted round trip the
+    skew it shows carries the offset on.
     """
 
-    def __init__(self, max_drift: float = 1.0e-3, max_rtt_s: float = 0.05) -> None:
-        if not (0.0 <= max_drift < 0.1) or max_rtt_s <= 0.0:
-            raise ValueError(f"max_drift {max_drift} must be in [0, 0.1), max_rtt_s > 0")
+    def __init__(
+        self, max_drift: float = 1.0e-3, max_rtt_s: float = 0.05, skew_horizon_s: float = 1.0
+    ) -> None:
+        if not (0.0 <= max_drift < 0.1) or max_rtt_s <= 0.0 or skew_horizon_s < 0.0:
+            raise ValueError(f"max_drift {max_drift} must be in [0, 0.1), max_rtt_s > 0, "
+                             f"skew_horizon_s >= 0 ({max_rtt_s}, {skew_horizon_s})")  # fmt: skip
         self.max_drift = max_drift
         self.max_rtt_s = max_rtt_s
+        self.skew_horizon_s = skew_horizon_s
         self.counters = {"timesync_accepted": 0, "timesync_rejected_rtt": 0, "clock_resets": 0}
         self.reset(count=False)
 
@@ -74,6 +124,8 @@ class AutopilotClock:
         self._bound_at_s = 0.0
         self._last_delay_s = math.inf  # received - stamp of the previous sample
         self._sync: RoundTrip | None = None
+        self._trips: deque[RoundTrip] = deque(maxlen=SKEW_TRIPS)
+        self.skew = 0.0  # the offset's rate (s/s) the recent round trips show
         if count:
             self.counters["clock_resets"] += 1
 
@@ -107,14 +159,27 @@ class AutopilotClock:
             return False
         self.counters["timesync_accepted"] += 1
         self._sync = trip
+        self._trips.append(trip)
+        self.skew = skew_of(self._trips)
         # the stream bound restarts from the round trip's own upper bound: samples lower it
         # again to the fastest delivery, and a stepped clock is not held at its old offset
         self._bound_s, self._bound_at_s = received_s - tc1_s, received_s
         self._last_delay_s = math.inf
         return True
 
+    def _skewed_s(self, from_s: float, to_s: float) -> float:
+        """What the skew moves the offset by from local time ``from_s`` to ``to_s``, within
+        the horizon after the newest trusted round trip (none after it)."""
+        sync = self._sync
+        if sync is None or self.skew == 0.0:
+            return 0.0
+        end_s = sync.received_s + self.skew_horizon_s
+        return self.skew * (min(to_s, end_s) - min(from_s, end_s))
+
     def _bound_now(self, now_s: float) -> float:
-        return self._bound_s + self.max_drift * max(0.0, now_s - self._bound_at_s)
+        since_s = max(0.0, now_s - self._bound_at_s)
+        rise_s = max(0.0, self._skewed_s(self._bound_at_s, self._bound_at_s + since_s))
+        return self._bound_s + self.max_drift * since_s + rise_s
 
     def offset_s(self, now_s: float) -> float | None:
         """theta at local time ``now_s``; None before any evidence."""
@@ -122,9 +187,9 @@ class AutopilotClock:
         sync = self._sync
         if sync is None:
             return None if math.isinf(bound_s) else bound_s
-        # the round trip's estimate (refreshed every request; not drifted: its error has no
-        # known sign), never above the stream bound
-        return min(sync.offset_s, bound_s)
+        # the round trip's estimate (refreshed every request), carried on at the skew (not
+        # drifted: its error has no known sign), never above the stream bound
+        return min(sync.offset_s + self._skewed_s(sync.mid_s, now_s), bound_s)
 
     def to_local(self, stamp_s: float, now_s: float) -> float | None:
         """When (local time) a sample stamped ``stamp_s`` was measured; None if unknown."""
