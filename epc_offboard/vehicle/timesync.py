@@ -49,7 +49,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 # the autopilot's clock rate against ours, as 1 - rate (s/s): at most a simulator at half real
-# time, or running twice as fast
+# time. Only a SLOWER clock is carried on: a faster one (a simulator sprinting to catch up)
+# lowers the offset, and the stream bound follows that at once (its fastest delivery); a
+# negative skew carried on would only make fresh samples look older
 MAX_SKEW = 0.5
 SKEW_TRIPS = 9  # the trusted round trips whose successive slopes give the skew (8 slopes)
 SKEW_MIN_SPAN_S = 1.0  # ... spanning at least this long (their offsets' noise, over a span)
@@ -84,17 +86,17 @@ class RoundTrip:
 def skew_of(trips: Sequence[RoundTrip]) -> float:
     """The offset's rate (s/s, 1 - the autopilot's clock rate against ours) the round trips
     ``trips`` (in order) show: the median of their successive slopes (of trips at least
-    ``SKEW_MIN_GAP_S`` apart), clipped to ``MAX_SKEW``; 0 with fewer than three trips or a
-    span under ``SKEW_MIN_SPAN_S``. A step
-    of the autopilot's clock (a simulator re-anchoring) or one forged answer is one or two
-    slopes of eight, and moves the median little."""
+    ``SKEW_MIN_GAP_S`` apart), clipped to [0, ``MAX_SKEW``]; 0 with fewer than three trips
+    or a span under ``SKEW_MIN_SPAN_S``. A step of the autopilot's clock (a simulator
+    re-anchoring) or one forged answer is one or two slopes of eight, and moves the median
+    little."""
     if len(trips) < 3 or trips[-1].mid_s - trips[0].mid_s < SKEW_MIN_SPAN_S:
         return 0.0
     pairs = [(a, b) for a, b in itertools.pairwise(trips) if b.mid_s - a.mid_s >= SKEW_MIN_GAP_S]
     slopes = [(b.offset_s - a.offset_s) / (b.mid_s - a.mid_s) for a, b in pairs]
     if not slopes:
         return 0.0
-    return min(MAX_SKEW, max(-MAX_SKEW, statistics.median(slopes)))
+    return min(MAX_SKEW, max(0.0, statistics.median(slopes)))
 
 
 class AutopilotClock:
