@@ -5,11 +5,13 @@ bench with the cause)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -47,6 +49,56 @@ def test_a_running_child_is_starting_past_its_stall_bound_and_a_stopped_one_is_c
     assert why is not None
     assert "stopped or wedged" in why, why
     assert time.monotonic() - t0 < 10.0
+
+
+@contextlib.contextmanager
+def _quota(pid: int, cpu_us_per_s: int) -> Iterator[None]:
+    """``pid`` in a CPU cgroup of its own allowed ``cpu_us_per_s`` of CPU each second: once
+    it has spent that, it waits in its run queue (state R) for the rest of the second, as
+    a process queued behind CPU hogs does, without them (v1's cpu controller or v2's
+    cpu.max; the test is skipped where neither can be made: not root)."""
+    name = f"epc-start-watch-{os.getpid()}"
+    v2, v1 = Path("/sys/fs/cgroup"), Path("/sys/fs/cgroup/cpu")
+    controllers = v2 / "cgroup.controllers"
+    try:
+        if controllers.exists() and "cpu" in controllers.read_text().split():
+            group = v2 / name
+            group.mkdir()
+            (group / "cpu.max").write_text(f"{cpu_us_per_s} 1000000")
+        else:
+            group = v1 / name
+            group.mkdir()
+            (group / "cpu.cfs_period_us").write_text("1000000")
+            (group / "cpu.cfs_quota_us").write_text(str(cpu_us_per_s))
+    except OSError as e:
+        pytest.skip(f"no CPU cgroup of our own here: {e}")
+    try:
+        (group / "cgroup.procs").write_text(str(pid))
+        yield
+    finally:
+        with contextlib.suppress(OSError):  # out again (to the parent group), then gone
+            (group.parent / "cgroup.procs").write_text(str(pid))
+        for _ in range(50):
+            with contextlib.suppress(OSError):
+                group.rmdir()
+                break
+            time.sleep(0.02)
+
+
+def test_a_child_queued_for_a_cpu_past_its_stall_bound_is_starting(busy):
+    """A wait in a run queue shows in the child's schedstat only when it ends: beside two
+    CPU hogs a busy child went 0.6 s (nice 0) to 2.4 s (nice +10) with none of its
+    progress figures changing, in state R all along, and the watch said "no CPU used or
+    waited for" (stop 44: test_sharing's 0.5 s stall bound at load 8-12). Here a CPU
+    quota holds it queued 0.999 s of each second: it is starting, state R, and a stop is
+    still caught."""
+    with _quota(busy.pid, 1000):
+        watch = StartWatch(busy.pid, stall_s=0.3, cap_s=600.0)
+        assert _judge(watch, 3.0) is None  # before: "no CPU used or waited for" at 0.35 s
+        os.kill(busy.pid, signal.SIGSTOP)
+        why = _judge(watch, 10.0)
+        assert why is not None
+        assert "stopped or wedged" in why, why
 
 
 def test_a_running_child_not_up_in_the_cap_is_said(busy):
