@@ -106,7 +106,7 @@ class LockstepGate:
     async def _answer_or(self, loop: asyncio.AbstractEventLoop, timeout_s: float) -> None:
         """Until the next answer, or ``timeout_s``: one future and one timer. (An
         ``asyncio.wait_for`` on an Event ran a task of its own and two more passes of the
-        event loop every tick: some 5 % of a lockstep SITL's CPU, stop 44.)"""
+        event loop every tick: 63 against 36 us of CPU a tick, 2 % of a lockstep SITL's.)"""
         waiter = loop.create_future()
         self._waiter = waiter
         timer = loop.call_later(timeout_s, _release, waiter)
