@@ -53,7 +53,6 @@ runs on with the monotonic clock, for TIMESYNC and for stamping what arrives.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 from collections.abc import Callable
 
@@ -82,7 +81,8 @@ class LockstepGate:
         self._fell_back = False
         self._unanswered_timeouts = 0
         self._consecutive_timeouts = 0
-        self._event = asyncio.Event()
+        # what a wait awaits: the next answer's (``on_answer`` resolves it), or its timer's
+        self._waiter: asyncio.Future[None] | None = None
 
     def on_answer(self, time_boot_ms: int) -> None:
         self.newest_stamp_ms = max(self.newest_stamp_ms, time_boot_ms)
@@ -94,17 +94,27 @@ class LockstepGate:
         if self.enabled:
             self.waiting = True
             self.joined = True
-        self._event.set()
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
 
     def on_offboard(self, intended: bool) -> None:
         """The vehicle's intended mode became offboard (``intended``: the controller commands
         it) or left it on a request (the controller handed it back: HOLD, LAND)."""
         self.handed_back = not intended
 
-    async def _event_or(self, timeout_s: float) -> None:
-        self._event.clear()
-        with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._event.wait(), timeout_s)
+    async def _answer_or(self, loop: asyncio.AbstractEventLoop, timeout_s: float) -> None:
+        """Until the next answer, or ``timeout_s``: one future and one timer. (An
+        ``asyncio.wait_for`` on an Event ran a task of its own and two more passes of the
+        event loop every tick: 63 against 36 us of CPU a tick, 2 % of a lockstep SITL's.)"""
+        waiter = loop.create_future()
+        self._waiter = waiter
+        timer = loop.call_later(timeout_s, _release, waiter)
+        try:
+            await waiter
+        finally:
+            timer.cancel()
+            self._waiter = None
 
     async def wait_for(
         self, stamp_ms: int, announce: Callable[[], None], stop: asyncio.Event
@@ -116,9 +126,10 @@ class LockstepGate:
         gone, and the clock falls back to real-time pace (a single timeout that advanced
         physics made two lockstep runs on a loaded machine differ); ``left_max_timeouts``
         once the controller has handed the vehicle back."""
+        loop = asyncio.get_running_loop()
         while not self.joined and not stop.is_set():
             announce()
-            await self._event_or(ANNOUNCE_PERIOD_S)
+            await self._answer_or(loop, ANNOUNCE_PERIOD_S)
         deadline = time.monotonic() + self.timeout_s
         while self.newest_stamp_ms < stamp_ms and not stop.is_set():
             remaining = deadline - time.monotonic()
@@ -136,8 +147,14 @@ class LockstepGate:
                     return
                 deadline = time.monotonic() + self.timeout_s
                 continue
-            await self._event_or(remaining)
+            await self._answer_or(loop, remaining)
         self._consecutive_timeouts = 0
+
+
+def _release(waiter: asyncio.Future[None]) -> None:
+    """A wait's timer: the wait ends without an answer (its caller counts the timeout)."""
+    if not waiter.done():
+        waiter.set_result(None)
 
 
 class Clock:

@@ -118,15 +118,16 @@ def test_bench_attack_runs_the_attack_benchmark_with_its_options(monkeypatch):
 def test_the_parser_and_sims_launcher_import_no_control_stack():
     """Every command's parser (``--help`` included) lists the scenarios without importing
     numba (0.46 -> 0.19 CPU-s for ``--help``), and ``sim``'s own process flies no
-    controller: it imports neither the service's config nor OSQP (~0.7 CPU-s a flight).
-    A fresh interpreter each: the modules a real start-up loads."""
+    controller: it imports neither the service's config nor OSQP (~0.7 CPU-s a flight),
+    nor numba (the trajectories' kernels, for the scenario's TrajectoryConfig: 0.4 CPU-s
+    a flight until stop 44). A fresh interpreter each: the modules a real start-up loads."""
     code = (
         "import sys\n"
         "from epc_offboard.cli import build_parser\n"
         "build_parser()\n"
         "assert 'numba' not in sys.modules, 'the parser imports numba'\n"
-        "import epc_offboard.tools.sim.command\n"
-        "heavy = {'epc_offboard.service.config', 'osqp'} & set(sys.modules)\n"
+        "import epc_offboard.tools.sim.command, epc_offboard.tools.sim.orchestrate\n"
+        "heavy = {'epc_offboard.service.config', 'osqp', 'numba'} & set(sys.modules)\n"
         "assert not heavy, heavy\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

@@ -18,7 +18,7 @@ from epc_offboard.control.attitude import AttitudeControlConfig
 from epc_offboard.control.candidate_pool import CandidatePoolConfig
 from epc_offboard.control.perturbation import EstimatorConfig
 from epc_offboard.control.position import PositionControlConfig
-from epc_offboard.control.trajectories import TrajectoryConfig
+from epc_offboard.control.trajectory_config import TrajectoryConfig
 from epc_offboard.fleet.config import SharingConfig
 from epc_offboard.service.airframe_file import DEFAULT_VEHICLE_FILE, load_airframe
 from epc_offboard.vehicle.offboard import OffboardConfig

@@ -245,3 +245,28 @@ def test_the_shipped_bound_outlasts_the_services_own_longest_lockstep_wait():
     for i, sitl in enumerate(shipped):
         bounds[str(i)] = sitl["lockstep_timeout_s"] * sitl["lockstep_max_timeouts"]
     assert min(bounds.values()) > WAIT_TIMEOUT_S + START_TIMEOUT_S, bounds
+
+
+def test_an_answer_releases_the_wait_at_the_next_pass_of_the_loop_without_a_task_of_its_own():
+    """The lockstep handshake is paid every tick: waiting for the answer runs no task beside
+    the clock's, and the answer's datagram releases the clock at the very next pass of the
+    event loop (an ``asyncio.wait_for`` on an Event ran a task per tick and took three)."""
+
+    async def main() -> tuple[int, int, bool]:
+        gate = LockstepGate(enabled=True, timeout_s=1.0, max_timeouts=20)
+        gate.on_answer(0)
+        waiting = asyncio.create_task(gate.wait_for(5, lambda: None, asyncio.Event()))
+        for _ in range(3):  # the wait settles: its futures, timers (and any task) are set up
+            await asyncio.sleep(0)
+        tasks = len(asyncio.all_tasks())  # this test's and the wait's own
+        gate.on_answer(5)  # the answer, as the datagram's handler delivers it
+        passes = 0
+        while not waiting.done() and passes < 10:
+            await asyncio.sleep(0)
+            passes += 1
+        return tasks, passes, gate.newest_stamp_ms == 5
+
+    tasks, passes, answered = asyncio.run(main())
+    assert answered
+    assert tasks == 2
+    assert passes == 1

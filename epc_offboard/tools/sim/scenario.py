@@ -16,7 +16,7 @@ from typing import Any
 from epc_offboard.common.bundled import bundled_dir, scenario_dir
 from epc_offboard.common.cliargs import parse_wind_profile
 from epc_offboard.common.configio import ConfigError, from_dict
-from epc_offboard.control.trajectories import TrajectoryConfig
+from epc_offboard.control.trajectory_config import TrajectoryConfig
 from epc_offboard.service.airframe_file import airframe_path
 from epc_offboard.tools.sim.envelope import EnvelopeConfig
 from epc_offboard.tools.targets import CompareConfig, TargetConfig
