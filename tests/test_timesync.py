@@ -267,3 +267,27 @@ def test_trusted_answers_however_delayed_hide_no_more_lateness_than_their_bound(
     assert mapped is not None
     hidden = 0.5 * clock.max_rtt_s + skew_bound * (clock.skew_horizon_s + 0.5 * clock.max_rtt_s)
     assert now - mapped >= late_s - hidden - 1e-9
+
+
+def test_a_request_unanswered_past_the_longest_trusted_round_trip_stops_the_skew():
+    """A late reader reads the answer late: from ``max_rtt_s`` after a request without a
+    trusted answer, the skew carries the offset no further (the horizon alone would carry it
+    on for two request periods: lateness that appears then would be hidden by the skew)."""
+    clock = AutopilotClock(skew_horizon_s=1.0)
+    ap = SlowAutopilot(0.8)
+    end = THETA_S + 8.0
+    for _ in ap.fly(clock, THETA_S, end, [0.002], [0.5]):
+        pass
+    assert clock.skew == pytest.approx(0.2, abs=0.01)
+    last = clock.last_round_trip
+    assert last is not None
+    asked = last.received_s + 0.1
+    clock.requested(asked)
+    held = clock.offset_s(asked + clock.max_rtt_s)
+    assert held is not None
+    assert clock.offset_s(asked + 0.5) == pytest.approx(held, abs=1e-9)
+    # answered in time, it is carried on again
+    assert clock.timesync(asked, ap.stamp_s(asked + 0.001), asked + 0.002)
+    moving = clock.offset_s(asked + 0.3)
+    assert moving is not None
+    assert moving > held + 0.03

@@ -389,6 +389,7 @@ class Autopilot:
         msg = commands.timesync_request(sent_s)
         sent[int(msg.ts1)] = sent_s
         self.link.send(msg)
+        self.tracker.clock.requested(sent_s)
 
     def _manage_rates(self, now: float, link_up: bool) -> None:
         """Ask for the loops' rates when the link comes up, again while a measured stream

@@ -29,7 +29,9 @@ from two kinds of evidence (pure bookkeeping, the caller gives every time):
   second, far beyond a crystal's drift. Between two round trips the offset is carried on at
   the skew the recent trusted round trips show (the median of their successive slopes, so one
   step of the autopilot's clock or one forged answer does not set it), for at most
-  ``skew_horizon_s`` after the newest one: without fresh evidence, samples age again. Before,
+  ``skew_horizon_s`` after the newest one, and no longer than ``max_rtt_s`` after a request
+  that has had no trusted answer (a late reader's answer is late: its lateness is not carried
+  away by the skew): without fresh evidence, samples age again. Before,
   the offset stood still between round trips, and at a rate of 0.9 every sample looked up to
   50 ms old before the next one: the attitude loop judged them late and flew no body rates.
 
@@ -127,6 +129,7 @@ class AutopilotClock:
         self._last_delay_s = math.inf  # received - stamp of the previous sample
         self._sync: RoundTrip | None = None
         self._trips: deque[RoundTrip] = deque(maxlen=SKEW_TRIPS)
+        self._unanswered_s = math.inf  # the first request sent since the newest trusted trip
         self.skew = 0.0  # the offset's rate (s/s) the recent round trips show
         if count:
             self.counters["clock_resets"] += 1
@@ -152,6 +155,11 @@ class AutopilotClock:
             bound_s = delay_s  # the first sample: the only evidence there is
         self._bound_s, self._bound_at_s = bound_s, received_s
 
+    def requested(self, sent_s: float) -> None:
+        """A TIMESYNC request went out at ``sent_s``: unanswered (trusted) by ``sent_s +
+        max_rtt_s``, the skew stops carrying the offset on from then."""
+        self._unanswered_s = min(self._unanswered_s, sent_s)
+
     def timesync(self, sent_s: float, tc1_s: float, received_s: float) -> bool:
         """A TIMESYNC answer: our request went out at ``sent_s``, the autopilot's time was
         ``tc1_s``, the answer came at ``received_s``. True when trusted (and used)."""
@@ -161,6 +169,7 @@ class AutopilotClock:
             return False
         self.counters["timesync_accepted"] += 1
         self._sync = trip
+        self._unanswered_s = math.inf
         self._trips.append(trip)
         self.skew = skew_of(self._trips)
         # the stream bound restarts from the round trip's own upper bound: samples lower it
@@ -171,11 +180,12 @@ class AutopilotClock:
 
     def _skewed_s(self, from_s: float, to_s: float) -> float:
         """What the skew moves the offset by from local time ``from_s`` to ``to_s``, within
-        the horizon after the newest trusted round trip (none after it)."""
+        the horizon after the newest trusted round trip and before a request has gone
+        unanswered (none after)."""
         sync = self._sync
         if sync is None or self.skew == 0.0:
             return 0.0
-        end_s = sync.received_s + self.skew_horizon_s
+        end_s = min(sync.received_s + self.skew_horizon_s, self._unanswered_s + self.max_rtt_s)
         return self.skew * (min(to_s, end_s) - min(from_s, end_s))
 
     def _bound_now(self, now_s: float) -> float:
