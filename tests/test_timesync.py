@@ -199,16 +199,23 @@ def test_an_autopilot_clock_slower_than_ours_is_followed_between_round_trips(rat
     assert worst <= 0.0025 + 0.5 * (2 * 0.0025 / 0.5) + 1e-6, (worst, clock.skew)
 
 
-def test_without_fresh_round_trips_the_skew_stops_carrying_the_offset():
-    """Learnt at a rate of 0.8 (skew 0.2), then no answer is trusted (a late reader reads the
-    answers late too): the skew carries the offset on for ``skew_horizon_s`` and no further,
-    and a sample read 1 s late is 1 s old, less what the horizon's skew granted."""
+def learnt_at_0_8() -> tuple[AutopilotClock, SlowAutopilot, float]:
+    """A clock that has followed an autopilot at rate 0.8 for 8 s of round trips every
+    0.5 s (2 ms each): its skew learnt, 0.2. Returns it, the autopilot and the local time."""
     clock = AutopilotClock(skew_horizon_s=1.0)
     ap = SlowAutopilot(0.8)
     end = THETA_S + 8.0
     for _ in ap.fly(clock, THETA_S, end, [0.002], [0.5]):
         pass
     assert clock.skew == pytest.approx(0.2, abs=0.01)
+    return clock, ap, end
+
+
+def test_without_fresh_round_trips_the_skew_stops_carrying_the_offset():
+    """Learnt at a rate of 0.8 (skew 0.2), then no answer is trusted (a late reader reads the
+    answers late too): the skew carries the offset on for ``skew_horizon_s`` and no further,
+    and a sample read 1 s late is 1 s old, less what the horizon's skew granted."""
+    clock, ap, end = learnt_at_0_8()
     # the answers now come 1 s late: rejected
     assert not clock.timesync(end + 0.5, ap.stamp_s(end + 0.5), end + 1.5)
     late = end + 30.0
@@ -273,12 +280,7 @@ def test_a_request_unanswered_past_the_longest_trusted_round_trip_stops_the_skew
     """A late reader reads the answer late: from ``max_rtt_s`` after a request without a
     trusted answer, the skew carries the offset no further (the horizon alone would carry it
     on for two request periods: lateness that appears then would be hidden by the skew)."""
-    clock = AutopilotClock(skew_horizon_s=1.0)
-    ap = SlowAutopilot(0.8)
-    end = THETA_S + 8.0
-    for _ in ap.fly(clock, THETA_S, end, [0.002], [0.5]):
-        pass
-    assert clock.skew == pytest.approx(0.2, abs=0.01)
+    clock, ap, _ = learnt_at_0_8()
     last = clock.last_round_trip
     assert last is not None
     asked = last.received_s + 0.1

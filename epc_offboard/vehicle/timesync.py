@@ -25,20 +25,20 @@ from two kinds of evidence (pure bookkeeping, the caller gives every time):
   simulator fell behind real time and re-anchored), and restarts the stream bound from it.
 
 * the autopilot's clock rate against ours (skew): a simulator running slower than real
-  time (Gazebo at a real-time factor of 0.9, a starved SITL) moves theta by 1 - its rate every
-  second, far beyond a crystal's drift. Between two round trips the offset is carried on at
-  the skew the recent trusted round trips show (the median of their successive slopes, so one
-  step of the autopilot's clock or one forged answer does not set it), for at most
-  ``skew_horizon_s`` after the newest one, and no longer than ``max_rtt_s`` after a request
-  that has had no trusted answer (a late reader's answer is late: its lateness is not carried
-  away by the skew): without fresh evidence, samples age again. Before,
-  the offset stood still between round trips, and at a rate of 0.9 every sample looked up to
+  time (Gazebo at a real-time factor of 0.9, a starved SITL) moves theta by 1 - its rate
+  every second, far beyond a crystal's drift. Between two round trips the offset is carried
+  on at the skew the recent trusted round trips show (the median of their successive
+  slopes, so one step of the autopilot's clock or one forged answer does not set it), for at
+  most ``skew_horizon_s`` after the newest one, and no longer than ``max_rtt_s`` after a
+  request that has had no trusted answer (a late reader's answer is late: its lateness is
+  not carried away by the skew): without fresh evidence, samples age again. Before, the
+  offset stood still between round trips, and at a rate of 0.9 every sample looked up to
   50 ms old before the next one: the attitude loop judged them late and flew no body rates.
 
 The estimate is the smaller of the two (the stream bound is a bound: an estimate above it
 would call a sample measured after it arrived); the bound may rise at the skew too, within
-the same horizon. A timeline resync (autopilot reboot: its
-stamps restart) must :meth:`reset` the mapping; until the next sample there is none.
+the same horizon. A timeline resync (autopilot reboot: its stamps restart) must
+:meth:`reset` the mapping; until the next sample there is none.
 """
 
 from __future__ import annotations
@@ -190,7 +190,7 @@ class AutopilotClock:
 
     def _bound_now(self, now_s: float) -> float:
         since_s = max(0.0, now_s - self._bound_at_s)
-        rise_s = max(0.0, self._skewed_s(self._bound_at_s, self._bound_at_s + since_s))
+        rise_s = self._skewed_s(self._bound_at_s, self._bound_at_s + since_s)  # skew >= 0
         return self._bound_s + self.max_drift * since_s + rise_s
 
     def offset_s(self, now_s: float) -> float | None:
